@@ -1,0 +1,1 @@
+"""rsmooth: randomized smoothing for optimizing non-smooth physical processes in JAX."""
