@@ -1,1 +1,25 @@
-"""rsmooth: randomized smoothing for optimizing non-smooth physical processes in JAX."""
+"""rsmooth: randomized smoothing for optimizing non-smooth physical processes in JAX.
+
+The smoothing core: noise laws (:mod:`rsmooth.noise`), Monte-Carlo gradient estimators
+(:func:`zeroth_order`, :func:`first_order`, :func:`alpha_order`), the :func:`smooth`
+transform, noise schedules (:mod:`rsmooth.schedules`), perturbed optimizers
+(:mod:`rsmooth.perturbed`) and estimator diagnostics (:mod:`rsmooth.stats`).
+"""
+
+from rsmooth import noise, perturbed, schedules, stats
+from rsmooth.estimators import Estimate, alpha_order, first_order, zeroth_order
+from rsmooth.smooth import smooth
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Estimate",
+    "alpha_order",
+    "first_order",
+    "noise",
+    "perturbed",
+    "schedules",
+    "smooth",
+    "stats",
+    "zeroth_order",
+]

@@ -1,0 +1,80 @@
+"""Argument checks shared by the public functions.
+
+Host checks raise `TypeError`/`ValueError` before anything is traced. Values that are traced
+(under `jax.jit`, `jax.vmap`, `jax.grad`) cannot be inspected on the host: they are checked at
+run time with `equinox.error_if`, which raises an error carrying the same message when the
+compiled program runs (the documented mechanism for checks under `jit`).
+"""
+
+from __future__ import annotations
+
+import numbers
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def is_traced(value) -> bool:
+    return isinstance(value, jax.core.Tracer)
+
+
+def check_key(key, name: str = "key") -> None:
+    """A PRNG key: a typed key array (`jax.random.key`) or a raw uint32 key of shape (2,)."""
+    dtype = getattr(key, "dtype", None)
+    if dtype is not None and jax.dtypes.issubdtype(dtype, jax.dtypes.prng_key):
+        if np.shape(key) != ():
+            raise ValueError(f"{name} must be a single PRNG key, got a key array of shape {np.shape(key)}")
+        return
+    if dtype is not None and dtype == jnp.uint32 and np.shape(key) == (2,):
+        return
+    raise TypeError(
+        f"{name} must be a PRNG key from jax.random.key(seed) (or jax.random.PRNGKey), "
+        f"got {type(key).__name__} with dtype {dtype}"
+    )
+
+
+def check_num_samples(num_samples, name: str = "num_samples", minimum: int = 1) -> int:
+    if isinstance(num_samples, bool) or not isinstance(num_samples, numbers.Integral):
+        raise TypeError(f"{name} must be a Python int (it fixes array shapes), got {num_samples!r}")
+    if num_samples < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {num_samples}")
+    return int(num_samples)
+
+
+def check_positive_scalar(value, name: str):
+    """A positive, finite scalar; returns it as a JAX array (checked at run time if traced)."""
+    if np.ndim(value) != 0:
+        raise ValueError(f"{name} must be a scalar, got shape {np.shape(value)}")
+    array = jnp.asarray(value)
+    if not jnp.issubdtype(array.dtype, jnp.floating):
+        array = array.astype(float)
+    if is_traced(value):
+        bad = ~(jnp.isfinite(array) & (array > 0))
+        return eqx.error_if(array, bad, f"{name} must be positive and finite")
+    if not (np.isfinite(float(value)) and float(value) > 0):
+        raise ValueError(f"{name} must be positive and finite, got {float(value)}")
+    return array
+
+
+def check_floating_tree(tree, name: str) -> None:
+    leaves = jax.tree.leaves(tree)
+    if not leaves:
+        raise ValueError(f"{name} must contain at least one array, got an empty pytree")
+    for leaf in leaves:
+        dtype = jnp.result_type(leaf)
+        if not jnp.issubdtype(dtype, jnp.floating):
+            raise TypeError(
+                f"{name} must hold floating-point arrays (smoothing perturbs them), got dtype {dtype}"
+            )
+
+
+def check_finite(array, message: str):
+    """Returns `array`, raising `ValueError(message)` now if it is concrete and not finite,
+    or an `equinox` runtime error with the same message when a traced value is not finite."""
+    if is_traced(array):
+        return eqx.error_if(array, ~jnp.all(jnp.isfinite(array)), message)
+    if not bool(jnp.all(jnp.isfinite(array))):
+        raise ValueError(message)
+    return array

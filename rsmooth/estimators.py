@@ -1,0 +1,470 @@
+r"""Monte-Carlo estimators of the value and gradient of a randomly smoothed function.
+
+For a function :math:`f` and a noise law :math:`\mu` (see :mod:`rsmooth.noise`), the smoothed
+function is
+
+.. math:: f_\sigma(x) = \mathbb{E}_{z \sim \mu}\, f(x + \sigma z),
+
+and its gradient can be estimated from :math:`M` samples in two ways:
+
+* zeroth order (score function, Berthet et al. 2020, Prop. 3.1):
+  :math:`\hat g_0 = \frac{1}{M} \sum_i (f(x + \sigma z_i) - b)\, (-\nabla \log\mu(z_i)) / \sigma`,
+  with the baseline :math:`b = f(x)` (it does not change the mean, since
+  :math:`\mathbb{E}\nabla\log\mu(z) = 0`, and removes most of the variance);
+* first order (pathwise): :math:`\hat g_1 = \frac{1}{M}\sum_i \nabla f(x + \sigma z_i)`,
+  unbiased only where :math:`f` is differentiable almost surely *and* continuous: it is
+  exactly zero for a step function.
+
+The alpha-order estimator (Suh, Simchowitz, Zhang, Tedrake, "Do differentiable simulators
+give better policy gradients?", ICML 2022, Sec. 4) blends the two, computed on independent
+sample batches, choosing alpha from their empirical variances inside an empirical-bias trust
+region.
+
+All estimators also return :math:`\partial f_\sigma / \partial \sigma`, which the adaptive
+noise schedules use.
+
+`x` may be any pytree of floating arrays; `f` returns one array (of any shape). For a scalar
+`f`, `grad` has the structure of `x`; otherwise each leaf of `grad` has shape
+`f_shape + leaf_shape`, as `jax.jacrev` would give.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax import Array
+from jax.flatten_util import ravel_pytree
+from jax.typing import ArrayLike
+
+from rsmooth import _checks
+from rsmooth.noise import Gaussian, Noise
+
+__all__ = ["Estimate", "zeroth_order", "first_order", "alpha_order"]
+
+
+class Estimate(eqx.Module):
+    """The result of an estimator.
+
+    Attributes:
+        value: Monte-Carlo estimate of :math:`f_\\sigma(x)` (shape of `f`'s output).
+        grad: estimate of :math:`\\nabla f_\\sigma(x)` (structure of `x`; a Jacobian for
+            array-valued `f`).
+        sigma_grad: estimate of :math:`\\partial f_\\sigma(x) / \\partial\\sigma` (shape of
+            `f`'s output).
+        stats: diagnostics, a dict of arrays. Always: ``variance`` (the estimated variance of
+            `grad`, summed over its entries: the trace of its covariance) and ``std_error``
+            (elementwise standard error, structure of `grad`). Alpha-order adds ``alpha``,
+            ``alpha_star`` (the variance-optimal blend), ``bias`` (empirical bias, the norm of
+            the difference of the two estimates), ``radius`` (confidence radius of the
+            zeroth-order estimate), ``bias_radius`` (the bias sampling noise alone explains),
+            ``gamma`` (the trust region used), ``variance_first``,
+            ``variance_zeroth``.
+    """
+
+    value: Array
+    grad: object
+    sigma_grad: Array
+    stats: dict
+
+
+class _Flat(NamedTuple):
+    """`f` seen as a map from a flat vector (d,) to a flat vector (m,)."""
+
+    x: Array
+    f: Callable[[Array], Array]
+    unravel: Callable
+    out_shape: tuple
+
+
+class _FlatEstimate(NamedTuple):
+    value: Array  # (m,)
+    jacobian: Array  # (m, d)
+    sigma_grad: Array  # (m,)
+    variance: Array  # (m, d): variance of each Jacobian entry's estimate
+    max_score_norm: Array  # largest ||z|| * ||score(z)||, for Lipschitz-based radii
+
+
+def _flatten(f, x) -> _Flat:
+    _checks.check_floating_tree(x, "x")
+    flat_x, unravel = ravel_pytree(x)
+    flat_x = _checks.check_finite(flat_x, "x must be finite (it contains NaN or inf)")
+    out = jax.eval_shape(f, x)
+    if not isinstance(out, jax.ShapeDtypeStruct):
+        raise TypeError(
+            f"f must return a single array, got a {type(out).__name__}; "
+            "stack the outputs into one array"
+        )
+    if not jnp.issubdtype(out.dtype, jnp.floating):
+        raise TypeError(f"f must return floating-point values, got dtype {out.dtype}")
+
+    def f_flat(v):
+        return jnp.reshape(f(unravel(v)), (-1,)).astype(v.dtype)
+
+    return _Flat(flat_x, f_flat, unravel, out.shape)
+
+
+def _unflatten_jacobian(flat: _Flat, jacobian: Array):
+    """(m, d) -> the structure of x, each leaf of shape out_shape + leaf_shape."""
+    tree = jax.vmap(flat.unravel)(jacobian)
+    return jax.tree.map(lambda leaf: jnp.reshape(leaf, flat.out_shape + leaf.shape[1:]), tree)
+
+
+def _check_options(sigma, num_samples, noise, *, antithetic=False, needs_score=False, minimum=1):
+    if not isinstance(noise, Noise):
+        raise TypeError(f"noise must be an rsmooth.noise.Noise (e.g. Gaussian()), got {noise!r}")
+    num_samples = _checks.check_num_samples(num_samples, minimum=minimum)
+    if antithetic:
+        if num_samples % 2:
+            raise ValueError(f"num_samples must be even with antithetic=True, got {num_samples}")
+        if not noise.symmetric:
+            raise ValueError(
+                f"antithetic=True needs a symmetric noise law; {type(noise).__name__} is not"
+            )
+    if needs_score and not noise.has_score:
+        raise ValueError(
+            f"the zeroth-order estimator needs a noise law with a differentiable density; "
+            f"{type(noise).__name__} has none (use first_order with it)"
+        )
+    return _checks.check_positive_scalar(sigma, "sigma"), num_samples
+
+
+def sample_noise(noise: Noise, key: Array, num_samples: int, dim: int, dtype, antithetic: bool) -> Array:
+    """(num_samples, dim) noise; with `antithetic`, the second half is minus the first."""
+    if antithetic:
+        half = noise.sample(key, (num_samples // 2, dim), dtype)
+        return jnp.concatenate([half, -half])
+    return noise.sample(key, (num_samples, dim), dtype)
+
+
+_NONFINITE_F = "f returned a non-finite value (NaN or inf) at a perturbed point x + sigma * z"
+_NONFINITE_GRAD = "the gradient of f is not finite (NaN or inf) at a perturbed point x + sigma * z"
+
+
+def _mean_and_variance(a: Array, w: Array):
+    """Mean over units i of the outer products a_i w_i^T, and the variance of that mean,
+    entry by entry, without forming the (N, m, d) array of terms."""
+    n = a.shape[0]
+    mean = jnp.einsum("im,id->md", a, w) / n
+    second = jnp.einsum("im,id->md", a**2, w**2) / n
+    if n == 1:
+        return mean, jnp.full_like(mean, jnp.inf)
+    variance = jnp.maximum(second - mean**2, 0.0) / (n - 1)
+    return mean, variance
+
+
+def _zeroth_order_flat(flat: _Flat, key, sigma, num_samples, noise, baseline, antithetic) -> _FlatEstimate:
+    dim = flat.x.shape[0]
+    z = sample_noise(noise, key, num_samples, dim, flat.x.dtype, antithetic)
+    values = jax.vmap(flat.f)(flat.x + sigma * z)
+    values = _checks.check_finite(values, _NONFINITE_F)
+    score = noise.score(z)
+    weights = -score / sigma
+    # d/dsigma of log[mu((y - x)/sigma) / sigma^d] = -(z . score(z) + d) / sigma.
+    sigma_weights = -(jnp.sum(z * score, axis=-1) + dim) / sigma
+    reference = flat.f(flat.x) if baseline else jnp.zeros_like(values[0])
+    centred = values - reference
+    if antithetic:
+        # A pair (z, -z) is one independent unit; for a symmetric law the score is odd, so
+        # the pair's term is (f(x + sigma z) - f(x - sigma z)) / 2 * weight(z): no baseline.
+        half = num_samples // 2
+        units, unit_weights = 0.5 * (values[:half] - values[half:]), weights[:half]
+    else:
+        units, unit_weights = centred, weights
+    jacobian, variance = _mean_and_variance(units, unit_weights)
+    score_norms = jnp.linalg.norm(z, axis=-1) * jnp.linalg.norm(score, axis=-1)
+    return _FlatEstimate(
+        value=jnp.mean(values, axis=0),
+        jacobian=jacobian,
+        sigma_grad=jnp.mean(centred * sigma_weights[:, None], axis=0),
+        variance=variance,
+        max_score_norm=jnp.max(score_norms),
+    )
+
+
+def value_and_jacobian(f_flat: Callable[[Array], Array], v: Array) -> tuple[Array, Array]:
+    """f(v) (m,) and its Jacobian (m, d), by reverse mode when m <= d, forward mode otherwise."""
+    out = jax.eval_shape(f_flat, v)
+    m, d = out.shape[0], v.shape[0]
+    if m <= d:
+        y, pullback = jax.vjp(f_flat, v)
+        (jacobian,) = jax.vmap(pullback)(jnp.eye(m, dtype=y.dtype))
+    else:
+        y, pushforward = jax.linearize(f_flat, v)
+        jacobian = jax.vmap(pushforward, out_axes=1)(jnp.eye(d, dtype=v.dtype))
+    return y, jacobian
+
+
+def _first_order_flat(flat: _Flat, key, sigma, num_samples, noise, antithetic) -> _FlatEstimate:
+    dim = flat.x.shape[0]
+    z = sample_noise(noise, key, num_samples, dim, flat.x.dtype, antithetic)
+    values, jacobians = jax.vmap(lambda v: value_and_jacobian(flat.f, v))(flat.x + sigma * z)
+    values = _checks.check_finite(values, _NONFINITE_F)
+    jacobians = _checks.check_finite(jacobians, _NONFINITE_GRAD)
+    units = jacobians
+    if antithetic:
+        half = num_samples // 2
+        units = 0.5 * (jacobians[:half] + jacobians[half:])
+    n = units.shape[0]
+    jacobian = jnp.mean(units, axis=0)
+    if n == 1:
+        variance = jnp.full_like(jacobian, jnp.inf)
+    else:
+        variance = jnp.var(units, axis=0, ddof=1) / n
+    return _FlatEstimate(
+        value=jnp.mean(values, axis=0),
+        jacobian=jacobian,
+        # d/dsigma f(x + sigma z) = grad f(x + sigma z) . z
+        sigma_grad=jnp.mean(jnp.einsum("imd,id->im", jacobians, z), axis=0),
+        variance=variance,
+        max_score_norm=jnp.zeros((), flat.x.dtype),
+    )
+
+
+def _alpha_order_flat(flat: _Flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta):
+    key_zeroth, key_first = jax.random.split(key)
+    n_zeroth = num_samples // 2
+    n_first = num_samples - n_zeroth
+    if antithetic and (n_zeroth % 2 or n_first % 2):
+        raise ValueError(
+            f"with antithetic=True, alpha_order needs num_samples divisible by 4, got {num_samples}"
+        )
+    zeroth = _zeroth_order_flat(flat, key_zeroth, sigma, n_zeroth, noise, baseline, antithetic)
+    first = _first_order_flat(flat, key_first, sigma, n_first, noise, antithetic)
+    var_zeroth = jnp.sum(zeroth.variance)
+    var_first = jnp.sum(first.variance)
+    total = var_zeroth + var_first
+    # Minimizer of alpha^2 var_first + (1 - alpha)^2 var_zeroth (Suh et al. 2022, Sec. 4).
+    alpha_star = jnp.where(total > 0, var_zeroth / jnp.where(total > 0, total, 1.0), 1.0)
+    bias = jnp.linalg.norm(first.jacobian - zeroth.jacobian)
+    # Confidence radius of the zeroth-order estimate at level 1 - delta: the Gaussian
+    # (central-limit) radius sqrt(2 V log(2/delta)); with a Lipschitz constant L, plus the range
+    # term of the empirical Bernstein bound (Maurer & Pontil 2009, Thm. 4), since one sample's
+    # term is then bounded: |f(x + sigma z) - f(x)| / sigma <= L |z|, so |term| <= L |z| |score(z)|.
+    n_units = n_zeroth // 2 if antithetic else n_zeroth
+    log_term = math.log(2.0 / delta)
+    radius = jnp.sqrt(2.0 * var_zeroth * log_term)
+    if lipschitz is not None:
+        radius = radius + 7.0 * 2.0 * lipschitz * zeroth.max_score_norm * log_term / (3.0 * max(n_units - 1, 1))
+    # How large the empirical bias may be from sampling noise alone, were both unbiased.
+    bias_radius = jnp.sqrt(2.0 * (var_zeroth + var_first) * log_term)
+    if gamma is None:
+        # Default (our documented choice, scale-free): trust the first-order estimate, with
+        # the variance-optimal alpha, unless its gap to the unbiased zeroth-order estimate is
+        # statistically significant; then alpha = 0. This is the trust region of Suh et al.
+        # with gamma = radius + bias_radius, made all-or-nothing.
+        gamma_used = radius + bias_radius
+        alpha = jnp.where(bias <= bias_radius, alpha_star, 0.0)
+    else:
+        gamma_used = jnp.asarray(gamma, radius.dtype)
+        safe_bias = jnp.where(bias > 0, bias, 1.0)
+        alpha = jnp.where(
+            radius + alpha_star * bias <= gamma_used,
+            alpha_star,
+            jnp.where(gamma_used > radius, (gamma_used - radius) / safe_bias, 0.0),
+        )
+    alpha = jnp.clip(alpha, 0.0, 1.0)
+    value = (n_zeroth * zeroth.value + n_first * first.value) / num_samples
+    blend = lambda a1, a0: alpha * a1 + (1.0 - alpha) * a0  # noqa: E731
+    estimate = _FlatEstimate(
+        value=value,
+        jacobian=blend(first.jacobian, zeroth.jacobian),
+        sigma_grad=blend(first.sigma_grad, zeroth.sigma_grad),
+        variance=alpha**2 * first.variance + (1.0 - alpha) ** 2 * zeroth.variance,
+        max_score_norm=zeroth.max_score_norm,
+    )
+    extra = {
+        "alpha": alpha,
+        "alpha_star": alpha_star,
+        "bias": bias,
+        "radius": radius,
+        "bias_radius": bias_radius,
+        "gamma": gamma_used,
+        "variance_first": var_first,
+        "variance_zeroth": var_zeroth,
+    }
+    return estimate, extra
+
+
+def _package(flat: _Flat, estimate: _FlatEstimate, extra_stats=None) -> Estimate:
+    stats = {
+        "variance": jnp.sum(estimate.variance),
+        "std_error": _unflatten_jacobian(flat, jnp.sqrt(estimate.variance)),
+    }
+    stats.update(extra_stats or {})
+    return Estimate(
+        value=jnp.reshape(estimate.value, flat.out_shape),
+        grad=_unflatten_jacobian(flat, estimate.jacobian),
+        sigma_grad=jnp.reshape(estimate.sigma_grad, flat.out_shape),
+        stats=stats,
+    )
+
+
+def zeroth_order(
+    f: Callable,
+    key: Array,
+    x,
+    *,
+    sigma: ArrayLike,
+    num_samples: int,
+    noise: Noise = Gaussian(),
+    baseline: bool = True,
+    antithetic: bool = False,
+) -> Estimate:
+    r"""Zeroth-order (score-function) estimate of the smoothed value and gradient.
+
+    .. math:: \hat g = \frac{1}{M}\sum_{i=1}^M \big(f(x + \sigma z_i) - b\big)\,
+        \frac{-\nabla\log\mu(z_i)}{\sigma}, \qquad b = f(x) \text{ if baseline else } 0.
+
+    Args:
+        f: function of `x` returning one floating array; need not be differentiable.
+        key: a `jax.random` key.
+        x: the point, any pytree of floating arrays.
+        sigma: noise scale, positive (may be traced).
+        num_samples: number of samples M (even with `antithetic`).
+        noise: the noise law; it must have a differentiable density (not `Uniform`).
+        baseline: subtract `f(x)` (costs one more evaluation of `f`, lowers the variance).
+        antithetic: use pairs `(z, -z)` (symmetric laws only); the baseline then cancels.
+
+    Returns:
+        An :class:`Estimate`.
+
+    Example:
+        >>> import jax, jax.numpy as jnp, rsmooth
+        >>> step = lambda x: jnp.where(x > 0, 1.0, 0.0)
+        >>> est = rsmooth.zeroth_order(step, jax.random.key(0), jnp.array(0.0),
+        ...                            sigma=1.0, num_samples=20000)
+        >>> abs(float(est.grad) - 0.3989) < 0.02   # the normal density at 0
+        True
+
+    References:
+        Berthet, Blondel, Teboul, Cuturi, Vert, Bach, "Learning with differentiable perturbed
+        optimizers", NeurIPS 2020.
+    """
+    _checks.check_key(key)
+    sigma, num_samples = _check_options(sigma, num_samples, noise, antithetic=antithetic, needs_score=True)
+    flat = _flatten(f, x)
+    return _package(flat, _zeroth_order_flat(flat, key, sigma, num_samples, noise, baseline, antithetic))
+
+
+def first_order(
+    f: Callable,
+    key: Array,
+    x,
+    *,
+    sigma: ArrayLike,
+    num_samples: int,
+    noise: Noise = Gaussian(),
+    antithetic: bool = False,
+) -> Estimate:
+    r"""First-order (pathwise) estimate: the mean of sampled gradients.
+
+    .. math:: \hat g = \frac{1}{M}\sum_{i=1}^M \nabla f(x + \sigma z_i).
+
+    Unbiased for continuous, almost-everywhere differentiable `f`; biased (zero) across jumps.
+
+    Args:
+        f: function of `x` returning one floating array, differentiable by JAX.
+        key: a `jax.random` key.
+        x: the point, any pytree of floating arrays.
+        sigma: noise scale, positive (may be traced).
+        num_samples: number of samples M (even with `antithetic`).
+        noise: the noise law (any, `Uniform` included).
+        antithetic: use pairs `(z, -z)` (symmetric laws only).
+
+    Returns:
+        An :class:`Estimate`.
+
+    Example:
+        >>> import jax, jax.numpy as jnp, rsmooth
+        >>> est = rsmooth.first_order(jnp.sin, jax.random.key(0), jnp.array(0.3),
+        ...                           sigma=1e-3, num_samples=4)
+        >>> abs(float(est.grad) - float(jnp.cos(0.3))) < 1e-3
+        True
+    """
+    _checks.check_key(key)
+    sigma, num_samples = _check_options(sigma, num_samples, noise, antithetic=antithetic)
+    flat = _flatten(f, x)
+    return _package(flat, _first_order_flat(flat, key, sigma, num_samples, noise, antithetic))
+
+
+def alpha_order(
+    f: Callable,
+    key: Array,
+    x,
+    *,
+    sigma: ArrayLike,
+    num_samples: int,
+    noise: Noise = Gaussian(),
+    gamma: ArrayLike | None = None,
+    lipschitz: float | None = None,
+    delta: float = 0.05,
+    baseline: bool = True,
+    antithetic: bool = False,
+) -> Estimate:
+    r"""Alpha-order estimate: :math:`\alpha \hat g_1 + (1 - \alpha)\hat g_0` on independent batches.
+
+    Half of the samples feed the zeroth-order estimate :math:`\hat g_0`, half the first-order
+    :math:`\hat g_1`. With :math:`\hat\sigma_0^2, \hat\sigma_1^2` their empirical variances,
+    :math:`\hat B = \|\hat g_1 - \hat g_0\|` the empirical bias and :math:`\varepsilon` the
+    confidence radius of :math:`\hat g_0` at level :math:`1 - \delta`, alpha solves
+
+    .. math:: \min_\alpha\ \alpha^2\hat\sigma_1^2 + (1-\alpha)^2\hat\sigma_0^2
+        \quad\text{s.t.}\quad \varepsilon + \alpha \hat B \le \gamma,
+
+    i.e. :math:`\alpha^* = \hat\sigma_0^2 / (\hat\sigma_0^2 + \hat\sigma_1^2)` when it satisfies
+    the constraint, :math:`(\gamma - \varepsilon)/\hat B` when only a smaller alpha does, and 0
+    when even :math:`\alpha = 0` violates it (the first-order estimate cannot be trusted).
+
+    Args:
+        f: function of `x` returning one floating array, differentiable by JAX.
+        key: a `jax.random` key.
+        x: the point, any pytree of floating arrays.
+        sigma: noise scale, positive (may be traced).
+        num_samples: total number of samples M >= 4, split evenly between the two estimates
+            (a multiple of 4 with `antithetic`).
+        noise: the noise law, with a differentiable density.
+        gamma: the trust-region radius on the total error bound, as in Suh et al. When None
+            (default), alpha is the variance-optimal alpha* unless the empirical bias exceeds
+            `bias_radius`, the size sampling noise alone would explain at level 1 - delta;
+            then alpha = 0 (the first-order estimate is not trusted). Our scale-free choice.
+        lipschitz: a Lipschitz constant of `f`; it adds the range term of an empirical
+            Bernstein bound to the confidence radius (without it, the Gaussian radius).
+        delta: the confidence level of the radius is `1 - delta`.
+        baseline: baseline for the zeroth-order part.
+        antithetic: antithetic pairs in both parts.
+
+    Returns:
+        An :class:`Estimate` whose `stats` hold `alpha`, `alpha_star`, `bias`, `radius`,
+        `bias_radius`, `gamma`, `variance_first`, `variance_zeroth`.
+
+    Example:
+        >>> import jax, jax.numpy as jnp, rsmooth
+        >>> step = lambda x: jnp.where(x > 0, 1.0, 0.0)
+        >>> est = rsmooth.alpha_order(step, jax.random.key(0), jnp.array(0.0),
+        ...                           sigma=1.0, num_samples=2000)
+        >>> float(est.stats["alpha"])   # the zero first-order gradient is not trusted
+        0.0
+
+    References:
+        Suh, Simchowitz, Zhang, Tedrake, "Do differentiable simulators give better policy
+        gradients?", ICML 2022.
+    """
+    _checks.check_key(key)
+    sigma, num_samples = _check_options(
+        sigma, num_samples, noise, antithetic=antithetic, needs_score=True, minimum=4
+    )
+    if not 0.0 < delta < 1.0:
+        raise ValueError(f"delta must be in (0, 1), got {delta}")
+    if lipschitz is not None and not lipschitz > 0:
+        raise ValueError(f"lipschitz must be positive, got {lipschitz}")
+    if gamma is not None and not _checks.is_traced(gamma) and not float(gamma) >= 0:
+        raise ValueError(f"gamma must be non-negative, got {gamma}")
+    flat = _flatten(f, x)
+    estimate, extra = _alpha_order_flat(
+        flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta
+    )
+    return _package(flat, estimate, extra)
