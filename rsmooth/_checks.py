@@ -75,6 +75,7 @@ def check_finite(array, message: str):
     or an `equinox` runtime error with the same message when a traced value is not finite."""
     if is_traced(array):
         return eqx.error_if(array, ~jnp.all(jnp.isfinite(array)), message)
-    if not bool(jnp.all(jnp.isfinite(array))):
+    # NumPy, not jnp: inside a jit trace even operations on concrete arrays are staged.
+    if not np.all(np.isfinite(np.asarray(array))):
         raise ValueError(message)
     return array

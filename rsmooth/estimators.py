@@ -132,12 +132,15 @@ def _check_options(sigma, num_samples, noise, *, antithetic=False, needs_score=F
     return _checks.check_positive_scalar(sigma, "sigma"), num_samples
 
 
-def sample_noise(noise: Noise, key: Array, num_samples: int, dim: int, dtype, antithetic: bool) -> Array:
-    """(num_samples, dim) noise; with `antithetic`, the second half is minus the first."""
+def perturbed_points(noise: Noise, key: Array, x: Array, sigma, num_samples: int, antithetic: bool):
+    """Noise z (num_samples, d) and the points x + sigma z; with `antithetic`, the second half
+    of z is minus the first. The one place samples are drawn, so that every estimator and
+    `smooth` see the same points for the same key."""
+    shape = (num_samples // 2 if antithetic else num_samples, x.shape[0])
+    z = noise.sample(key, shape, x.dtype)
     if antithetic:
-        half = noise.sample(key, (num_samples // 2, dim), dtype)
-        return jnp.concatenate([half, -half])
-    return noise.sample(key, (num_samples, dim), dtype)
+        z = jnp.concatenate([z, -z])
+    return z, x[None, :] + sigma * z
 
 
 _NONFINITE_F = "f returned a non-finite value (NaN or inf) at a perturbed point x + sigma * z"
@@ -158,15 +161,15 @@ def _mean_and_variance(a: Array, w: Array):
 
 def _zeroth_order_flat(flat: _Flat, key, sigma, num_samples, noise, baseline, antithetic) -> _FlatEstimate:
     dim = flat.x.shape[0]
-    z = sample_noise(noise, key, num_samples, dim, flat.x.dtype, antithetic)
-    values = jax.vmap(flat.f)(flat.x + sigma * z)
+    z, points = perturbed_points(noise, key, flat.x, sigma, num_samples, antithetic)
+    values = jax.vmap(flat.f)(points)
     values = _checks.check_finite(values, _NONFINITE_F)
     score = noise.score(z)
     weights = -score / sigma
     # d/dsigma of log[mu((y - x)/sigma) / sigma^d] = -(z . score(z) + d) / sigma.
     sigma_weights = -(jnp.sum(z * score, axis=-1) + dim) / sigma
     reference = flat.f(flat.x) if baseline else jnp.zeros_like(values[0])
-    centred = values - reference
+    centred = values - reference[None, :]
     if antithetic:
         # A pair (z, -z) is one independent unit; for a symmetric law the score is odd, so
         # the pair's term is (f(x + sigma z) - f(x - sigma z)) / 2 * weight(z): no baseline.
@@ -199,9 +202,8 @@ def value_and_jacobian(f_flat: Callable[[Array], Array], v: Array) -> tuple[Arra
 
 
 def _first_order_flat(flat: _Flat, key, sigma, num_samples, noise, antithetic) -> _FlatEstimate:
-    dim = flat.x.shape[0]
-    z = sample_noise(noise, key, num_samples, dim, flat.x.dtype, antithetic)
-    values, jacobians = jax.vmap(lambda v: value_and_jacobian(flat.f, v))(flat.x + sigma * z)
+    z, points = perturbed_points(noise, key, flat.x, sigma, num_samples, antithetic)
+    values, jacobians = jax.vmap(lambda v: value_and_jacobian(flat.f, v))(points)
     values = _checks.check_finite(values, _NONFINITE_F)
     jacobians = _checks.check_finite(jacobians, _NONFINITE_GRAD)
     units = jacobians

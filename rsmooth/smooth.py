@@ -116,17 +116,13 @@ def smooth(
 def _smoothed_flat(f_converted, num_consts, *, num_samples, estimator, noise, baseline, antithetic, gamma, lipschitz, delta):
     def points(key, x, sigma):
         """The perturbed points, the same the estimators use for this key."""
-        dim = x.shape[0]
         if estimator == "alpha":
             key_zeroth, key_first = jax.random.split(key)
             n_zeroth = num_samples // 2
-            z = jnp.concatenate([
-                _est.sample_noise(noise, key_zeroth, n_zeroth, dim, x.dtype, antithetic),
-                _est.sample_noise(noise, key_first, num_samples - n_zeroth, dim, x.dtype, antithetic),
-            ])
-        else:
-            z = _est.sample_noise(noise, key, num_samples, dim, x.dtype, antithetic)
-        return z, x + sigma * z
+            z0, p0 = _est.perturbed_points(noise, key_zeroth, x, sigma, n_zeroth, antithetic)
+            z1, p1 = _est.perturbed_points(noise, key_first, x, sigma, num_samples - n_zeroth, antithetic)
+            return jnp.concatenate([z0, z1]), jnp.concatenate([p0, p1])
+        return _est.perturbed_points(noise, key, x, sigma, num_samples, antithetic)
 
     @jax.custom_jvp
     def rule(key, x, sigma, *consts):
@@ -143,7 +139,7 @@ def _smoothed_flat(f_converted, num_consts, *, num_samples, estimator, noise, ba
         if estimator == "zeroth":
             values = _checks.check_finite(jax.vmap(f)(perturbed), _est._NONFINITE_F)
             score = noise.score(z)
-            centred = values - f(x) if baseline else values
+            centred = values - f(x)[None, :] if baseline else values
             # Linear in (x_dot, sigma_dot); the same weights as zeroth_order's (see there).
             weights = (-(score @ x_dot) - sigma_dot * (jnp.sum(z * score, axis=-1) + x.shape[0])) / sigma
             value = jnp.mean(values, axis=0)

@@ -101,6 +101,6 @@ def diagnose(estimator: Callable, f: Callable, key: Array, x, *, reference, num_
         variance=variance,
         bias=bias,
         bias_std_error=jnp.sqrt(variance / grads.shape[0]),
-        mse=jnp.mean(jnp.sum((grads - reference_flat) ** 2, axis=1)),
+        mse=jnp.mean(jnp.sum((grads - reference_flat[None, :]) ** 2, axis=1)),
         grads=tree,
     )

@@ -1,0 +1,230 @@
+"""Estimators against closed forms of smoothed functions, Monte-Carlo rates, variance reduction."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.scipy.stats import norm
+
+import rsmooth
+from rsmooth import noise
+
+
+def heaviside(x):
+    return jnp.where(x > 0, 1.0, 0.0)
+
+
+def smoothed_abs(x, sigma):
+    """E|x + sigma Z| for Gaussian Z (the folded-normal mean)."""
+    return sigma * jnp.sqrt(2 / jnp.pi) * jnp.exp(-(x**2) / (2 * sigma**2)) + x * (1 - 2 * norm.cdf(-x / sigma))
+
+
+def within(estimate, truth, std_error, k=4.5):
+    """|estimate - truth| within k standard errors (Monte-Carlo tolerance, not a guess)."""
+    estimate, truth, std_error = map(np.asarray, (estimate, truth, std_error))
+    assert np.all(np.abs(estimate - truth) <= k * std_error + 1e-12), (estimate, truth, std_error)
+
+
+@pytest.mark.parametrize("x0", [-0.8, 0.0, 0.3, 1.5])
+def test_gaussian_smoothed_heaviside_is_normal_cdf(x0, getkey):
+    sigma = 0.7
+    est = rsmooth.zeroth_order(heaviside, getkey(), jnp.array(x0), sigma=sigma, num_samples=20_000)
+    within(est.grad, norm.pdf(x0 / sigma) / sigma, est.stats["std_error"])
+    value_std = np.sqrt(norm.cdf(x0 / sigma) * (1 - norm.cdf(x0 / sigma)) / 20_000)
+    within(est.value, norm.cdf(x0 / sigma), value_std)
+    # d/dsigma Phi(x / sigma) = -x / sigma^2 phi(x / sigma)
+    assert abs(float(est.sigma_grad) - (-x0 / sigma**2 * norm.pdf(x0 / sigma))) < 0.03
+    # The first-order estimate of a step is exactly zero: the gradient is null a.e.
+    first = rsmooth.first_order(heaviside, getkey(), jnp.array(x0), sigma=sigma, num_samples=64)
+    assert float(first.grad) == 0.0 and float(first.stats["variance"]) == 0.0
+    alpha = rsmooth.alpha_order(heaviside, getkey(), jnp.array(x0), sigma=sigma, num_samples=20_000)
+    assert float(alpha.stats["alpha"]) == 0.0
+    within(alpha.grad, norm.pdf(x0 / sigma) / sigma, alpha.stats["std_error"])
+
+
+@pytest.mark.parametrize("law", [noise.Logistic(), noise.Laplace(), noise.Cauchy(), noise.Gumbel()], ids=lambda n: n.name)
+def test_smoothed_heaviside_with_other_noises(law, getkey):
+    # H_sigma(x) = P(x + sigma Z > 0) = 1 - F(-x / sigma): gradient mu(-x / sigma) / sigma.
+    sigma, x0 = 0.5, 0.2
+    est = rsmooth.zeroth_order(heaviside, getkey(), jnp.array(x0), sigma=sigma, num_samples=40_000, noise=law)
+    truth = jnp.exp(law.log_prob(-x0 / sigma)) / sigma
+    within(est.grad, truth, est.stats["std_error"])
+
+
+@pytest.mark.parametrize("x0", [-1.0, 0.0, 0.4])
+def test_gaussian_smoothed_abs_closed_form(x0, getkey):
+    sigma = 0.6
+    truth_grad = 2 * norm.cdf(x0 / sigma) - 1
+    for estimate in (
+        rsmooth.zeroth_order(jnp.abs, getkey(), jnp.array(x0), sigma=sigma, num_samples=20_000),
+        rsmooth.zeroth_order(jnp.abs, getkey(), jnp.array(x0), sigma=sigma, num_samples=20_000, antithetic=True),
+        rsmooth.first_order(jnp.abs, getkey(), jnp.array(x0), sigma=sigma, num_samples=20_000),
+        rsmooth.alpha_order(jnp.abs, getkey(), jnp.array(x0), sigma=sigma, num_samples=20_000),
+    ):
+        within(estimate.grad, truth_grad, estimate.stats["std_error"])
+    first = rsmooth.first_order(jnp.abs, getkey(), jnp.array(x0), sigma=sigma, num_samples=20_000)
+    value_std = float(jnp.sqrt(x0**2 + sigma**2) / jnp.sqrt(20_000.0))
+    within(first.value, smoothed_abs(x0, sigma), value_std)
+
+
+def test_uniform_noise_first_order(getkey):
+    # E|x + sigma U|, U uniform on [-1, 1]: gradient clip(x / sigma, -1, 1).
+    est = rsmooth.first_order(jnp.abs, getkey(), jnp.array(0.2), sigma=0.5, num_samples=20_000, noise=noise.Uniform())
+    within(est.grad, 0.4, est.stats["std_error"])
+
+
+def test_monte_carlo_rate(getkey):
+    # The standard deviation of the estimate falls as 1 / sqrt(M).
+    f = lambda x: jnp.sum(jnp.abs(x) + heaviside(x))  # noqa: E731
+    x = jnp.array([0.1, -0.3, 0.5])
+    variances = [
+        rsmooth.stats.empirical_variance(rsmooth.zeroth_order, f, getkey(), x, num_trials=400, sigma=0.5, num_samples=m)
+        for m in (16, 256)
+    ]
+    ratio = float(variances[0] / variances[1])
+    assert 16 / 1.4 < ratio < 16 * 1.4
+
+
+def test_reported_variance_matches_trials(getkey):
+    f = lambda x: jnp.sum(jnp.sin(3 * x)) + heaviside(x[0])  # noqa: E731
+    x = jnp.array([0.1, -0.3])
+    for estimator in (rsmooth.zeroth_order, rsmooth.first_order):
+        d = rsmooth.stats.diagnose(estimator, f, getkey(), x, reference=0.0, num_trials=300, sigma=0.4, num_samples=64)
+        reported = estimator(f, getkey(), x, sigma=0.4, num_samples=64).stats["variance"]
+        assert 0.75 < float(reported / d.variance) < 1.33
+
+
+def test_first_order_matches_grad_as_sigma_vanishes(getkey):
+    def f(params):
+        return jnp.sum(jnp.sin(params["w"]) * params["b"] ** 2) + jnp.prod(params["w"])
+
+    x = {"w": jnp.array([0.3, -1.2, 0.7]), "b": jnp.array(1.5)}
+    exact = jax.grad(f)(x)
+    errors = []
+    for sigma in (1e-1, 1e-2, 1e-3):
+        est = rsmooth.first_order(f, getkey(), x, sigma=sigma, num_samples=32)
+        errors.append(max(jax.tree.leaves(jax.tree.map(lambda a, b: float(jnp.max(jnp.abs(a - b))), est.grad, exact))))
+    assert errors[-1] < 5e-3 and errors[0] > errors[1] > errors[2]
+
+
+def test_vector_valued_f_gives_jacobian(getkey):
+    def f(x):
+        return jnp.stack([x["a"] @ x["a"], jnp.sum(jnp.tanh(x["b"])), x["a"][0] * x["b"][1, 0]])
+
+    x = {"a": jnp.array([0.5, -1.0]), "b": jnp.array([[0.2], [0.7]])}
+    exact = jax.jacrev(f)(x)
+    est = rsmooth.first_order(f, getkey(), x, sigma=1e-4, num_samples=8)
+    for key in x:
+        assert est.grad[key].shape == exact[key].shape == (3,) + x[key].shape
+        np.testing.assert_allclose(est.grad[key], exact[key], atol=1e-3)
+    est0 = rsmooth.zeroth_order(f, getkey(), x, sigma=0.05, num_samples=40_000, antithetic=True)
+    for key in x:
+        within(est0.grad[key], exact[key], est0.stats["std_error"][key], k=5)
+
+
+def test_antithetic_and_baseline_reduce_variance(getkey):
+    # An offset (all variance without a baseline) and curvature near a minimum (the term
+    # sigma/2 z'Hz that antithetic pairs cancel and a baseline does not).
+    f = lambda x: 10.0 + jnp.sum(3.0 * x**2 + 0.1 * x)  # noqa: E731
+    x = jnp.array([0.03, -0.02, 0.01, 0.0])
+    kwargs = dict(sigma=0.3, num_samples=32, num_trials=200)
+    plain = rsmooth.stats.empirical_variance(rsmooth.zeroth_order, f, getkey(), x, baseline=False, **kwargs)
+    with_baseline = rsmooth.stats.empirical_variance(rsmooth.zeroth_order, f, getkey(), x, **kwargs)
+    antithetic = rsmooth.stats.empirical_variance(rsmooth.zeroth_order, f, getkey(), x, antithetic=True, **kwargs)
+    assert with_baseline < plain / 10   # the constant 10 is all variance without a baseline
+    assert antithetic < with_baseline / 3
+
+
+def test_same_key_same_result_and_jit(getkey):
+    key = getkey()
+    f = lambda x: jnp.sum(heaviside(x) * x**2)  # noqa: E731
+    x = jnp.array([0.2, -0.1, 0.4])
+    for estimator in (rsmooth.zeroth_order, rsmooth.first_order, rsmooth.alpha_order):
+        a = estimator(f, key, x, sigma=0.3, num_samples=16)
+        b = estimator(f, key, x, sigma=0.3, num_samples=16)
+        c = jax.jit(lambda k, x, s: estimator(f, k, x, sigma=s, num_samples=16))(key, x, 0.3)
+        d = estimator(f, getkey(), x, sigma=0.3, num_samples=16)
+        np.testing.assert_array_equal(a.grad, b.grad)
+        np.testing.assert_allclose(a.grad, c.grad, rtol=1e-12, atol=1e-12)
+        assert not np.array_equal(a.grad, d.grad)
+
+
+def test_alpha_order_trusts_first_order_on_smooth_functions(getkey):
+    f = lambda x: jnp.sum(jnp.sin(x) * x)  # noqa: E731
+    x = jnp.array([0.3, -0.5, 0.9])
+    est = rsmooth.alpha_order(f, getkey(), x, sigma=0.2, num_samples=200)
+    assert float(est.stats["alpha"]) > 0.9
+    first = rsmooth.first_order(f, getkey(), x, sigma=0.2, num_samples=20_000)
+    within(est.grad, first.grad, jnp.sqrt(est.stats["std_error"] ** 2 + first.stats["std_error"] ** 2))
+
+
+def test_alpha_order_with_gamma_follows_the_trust_region(getkey):
+    key = getkey()
+    kwargs = dict(sigma=0.5, num_samples=4000)
+    loose = rsmooth.alpha_order(heaviside, key, jnp.array(0.1), gamma=1e6, **kwargs).stats
+    assert float(loose["alpha"]) == pytest.approx(float(loose["alpha_star"]))
+    tight = rsmooth.alpha_order(heaviside, key, jnp.array(0.1), gamma=0.0, **kwargs).stats
+    assert float(tight["alpha"]) == 0.0
+    # In between: radius + alpha * bias = gamma exactly.
+    gamma = float(loose["radius"]) + 0.1 * float(loose["bias"])
+    middle = rsmooth.alpha_order(heaviside, key, jnp.array(0.1), gamma=gamma, **kwargs).stats
+    assert float(middle["alpha"]) == pytest.approx(0.1)
+
+
+class TestBadInput:
+    x = jnp.array([0.1, 0.2])
+    f = staticmethod(lambda x: jnp.sum(x**2))
+
+    @pytest.mark.parametrize("sigma", [0.0, -1.0, float("nan"), float("inf")])
+    def test_sigma(self, sigma, getkey):
+        with pytest.raises(ValueError, match="sigma"):
+            rsmooth.zeroth_order(self.f, getkey(), self.x, sigma=sigma, num_samples=4)
+
+    def test_sigma_traced(self, getkey):
+        fn = jax.jit(lambda s: rsmooth.first_order(self.f, jax.random.key(0), self.x, sigma=s, num_samples=4).grad)
+        with pytest.raises(Exception, match="sigma must be positive"):
+            jax.block_until_ready(fn(-1.0))
+
+    def test_num_samples(self, getkey):
+        with pytest.raises(ValueError, match="num_samples"):
+            rsmooth.zeroth_order(self.f, getkey(), self.x, sigma=0.1, num_samples=0)
+        with pytest.raises(TypeError, match="num_samples"):
+            rsmooth.zeroth_order(self.f, getkey(), self.x, sigma=0.1, num_samples=4.0)
+        with pytest.raises(ValueError, match="even"):
+            rsmooth.zeroth_order(self.f, getkey(), self.x, sigma=0.1, num_samples=5, antithetic=True)
+        with pytest.raises(ValueError, match="num_samples"):
+            rsmooth.alpha_order(self.f, getkey(), self.x, sigma=0.1, num_samples=2)
+
+    def test_noise(self, getkey):
+        with pytest.raises(ValueError, match="symmetric"):
+            rsmooth.zeroth_order(self.f, getkey(), self.x, sigma=0.1, num_samples=4, antithetic=True, noise=noise.Gumbel())
+        with pytest.raises(ValueError, match="Uniform"):
+            rsmooth.zeroth_order(self.f, getkey(), self.x, sigma=0.1, num_samples=4, noise=noise.Uniform())
+        with pytest.raises(TypeError, match="noise"):
+            rsmooth.zeroth_order(self.f, getkey(), self.x, sigma=0.1, num_samples=4, noise="gaussian")
+
+    def test_x(self, getkey):
+        with pytest.raises(ValueError, match="x must be finite"):
+            rsmooth.first_order(self.f, getkey(), jnp.array([0.1, jnp.nan]), sigma=0.1, num_samples=4)
+        with pytest.raises(TypeError, match="x must hold floating"):
+            rsmooth.first_order(self.f, getkey(), jnp.array([1, 2]), sigma=0.1, num_samples=4)
+        fn = jax.jit(lambda x: rsmooth.zeroth_order(self.f, jax.random.key(0), x, sigma=0.1, num_samples=4).grad)
+        with pytest.raises(Exception, match="x must be finite"):
+            jax.block_until_ready(fn(jnp.array([jnp.inf, 0.0])))
+
+    def test_f_returning_nan(self, getkey):
+        f = lambda x: jnp.sum(jnp.log(x))  # noqa: E731  NaN for negative perturbed points
+        with pytest.raises(ValueError, match="f returned a non-finite value"):
+            rsmooth.zeroth_order(f, getkey(), jnp.array([0.01]), sigma=1.0, num_samples=64)
+        fn = jax.jit(lambda x: rsmooth.zeroth_order(f, jax.random.key(0), x, sigma=1.0, num_samples=64).grad)
+        with pytest.raises(Exception, match="f returned a non-finite value"):
+            jax.block_until_ready(fn(jnp.array([0.01])))
+        with pytest.raises(ValueError, match="gradient of f is not finite"):
+            # The classic NaN gradient: the untaken branch of a where is differentiated.
+            rsmooth.first_order(lambda x: jnp.sum(jnp.where(x > 0, jnp.sqrt(x), 0.0)), getkey(), -jnp.ones(1), sigma=0.1, num_samples=2)
+
+    def test_f_output_and_key(self, getkey):
+        with pytest.raises(TypeError, match="single array"):
+            rsmooth.zeroth_order(lambda x: (x, x), getkey(), self.x, sigma=0.1, num_samples=4)
+        with pytest.raises(TypeError, match="key"):
+            rsmooth.zeroth_order(self.f, 0, self.x, sigma=0.1, num_samples=4)
