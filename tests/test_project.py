@@ -1,0 +1,40 @@
+"""The project's promises to a newcomer: README commands, CI script, command line."""
+
+import json
+import re
+from pathlib import Path
+
+from typer.testing import CliRunner
+
+from rsmooth.cli import app
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def readme_commands():
+    return re.findall(r"```bash\n(.+?)\n```", (ROOT / "README.md").read_text())
+
+
+def test_readme_opens_with_demo_and_test_commands_and_ci_runs_the_latter():
+    demo, tests = readme_commands()[:2]
+    assert demo.endswith("rsmooth demo")
+    assert "pytest" in tests
+    ci_lines = [line.strip() for line in (ROOT / ".ci/run").read_text().splitlines()]
+    assert tests in ci_lines
+
+
+def test_cli_help_lists_the_experiments():
+    result = CliRunner().invoke(app, ["experiment", "--help"])
+    assert result.exit_code == 0
+    for name in ("estimators", "perturbed-argmax"):
+        assert name in result.output
+
+
+def test_cli_perturbed_argmax_quick_writes_metrics_and_figures(tmp_path):
+    result = CliRunner().invoke(app, ["experiment", "perturbed-argmax", "--quick", "--out", str(tmp_path), "--seed", "3"])
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["softmax_max_abs_error"] < 0.05
+    assert metrics["ranking_test_spearman_final"] > 0.9 > metrics["ranking_test_spearman_initial"]
+    assert (tmp_path / "softmax.png").stat().st_size > 0 and (tmp_path / "ranking.png").stat().st_size > 0
+    assert not list(tmp_path.glob(".*"))  # no temporary file left behind
