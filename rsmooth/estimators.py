@@ -88,10 +88,15 @@ class _FlatEstimate(NamedTuple):
     max_score_norm: Array  # largest ||z|| * ||score(z)||, for Lipschitz-based radii
 
 
-def _flatten(f, x) -> _Flat:
+_NONFINITE_X = "x must be finite (it contains NaN or inf)"
+
+
+def _flatten(f, x, check: bool = True) -> _Flat:
+    """Flattens x (checked finite unless `check` is False: then the caller checks it)."""
     _checks.check_floating_tree(x, "x")
     flat_x, unravel = ravel_pytree(x)
-    flat_x = _checks.check_finite(flat_x, "x must be finite (it contains NaN or inf)")
+    if check:
+        flat_x = _checks.check_finite(flat_x, _NONFINITE_X)
     out = jax.eval_shape(f, x)
     if not isinstance(out, jax.ShapeDtypeStruct):
         raise TypeError(

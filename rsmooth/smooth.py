@@ -102,7 +102,8 @@ def smooth(
         _checks.check_key(key)
         sigma_array = _checks.check_positive_scalar(sigma, "sigma")
         x = jax.tree.map(jnp.asarray, x)
-        flat = _est._flatten(f, x)
+        # x is checked inside the rule, together with f's values: one runtime check per call.
+        flat = _est._flatten(f, x, check=False)
         sigma_array = sigma_array.astype(flat.x.dtype)
         # Hoist traced values that f closes over into explicit arguments, so that an outer
         # transformation may differentiate through them (custom_jvp forbids closures).
@@ -124,11 +125,14 @@ def _smoothed_flat(f_converted, num_consts, *, num_samples, estimator, noise, ba
             return jnp.concatenate([z0, z1]), jnp.concatenate([p0, p1])
         return _est.perturbed_points(noise, key, x, sigma, num_samples, antithetic)
 
+    def checked(value, x, values):
+        return _checks.check_all_finite(value, [(x, _est._NONFINITE_X), (values, _est._NONFINITE_F)])
+
     @jax.custom_jvp
     def rule(key, x, sigma, *consts):
         _, perturbed = points(key, x, sigma)
         values = jax.vmap(lambda v: f_converted(v, *consts))(perturbed)
-        return jnp.mean(_checks.check_finite(values, _est._NONFINITE_F), axis=0)
+        return checked(jnp.mean(values, axis=0), x, values)
 
     @rule.defjvp
     def rule_jvp(primals, tangents):
@@ -137,20 +141,21 @@ def _smoothed_flat(f_converted, num_consts, *, num_samples, estimator, noise, ba
         f = lambda v: f_converted(v, *consts)  # noqa: E731
         z, perturbed = points(key, x, sigma)
         if estimator == "zeroth":
-            values = _checks.check_finite(jax.vmap(f)(perturbed), _est._NONFINITE_F)
+            values = jax.vmap(f)(perturbed)
             score = noise.score(z)
             centred = values - f(x)[None, :] if baseline else values
             # Linear in (x_dot, sigma_dot); the same weights as zeroth_order's (see there).
             weights = (-(score @ x_dot) - sigma_dot * (jnp.sum(z * score, axis=-1) + x.shape[0])) / sigma
-            value = jnp.mean(values, axis=0)
+            value = checked(jnp.mean(values, axis=0), x, values)
             tangent = jnp.mean(centred * weights[:, None], axis=0)
         elif estimator == "first":
             values, tangents_out = jax.vmap(
                 lambda zi, vi: jax.jvp(f, (vi,), (x_dot + sigma_dot * zi,))
             )(z, perturbed)
-            value = jnp.mean(_checks.check_finite(values, _est._NONFINITE_F), axis=0)
+            value = checked(jnp.mean(values, axis=0), x, values)
             tangent = jnp.mean(tangents_out, axis=0)
         else:
+            x = _checks.check_finite(x, _est._NONFINITE_X)
             flat = _est._Flat(x, f, None, ())
             estimate, _ = _est._alpha_order_flat(
                 flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta
