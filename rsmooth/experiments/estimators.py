@@ -38,7 +38,7 @@ class Config:
     x0: float = 0.1
     x_grid: tuple[float, float, int] = (-1.2, 1.2, 49)
     num_samples_grid: tuple[int, ...] = (4, 16, 64, 256, 1024)
-    num_samples_curve: int = 64
+    num_samples_curve: int = 256
     num_trials: int = 100
     stiffness: float = 100.0
 
