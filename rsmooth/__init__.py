@@ -8,7 +8,7 @@ transform, noise schedules (:mod:`rsmooth.schedules`), perturbed optimizers
 
 from rsmooth import noise, perturbed, schedules, stats
 from rsmooth.estimators import Estimate, alpha_order, first_order, zeroth_order
-from rsmooth.smooth import smooth
+from rsmooth.smooth import smooth, smooth_elementwise
 
 __version__ = "0.1.0"
 
@@ -20,6 +20,7 @@ __all__ = [
     "perturbed",
     "schedules",
     "smooth",
+    "smooth_elementwise",
     "stats",
     "zeroth_order",
 ]

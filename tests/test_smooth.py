@@ -111,3 +111,37 @@ def test_bad_options():
     g = rsmooth.smooth(heaviside, sigma=1.0, num_samples=4)
     with pytest.raises(ValueError, match="x must be finite"):
         g(jax.random.key(0), jnp.array(jnp.nan))
+
+
+@pytest.mark.parametrize("estimator", ["zeroth", "first"])
+def test_smooth_elementwise_closed_forms(estimator, getkey):
+    # Heaviside for zeroth order (first order is exactly 0 there), |x| for both.
+    sigma = 0.4
+    x = jnp.array([[-0.6, 0.0], [0.1, 0.9]])
+    m = 20_000
+    g_abs = rsmooth.smooth_elementwise(jnp.abs, sigma=sigma, num_samples=m, estimator=estimator, antithetic=True)
+    key = getkey()
+    jac = jax.jacrev(g_abs, argnums=1)(key, x)
+    diag = jnp.einsum("ijij->ij", jac)
+    np.testing.assert_allclose(diag, 2 * norm.cdf(x / sigma) - 1, atol=0.03)
+    off_diagonal = jac - jnp.einsum("ij,ijkl->ijkl", diag, jnp.eye(4).reshape(2, 2, 2, 2))
+    assert float(jnp.max(jnp.abs(off_diagonal))) == 0.0  # no leakage between elements
+    if estimator == "zeroth":
+        g_step = rsmooth.smooth_elementwise(lambda d: jnp.where(d > 0, 1.0, 0.0), sigma=sigma, num_samples=m)
+        value, vjp = jax.vjp(lambda v: g_step(key, v), x)
+        np.testing.assert_allclose(value, norm.cdf(x / sigma), atol=0.015)
+        np.testing.assert_allclose(vjp(jnp.ones_like(x))[0], norm.pdf(x / sigma) / sigma, atol=0.05)
+        # d/dsigma Phi(x / sigma) = -x / sigma^2 phi(x / sigma)
+        dsigma = jax.grad(lambda s: jnp.sum(rsmooth.smooth_elementwise(lambda d: jnp.where(d > 0, 1.0, 0.0), sigma=s, num_samples=m)(key, x)))(sigma)
+        np.testing.assert_allclose(dsigma, jnp.sum(-x / sigma**2 * norm.pdf(x / sigma)), atol=0.05)
+
+
+def test_smooth_elementwise_matches_smooth_on_one_element(getkey):
+    key = getkey()
+    step = lambda d: jnp.where(d > 0, 1.0, 0.0)  # noqa: E731
+    g = rsmooth.smooth_elementwise(step, sigma=0.5, num_samples=64)
+    h = rsmooth.smooth(lambda v: step(v), sigma=0.5, num_samples=64)
+    x = jnp.array([0.2])
+    np.testing.assert_allclose(jax.jacrev(g, argnums=1)(key, x), jax.jacrev(h, argnums=1)(key, x), rtol=1e-12)
+    with pytest.raises(ValueError, match="elementwise"):
+        rsmooth.smooth_elementwise(jnp.sum, sigma=1.0, num_samples=4)(key, x)
