@@ -1,0 +1,395 @@
+"""Kinematic-tree model as a frozen pytree, and host-side loaders (URDF via Pinocchio).
+
+A :class:`Model` is built once on the host (from a URDF or an existing Pinocchio model),
+rejecting what the JAX dynamics do not support with a named error, and is then an ordinary
+pytree: its array fields (placements, inertias, axes, limits, gravity) are traced, so they can
+be batched or differentiated; its structural fields (joint types, parents, index offsets,
+names) are static, so the tree is unrolled at trace time.
+
+Indexing follows Pinocchio: joint 0 is the universe (the world, fixed), joints ``1..n`` are
+ordered so that a parent precedes its children, and frame ids are Pinocchio's frame ids. This
+lets ids be exchanged with Pinocchio freely in tests and tools.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import pathlib
+import sys
+import xml.etree.ElementTree as ElementTree
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+FREE_FLYER = "free_flyer"
+REVOLUTE = "revolute"
+PRISMATIC = "prismatic"
+UNIVERSE = "universe"
+
+# Tangent dimension of each supported joint type (the configuration dimension is the same,
+# except for the free flyer whose orientation is a quaternion: nq = 7, nv = 6).
+JOINT_NV = {UNIVERSE: 0, FREE_FLYER: 6, REVOLUTE: 1, PRISMATIC: 1}
+JOINT_NQ = {UNIVERSE: 0, FREE_FLYER: 7, REVOLUTE: 1, PRISMATIC: 1}
+
+_UNIT_AXES = {"X": (1.0, 0.0, 0.0), "Y": (0.0, 1.0, 0.0), "Z": (0.0, 0.0, 1.0)}
+
+
+class Model(eqx.Module):
+    """A kinematic tree of rigid bodies (no contact), as a frozen pytree.
+
+    Joint ``i`` moves body ``i`` relative to body ``parents[i]``; its placement in the parent
+    joint frame at zero configuration is ``(joint_placement_rotation[i],
+    joint_placement_translation[i])``. Index 0 is the universe (fixed world, no body).
+
+    Supported joints: ``"free_flyer"`` (``q = [x, y, z, qx, qy, qz, qw]``, ``v = [linear,
+    angular]`` in the joint frame, as Pinocchio), ``"revolute"`` about ``joint_axes[i]``,
+    ``"prismatic"`` along ``joint_axes[i]``.
+
+    Attributes:
+        joint_names: name of every joint, ``joint_names[0] == "universe"``.
+        joint_types: ``"universe"``, ``"free_flyer"``, ``"revolute"`` or ``"prismatic"``.
+        parents: parent joint index of every joint (``parents[0] == 0``).
+        idx_q: offset of every joint in the configuration vector.
+        idx_v: offset of every joint in the velocity vector.
+        frame_names: name of every frame (Pinocchio's frames: bodies, joints, fixed joints...).
+        frame_parents: index of the joint every frame is attached to.
+        nq: configuration dimension.
+        nv: velocity (tangent) dimension.
+        joint_axes: unit axis of revolute/prismatic joints in the joint frame, ``(njoints, 3)``
+            (zeros for other types).
+        joint_placement_rotation: ``(njoints, 3, 3)``.
+        joint_placement_translation: ``(njoints, 3)``.
+        body_mass: ``(njoints,)``, mass of the body carried by every joint (fixed-joint
+            children already merged, as Pinocchio does).
+        body_com: ``(njoints, 3)``, centre of mass in the joint frame.
+        body_inertia: ``(njoints, 3, 3)``, rotational inertia about the centre of mass, in
+            the joint frame's axes.
+        frame_placement_rotation: ``(nframes, 3, 3)``, placement of frames in their joint.
+        frame_placement_translation: ``(nframes, 3)``.
+        lower_position_limit: ``(nq,)``; ``-inf`` where unlimited.
+        upper_position_limit: ``(nq,)``; ``+inf`` where unlimited.
+        velocity_limit: ``(nv,)``; ``+inf`` where unlimited.
+        effort_limit: ``(nv,)``; ``+inf`` where unlimited.
+        armature: ``(nv,)``, rotor inertia added to the diagonal of the mass matrix.
+        gravity: ``(3,)``, linear gravity acceleration in the world frame.
+    """
+
+    joint_names: tuple[str, ...] = eqx.field(static=True)
+    joint_types: tuple[str, ...] = eqx.field(static=True)
+    parents: tuple[int, ...] = eqx.field(static=True)
+    idx_q: tuple[int, ...] = eqx.field(static=True)
+    idx_v: tuple[int, ...] = eqx.field(static=True)
+    frame_names: tuple[str, ...] = eqx.field(static=True)
+    frame_parents: tuple[int, ...] = eqx.field(static=True)
+    nq: int = eqx.field(static=True)
+    nv: int = eqx.field(static=True)
+    joint_axes: jax.Array
+    joint_placement_rotation: jax.Array
+    joint_placement_translation: jax.Array
+    body_mass: jax.Array
+    body_com: jax.Array
+    body_inertia: jax.Array
+    frame_placement_rotation: jax.Array
+    frame_placement_translation: jax.Array
+    lower_position_limit: jax.Array
+    upper_position_limit: jax.Array
+    velocity_limit: jax.Array
+    effort_limit: jax.Array
+    armature: jax.Array
+    gravity: jax.Array
+
+    def __check_init__(self):
+        njoints = len(self.joint_names)
+        if not (len(self.joint_types) == len(self.parents) == len(self.idx_q) == len(self.idx_v) == njoints):
+            raise ValueError("joint_names, joint_types, parents, idx_q and idx_v must have the same length")
+        if njoints == 0 or self.joint_types[0] != UNIVERSE:
+            raise ValueError("joint 0 must be the universe")
+        if len(self.frame_names) != len(self.frame_parents):
+            raise ValueError("frame_names and frame_parents must have the same length")
+        next_q = next_v = 0
+        for i in range(1, njoints):
+            kind = self.joint_types[i]
+            if kind not in (FREE_FLYER, REVOLUTE, PRISMATIC):
+                raise ValueError(f"joint {self.joint_names[i]!r} has unsupported type {kind!r}")
+            if not 0 <= self.parents[i] < i:
+                raise ValueError(f"joint {self.joint_names[i]!r}: parent must precede the joint")
+            # The dynamics concatenate per-joint blocks in joint order: offsets must follow it.
+            if self.idx_q[i] != next_q or self.idx_v[i] != next_v:
+                raise ValueError(f"joint {self.joint_names[i]!r}: configuration offsets not in joint order")
+            next_q += JOINT_NQ[kind]
+            next_v += JOINT_NV[kind]
+        if (next_q, next_v) != (self.nq, self.nv):
+            raise ValueError(f"nq, nv = {self.nq}, {self.nv} but the joints add up to {next_q}, {next_v}")
+        for f, parent in enumerate(self.frame_parents):
+            if not 0 <= parent < njoints:
+                raise ValueError(f"frame {self.frame_names[f]!r} is attached to unknown joint {parent}")
+
+    @property
+    def njoints(self) -> int:
+        """Number of joints, the universe included (as Pinocchio's ``model.njoints``)."""
+        return len(self.joint_names)
+
+    @property
+    def nframes(self) -> int:
+        """Number of frames."""
+        return len(self.frame_names)
+
+    def joint_nq(self, joint: int) -> int:
+        """Configuration dimension of a joint."""
+        return JOINT_NQ[self.joint_types[joint]]
+
+    def joint_nv(self, joint: int) -> int:
+        """Velocity dimension of a joint."""
+        return JOINT_NV[self.joint_types[joint]]
+
+    def frame_id(self, frame: str | int) -> int:
+        """Index of a frame given by name (the first frame so named, as ``pin.getFrameId``).
+
+        Args:
+            frame: frame name, or an index (returned after a range check).
+
+        Returns:
+            The frame index.
+
+        Raises:
+            ValueError: if there is no such frame.
+        """
+        if isinstance(frame, (int, np.integer)) and not isinstance(frame, bool):
+            if not 0 <= frame < self.nframes:
+                raise ValueError(f"frame index {frame} out of range [0, {self.nframes})")
+            return int(frame)
+        try:
+            return self.frame_names.index(frame)
+        except ValueError:
+            raise ValueError(f"no frame named {frame!r}; frames are {list(self.frame_names)}") from None
+
+    def joint_id(self, joint: str | int) -> int:
+        """Index of a joint given by name (or an index, range-checked)."""
+        if isinstance(joint, (int, np.integer)) and not isinstance(joint, bool):
+            if not 0 <= joint < self.njoints:
+                raise ValueError(f"joint index {joint} out of range [0, {self.njoints})")
+            return int(joint)
+        try:
+            return self.joint_names.index(joint)
+        except ValueError:
+            raise ValueError(f"no joint named {joint!r}; joints are {list(self.joint_names)}") from None
+
+    def support(self, joint: int) -> tuple[int, ...]:
+        """Joints from the root to ``joint`` (included), universe excluded, root first."""
+        chain = []
+        while joint != 0:
+            chain.append(joint)
+            joint = self.parents[joint]
+        return tuple(reversed(chain))
+
+
+def _limits_to_inf(values: np.ndarray) -> np.ndarray:
+    """Pinocchio marks "no limit" with the largest double; an infinity says it plainly."""
+    values = np.array(values, dtype=np.float64)
+    huge = np.abs(values) >= 0.5 * np.finfo(np.float64).max
+    values[huge] = np.sign(values[huge]) * np.inf
+    return values
+
+
+def _to_jax(values: Any) -> jax.Array:
+    return jnp.asarray(np.asarray(values, dtype=np.float64))
+
+
+def _joint_type_and_axis(joint_model: Any, name: str) -> tuple[str, tuple[float, float, float]]:
+    shortname = joint_model.shortname()
+    if shortname == "JointModelFreeFlyer":
+        return FREE_FLYER, (0.0, 0.0, 0.0)
+    for prefix, kind in (("JointModelR", REVOLUTE), ("JointModelP", PRISMATIC)):
+        suffix = shortname[len(prefix) :]
+        if shortname.startswith(prefix) and suffix in _UNIT_AXES:
+            return kind, _UNIT_AXES[suffix]
+    if shortname in ("JointModelRevoluteUnaligned", "JointModelPrismaticUnaligned"):
+        kind = REVOLUTE if shortname == "JointModelRevoluteUnaligned" else PRISMATIC
+        axis = np.asarray(joint_model.extract().axis, dtype=np.float64)
+        return kind, tuple(float(a) for a in axis / np.linalg.norm(axis))
+    raise ValueError(
+        f"joint {name!r} has type {shortname}, which rsmooth.sim does not support "
+        "(supported: free-flyer, revolute and prismatic joints; continuous URDF joints become "
+        "unbounded revolute joints in Pinocchio and are not supported either)"
+    )
+
+
+def from_pinocchio(pin_model: Any) -> Model:
+    """Freezes a Pinocchio model into a :class:`Model` of JAX arrays.
+
+    Args:
+        pin_model: a ``pinocchio.Model``.
+
+    Returns:
+        The equivalent model; joint and frame indices are Pinocchio's.
+
+    Raises:
+        ValueError: if a joint type is not supported (the error names the joint).
+    """
+    njoints = pin_model.njoints
+    names = tuple(str(name) for name in pin_model.names)
+    types, axes = [UNIVERSE], [(0.0, 0.0, 0.0)]
+    for i in range(1, njoints):
+        kind, axis = _joint_type_and_axis(pin_model.joints[i], names[i])
+        types.append(kind)
+        axes.append(axis)
+    joints = [pin_model.joints[i] for i in range(njoints)]
+    placements = [pin_model.jointPlacements[i] for i in range(njoints)]
+    inertias = [pin_model.inertias[i] for i in range(njoints)]
+    frames = [pin_model.frames[f] for f in range(pin_model.nframes)]
+    gravity = pin_model.gravity
+    if np.any(np.asarray(gravity.angular) != 0.0):
+        raise ValueError("the model's gravity has a non-zero angular part, which is not supported")
+    return Model(
+        joint_names=names,
+        joint_types=tuple(types),
+        parents=tuple(int(p) for p in pin_model.parents),
+        idx_q=(0,) + tuple(int(j.idx_q) for j in joints[1:]),
+        idx_v=(0,) + tuple(int(j.idx_v) for j in joints[1:]),
+        frame_names=tuple(str(frame.name) for frame in frames),
+        frame_parents=tuple(int(frame.parentJoint) for frame in frames),
+        nq=int(pin_model.nq),
+        nv=int(pin_model.nv),
+        joint_axes=_to_jax(axes),
+        joint_placement_rotation=_to_jax([m.rotation for m in placements]),
+        joint_placement_translation=_to_jax([m.translation for m in placements]),
+        body_mass=_to_jax([inertia.mass for inertia in inertias]),
+        body_com=_to_jax([inertia.lever for inertia in inertias]),
+        body_inertia=_to_jax([inertia.inertia for inertia in inertias]),
+        frame_placement_rotation=_to_jax([frame.placement.rotation for frame in frames]).reshape(-1, 3, 3),
+        frame_placement_translation=_to_jax([frame.placement.translation for frame in frames]).reshape(-1, 3),
+        lower_position_limit=_to_jax(_limits_to_inf(pin_model.lowerPositionLimit)),
+        upper_position_limit=_to_jax(_limits_to_inf(pin_model.upperPositionLimit)),
+        velocity_limit=_to_jax(_limits_to_inf(pin_model.velocityLimit)),
+        effort_limit=_to_jax(_limits_to_inf(pin_model.effortLimit)),
+        armature=_to_jax(pin_model.armature),
+        gravity=_to_jax(gravity.linear),
+    )
+
+
+def _import_pinocchio() -> Any:
+    try:
+        import pinocchio
+    except ImportError as error:  # pragma: no cover - depends on the environment
+        raise ImportError(
+            "loading URDF files needs Pinocchio: pip install 'rsmooth[sim]' (package 'pin')"
+        ) from error
+    return pinocchio
+
+
+def load_urdf(path: str | pathlib.Path, *, floating_base: bool = True) -> Model:
+    """Loads a URDF file (kinematics and inertias only; meshes are not read).
+
+    Args:
+        path: path to the ``.urdf`` file.
+        floating_base: if true the root link is attached to the world by a free-flyer joint
+            named ``"root_joint"`` (as ``pin.buildModelFromUrdf(path, JointModelFreeFlyer())``);
+            otherwise it is fixed to the world.
+
+    Returns:
+        The model.
+
+    Raises:
+        FileNotFoundError: if the file does not exist.
+        ValueError: if the file is not a valid URDF, or has an unsupported joint type.
+    """
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"URDF file not found: {path}")
+    # Checked here first so that a malformed file gives a Python error naming the path,
+    # not urdfdom's messages on stderr followed by Pinocchio's generic exception.
+    try:
+        root = ElementTree.parse(path).getroot()
+    except ElementTree.ParseError as error:
+        raise ValueError(f"{path} is not well-formed XML: {error}") from None
+    if root.tag != "robot":
+        raise ValueError(f"{path} is not a URDF file: its root element is <{root.tag}>, not <robot>")
+    pin = _import_pinocchio()
+    try:
+        if floating_base:
+            pin_model = pin.buildModelFromUrdf(str(path), pin.JointModelFreeFlyer())
+        else:
+            pin_model = pin.buildModelFromUrdf(str(path))
+    except Exception as error:  # Pinocchio raises ValueError/RuntimeError from C++
+        raise ValueError(f"Pinocchio could not build a model from {path}: {error}") from None
+    return from_pinocchio(pin_model)
+
+
+def _example_robot_data_root() -> pathlib.Path:
+    relative = pathlib.Path("cmeel.prefix", "share", "example-robot-data")
+    candidates = []
+    try:
+        distribution = importlib.metadata.distribution("example-robot-data")
+        candidates.append(pathlib.Path(str(distribution.locate_file(relative))))
+    except importlib.metadata.PackageNotFoundError:
+        pass
+    candidates += [pathlib.Path(entry) / relative for entry in sys.path if entry]
+    for candidate in candidates:
+        if candidate.is_dir():
+            return candidate
+    raise FileNotFoundError(
+        "example-robot-data is not installed (its files are looked for under "
+        f"<site-packages>/{relative.as_posix()}): pip install example-robot-data"
+    )
+
+
+def solo12_urdf_path() -> pathlib.Path:
+    """Path of the Solo-12 URDF shipped by the ``example-robot-data`` package.
+
+    Returns:
+        Path to ``robots/solo_description/robots/solo12.urdf``.
+
+    Raises:
+        FileNotFoundError: if example-robot-data is not installed.
+    """
+    path = _example_robot_data_root() / "robots" / "solo_description" / "robots" / "solo12.urdf"
+    if not path.is_file():
+        raise FileNotFoundError(f"Solo-12 URDF not found at {path}")
+    return path
+
+
+def _solo12_srdf_path() -> pathlib.Path:
+    path = _example_robot_data_root() / "robots" / "solo_description" / "srdf" / "solo.srdf"
+    if not path.is_file():
+        raise FileNotFoundError(f"Solo SRDF not found at {path}")
+    return path
+
+
+def solo12_standing_configuration(model: Model | None = None, *, state: str = "standing") -> jax.Array:
+    """The Solo-12 reference posture named ``state`` in the package's SRDF.
+
+    Args:
+        model: the Solo-12 model whose joint ordering to use; default: ``load_urdf(
+            solo12_urdf_path())`` (free-flyer base). Joints of the SRDF state that the model
+            lacks (e.g. ``root_joint`` for a fixed base) are ignored.
+        state: SRDF ``group_state`` name (``"standing"`` or ``"straight_standing"``).
+
+    Returns:
+        Configuration vector of shape ``(model.nq,)``.
+
+    Raises:
+        ValueError: if the state is missing, or does not set every joint of the model.
+    """
+    if model is None:
+        model = load_urdf(solo12_urdf_path())
+    srdf = _solo12_srdf_path()
+    values: dict[str, list[float]] = {}
+    for group_state in ElementTree.parse(srdf).getroot().iter("group_state"):
+        if group_state.get("name") == state:
+            for joint in group_state.iter("joint"):
+                values[joint.get("name", "")] = [float(x) for x in joint.get("value", "").split()]
+            break
+    else:
+        raise ValueError(f"no group_state named {state!r} in {srdf}")
+    q = np.zeros(model.nq)
+    for i in range(1, model.njoints):
+        name = model.joint_names[i]
+        if name not in values:
+            raise ValueError(f"state {state!r} of {srdf} does not set joint {name!r}")
+        if len(values[name]) != model.joint_nq(i):
+            raise ValueError(f"state {state!r} sets {len(values[name])} values for joint {name!r}")
+        q[model.idx_q[i] : model.idx_q[i] + model.joint_nq(i)] = values[name]
+    return _to_jax(q)
