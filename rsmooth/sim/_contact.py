@@ -1,0 +1,830 @@
+"""Frictional contact: detection, the velocity-level contact problem and compliant models.
+
+Three stages, each a small function:
+
+1. Detection of spheres (a point is a sphere of radius 0) against half-spaces:
+   :func:`sphere_halfspace_contacts` gives signed distances, contact points and contact
+   frames.
+2. The rigid frictional contact problem at the velocity level, a nonlinear complementarity
+   problem (NCP) on the Delassus matrix, solved by ADMM (:class:`NCPSolver`,
+   :func:`solve_ncp`) and differentiated implicitly at its solution (not by unrolling).
+3. Compliant alternatives giving forces from distance and velocity:
+   :func:`spring_damper_force` and :func:`log_barrier_force`.
+
+Conventions used throughout:
+
+- A contact frame is a rotation matrix ``R = [t1 t2 n]`` (columns in world coordinates):
+  two tangents then the normal, with ``t1 x t2 = n``. A world vector ``v`` has
+  contact coordinates ``R.T @ v = (v.t1, v.t2, v.n)``.
+- Per-contact impulses and velocities are ordered ``[tangent1, tangent2, normal]``
+  (the order Pinocchio's ``CoulombFrictionCone`` uses), flattened to ``3 n`` for ``n``
+  contacts.
+- The normal points out of the obstacle into the free space, so a positive normal
+  velocity separates and a positive normal impulse pushes the body away.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jax.typing import ArrayLike
+
+Array = jax.Array
+
+__all__ = [
+    "ContactPoints",
+    "LogBarrier",
+    "NCPInfo",
+    "NCPSolver",
+    "NCPState",
+    "SpringDamper",
+    "contact_frame",
+    "corrected_free_velocity",
+    "log_barrier_force",
+    "ncp_residuals",
+    "project_to_friction_cone",
+    "solve_ncp",
+    "sphere_halfspace_contacts",
+    "spring_damper_force",
+]
+
+
+# --------------------------------------------------------------------------------------
+# Host-side checks (before tracing) and traced checks (equinox.error_if).
+# --------------------------------------------------------------------------------------
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def _check_finite(name: str, x: Array) -> Array:
+    """Raises ValueError on the host for concrete values, or an equinox error if traced."""
+    if _is_concrete(x):
+        if not np.all(np.isfinite(np.asarray(x))):
+            raise ValueError(f"{name} contains NaN or infinite values.")
+        return x
+    return eqx.error_if(x, ~jnp.all(jnp.isfinite(x)), f"{name} contains NaN or infinite values.")
+
+
+def _check_nonnegative(name: str, x: Array) -> Array:
+    if _is_concrete(x):
+        if np.any(np.asarray(x) < 0):
+            raise ValueError(f"{name} must be non-negative, got {np.asarray(x)}.")
+        return x
+    return eqx.error_if(x, jnp.any(x < 0), f"{name} must be non-negative.")
+
+
+def _safe_norm(x: Array) -> Array:
+    """Euclidean norm over the last axis whose derivative at 0 is 0 instead of NaN."""
+    squared = jnp.sum(x * x, axis=-1)
+    nonzero = squared > 0
+    return jnp.where(nonzero, jnp.sqrt(jnp.where(nonzero, squared, 1.0)), 0.0)
+
+
+# --------------------------------------------------------------------------------------
+# 1. Detection: spheres against half-spaces.
+# --------------------------------------------------------------------------------------
+
+
+def contact_frame(normal: ArrayLike) -> Array:
+    """Right-handed orthonormal frame ``[t1 t2 n]`` whose third column is ``normal``.
+
+    Branch-free construction of Duff et al.: the tangents are smooth in ``normal`` except
+    across the plane ``n_z = 0`` where the sign switch happens. For ``n = e_z`` the frame is
+    the identity, so a floor contact has world-aligned tangents.
+
+    Args:
+        normal: unit vectors, shape ``(..., 3)``.
+
+    Returns:
+        Rotation matrices of shape ``(..., 3, 3)`` with columns ``(t1, t2, n)`` in world
+        coordinates, ``det = +1``.
+
+    References:
+        T. Duff, J. Burgess, P. Christensen, C. Hery, A. Kensler, M. Liani, R. Villemin,
+        "Building an orthonormal basis, revisited", JCGT 6(1), 2017 (Listing 3).
+    """
+    normal = jnp.asarray(normal)
+    nx, ny, nz = normal[..., 0], normal[..., 1], normal[..., 2]
+    sign = jnp.where(nz >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + nz)
+    b = nx * ny * a
+    tangent1 = jnp.stack([1.0 + sign * nx * nx * a, sign * b, -sign * nx], axis=-1)
+    tangent2 = jnp.stack([b, sign + ny * ny * a, -ny], axis=-1)
+    return jnp.stack([tangent1, tangent2, normal], axis=-1)
+
+
+class ContactPoints(eqx.Module):
+    """Candidate contacts between every sphere and every half-space.
+
+    Attributes:
+        distance: signed distance, shape ``(S, P)``; negative means penetration.
+        point: contact point on the sphere, the sphere point deepest towards the plane,
+            ``center - radius * n``, shape ``(S, P, 3)``. It moves with the sphere, so the
+            contact velocity is the sphere body's velocity at this point; the matching
+            point on the plane is ``point - distance * n``.
+        frame: contact frames ``[t1 t2 n]`` (see :func:`contact_frame`), ``(S, P, 3, 3)``.
+    """
+
+    distance: Array
+    point: Array
+    frame: Array
+
+
+def sphere_halfspace_contacts(
+    centers: ArrayLike, radii: ArrayLike, normals: ArrayLike, offsets: ArrayLike
+) -> ContactPoints:
+    """Signed distances, points and frames of ``S`` spheres against ``P`` half-spaces.
+
+    The half-space ``{p : n . p >= offset}`` is the free space; the plane is its boundary.
+    The signed distance of a sphere is ``n . c - offset - r``.
+
+    Args:
+        centers: sphere centers, shape ``(S, 3)``.
+        radii: sphere radii, shape ``(S,)``, ``>= 0`` (``0`` is a point).
+        normals: unit normals of the half-spaces pointing into the free space, ``(P, 3)``.
+        offsets: plane offsets, shape ``(P,)``.
+
+    Returns:
+        A :class:`ContactPoints` with arrays of leading shape ``(S, P)``. Every pair is
+        returned (branch-free); select active contacts with ``distance``.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> c = sphere_halfspace_contacts(jnp.array([[0.0, 0.0, 0.1]]), jnp.array([0.02]),
+        ...                               jnp.array([[0.0, 0.0, 1.0]]), jnp.array([0.0]))
+        >>> round(float(c.distance[0, 0]), 6)
+        0.08
+    """
+    centers, radii = jnp.asarray(centers), jnp.asarray(radii)
+    normals, offsets = jnp.asarray(normals), jnp.asarray(offsets)
+    if centers.ndim != 2 or centers.shape[1] != 3:
+        raise ValueError(f"centers must have shape (S, 3), got {centers.shape}.")
+    if radii.shape != centers.shape[:1]:
+        raise ValueError(f"radii must have shape ({centers.shape[0]},), got {radii.shape}.")
+    if normals.ndim != 2 or normals.shape[1] != 3:
+        raise ValueError(f"normals must have shape (P, 3), got {normals.shape}.")
+    if offsets.shape != normals.shape[:1]:
+        raise ValueError(f"offsets must have shape ({normals.shape[0]},), got {offsets.shape}.")
+    radii = _check_nonnegative("radii", radii)
+    if _is_concrete(normals):
+        lengths = np.linalg.norm(np.asarray(normals), axis=-1)
+        if not np.allclose(lengths, 1.0, atol=1e-6):
+            raise ValueError(f"normals must be unit vectors, got lengths {lengths}.")
+
+    distance = centers @ normals.T - offsets[None, :] - radii[:, None]
+    point = centers[:, None, :] - radii[:, None, None] * normals[None, :, :]
+    frame = jnp.broadcast_to(contact_frame(normals)[None], distance.shape + (3, 3))
+    return ContactPoints(distance=distance, point=point, frame=frame)
+
+
+def corrected_free_velocity(
+    free_velocity: ArrayLike, distance: ArrayLike, time_step: ArrayLike, *, baumgarte=0.2
+) -> Array:
+    """Adds the position term to the normal free velocity, ``g_N + phi / h``-style.
+
+    The NCP constrains the normal velocity ``c_N >= 0``. Replacing ``c_N`` by
+    ``c_N + phi_+ / h + beta phi_- / h`` (``phi_+ = max(phi, 0)``, ``phi_- = min(phi, 0)``)
+    makes a contact detected at a positive distance act only if the gap would close within
+    the step (speculative contact: no force at a distance), and pushes a penetration out at
+    the Baumgarte rate ``beta / h`` (``beta = 1`` removes it in one step, which injects
+    energy; smaller values spread it).
+
+    Args:
+        free_velocity: contact-frame free velocities, flat ``(3 n,)`` ordered
+            ``[t1, t2, n]`` per contact.
+        distance: signed distances, shape ``(n,)``.
+        time_step: the step ``h > 0``.
+        baumgarte: ``beta`` in ``[0, 1]``.
+
+    Returns:
+        The corrected free velocity ``g``, shape ``(3 n,)``, to pass to :func:`solve_ncp`.
+
+    References:
+        J. Baumgarte, "Stabilization of constraints and integrals of motion in dynamical
+        systems", Computer Methods in Applied Mechanics and Engineering 1(1), 1972.
+    """
+    free_velocity, distance = jnp.asarray(free_velocity), jnp.asarray(distance)
+    if free_velocity.shape != (3 * distance.shape[0],) or distance.ndim != 1:
+        raise ValueError(
+            f"free_velocity must have shape (3 n,) and distance (n,), got "
+            f"{free_velocity.shape} and {distance.shape}."
+        )
+    correction = (jnp.maximum(distance, 0.0) + baumgarte * jnp.minimum(distance, 0.0)) / time_step
+    return free_velocity.reshape(-1, 3).at[:, 2].add(correction).reshape(-1)
+
+
+# --------------------------------------------------------------------------------------
+# 2. The frictional contact NCP.
+# --------------------------------------------------------------------------------------
+
+
+def project_to_friction_cone(v: ArrayLike, mu: ArrayLike) -> Array:
+    """Euclidean projection onto the Coulomb cone ``K_mu = {||x_T|| <= mu x_N}``.
+
+    Three cases: inside, in the polar cone ``{mu ||v_T|| <= -v_N}`` (projects to 0), and
+    otherwise onto the boundary ray through ``v_T``:
+    ``alpha (mu v_T / ||v_T||, 1)`` with ``alpha = (mu ||v_T|| + v_N) / (1 + mu^2)``.
+
+    Args:
+        v: vectors ``[t1, t2, n]``, shape ``(..., 3)``.
+        mu: friction coefficients ``>= 0``, shape ``(...)``.
+
+    Returns:
+        The projections, shape ``(..., 3)``. By Moreau's decomposition the projection onto
+        the dual cone is ``P_{K*}(v) = v + P_K(-v)``.
+    """
+    v, mu = jnp.asarray(v), jnp.asarray(mu)
+    tangential, normal = v[..., :2], v[..., 2]
+    tangential_norm = _safe_norm(tangential)
+    inside = tangential_norm <= mu * normal
+    polar = mu * tangential_norm <= -normal
+    alpha = (mu * tangential_norm + normal) / (1.0 + mu * mu)
+    positive = tangential_norm > 0
+    tangential_scale = jnp.where(
+        positive, mu * alpha / jnp.where(positive, tangential_norm, 1.0), 0.0
+    )
+    on_boundary = jnp.concatenate(
+        [tangential_scale[..., None] * tangential, alpha[..., None]], axis=-1
+    )
+    return jnp.where(
+        inside[..., None], v, jnp.where(polar[..., None], jnp.zeros_like(v), on_boundary)
+    )
+
+
+def _de_saxce_velocity(contact_velocity: Array, mu: Array) -> Array:
+    """``c~ = c + mu ||c_T|| e_N`` per contact; ``contact_velocity`` has shape ``(n, 3)``."""
+    return contact_velocity.at[:, 2].add(mu * _safe_norm(contact_velocity[:, :2]))
+
+
+def ncp_residuals(G: Array, g: Array, mu: Array, impulse: Array) -> tuple[Array, Array, Array]:
+    """Residuals of the frictional contact NCP at ``impulse``.
+
+    With ``c = G lambda + g`` and ``c~_i = c_i + mu_i ||c_{T,i}|| e_N`` the problem is
+    ``K_mu ∋ lambda ⟂ c~ ∈ K_mu*``. Each residual is the maximum over contacts of:
+
+    - primal feasibility: ``dist(lambda_i, K_mu_i)`` (impulse units);
+    - dual feasibility: ``dist(c~_i, K*_mu_i) = ||P_K(-c~_i)||`` (velocity units);
+    - complementarity: ``|lambda_i . c~_i|`` (impulse x velocity units).
+
+    Args:
+        G: Delassus matrix, ``(3 n, 3 n)``.
+        g: free contact velocity, ``(3 n,)``.
+        mu: friction coefficients, ``(n,)``.
+        impulse: candidate impulses, ``(3 n,)``.
+
+    Returns:
+        ``(primal_feasibility, dual_feasibility, complementarity)``, scalars.
+    """
+    n = mu.shape[0]
+    impulse_by_contact = impulse.reshape(n, 3)
+    velocity = _de_saxce_velocity((G @ impulse + g).reshape(n, 3), mu)
+    primal = _safe_norm(impulse_by_contact - project_to_friction_cone(impulse_by_contact, mu))
+    dual = _safe_norm(project_to_friction_cone(-velocity, mu))
+    complementarity = jnp.abs(jnp.sum(impulse_by_contact * velocity, axis=-1))
+    return jnp.max(primal), jnp.max(dual), jnp.max(complementarity)
+
+
+class NCPInfo(eqx.Module):
+    """Diagnostics of an NCP solve (no derivatives flow through them).
+
+    Attributes:
+        iterations: ADMM iterations used (0 if the warm start already satisfied the
+            tolerance).
+        primal_feasibility, dual_feasibility, complementarity: the residuals of
+            :func:`ncp_residuals` at the returned impulse.
+        converged: all three residuals ``<= tolerance``.
+        rho: the final ADMM penalty.
+    """
+
+    iterations: Array
+    primal_feasibility: Array
+    dual_feasibility: Array
+    complementarity: Array
+    converged: Array
+    rho: Array
+
+
+class NCPState(eqx.Module):
+    """ADMM iterate: ``x`` (unconstrained impulse), ``z`` (impulse in the cone), ``y``
+    (scaled multiplier, ``-c~`` at convergence), penalty ``rho``, the eigendecomposition of
+    ``G`` used for every ``(G + rho I)^{-1}``, and the residuals of ``z``."""
+
+    x: Array
+    z: Array
+    y: Array
+    rho: Array
+    eigenvalues: Array
+    eigenvectors: Array
+    iteration: Array
+    primal_feasibility: Array
+    dual_feasibility: Array
+    complementarity: Array
+
+
+def _fixed_point_step_sizes(G: Array, n: int) -> Array:
+    """Per-contact step ``r_i = 3 / trace(G_ii)`` of the natural map (a scalar per contact
+    keeps the cone geometry: ``-r c~`` is in the polar cone iff ``c~`` is in the dual)."""
+    diagonal = jnp.diagonal(G).reshape(n, 3)
+    scale = jnp.sum(diagonal, axis=-1) / 3.0
+    floor = jnp.maximum(jnp.max(scale), 1.0) * 1e-12
+    return lax.stop_gradient(1.0 / jnp.maximum(scale, floor))
+
+
+def _natural_map(impulse: Array, G: Array, g: Array, mu: Array, step_sizes: Array) -> Array:
+    """``F(lambda) = lambda - P_K(lambda - r c~(lambda))``, zero exactly at NCP solutions.
+
+    By Moreau's decomposition ``lambda = P_K(lambda - r c~)`` iff ``lambda ∈ K``,
+    ``c~ ∈ K*`` and ``lambda . c~ = 0``. Per contact mode, the Jacobian of ``P_K`` at the
+    solution is 0 (separated: ``lambda - r c~`` is inside the polar cone), the identity
+    (sticking: ``c~ = 0``, ``lambda`` inside ``K``) or the tangent projector of the cone
+    boundary (sliding), so implicit differentiation of ``F = 0`` treats separated contacts
+    as absent, sticking ones as bilateral constraints and sliding ones on the boundary.
+    """
+    n = mu.shape[0]
+    impulse_by_contact = impulse.reshape(n, 3)
+    velocity = _de_saxce_velocity((G @ impulse + g).reshape(n, 3), mu)
+    projected = project_to_friction_cone(
+        impulse_by_contact - step_sizes[:, None] * velocity, mu
+    )
+    return (impulse_by_contact - projected).reshape(-1)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _with_implicit_derivative(
+    regularization: float, impulse: Array, G: Array, g: Array, mu: Array
+) -> Array:
+    """Returns ``impulse`` (an NCP solution) with the derivative of the solution map."""
+    del G, g, mu
+    return impulse
+
+
+@_with_implicit_derivative.defjvp
+def _with_implicit_derivative_jvp(regularization, primals, tangents):
+    # Implicit function theorem on F(lambda*(theta), theta) = 0 (Blondel et al. 2022):
+    #   dF/dlambda . dlambda = -dF/dtheta . dtheta.
+    # The impulse tangent is ignored: lambda* is a function of theta only.
+    impulse, G, g, mu = primals
+    _, G_dot, g_dot, mu_dot = tangents
+    impulse = lax.stop_gradient(impulse)
+    n = mu.shape[0]
+    step_sizes = _fixed_point_step_sizes(G, n)
+    jacobian = jax.jacfwd(_natural_map)(impulse, G, g, mu, step_sizes)
+    _, rhs = jax.jvp(
+        lambda G_, g_, mu_: _natural_map(impulse, G_, g_, mu_, step_sizes),
+        (G, g, mu),
+        (G_dot, g_dot, mu_dot),
+    )
+    # Separated contacts (lambda_i = 0 exactly: the solver's projection returns exact zeros)
+    # have dlambda_i = 0; decoupling their rows and columns makes that zero exact instead of
+    # ~1e-13 from the regularized solve. A degenerate lambda_i = 0, c_i = 0 contact is thereby
+    # treated as separated (a one-sided derivative).
+    active = jnp.repeat(jnp.any(impulse.reshape(n, 3) != 0, axis=-1), 3)
+    identity = jnp.eye(3 * n, dtype=jacobian.dtype)
+    jacobian = jnp.where(active[:, None] & active[None, :], jacobian, identity)
+    rhs = jnp.where(active, rhs, 0.0)
+    # Damped least squares (Tikhonov) with two steps of iterative refinement:
+    #   dlambda = -(JᵀJ + eps I)^{-1} Jᵀ rhs, refined on the residual rhs - J dlambda.
+    # J is O(1) thanks to the step sizes r_i. Where J is nonsingular the refinement removes
+    # the O(eps / sigma_min(J)^2) bias; where it is singular (mode switches, sticking
+    # contacts on a rank-deficient G whose impulses are not unique) eps = 1e-12 bounds the
+    # gain by about 3 / (2 sqrt(eps)) instead of returning inf or NaN.
+    factor = jax.scipy.linalg.cho_factor(jacobian.T @ jacobian + regularization * identity)
+    impulse_dot = jnp.zeros_like(rhs)
+    for _ in range(3):
+        residual = -rhs - jacobian @ impulse_dot
+        impulse_dot = impulse_dot + jax.scipy.linalg.cho_solve(factor, jacobian.T @ residual)
+    return impulse, impulse_dot
+
+
+class NCPSolver(eqx.Module):
+    """ADMM for the frictional contact NCP with the De Saxcé correction.
+
+    Find impulses ``lambda`` (``3 n``, per contact ``[t1, t2, n]``) with
+
+    .. math::
+        K_\\mu \\ni \\lambda \\perp \\tilde c \\in K_\\mu^*, \\quad
+        c = G\\lambda + g, \\quad \\tilde c = c + \\mu \\|c_T\\| e_N,
+
+    i.e. Signorini's condition and Coulomb's law with maximum dissipation. For a fixed
+    correction ``s = mu ||c_T|| e_N`` this is the KKT system of the convex problem
+    ``min_{lambda in K} 1/2 lambdaᵀ G lambda + (g + s)ᵀ lambda``; ADMM on the splitting
+    ``x = z, z in K`` iterates
+
+    .. math::
+        x^+ &= (G + \\rho I)^{-1}(\\rho z - y - g - s), \\\\
+        z^+ &= P_K(\\alpha x^+ + (1 - \\alpha) z + y / \\rho), \\\\
+        y^+ &= y + \\rho(\\alpha x^+ + (1 - \\alpha) z - z^+),
+
+    and updates ``s`` from ``-y`` (whose tangential part converges to ``c_T``; computing it
+    from ``z`` instead stalled on about 10% of random problems in our trials). ``rho`` starts
+    at ``sqrt(lambda_min lambda_max)`` of ``G`` and is adapted by residual balancing. The
+    linear solves reuse one eigendecomposition of ``G``, so ``rho`` changes for free.
+
+    Termination: all three residuals of :func:`ncp_residuals` at ``z`` are below
+    ``tolerance`` (absolute: impulse, velocity and impulse x velocity units), or
+    ``max_iterations`` is reached. The returned impulse is ``z``, exactly in the cone.
+
+    Attributes:
+        max_iterations: iteration cap of the ``lax.while_loop``.
+        tolerance: absolute tolerance on the residuals. In float32 use about ``1e-5``.
+        rho: initial ADMM penalty; ``None`` uses the spectral value.
+        adaptive_rho: multiply/divide ``rho`` by 2 when the primal/dual ADMM residuals are
+            more than 10 times apart.
+        relaxation: over-relaxation ``alpha`` in ``(0, 2)``.
+        implicit_regularization: ``eps`` of the damped least-squares solve of the implicit
+            derivative (see :func:`solve_ncp`).
+        throw: raise (``equinox.error_if``) when the solve does not converge. Off by default:
+            inside smoothed or batched rollouts one unconverged sample would abort the whole
+            batch; check ``info.converged`` instead.
+
+    References:
+        J. Carpentier, Q. Le Lidec, L. Montaut, "From compliant to rigid contact simulation:
+        a unified and efficient approach", RSS 2024.
+        Q. Le Lidec, W. Jallet, L. Montaut, I. Laptev, C. Schmid, J. Carpentier, "Contact
+        models in robotics: a comparative analysis", IEEE T-RO 2024.
+        G. De Saxcé, Z.-Q. Feng, "The bipotential method: a constructive approach to design
+        the complete contact law with friction and improved numerical algorithms",
+        Mathematical and Computer Modelling 28(4-8), 1998.
+        S. Boyd, N. Parikh, E. Chu, B. Peleato, J. Eckstein, "Distributed optimization and
+        statistical learning via the alternating direction method of multipliers", 2011
+        (Sec. 3.4.1 residual balancing, Sec. 3.4.3 over-relaxation).
+    """
+
+    max_iterations: int = eqx.field(static=True, default=500)
+    tolerance: float = eqx.field(static=True, default=1e-10)
+    rho: float | None = eqx.field(static=True, default=None)
+    adaptive_rho: bool = eqx.field(static=True, default=True)
+    relaxation: float = eqx.field(static=True, default=1.5)
+    implicit_regularization: float = eqx.field(static=True, default=1e-12)
+    throw: bool = eqx.field(static=True, default=False)
+
+    def __check_init__(self):
+        if not (isinstance(self.max_iterations, int) and self.max_iterations >= 1):
+            raise ValueError(f"max_iterations must be an int >= 1, got {self.max_iterations}.")
+        if not self.tolerance > 0:
+            raise ValueError(f"tolerance must be positive, got {self.tolerance}.")
+        if self.rho is not None and not self.rho > 0:
+            raise ValueError(f"rho must be positive or None, got {self.rho}.")
+        if not 0 < self.relaxation < 2:
+            raise ValueError(f"relaxation must be in (0, 2), got {self.relaxation}.")
+        if not self.implicit_regularization > 0:
+            raise ValueError(
+                f"implicit_regularization must be positive, got {self.implicit_regularization}."
+            )
+
+    def init(self, G: Array, g: Array, mu: Array, warm_start: Array | None) -> NCPState:
+        """Initial iterate: ``z = P_K(warm_start)`` (or 0) and the matching ``y = -c~(z)``,
+        so an exact warm start is a fixed point of :meth:`step`."""
+        n = mu.shape[0]
+        eigenvalues, eigenvectors = jnp.linalg.eigh(G)
+        largest = jnp.maximum(eigenvalues[-1], jnp.finfo(G.dtype).tiny ** 0.5)
+        if self.rho is None:
+            # Spectral choice sqrt(m L) (Carpentier et al. 2024), m floored so a singular G
+            # (more contact rows than degrees of freedom) still gets a positive penalty.
+            rho = jnp.sqrt(largest * jnp.maximum(eigenvalues[0], 1e-8 * largest))
+        else:
+            rho = jnp.asarray(self.rho, G.dtype)
+        if warm_start is None:
+            z = jnp.zeros_like(g)
+        else:
+            z = project_to_friction_cone(warm_start.reshape(n, 3), mu).reshape(-1)
+        y = -_de_saxce_velocity((G @ z + g).reshape(n, 3), mu).reshape(-1)
+        primal, dual, complementarity = ncp_residuals(G, g, mu, z)
+        return NCPState(
+            x=z,
+            z=z,
+            y=y,
+            rho=rho,
+            eigenvalues=eigenvalues,
+            eigenvectors=eigenvectors,
+            iteration=jnp.array(0, dtype=jnp.int32),
+            primal_feasibility=primal,
+            dual_feasibility=dual,
+            complementarity=complementarity,
+        )
+
+    def step(self, G: Array, g: Array, mu: Array, state: NCPState) -> NCPState:
+        """One ADMM iteration (see the class docstring)."""
+        n = mu.shape[0]
+        x, z, y, rho = state.x, state.z, state.y, state.rho
+        del x
+        dual_by_contact = (-y).reshape(n, 3)
+        correction = jnp.zeros_like(dual_by_contact).at[:, 2].set(
+            mu * _safe_norm(dual_by_contact[:, :2])
+        )
+        rhs = rho * z - y - g - correction.reshape(-1)
+        Q, eigenvalues = state.eigenvectors, state.eigenvalues
+        x_next = Q @ ((Q.T @ rhs) / (eigenvalues + rho))
+        x_relaxed = self.relaxation * x_next + (1.0 - self.relaxation) * z
+        z_next = project_to_friction_cone((x_relaxed + y / rho).reshape(n, 3), mu).reshape(-1)
+        y_next = y + rho * (x_relaxed - z_next)
+
+        if self.adaptive_rho:
+            admm_primal = jnp.max(jnp.abs(x_next - z_next))
+            admm_dual = rho * jnp.max(jnp.abs(z_next - z))
+            rho_next = jnp.where(
+                admm_primal > 10.0 * admm_dual,
+                2.0 * rho,
+                jnp.where(admm_dual > 10.0 * admm_primal, 0.5 * rho, rho),
+            )
+            # Keep the penalty within 12 orders of magnitude of G's spectrum.
+            largest = jnp.maximum(eigenvalues[-1], jnp.finfo(G.dtype).tiny ** 0.5)
+            rho_next = jnp.clip(rho_next, 1e-6 * largest, 1e6 * largest)
+        else:
+            rho_next = rho
+
+        primal, dual, complementarity = ncp_residuals(G, g, mu, z_next)
+        return NCPState(
+            x=x_next,
+            z=z_next,
+            y=y_next,
+            rho=rho_next,
+            eigenvalues=eigenvalues,
+            eigenvectors=Q,
+            iteration=state.iteration + 1,
+            primal_feasibility=primal,
+            dual_feasibility=dual,
+            complementarity=complementarity,
+        )
+
+    def _residuals_within_tolerance(self, state: NCPState) -> Array:
+        # A NaN residual compares False, so it never counts as converged.
+        return (
+            (state.primal_feasibility <= self.tolerance)
+            & (state.dual_feasibility <= self.tolerance)
+            & (state.complementarity <= self.tolerance)
+        )
+
+    def terminate(self, state: NCPState) -> Array:
+        """True once converged or at the iteration cap."""
+        return self._residuals_within_tolerance(state) | (state.iteration >= self.max_iterations)
+
+    def postprocess(self, state: NCPState) -> tuple[Array, NCPInfo]:
+        """The impulse ``z`` and the diagnostics."""
+        info = NCPInfo(
+            iterations=state.iteration,
+            primal_feasibility=state.primal_feasibility,
+            dual_feasibility=state.dual_feasibility,
+            complementarity=state.complementarity,
+            converged=self._residuals_within_tolerance(state),
+            rho=state.rho,
+        )
+        return state.z, info
+
+    def solve(
+        self, G: ArrayLike, g: ArrayLike, mu: ArrayLike, *, warm_start: ArrayLike | None = None
+    ) -> tuple[Array, NCPInfo]:
+        """Same as :func:`solve_ncp` with this solver."""
+        return solve_ncp(G, g, mu, solver=self, warm_start=warm_start)
+
+
+def _checked_problem(G, g, mu, warm_start):
+    """Host-side shape checks, value checks (host or traced), common floating dtype."""
+    G, g, mu = jnp.asarray(G), jnp.asarray(g), jnp.asarray(mu)
+    if mu.ndim != 1 or mu.shape[0] == 0:
+        raise ValueError(f"mu must have shape (n,) for n >= 1 contacts, got {mu.shape}.")
+    n = mu.shape[0]
+    if G.shape != (3 * n, 3 * n):
+        raise ValueError(
+            f"G must have shape (3n, 3n) = {(3 * n, 3 * n)} for n = {n} contacts "
+            f"(mu has shape {mu.shape}), got {G.shape}."
+        )
+    if g.shape != (3 * n,):
+        raise ValueError(
+            f"g must have shape (3n,) = {(3 * n,)} for n = {n} contacts, got {g.shape}."
+        )
+    if warm_start is not None:
+        warm_start = jnp.asarray(warm_start)
+        if warm_start.shape != (3 * n,):
+            raise ValueError(f"warm_start must have shape {(3 * n,)}, got {warm_start.shape}.")
+    dtype = jnp.result_type(G, g, mu, float)
+    G, g, mu = G.astype(dtype), g.astype(dtype), mu.astype(dtype)
+    G = _check_finite("G", G)
+    g = _check_finite("g", g)
+    mu = _check_finite("mu", mu)
+    mu = _check_nonnegative("mu", mu)
+    if _is_concrete(G):
+        G_host = np.asarray(G)
+        scale = max(float(np.max(np.abs(G_host))), 1e-300)
+        if np.max(np.abs(G_host - G_host.T)) > 1e-8 * scale:
+            raise ValueError("G must be symmetric (G = J M^-1 J^T).")
+        if np.linalg.eigvalsh(G_host)[0] < -1e-8 * scale:
+            raise ValueError("G must be positive semi-definite (G = J M^-1 J^T).")
+    if warm_start is not None:
+        warm_start = _check_finite("warm_start", warm_start.astype(dtype))
+    return G, g, mu, warm_start
+
+
+def solve_ncp(
+    G: ArrayLike,
+    g: ArrayLike,
+    mu: ArrayLike,
+    *,
+    solver: NCPSolver = NCPSolver(),
+    warm_start: ArrayLike | None = None,
+) -> tuple[Array, NCPInfo]:
+    """Solves the frictional contact NCP and attaches its implicit derivative.
+
+    See :class:`NCPSolver` for the problem and the algorithm. The solve runs on
+    ``stop_gradient``-ed inputs; derivatives with respect to ``G``, ``g`` and ``mu``
+    (forward and reverse mode) come from the implicit function theorem applied to the
+    natural map ``F(lambda) = lambda - P_K(lambda - r c~(lambda)) = 0`` at the returned
+    solution, with one dense ``(3 n x 3 n)`` damped least-squares solve. Per contact mode
+    this gives: separated contacts (``lambda_i = 0``) a zero derivative, sticking contacts
+    the derivative of a bilateral constraint (``dc_i = 0``), sliding contacts the derivative
+    along the cone boundary with ``dc_N = 0``. At a mode switch the derivative is one of the
+    one-sided ones. No derivative flows through ``warm_start`` or the diagnostics.
+
+    Args:
+        G: Delassus matrix ``J M^{-1} Jᵀ``, symmetric positive semi-definite, ``(3n, 3n)``.
+        g: free contact velocity (the contact-frame velocity without impulses, possibly
+            with :func:`corrected_free_velocity`), ``(3 n,)``.
+        mu: friction coefficients ``>= 0``, ``(n,)``.
+        solver: the :class:`NCPSolver` configuration.
+        warm_start: an impulse guess ``(3 n,)``, e.g. the previous time step's solution.
+
+    Returns:
+        ``(impulse, info)``: impulses ``(3 n,)`` per contact ``[t1, t2, n]``, and an
+        :class:`NCPInfo`.
+
+    Raises:
+        ValueError: on wrong shapes; on NaN/inf in ``G``, ``g``, ``mu`` or negative ``mu``,
+            and a non-symmetric or indefinite ``G``, when these values are concrete. Traced
+            values are checked with ``equinox.error_if`` (NaN/inf and negative ``mu``).
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> impulse, info = solve_ncp(jnp.eye(3), jnp.array([0.0, 0.0, -0.1]),
+        ...                           jnp.array([0.5]))
+        >>> [round(float(v), 6) for v in impulse], bool(info.converged)
+        ([0.0, 0.0, 0.1], True)
+
+    References:
+        M. Blondel, Q. Berthet, M. Cuturi, R. Frostig, S. Hoyer, F. Llinares-López,
+        F. Pedregosa, J.-P. Vert, "Efficient and modular implicit differentiation",
+        NeurIPS 2022.
+        Q. Le Lidec, L. Montaut, Y. de Mont-Marin, F. Schramm, J. Carpentier, "End-to-end
+        and highly-efficient differentiable simulation for robotics", 2024.
+    """
+    G, g, mu, warm_start = _checked_problem(G, g, mu, warm_start)
+    G_solve, g_solve, mu_solve = (lax.stop_gradient(a) for a in (G, g, mu))
+    if warm_start is not None:
+        warm_start = lax.stop_gradient(warm_start)
+
+    state = solver.init(G_solve, g_solve, mu_solve, warm_start)
+    state = lax.while_loop(
+        lambda s: ~solver.terminate(s),
+        lambda s: solver.step(G_solve, g_solve, mu_solve, s),
+        state,
+    )
+    impulse, info = solver.postprocess(state)
+    if solver.throw:
+        impulse = eqx.error_if(
+            impulse, ~info.converged, "NCP solver did not converge within max_iterations."
+        )
+    impulse = _with_implicit_derivative(solver.implicit_regularization, impulse, G, g, mu)
+    return impulse, info
+
+
+# --------------------------------------------------------------------------------------
+# 3. Compliant contact models: forces from distance and contact-frame velocity.
+# --------------------------------------------------------------------------------------
+
+
+def _regularized_coulomb(
+    normal_force: Array, tangential_velocity: Array, friction: Array, smoothing_velocity
+) -> Array:
+    """``f_T = -mu f_N v_T / sqrt(||v_T||^2 + v_s^2)``: Coulomb's law, smooth in ``v_T``;
+    it reaches ``mu f_N`` (sliding) once ``||v_T|| >> v_s`` and is viscous below."""
+    speed = jnp.sqrt(jnp.sum(tangential_velocity**2, axis=-1) + smoothing_velocity**2)
+    return -(friction * normal_force / speed)[..., None] * tangential_velocity
+
+
+class SpringDamper(eqx.Module):
+    """Parameters of the penalty (Kelvin–Voigt) contact model, see
+    :func:`spring_damper_force`.
+
+    Attributes:
+        stiffness: ``k`` (N/m).
+        damping: ``d`` (N s/m).
+        friction: Coulomb coefficient ``mu``.
+        smoothing_velocity: ``v_s`` (m/s) of the regularized Coulomb law.
+    """
+
+    stiffness: ArrayLike
+    damping: ArrayLike
+    friction: ArrayLike
+    smoothing_velocity: ArrayLike = 1e-3
+
+    def __call__(self, distance: ArrayLike, velocity: ArrayLike) -> Array:
+        return spring_damper_force(distance, velocity, self)
+
+
+def spring_damper_force(distance: ArrayLike, velocity: ArrayLike, params: SpringDamper) -> Array:
+    """Penalty contact force: a one-sided spring-damper and regularized Coulomb friction.
+
+    .. math::
+        f_N = \\max(0,\\; k \\max(-\\phi, 0) - d\\, v_N [\\phi < 0]), \\quad
+        f_T = -\\mu f_N v_T / \\sqrt{\\|v_T\\|^2 + v_s^2}.
+
+    The clamp keeps the damper from pulling the body back (no sticky contact).
+
+    Args:
+        distance: signed distances ``phi``, shape ``(...)``.
+        velocity: contact-frame relative velocities ``[t1, t2, n]``, ``(..., 3)``.
+        params: a :class:`SpringDamper`.
+
+    Returns:
+        Contact-frame forces ``[f_T1, f_T2, f_N]``, shape ``(..., 3)``; multiply by the time
+        step for an impulse.
+
+    References:
+        Q. Le Lidec, W. Jallet, L. Montaut, I. Laptev, C. Schmid, J. Carpentier, "Contact
+        models in robotics: a comparative analysis", IEEE T-RO 2024.
+    """
+    distance, velocity = jnp.asarray(distance), jnp.asarray(velocity)
+    penetration = jnp.maximum(-distance, 0.0)
+    in_contact = distance < 0
+    normal_force = jnp.maximum(
+        params.stiffness * penetration - jnp.where(in_contact, params.damping * velocity[..., 2], 0.0),
+        0.0,
+    )
+    tangential_force = _regularized_coulomb(
+        normal_force, velocity[..., :2], params.friction, params.smoothing_velocity
+    )
+    return jnp.concatenate([tangential_force, normal_force[..., None]], axis=-1)
+
+
+class LogBarrier(eqx.Module):
+    """Parameters of the log-barrier "force at a distance" model, see
+    :func:`log_barrier_force`.
+
+    Attributes:
+        stiffness: ``kappa`` of the potential ``-kappa log(gap)`` (N m); smaller is stiffer
+            contact with a shorter reach.
+        min_distance: ``delta > 0`` below which the potential is continued by its
+            second-order Taylor expansion (finite, ``C^1`` force through penetration).
+        friction: Coulomb coefficient ``mu``.
+        smoothing_velocity: ``v_s`` (m/s) of the regularized Coulomb law.
+        lookahead: ``h`` (s); the barrier acts on the predicted gap ``phi + h v_N`` (use the
+            time step for the quasi-dynamic relaxation of Pang et al.), 0 for the distance.
+    """
+
+    stiffness: ArrayLike
+    min_distance: ArrayLike = 1e-4
+    friction: ArrayLike = 0.0
+    smoothing_velocity: ArrayLike = 1e-3
+    lookahead: ArrayLike = 0.0
+
+    def __call__(self, distance: ArrayLike, velocity: ArrayLike) -> Array:
+        return log_barrier_force(distance, velocity, self)
+
+
+def log_barrier_force(distance: ArrayLike, velocity: ArrayLike, params: LogBarrier) -> Array:
+    """Contact force from a log-barrier potential on the gap, smooth in the distance.
+
+    With the gap ``s = phi + h v_N``, the potential ``U(s) = -kappa log s`` gives the
+    repulsive normal force ``f_N = -U'(s) = kappa / s``, nonzero at any distance (the
+    relaxation that makes contact gradients informative before touching). Below
+    ``delta`` the potential is replaced by its quadratic Taylor expansion at ``delta``, so
+
+    .. math::
+        f_N = \\kappa / s \\;(s \\ge \\delta), \\qquad
+        f_N = (\\kappa / \\delta)(2 - s / \\delta) \\;(s < \\delta),
+
+    which is ``C^1`` in ``s`` and finite through penetration. Friction is the regularized
+    Coulomb law on ``f_N``.
+
+    Args:
+        distance: signed distances ``phi``, shape ``(...)``.
+        velocity: contact-frame relative velocities ``[t1, t2, n]``, ``(..., 3)``.
+        params: a :class:`LogBarrier`.
+
+    Returns:
+        Contact-frame forces ``[f_T1, f_T2, f_N]``, shape ``(..., 3)``; multiply by the time
+        step for an impulse.
+
+    References:
+        T. Pang, H. J. T. Suh, L. Yang, R. Tedrake, "Global planning for contact-rich
+        manipulation via local smoothing of quasi-dynamic contact models", IEEE T-RO 2023.
+        Q. Le Lidec, W. Jallet, L. Montaut, I. Laptev, C. Schmid, J. Carpentier, "Contact
+        models in robotics: a comparative analysis", IEEE T-RO 2024.
+    """
+    distance, velocity = jnp.asarray(distance), jnp.asarray(velocity)
+    gap = distance + params.lookahead * velocity[..., 2]
+    min_distance = params.min_distance
+    far = gap >= min_distance
+    barrier = params.stiffness / jnp.where(far, gap, min_distance)
+    taylor = (params.stiffness / min_distance) * (2.0 - gap / min_distance)
+    normal_force = jnp.where(far, barrier, taylor)
+    tangential_force = _regularized_coulomb(
+        normal_force, velocity[..., :2], params.friction, params.smoothing_velocity
+    )
+    return jnp.concatenate([tangential_force, normal_force[..., None]], axis=-1)

@@ -1,0 +1,524 @@
+"""Tests of contact detection, the frictional contact NCP, its implicit derivative, and the
+compliant models. References: closed forms on a point mass, Pinocchio's ADMM solver on the
+same Delassus problems, and central finite differences."""
+
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from rsmooth.sim._contact import (
+    LogBarrier,
+    NCPSolver,
+    SpringDamper,
+    contact_frame,
+    corrected_free_velocity,
+    log_barrier_force,
+    ncp_residuals,
+    project_to_friction_cone,
+    solve_ncp,
+    sphere_halfspace_contacts,
+    spring_damper_force,
+)
+
+TIGHT = NCPSolver(tolerance=1e-13, max_iterations=20000)
+
+
+def _solve_tight(G, g, mu):
+    return solve_ncp(G, g, mu, solver=TIGHT)
+
+
+def _solution(G, g, mu):
+    return _solve_tight(G, g, mu)[0]
+
+
+# Compiled once per number of contacts and shared by the tests: compilation, not solving,
+# dominates their run time, so every batched solve goes through batches of BATCH problems.
+BATCH = 8
+_solve_tight_batch = jax.jit(jax.vmap(_solve_tight))
+jacobians = jax.jit(
+    lambda G, g, mu: (jax.jacfwd(_solution, argnums=(0, 1, 2))(G, g, mu),
+                      jax.jacrev(_solution, argnums=(0, 1, 2))(G, g, mu))
+)
+
+
+def solve_tight_batch(G, g, mu):
+    """Solves a stack of problems, in padded batches of BATCH."""
+    size = G.shape[0]
+    padding = -size % BATCH
+    pad = lambda a: jnp.concatenate([a, jnp.repeat(a[:1], padding, axis=0)])
+    G, g, mu = pad(G), pad(g), pad(mu)
+    chunks = [_solve_tight_batch(G[i:i + BATCH], g[i:i + BATCH], mu[i:i + BATCH])
+              for i in range(0, size + padding, BATCH)]
+    return jax.tree.map(lambda *parts: jnp.concatenate(parts)[:size], *chunks)
+
+
+def numpy_generator(key):
+    """A NumPy generator seeded from a JAX key: problems are built on the host, in NumPy,
+    to keep compilation out of the tests' run time."""
+    return np.random.default_rng(np.asarray(jax.random.key_data(key)))
+
+
+def random_problem(generator, n, extra_dofs=3):
+    """G = J M^-1 Jᵀ with a random full-rank J (3n x nv) and SPD M, random g, mu in [0.1, 1]."""
+    nv = 3 * n + extra_dofs
+    J = generator.normal(size=(3 * n, nv))
+    A = generator.normal(size=(nv, nv))
+    M = A @ A.T / nv + 0.5 * np.eye(nv)
+    G = J @ np.linalg.solve(M, J.T)
+    G = 0.5 * (G + G.T)
+    g = generator.normal(size=3 * n)
+    mu = generator.uniform(0.1, 1.0, size=n)
+    return G, g, mu
+
+
+def problem_batch(getkey, n, batch):
+    generator = numpy_generator(getkey())
+    problems = [random_problem(generator, n) for _ in range(batch)]
+    return tuple(jnp.asarray(np.stack(arrays)) for arrays in zip(*problems))
+
+
+def check_ncp_numpy(G, g, mu, impulse, atol):
+    """Independent check of cone feasibility, dual feasibility and complementarity."""
+    G, g, mu, impulse = (np.asarray(a) for a in (G, g, mu, impulse))
+    n = mu.shape[0]
+    lam = impulse.reshape(n, 3)
+    c = (G @ impulse + g).reshape(n, 3)
+    c_tilde = c.copy()
+    c_tilde[:, 2] += mu * np.linalg.norm(c[:, :2], axis=1)
+    # Cone: ||lambda_T|| <= mu lambda_N; dual cone: mu ||c~_T|| <= c~_N.
+    assert np.all(np.linalg.norm(lam[:, :2], axis=1) <= mu * lam[:, 2] + atol)
+    assert np.all(mu * np.linalg.norm(c_tilde[:, :2], axis=1) <= c_tilde[:, 2] + atol)
+    assert np.all(np.abs(np.sum(lam * c_tilde, axis=1)) <= atol)
+
+
+# ----------------------------------------------------------------------------- detection
+
+
+def test_contact_frame_is_a_rotation_with_the_normal_third(getkey):
+    normals = jax.random.normal(getkey(), (64, 3))
+    normals = jnp.concatenate([normals, jnp.array([[0.0, 0, 1], [0, 0, -1], [1, 0, 0]])])
+    normals = normals / jnp.linalg.norm(normals, axis=-1, keepdims=True)
+    frames = contact_frame(normals)
+    identity = jnp.broadcast_to(jnp.eye(3), frames.shape)
+    np.testing.assert_allclose(jnp.swapaxes(frames, -1, -2) @ frames, identity, atol=1e-12)
+    np.testing.assert_allclose(jnp.linalg.det(frames), 1.0, atol=1e-12)
+    np.testing.assert_allclose(frames[..., 2], normals, atol=0)
+    np.testing.assert_allclose(contact_frame(jnp.array([0.0, 0.0, 1.0])), jnp.eye(3), atol=0)
+
+
+def test_sphere_halfspace_contacts_distances_points_frames():
+    centers = jnp.array([[0.0, 0.0, 0.1], [1.0, 2.0, -0.05], [0.3, 0.0, 0.5]])
+    radii = jnp.array([0.02, 0.1, 0.0])  # the last is a point
+    normals = jnp.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]])  # floor z >= 0, wall x <= 0.5
+    offsets = jnp.array([0.0, -0.5])
+    contacts = jax.jit(sphere_halfspace_contacts)(centers, radii, normals, offsets)
+    assert contacts.distance.shape == (3, 2)
+    assert contacts.point.shape == (3, 2, 3)
+    assert contacts.frame.shape == (3, 2, 3, 3)
+    expected = np.array([[0.08, 0.48], [-0.15, -0.6], [0.5, 0.2]])
+    np.testing.assert_allclose(contacts.distance, expected, atol=1e-12)
+    np.testing.assert_allclose(contacts.point[1, 0], [1.0, 2.0, -0.15], atol=1e-12)
+    np.testing.assert_allclose(contacts.point[2, 1], centers[2], atol=0)  # radius 0
+    np.testing.assert_allclose(contacts.frame[:, 1, :, 2], jnp.tile(normals[1], (3, 1)))
+    # The point on the plane lies on the plane.
+    on_plane = contacts.point - contacts.distance[..., None] * normals[None]
+    np.testing.assert_allclose(jnp.einsum("spk,pk->sp", on_plane, normals), 
+                               jnp.broadcast_to(offsets, (3, 2)), atol=1e-12)
+
+
+def test_sphere_halfspace_contacts_rejects_bad_input():
+    with pytest.raises(ValueError, match="radii"):
+        sphere_halfspace_contacts(jnp.zeros((2, 3)), jnp.array([0.1, -0.1]),
+                                  jnp.array([[0.0, 0, 1]]), jnp.zeros(1))
+    with pytest.raises(ValueError, match="normals"):
+        sphere_halfspace_contacts(jnp.zeros((2, 3)), jnp.ones(2),
+                                  jnp.array([[0.0, 0, 2]]), jnp.zeros(1))
+    with pytest.raises(ValueError, match="centers"):
+        sphere_halfspace_contacts(jnp.zeros((2, 2)), jnp.ones(2),
+                                  jnp.array([[0.0, 0, 1]]), jnp.zeros(1))
+
+
+def test_corrected_free_velocity():
+    g = jnp.array([1.0, 2.0, -0.5, 0.0, 0.0, 0.0])
+    corrected = corrected_free_velocity(g, jnp.array([0.01, -0.02]), 0.01, baumgarte=0.5)
+    np.testing.assert_allclose(corrected, [1.0, 2.0, 0.5, 0.0, 0.0, -1.0], atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- the NCP
+
+
+def test_cone_projection_is_a_projection(getkey):
+    v = 3.0 * jax.random.normal(getkey(), (200, 3))
+    mu = jax.random.uniform(getkey(), (200,), minval=0.0, maxval=2.0)
+    p = project_to_friction_cone(v, mu)
+    np.testing.assert_allclose(project_to_friction_cone(p, mu), p, atol=1e-12)
+    assert np.all(jnp.linalg.norm(p[:, :2], axis=1) <= mu * p[:, 2] + 1e-12)
+    # Moreau: v - P_K(v) lies in the polar cone and is orthogonal to P_K(v).
+    r = v - p
+    np.testing.assert_allclose(jnp.sum(r * p, axis=1), 0.0, atol=1e-10)
+    assert np.all(mu * r[:, 2] <= -jnp.linalg.norm(r[:, :2], axis=1) * mu**2 + 1e-10)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4])
+def test_random_problems_satisfy_the_ncp(getkey, n):
+    G, g, mu = problem_batch(getkey, n, 8)
+    impulse, info = solve_tight_batch(G, g, mu)
+    assert bool(jnp.all(info.converged))
+    assert jnp.max(info.primal_feasibility) <= TIGHT.tolerance
+    assert jnp.max(info.dual_feasibility) <= TIGHT.tolerance
+    assert jnp.max(info.complementarity) <= TIGHT.tolerance
+    for i in range(G.shape[0]):
+        check_ncp_numpy(G[i], g[i], mu[i], impulse[i], atol=1e-12)
+    residuals = jax.jit(jax.vmap(ncp_residuals))(G, g, mu, impulse)
+    np.testing.assert_allclose(
+        jnp.stack(residuals),
+        jnp.stack([info.primal_feasibility, info.dual_feasibility, info.complementarity]),
+        atol=1e-14)
+    # Some contacts of the batch are active, some are not.
+    normal = impulse.reshape(-1, 3)[:, 2]
+    assert jnp.any(normal > 0) and jnp.any(normal == 0)
+
+
+def _pinocchio_solve(G, g, mu):
+    """Pinocchio's own ADMM on the bare Delassus problem (dense operator, Coulomb cones).
+
+    The solver takes constraint models only for their cones; a free-flyer model gives
+    PointContactConstraintModel objects whose Coulomb cone is set by setFriction."""
+    pin = pytest.importorskip("pinocchio")
+    model = pin.Model()
+    joint = model.addJoint(0, pin.JointModelFreeFlyer(), pin.SE3.Identity(), "free_flyer")
+    constraint_models = pin.StdVec_ConstraintModel()
+    constraint_datas = pin.StdVec_ConstraintData()
+    for friction in np.asarray(mu):
+        point_contact = pin.PointContactConstraintModel(model, joint)
+        point_contact.setFriction(float(friction))
+        constraint_model = pin.ConstraintModel(point_contact)
+        constraint_models.append(constraint_model)
+        constraint_datas.append(constraint_model.createData())
+    settings = pin.ADMMSolverSettings()
+    settings.max_iterations = 20000
+    for name in ("absolute_feasibility_tol", "absolute_complementarity_tol",
+                 "relative_feasibility_tol", "relative_complementarity_tol"):
+        setattr(settings, name, 1e-13)
+    assert settings.solve_ncp  # the NCP with the De Saxce correction, not the CCP
+    result = pin.ADMMSolverResult()
+    solver = pin.ADMMConstraintSolver(3 * len(mu))
+    solver.solve(pin.DelassusOperatorDense(np.asarray(G)), np.asarray(g, dtype=float),
+                 constraint_models, constraint_datas, settings, result)
+    assert result.converged
+    return result.retrieveConstraintImpulses()
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4])
+def test_agrees_with_pinocchio_admm(getkey, n):
+    G, g, mu = problem_batch(getkey, n, 8)
+    impulse, info = solve_tight_batch(G, g, mu)
+    assert bool(jnp.all(info.converged))
+    for i in range(G.shape[0]):
+        reference = _pinocchio_solve(G[i], g[i], mu[i])
+        np.testing.assert_allclose(impulse[i], reference, atol=1e-7 * (1 + np.abs(reference).max()))
+
+
+# ----------------------------------------------------------------------------- a point mass
+
+MASS, STEP, GRAVITY, FRICTION = 2.0, 0.01, 9.81, 0.5
+
+
+def point_mass_problem(force):
+    """One velocity-level step of a point mass at rest on the floor: M = m I, J = I (floor
+    frame = world frame), G = I / m, g = h (force / m - g0 e_z); dg/dforce = h / m I."""
+    G = np.eye(3) / MASS
+    g = STEP * (np.asarray(force) / MASS - GRAVITY * np.array([0.0, 0.0, 1.0]))
+    return G, g, np.array([FRICTION])
+
+
+def test_point_mass_rests_sticks_and_slides():
+    limit = FRICTION * MASS * GRAVITY
+    direction = np.array([0.6, -0.8, 0.0])
+    forces = [np.zeros(3), 0.6 * limit * direction, 2.5 * limit * direction]
+    G, g, mu = (jnp.asarray(np.stack(a)) for a in zip(*map(point_mass_problem, forces)))
+    impulse, _ = solve_tight_batch(G, g, mu)
+    velocity = jnp.einsum("bij,bj->bi", G, impulse) + g
+    normal_impulse = MASS * STEP * GRAVITY
+    # Resting: lambda_N = m h g0, no friction, no motion.
+    np.testing.assert_allclose(impulse[0], [0.0, 0.0, normal_impulse], atol=1e-12)
+    np.testing.assert_allclose(velocity[0], 0.0, atol=1e-12)
+    # A push below mu m g0 sticks: friction cancels the push impulse, no tangential velocity.
+    np.testing.assert_allclose(velocity[1], 0.0, atol=1e-12)
+    np.testing.assert_allclose(impulse[1, :2], -STEP * forces[1][:2], atol=1e-12)
+    np.testing.assert_allclose(impulse[1, 2], normal_impulse, atol=1e-12)
+    # A push above it slides: friction impulse exactly mu lambda_N opposing the push, and
+    # tangential velocity along the push, h (2.5 - 1) mu g0.
+    np.testing.assert_allclose(impulse[2, 2], normal_impulse, rtol=1e-12)
+    np.testing.assert_allclose(impulse[2, :2], -FRICTION * normal_impulse * direction[:2],
+                               rtol=1e-10)
+    np.testing.assert_allclose(velocity[2, 2], 0.0, atol=1e-12)
+    np.testing.assert_allclose(velocity[2, :2], STEP * 1.5 * FRICTION * GRAVITY * direction[:2],
+                               rtol=1e-10)
+
+
+def test_point_mass_derivatives_are_zero_where_physics_says_so():
+    limit = FRICTION * MASS * GRAVITY
+    forces = [
+        [0.0, 0.0, 0.3 * MASS * GRAVITY],  # small upward force: still resting
+        [0.2 * limit, 0.0, 0.0],  # small push: sticks
+        [3.0 * limit, 0.0, 0.0],  # large push: slides
+    ]
+    d_impulse, d_velocity = [], []
+    for force in forces:
+        G, g, mu = point_mass_problem(force)
+        (_, forward, _), (_, reverse, _) = jacobians(G, g, mu)
+        np.testing.assert_allclose(reverse, forward, atol=1e-14)
+        # Chain rule through g = h (f / m - g0 e_z) and v+ = G lambda + g.
+        d_impulse.append(forward * STEP / MASS)
+        d_velocity.append((G @ forward + np.eye(3)) * STEP / MASS)
+    # The upward force does not lift the mass: v_N after the step is 0 whatever the force,
+    # so its derivative is exactly 0, and lambda_N decreases one for one with h f_up.
+    assert abs(float(d_velocity[0][2, 2])) < 1e-14
+    np.testing.assert_allclose(d_impulse[0][2, 2], -STEP, rtol=1e-10)
+    # Sticking: the velocity responds to no small force at all.
+    np.testing.assert_allclose(d_velocity[1], 0.0, atol=1e-14)
+    # Sliding: friction is saturated, so d v_T / d f_T = h / m along the push, and v_N = 0.
+    np.testing.assert_allclose(d_velocity[2][0, 0], STEP / MASS, rtol=1e-10)
+    np.testing.assert_allclose(d_velocity[2][2], 0.0, atol=1e-14)
+
+
+def test_box_on_four_corners_rank_deficient_delassus():
+    # A box (6 DoF) on four corner contacts: G is 12 x 12 of rank 6 and the impulses are
+    # not unique, but the motion is; its derivative is finite and physical.
+    mass, inertia, step, friction = 1.0, 0.1, 0.01, 0.5
+    corners = np.array([[x, y, -0.1] for x in (-0.1, 0.1) for y in (-0.1, 0.1)])
+    cross = lambda p: np.array([[0, -p[2], p[1]], [p[2], 0, -p[0]], [-p[1], p[0], 0]])
+    J = np.concatenate([np.hstack([np.eye(3), -cross(p)]) for p in corners])  # v + w x p
+    M_inv = np.diag([1 / mass] * 3 + [1 / inertia] * 3)
+    G = J @ M_inv @ J.T
+    assert np.linalg.matrix_rank(G) == 6
+
+    mu = jnp.full(4, friction)
+    # Pushes that stick and slide; the step's free velocity is v_free = h (M^-1 f - g0 e_z).
+    pushes = np.array([[0.5, 0.0, 0.0], [10.0, 0.0, 0.0]])
+    free = step * np.concatenate([pushes / mass - [0.0, 0.0, GRAVITY], np.zeros((2, 3))], 1)
+    impulse, info = solve_tight_batch(jnp.stack([G, G]), free @ J.T, jnp.stack([mu, mu]))
+    assert bool(jnp.all(info.converged))
+    velocity = free + impulse @ J @ M_inv
+    # dv/df = (I + M^-1 Jᵀ dlambda/dg J) h M^-1 (force rows only).
+    d_velocity = []
+    for k in range(2):
+        (_, d_impulse, _), _ = jacobians(G, J @ free[k], mu)
+        d_velocity.append(((np.eye(6) + M_inv @ J.T @ d_impulse @ J) * step / mass)[:, :3])
+    np.testing.assert_allclose(velocity[0], 0.0, atol=1e-10)
+    np.testing.assert_allclose(d_velocity[0], 0.0, atol=1e-12)
+    # Sliding: v_x = h (f / m - mu g0), so dv_x/df_x = h / m and dv_x/df_z = mu h / m.
+    np.testing.assert_allclose(velocity[1, 0], step * (10.0 / mass - friction * GRAVITY),
+                               rtol=1e-9)
+    np.testing.assert_allclose(velocity[1, 1:], 0.0, atol=1e-9)
+    np.testing.assert_allclose(d_velocity[1][0], [step / mass, 0.0, friction * step / mass],
+                               atol=1e-10)
+
+
+# ----------------------------------------------------------------------------- derivatives
+
+
+def mixed_mode_problem(key, modes):
+    """A random G with a solution built by design: per contact 'stick' (lambda inside the
+    cone, c = 0), 'slide' (lambda on the boundary opposing c_T, c_N = 0) or 'separate'
+    (lambda = 0, c_N > 0); then g = c - G lambda. Every contact is strictly complementary,
+    so small perturbations keep the modes. Draws with g_N >= 0 at an active contact are
+    redrawn: there lambda_i = 0 would be a second solution (Coulomb friction on a coupled G
+    need not have a unique solution)."""
+    generator = numpy_generator(key)
+    n = len(modes)
+    while True:
+        G, _, mu = random_problem(generator, n)
+        angles = generator.uniform(0.0, 2 * np.pi, size=n)
+        lam, c = np.zeros((n, 3)), np.zeros((n, 3))
+        for i, mode in enumerate(modes):
+            u = np.array([np.cos(angles[i]), np.sin(angles[i])])
+            if mode == "stick":
+                lam[i] = [*(0.4 * mu[i] * u), 1.0]
+            elif mode == "slide":
+                lam[i] = [*(-0.8 * mu[i] * u), 0.8]
+                c[i] = [*(0.5 * u), 0.0]
+            else:
+                c[i] = [*(0.3 * u), 0.7]
+        g = (c - (G @ lam.reshape(-1)).reshape(n, 3)).reshape(-1)
+        active = np.array([mode != "separate" for mode in modes])
+        if np.all(g.reshape(n, 3)[active, 2] < -0.1):
+            return tuple(jnp.asarray(a) for a in (G, g, mu, lam.reshape(-1)))
+
+
+MODES = [("stick",), ("slide",), ("separate",), ("stick", "slide", "separate")]
+
+
+@pytest.mark.parametrize("modes", MODES, ids=["-".join(m) for m in MODES])
+def test_implicit_derivatives_match_finite_differences(getkey, modes):
+    G, g, mu, expected = mixed_mode_problem(getkey(), modes)
+    n = len(modes)
+    A = numpy_generator(getkey()).normal(size=(3 * n, 3 * n))
+    direction_G = 0.1 * (A + A.T)
+    step = 1e-6
+    # The problem itself, then central differences, all in one batched solve: every
+    # coordinate of g, every mu, and one symmetric direction in G (a Delassus matrix).
+    perturbations = (
+        [(np.zeros((3 * n, 3 * n)), np.zeros(3 * n), np.zeros(n))]
+        + [(step * direction_G, np.zeros(3 * n), np.zeros(n))]
+        + [(np.zeros((3 * n, 3 * n)), step * e, np.zeros(n)) for e in np.eye(3 * n)]
+        + [(np.zeros((3 * n, 3 * n)), np.zeros(3 * n), step * e) for e in np.eye(n)]
+    )
+    dG, dg, dmu = (jnp.asarray(np.stack(p)) for p in zip(*perturbations))
+    plus, info = solve_tight_batch(G[None] + dG, g[None] + dg, mu[None] + dmu)
+    minus, _ = solve_tight_batch(G[None] - dG, g[None] - dg, mu[None] - dmu)
+    assert bool(jnp.all(info.converged))
+    impulse = plus[0]
+    np.testing.assert_allclose(impulse, expected, atol=1e-10)
+    finite_differences = (plus[1:] - minus[1:]) / (2 * step)
+
+    forward, reverse = jacobians(G, g, mu)
+    for jac_forward, jac_reverse in zip(forward, reverse):
+        np.testing.assert_allclose(jac_forward, jac_reverse, atol=1e-12)
+    jac_G, jac_g, jac_mu = forward
+
+    implicit = jnp.concatenate([
+        jnp.einsum("kij,ij->k", jac_G, direction_G)[None], jac_g.T, jac_mu.T
+    ])
+    np.testing.assert_allclose(implicit, finite_differences, atol=2e-6)
+
+    for i, mode in enumerate(modes):
+        rows = slice(3 * i, 3 * i + 3)
+        if mode == "separate":  # no impulse whatever the perturbation: exactly zero
+            for jac in forward + reverse:
+                assert np.all(jac[rows] == 0)
+        if mode == "stick":  # a bilateral constraint: c_i = (G lambda + g)_i stays 0
+            dc_dg = G @ jac_g + jnp.eye(3 * n)
+            np.testing.assert_allclose(dc_dg[rows], 0.0, atol=1e-12)
+        if mode == "slide":  # c_N stays 0 and lambda stays on the cone boundary
+            dc_dg = G @ jac_g + jnp.eye(3 * n)
+            np.testing.assert_allclose(dc_dg[3 * i + 2], 0.0, atol=1e-12)
+            lam = impulse[rows]
+            boundary_normal = jnp.concatenate([lam[:2] / jnp.linalg.norm(lam[:2]), -mu[i:i + 1]])
+            np.testing.assert_allclose(boundary_normal @ jac_g[rows], 0.0, atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- jit, vmap, warm start
+
+
+def test_jit_vmap_and_warm_start(getkey):
+    G, g, mu = problem_batch(getkey, 3, 8)
+    solver = NCPSolver(tolerance=1e-10, max_iterations=5000)
+    batched = jax.jit(jax.vmap(lambda G, g, mu, w: solve_ncp(G, g, mu, solver=solver, warm_start=w)))
+    cold, cold_info = batched(G, g, mu, jnp.zeros_like(g))
+    # With a zero warm start, the batched solves agree with the shared tight solves.
+    np.testing.assert_allclose(cold, solve_tight_batch(G, g, mu)[0], atol=1e-8)
+    # A nearby problem: warm starting from the previous solution needs fewer iterations.
+    g_nearby = g + 1e-3 * jax.random.normal(getkey(), g.shape)
+    _, nearby_cold = batched(G, g_nearby, mu, jnp.zeros_like(g))
+    nearby_warm, nearby_warm_info = batched(G, g_nearby, mu, cold)
+    assert bool(jnp.all(nearby_warm_info.converged))
+    # ADMM converges linearly, so starting 1e-3 away instead of O(1) saves about a third.
+    assert jnp.sum(nearby_warm_info.iterations) < 0.8 * jnp.sum(nearby_cold.iterations)
+    # A warm start that already meets the tolerance needs no iteration at all.
+    _, exact_info = batched(G, g, mu, cold)
+    assert jnp.all(exact_info.iterations == 0)
+
+
+def test_gradient_through_a_batch(getkey):
+    G, g, mu = problem_batch(getkey, 2, BATCH)
+
+    def loss(g):
+        impulses, _ = jax.vmap(lambda G, g, mu: solve_ncp(G, g, mu, solver=TIGHT))(G, g, mu)
+        return jnp.sum(impulses**2)
+
+    gradient = jax.jit(jax.grad(loss))(g)
+    direction = jax.random.normal(getkey(), g.shape)
+    step = 1e-6
+    plus, _ = solve_tight_batch(G, g + step * direction, mu)
+    minus, _ = solve_tight_batch(G, g - step * direction, mu)
+    fd = (jnp.sum(plus**2) - jnp.sum(minus**2)) / (2 * step)
+    np.testing.assert_allclose(jnp.sum(gradient * direction), fd, rtol=1e-5, atol=1e-8)
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+def test_rejects_bad_input():
+    G, g, mu = jnp.eye(6), -jnp.ones(6), jnp.array([0.5, 0.5])
+    with pytest.raises(ValueError, match="G must have shape"):
+        solve_ncp(jnp.eye(5), g, mu)
+    with pytest.raises(ValueError, match="g must have shape"):
+        solve_ncp(G, g[:5], mu)
+    with pytest.raises(ValueError, match="mu must be non-negative"):
+        solve_ncp(G, g, jnp.array([0.5, -0.1]))
+    with pytest.raises(ValueError, match="g contains NaN"):
+        solve_ncp(G, g.at[2].set(jnp.nan), mu)
+    with pytest.raises(ValueError, match="G must be symmetric"):
+        solve_ncp(G.at[0, 1].set(1.0), g, mu)
+    with pytest.raises(ValueError, match="warm_start must have shape"):
+        solve_ncp(G, g, mu, warm_start=jnp.zeros(3))
+    with pytest.raises(ValueError, match="tolerance"):
+        NCPSolver(tolerance=0.0)
+    # Traced values are checked at run time (one compiled function for both).
+    traced_solve = jax.jit(solve_ncp)
+    with pytest.raises(Exception, match="g contains NaN"):
+        jax.block_until_ready(traced_solve(G, g.at[2].set(jnp.nan), mu))
+    with pytest.raises(Exception, match="mu must be non-negative"):
+        jax.block_until_ready(traced_solve(G, g, jnp.array([0.5, -0.1])))
+
+
+def test_throw_on_non_convergence():
+    G, g, mu = jnp.eye(3), jnp.array([1.0, 0.0, -1.0]), jnp.array([0.5])
+    _, info = solve_ncp(G, g, mu, solver=NCPSolver(max_iterations=1))
+    assert not bool(info.converged) and int(info.iterations) == 1
+    with pytest.raises(Exception, match="did not converge"):
+        jax.block_until_ready(
+            eqx.filter_jit(solve_ncp)(G, g, mu, solver=NCPSolver(max_iterations=1, throw=True))
+        )
+
+
+# ----------------------------------------------------------------------------- compliant models
+
+
+def test_spring_damper_force():
+    params = SpringDamper(stiffness=1e4, damping=50.0, friction=0.5, smoothing_velocity=1e-3)
+    velocity = jnp.array([[0.3, -0.4, -0.1], [0.3, -0.4, 0.1], [0.0, 0.0, 0.0], [1.0, 0.0, 5.0]])
+    distance = jnp.array([-1e-3, -1e-3, 0.01, -1e-3])
+    force = jax.jit(spring_damper_force)(distance, velocity, params)
+    # Penetrating and approaching: spring plus damper; separating: the damper subtracts.
+    np.testing.assert_allclose(force[0, 2], 1e4 * 1e-3 + 50.0 * 0.1)
+    np.testing.assert_allclose(force[1, 2], 1e4 * 1e-3 - 50.0 * 0.1)
+    np.testing.assert_allclose(force[2], 0.0)  # separated
+    np.testing.assert_allclose(force[3, 2], 0.0)  # the damper never pulls
+    # Friction opposes the sliding velocity with magnitude just below mu f_N.
+    direction = velocity[0, :2] / jnp.linalg.norm(velocity[0, :2])
+    np.testing.assert_allclose(force[0, :2] / jnp.linalg.norm(force[0, :2]), -direction)
+    assert 0.999 * 0.5 * force[0, 2] < jnp.linalg.norm(force[0, :2]) <= 0.5 * force[0, 2]
+    np.testing.assert_allclose(params(distance, velocity), force)
+    # Smooth in the tangential velocity: finite gradient at zero slip.
+    slip_gradient = jax.jacfwd(lambda v: spring_damper_force(-1e-3, v, params))(jnp.zeros(3))
+    assert np.all(np.isfinite(slip_gradient))
+
+
+def test_log_barrier_force():
+    params = LogBarrier(stiffness=1e-3, min_distance=1e-3, friction=0.4, smoothing_velocity=1e-2)
+    velocity = jnp.array([0.2, 0.0, 0.0])
+    # Force at a distance: kappa / phi.
+    np.testing.assert_allclose(log_barrier_force(0.05, velocity, params)[2], 1e-3 / 0.05)
+    # Finite and C^1 through the switch at min_distance and into penetration.
+    normal_force = lambda d: log_barrier_force(d, velocity, params)[2]
+    below, above = 1e-3 * (1 - 1e-9), 1e-3 * (1 + 1e-9)
+    np.testing.assert_allclose(normal_force(below), normal_force(above), rtol=1e-8)
+    np.testing.assert_allclose(jax.grad(normal_force)(below), jax.grad(normal_force)(above),
+                               rtol=1e-6)
+    assert np.isfinite(normal_force(-0.01)) and normal_force(-0.01) > normal_force(0.0) > 0
+    distances = jnp.linspace(-0.01, 0.1, 50)
+    forces = jax.vmap(normal_force)(distances)
+    assert np.all(np.diff(forces) < 0)  # repulsion decreases with distance
+    # Friction opposes the slip.
+    assert log_barrier_force(0.05, velocity, params)[0] < 0
+    # The lookahead acts on the predicted gap phi + h v_N.
+    ahead = LogBarrier(stiffness=1e-3, lookahead=0.1)
+    np.testing.assert_allclose(log_barrier_force(0.05, jnp.array([0.0, 0.0, -0.2]), ahead)[2],
+                               1e-3 / 0.03)
