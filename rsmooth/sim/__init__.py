@@ -1,5 +1,27 @@
-"""Rigid-body simulation: kinematic trees (URDF via Pinocchio), dynamics in pure JAX."""
+"""Differentiable rigid-body simulation with frictional contact, in pure JAX.
 
+Kinematic trees come from URDF files through Pinocchio (:func:`load_urdf`) and are frozen
+into JAX arrays (:class:`Model`); dynamics (CRBA, RNEA, Jacobians) are pure JAX functions;
+contact is a frictional complementarity problem solved by ADMM and differentiated
+implicitly (:func:`solve_ncp`); :class:`RigidBodySystem` steps a system in time and is the
+``Dynamics`` (``step(x, u)``, ``nx``, ``nu``) that rsmooth's optimizers consume.
+"""
+
+from rsmooth.sim._contact import (
+    ContactPoints as ContactPoints,
+    LogBarrier as LogBarrier,
+    NCPInfo as NCPInfo,
+    NCPSolver as NCPSolver,
+    SpringDamper as SpringDamper,
+    contact_frame as contact_frame,
+    corrected_free_velocity as corrected_free_velocity,
+    log_barrier_force as log_barrier_force,
+    ncp_residuals as ncp_residuals,
+    project_to_friction_cone as project_to_friction_cone,
+    solve_ncp as solve_ncp,
+    sphere_halfspace_contacts as sphere_halfspace_contacts,
+    spring_damper_force as spring_damper_force,
+)
 from rsmooth.sim._dynamics import (
     crba as crba,
     difference as difference,
@@ -15,8 +37,26 @@ from rsmooth.sim._dynamics import (
 )
 from rsmooth.sim._model import (
     Model as Model,
+    free_body as free_body,
     from_pinocchio as from_pinocchio,
     load_urdf as load_urdf,
     solo12_standing_configuration as solo12_standing_configuration,
     solo12_urdf_path as solo12_urdf_path,
+)
+from rsmooth.sim._simulator import (
+    RigidBodySystem as RigidBodySystem,
+    StepInfo as StepInfo,
+    energy as energy,
+)
+from rsmooth.sim._systems import (
+    SOLO12_FEET as SOLO12_FEET,
+    SOLO12_FOOT_RADIUS as SOLO12_FOOT_RADIUS,
+    SOLO12_TORQUE_LIMIT as SOLO12_TORQUE_LIMIT,
+    ball_wall as ball_wall,
+    cube as cube,
+    cube_rest_state as cube_rest_state,
+    solo12 as solo12,
+    solo12_foot_positions as solo12_foot_positions,
+    solo12_standing_state as solo12_standing_state,
+    solo12_standing_torques as solo12_standing_torques,
 )

@@ -393,3 +393,61 @@ def solo12_standing_configuration(model: Model | None = None, *, state: str = "s
             raise ValueError(f"state {state!r} sets {len(values[name])} values for joint {name!r}")
         q[model.idx_q[i] : model.idx_q[i] + model.joint_nq(i)] = values[name]
     return _to_jax(q)
+
+
+def free_body(mass: float, inertia: Any, *, name: str = "body", gravity=(0.0, 0.0, -9.81)) -> Model:
+    """A single rigid body attached to the world by a free-flyer joint (no Pinocchio needed).
+
+    The body frame is at the centre of mass. Frames: ``"universe"``, ``"root_joint"`` and
+    ``name`` (the body), all Pinocchio-style.
+
+    Args:
+        mass: mass in kg, ``> 0``.
+        inertia: rotational inertia about the centre of mass in body axes, ``(3, 3)``
+            symmetric positive definite (or the diagonal ``(3,)``).
+        name: name of the body frame.
+        gravity: linear gravity in the world frame.
+
+    Returns:
+        The model: ``nq = 7``, ``nv = 6``.
+
+    Example:
+        >>> model = free_body(1.0, [1e-3, 1e-3, 1e-3])
+        >>> model.nq, model.nv, model.frame_names
+        (7, 6, ('universe', 'root_joint', 'body'))
+    """
+    inertia = np.asarray(inertia, dtype=np.float64)
+    if inertia.shape == (3,):
+        inertia = np.diag(inertia)
+    if inertia.shape != (3, 3):
+        raise ValueError(f"inertia must have shape (3, 3) or (3,), got {inertia.shape}")
+    if not (np.allclose(inertia, inertia.T) and np.all(np.linalg.eigvalsh(inertia) > 0)):
+        raise ValueError("inertia must be symmetric positive definite")
+    if not (np.isfinite(mass) and mass > 0):
+        raise ValueError(f"mass must be positive, got {mass}")
+    eye = np.eye(3)
+    return Model(
+        joint_names=("universe", "root_joint"),
+        joint_types=(UNIVERSE, FREE_FLYER),
+        parents=(0, 0),
+        idx_q=(0, 0),
+        idx_v=(0, 0),
+        frame_names=("universe", "root_joint", name),
+        frame_parents=(0, 1, 1),
+        nq=7,
+        nv=6,
+        joint_axes=_to_jax(np.zeros((2, 3))),
+        joint_placement_rotation=_to_jax([eye, eye]),
+        joint_placement_translation=_to_jax(np.zeros((2, 3))),
+        body_mass=_to_jax([0.0, mass]),
+        body_com=_to_jax(np.zeros((2, 3))),
+        body_inertia=_to_jax([np.zeros((3, 3)), inertia]),
+        frame_placement_rotation=_to_jax([eye, eye, eye]),
+        frame_placement_translation=_to_jax(np.zeros((3, 3))),
+        lower_position_limit=_to_jax(np.full(7, -np.inf)),
+        upper_position_limit=_to_jax(np.full(7, np.inf)),
+        velocity_limit=_to_jax(np.full(6, np.inf)),
+        effort_limit=_to_jax(np.full(6, np.inf)),
+        armature=_to_jax(np.zeros(6)),
+        gravity=_to_jax(gravity),
+    )

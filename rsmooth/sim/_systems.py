@@ -1,0 +1,289 @@
+"""The canonical systems: a cube on a floor, a ball and a wall, the Solo-12 quadruped.
+
+Each factory returns a :class:`~rsmooth.sim.RigidBodySystem` (a ``Dynamics``: ``step(x, u)``,
+``nx``, ``nu``) and each system has a resting state to start from.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rsmooth.sim import _dynamics
+from rsmooth.sim._contact import LogBarrier, NCPSolver, SpringDamper
+from rsmooth.sim._model import Model, free_body, load_urdf, solo12_standing_configuration, solo12_urdf_path
+from rsmooth.sim._simulator import ContactLaw, RigidBodySystem, _point_jacobian
+
+__all__ = [
+    "SOLO12_FEET",
+    "SOLO12_FOOT_RADIUS",
+    "SOLO12_TORQUE_LIMIT",
+    "ball_wall",
+    "cube",
+    "cube_rest_state",
+    "solo12",
+    "solo12_foot_positions",
+    "solo12_standing_state",
+    "solo12_standing_torques",
+]
+
+FLOOR = ((0.0, 0.0, 1.0), 0.0)
+
+SOLO12_FEET = ("FL_FOOT", "FR_FOOT", "HL_FOOT", "HR_FOOT")
+# The foot frames sit at the centre of Solo-12's spherical feet; 19 mm is the height of the
+# foot centres above the floor in the SRDF's standing posture, i.e. the foot radius for which
+# that posture just touches the floor.
+SOLO12_FOOT_RADIUS = 0.019
+# Peak joint torque of Solo-12's actuators (0.025 N m/A x 9:1 gear x 12 A): Grimminger et al.,
+# "An open torque-controlled modular robot architecture for legged locomotion research",
+# IEEE RA-L 2020. The URDF's 1000 N m are placeholders.
+SOLO12_TORQUE_LIMIT = 2.7
+
+
+def _as_contact(contact: ContactLaw | str, friction: float) -> ContactLaw:
+    """``"hard"``, a compliant law, or the names ``"spring_damper"``/``"log_barrier"`` with
+    default parameters."""
+    if isinstance(contact, str):
+        if contact == "hard":
+            return "hard"
+        if contact == "spring_damper":
+            return SpringDamper(stiffness=1e4, damping=1e2, friction=friction)
+        if contact == "log_barrier":
+            return LogBarrier(stiffness=1e-2, friction=friction)
+        raise ValueError(f"contact must be 'hard', 'spring_damper', 'log_barrier' or a contact law, got {contact!r}")
+    return contact
+
+
+def _planes(planes, friction) -> tuple[jax.Array, jax.Array, jax.Array]:
+    normals = np.array([p[0] for p in planes], dtype=np.float64)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    offsets = np.array([p[1] for p in planes], dtype=np.float64)
+    return jnp.asarray(normals), jnp.asarray(offsets), jnp.full(len(planes), float(friction))
+
+
+def cube(
+    *,
+    side: float = 0.2,
+    mass: float = 1.0,
+    friction: float = 0.5,
+    time_step: float = 0.01,
+    contact: ContactLaw | str = "hard",
+    solver: NCPSolver = NCPSolver(),
+    baumgarte: float = 0.2,
+) -> RigidBodySystem:
+    """A cube on a floor, pushed by a wrench: the system of Fig. 2 of Le Lidec et al. 2022.
+
+    Its eight corners are point contacts with the floor ``z = 0``. The input is a wrench
+    ``u = [fx, fy, fz, tx, ty, tz]`` in world axes applied at the centre of mass: ``nx = 13``
+    (position, quaternion, linear and angular velocity), ``nu = 6``.
+
+    Args:
+        side: edge length (m).
+        mass: mass (kg); the inertia is that of a uniform cube, ``m s^2 / 6``.
+        friction: Coulomb coefficient of the floor.
+        time_step: ``h`` (s).
+        contact: ``"hard"`` (NCP), ``"spring_damper"``, ``"log_barrier"`` or a law instance.
+        solver: NCP solver configuration (hard contact).
+        baumgarte: penetration correction rate (hard contact).
+
+    Returns:
+        The system; :func:`cube_rest_state` gives its resting state.
+
+    References:
+        Q. Le Lidec, L. Montaut, C. Schmid, I. Laptev, J. Carpentier, "Augmenting
+        differentiable physics with randomized smoothing", 2022.
+    """
+    if not side > 0:
+        raise ValueError(f"side must be positive, got {side}")
+    model = free_body(mass, np.full(3, mass * side**2 / 6.0), name="cube")
+    corners = np.array(list(itertools.product((-0.5, 0.5), repeat=3))) * side
+    normals, offsets, mu = _planes([FLOOR], friction)
+    return RigidBodySystem(
+        model=model,
+        sphere_frames=(model.frame_id("cube"),) * 8,
+        sphere_offsets=jnp.asarray(corners),
+        sphere_radii=jnp.zeros(8),
+        plane_normals=normals,
+        plane_offsets=offsets,
+        friction=mu,
+        time_step=jnp.asarray(float(time_step)),
+        contact=_as_contact(contact, friction),
+        solver=solver,
+        baumgarte=baumgarte,
+        actuation="wrench",
+        actuated_dofs=(),
+        wrench_frame=model.frame_id("cube"),
+        wrench_components=(0, 1, 2, 3, 4, 5),
+        input_limit=jnp.full(6, jnp.inf),
+    )
+
+
+def cube_rest_state(system: RigidBodySystem) -> jax.Array:
+    """The cube resting flat on the floor at the origin, at zero velocity, shape ``(13,)``."""
+    half_side = float(jnp.max(system.sphere_offsets[:, 2]))
+    return jnp.array([0.0, 0.0, half_side, 0.0, 0.0, 0.0, 1.0] + [0.0] * 6)
+
+
+def ball_wall(
+    *,
+    radius: float = 0.05,
+    mass: float = 0.1,
+    wall_distance: float = 1.0,
+    friction: float = 0.3,
+    time_step: float = 0.01,
+    contact: ContactLaw | str = "hard",
+    solver: NCPSolver = NCPSolver(),
+    baumgarte: float = 0.2,
+) -> RigidBodySystem:
+    """A ball thrown at a wall: a sphere against the floor ``z = 0`` and the wall
+    ``x = wall_distance`` (facing ``-x``).
+
+    Whether the ball reaches the wall before landing decides where it ends: the final
+    position is discontinuous in the throw, the geometric discontinuity smoothing has to
+    deal with. The input is a force ``u = [fx, fy, fz]`` in world axes at the centre
+    (``nu = 3``; a throw is a large force during the first step), ``nx = 13``.
+
+    Args:
+        radius: ball radius (m).
+        mass: mass (kg); a solid ball, inertia ``2 m r^2 / 5``.
+        wall_distance: ``x`` of the wall (m).
+        friction: Coulomb coefficient of floor and wall.
+        time_step: ``h`` (s).
+        contact: ``"hard"`` (NCP), ``"spring_damper"``, ``"log_barrier"`` or a law instance.
+        solver: NCP solver configuration (hard contact).
+        baumgarte: penetration correction rate (hard contact).
+
+    Returns:
+        The system.
+    """
+    if not radius > 0:
+        raise ValueError(f"radius must be positive, got {radius}")
+    model = free_body(mass, np.full(3, 0.4 * mass * radius**2), name="ball")
+    normals, offsets, mu = _planes([FLOOR, ((-1.0, 0.0, 0.0), -float(wall_distance))], friction)
+    return RigidBodySystem(
+        model=model,
+        sphere_frames=(model.frame_id("ball"),),
+        sphere_offsets=jnp.zeros((1, 3)),
+        sphere_radii=jnp.array([float(radius)]),
+        plane_normals=normals,
+        plane_offsets=offsets,
+        friction=mu,
+        time_step=jnp.asarray(float(time_step)),
+        contact=_as_contact(contact, friction),
+        solver=solver,
+        baumgarte=baumgarte,
+        actuation="wrench",
+        actuated_dofs=(),
+        wrench_frame=model.frame_id("ball"),
+        wrench_components=(0, 1, 2),
+        input_limit=jnp.full(3, jnp.inf),
+    )
+
+
+def solo12(
+    *,
+    friction: float = 0.7,
+    time_step: float = 0.01,
+    contact: ContactLaw | str = "hard",
+    solver: NCPSolver = NCPSolver(),
+    baumgarte: float = 0.2,
+    torque_limit: float = SOLO12_TORQUE_LIMIT,
+    model: Model | None = None,
+) -> RigidBodySystem:
+    """The Solo-12 quadruped (18 dofs) with spherical feet on the floor and joint torques.
+
+    The model comes from the URDF of the installed ``example-robot-data`` package (free-flyer
+    base): ``nx = 19 + 18 = 37``, ``nu = 12`` joint torques ordered as the URDF's joints
+    (``FL_HAA, FL_HFE, FL_KFE, FR_..., HL_..., HR_...``), clipped to ``+-torque_limit``
+    (reported in the step's diagnostics). Feet are spheres of radius
+    :data:`SOLO12_FOOT_RADIUS` at the ``*_FOOT`` frames; the rest of the robot does not
+    collide.
+
+    Args:
+        friction: Coulomb coefficient of the floor.
+        time_step: ``h`` (s).
+        contact: ``"hard"`` (NCP), ``"spring_damper"``, ``"log_barrier"`` or a law instance.
+        solver: NCP solver configuration (hard contact).
+        baumgarte: penetration correction rate (hard contact).
+        torque_limit: joint torque bound (N m).
+        model: an already loaded Solo-12 model (default: loaded from the URDF).
+
+    Returns:
+        The system; :func:`solo12_standing_state` and :func:`solo12_standing_torques` give a
+        posture that holds still.
+    """
+    if model is None:
+        model = load_urdf(solo12_urdf_path())
+    feet = tuple(model.frame_id(name) for name in SOLO12_FEET)
+    normals, offsets, mu = _planes([FLOOR], friction)
+    return RigidBodySystem(
+        model=model,
+        sphere_frames=feet,
+        sphere_offsets=jnp.zeros((4, 3)),
+        sphere_radii=jnp.full(4, SOLO12_FOOT_RADIUS),
+        plane_normals=normals,
+        plane_offsets=offsets,
+        friction=mu,
+        time_step=jnp.asarray(float(time_step)),
+        contact=_as_contact(contact, friction),
+        solver=solver,
+        baumgarte=baumgarte,
+        actuation="joints",
+        actuated_dofs=tuple(range(6, model.nv)),
+        wrench_frame=0,
+        wrench_components=(),
+        input_limit=jnp.full(model.nv - 6, float(torque_limit)),
+    )
+
+
+def solo12_standing_state(system: RigidBodySystem) -> jax.Array:
+    """The SRDF's standing posture, base lowered so that the feet just touch the floor,
+    at zero velocity, shape ``(37,)``."""
+    q = np.array(solo12_standing_configuration(system.model))
+    distance, _, _ = system.contacts(jnp.asarray(q))
+    q[2] -= float(jnp.min(distance))
+    return system.state(jnp.asarray(q))
+
+
+def solo12_foot_positions(system: RigidBodySystem, x: jax.Array) -> jax.Array:
+    """World positions of the four foot centres (FL, FR, HL, HR), shape ``(4, 3)``."""
+    q, _ = system.split(x)
+    kinematics = _dynamics._kinematics(system.model, q)
+    return jnp.stack([
+        _dynamics._frame_placement(system.model, kinematics.rotation, kinematics.translation, f)[1]
+        for f in system.sphere_frames
+    ])
+
+
+def solo12_standing_torques(system: RigidBodySystem, x: jax.Array) -> jax.Array:
+    """Joint torques that hold the robot still at ``x`` with its four feet on the floor.
+
+    At rest, ``B tau + J_f^T f = g(q)`` (joint torques ``tau`` and world-frame foot forces
+    ``f``): of its solutions, the one of least ``||tau||^2 + ||f||^2 / m^2`` with ``m`` the
+    robot's mass (so both terms are comparable), by least squares.
+
+    Args:
+        system: a :func:`solo12` system.
+        x: a state with the feet on the floor (e.g. :func:`solo12_standing_state`).
+
+    Returns:
+        Torques, shape ``(12,)``.
+    """
+    model = system.model
+    q, _ = system.split(x)
+    gravity = _dynamics.gravity_torques(model, q)
+    kinematics = _dynamics._kinematics(model, q)
+    foot_jacobians = []
+    for frame in system.sphere_frames:
+        _, translation = _dynamics._frame_placement(model, kinematics.rotation, kinematics.translation, frame)
+        contact_point = translation - jnp.array([0.0, 0.0, SOLO12_FOOT_RADIUS])
+        foot_jacobians.append(_point_jacobian(model, kinematics, model.frame_parents[frame], contact_point))
+    foot_jacobian = jnp.concatenate(foot_jacobians)  # (12, nv)
+    selection = jnp.zeros((model.nv, system.nu)).at[np.asarray(system.actuated_dofs), jnp.arange(system.nu)].set(1.0)
+    total_mass = jnp.sum(model.body_mass)
+    scaled = jnp.concatenate([selection, foot_jacobian.T / total_mass], axis=1)
+    solution = jnp.linalg.lstsq(scaled, gravity)[0]
+    return solution[: system.nu]

@@ -1,0 +1,233 @@
+"""Time-stepping with contact: invariants (rest, energy, cone), exact zero gradients,
+implicit gradients against finite differences, Solo-12 standing, bad input."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from rsmooth import sim
+
+GRAVITY = 9.81
+
+
+@functools.lru_cache(maxsize=None)
+def _cube():
+    return sim.cube()
+
+
+@functools.lru_cache(maxsize=None)
+def _solo():
+    return sim.solo12()
+
+
+def _rollout(system, x0, us):
+    return jax.jit(lambda a, b: system.rollout(a, b))(x0, us)
+
+
+def test_resting_cube_stays_at_rest():
+    cube = _cube()
+    x = sim.cube_rest_state(cube)
+    x_next, info = jax.jit(lambda a, b: cube.step_with_info(a, b))(x, jnp.zeros(6))
+    np.testing.assert_allclose(x_next, x, atol=1e-9)
+    assert bool(info.ncp.converged)
+    # The four bottom corners carry the weight, the top ones nothing.
+    normal = info.impulse.reshape(8, 3)[:, 2]
+    bottom = np.asarray(cube.sphere_offsets[:, 2] < 0)
+    np.testing.assert_allclose(jnp.sum(normal[bottom]), GRAVITY * 1.0 * 0.01, rtol=1e-6)
+    np.testing.assert_allclose(normal[~bottom], 0.0, atol=1e-12)
+
+
+def test_dropped_cube_comes_to_rest_without_gaining_energy():
+    cube = _cube()
+    rest = sim.cube_rest_state(cube)
+    axis = jnp.array([0.3, 0.1, 0.0, 1.0])
+    x0 = rest.at[2].set(0.4).at[3:7].set(axis / jnp.linalg.norm(axis)).at[7:10].set(jnp.array([0.5, 0.0, 0.0]))
+    xs, infos = _rollout(cube, x0, jnp.zeros((150, 6)))
+    energies = jax.vmap(lambda x: sim.energy(cube, x))(xs)
+    # Inelastic contact and friction only dissipate (and semi-implicit Euler loses m g^2 h^2 / 2
+    # per step of free fall). The only gain allowed is the Baumgarte push-out of the
+    # penetration left by integrating rotating corners over a step: m g x (under 1 um).
+    assert float(jnp.max(jnp.diff(energies))) < 1.0 * GRAVITY * 1e-6
+    np.testing.assert_allclose(jnp.diff(energies)[:5], -0.5 * GRAVITY**2 * 0.01**2, rtol=1e-9)
+    q_final, v_final = cube.split(xs[-1])
+    np.testing.assert_allclose(v_final, 0.0, atol=1e-6)
+    np.testing.assert_allclose(q_final[2], 0.1, atol=1e-4)  # flat on a face
+    # The solver's diagnostics hold the residuals; they stay small even where capped.
+    assert float(jnp.max(infos.ncp.dual_feasibility)) < 1e-4
+
+
+def test_impulses_satisfy_cone_and_complementarity():
+    cube = _cube()
+    x = sim.cube_rest_state(cube)
+    push = jnp.array([3.0, 1.0, 0.0, 0.0, 0.0, 0.2])  # below the friction bound: sticks
+    _, info = cube.step_with_info(x, push)
+    impulse = info.impulse.reshape(8, 3)
+    assert bool(jnp.all(jnp.linalg.norm(impulse[:, :2], axis=1) <= 0.5 * impulse[:, 2] + 1e-10))
+    assert bool(jnp.all(impulse[:, 2] >= -1e-12))
+
+
+def test_small_upward_force_has_exactly_zero_gradient():
+    """Fig. 2 of Le Lidec et al. 2022: below m g the cube does not move, whatever the force."""
+    cube = _cube()
+    x0 = sim.cube_rest_state(cube)
+
+    def final_height(force, steps=5):
+        us = jnp.zeros((steps, 6)).at[:, 2].set(force)
+        xs, _ = cube.rollout(x0, us)
+        return xs[-1, 2]
+
+    grad = jax.jit(jax.grad(final_height))
+    for force in (0.0, 2.0, 5.0, 9.0):
+        assert abs(float(grad(force))) < 1e-12
+    # Above m g the cube flies: z(T) = z0 + h^2 (F/m - g) T (T + 1) / 2, semi-implicit Euler.
+    force, steps, h = 15.0, 5, 0.01
+    expected = h**2 * steps * (steps + 1) / 2
+    np.testing.assert_allclose(grad(force), expected, rtol=1e-8)
+    np.testing.assert_allclose(final_height(force), 0.1 + expected * (force - GRAVITY), rtol=1e-8)
+
+
+def _central_differences(fun, x, eps=1e-6):
+    x = np.asarray(x, dtype=np.float64)
+    columns = []
+    for i in range(x.size):
+        dx = np.zeros_like(x)
+        dx[i] = eps
+        columns.append((np.asarray(fun(x + dx)) - np.asarray(fun(x - dx))) / (2 * eps))
+    return np.stack(columns, axis=-1)
+
+
+def test_sliding_ball_gradients_match_finite_differences():
+    """One sliding contact: a well-posed NCP whose implicit derivative is exact."""
+    system = sim.ball_wall(solver=sim.NCPSolver(tolerance=1e-13, max_iterations=2000))
+    # 0.1 mm into the floor: the position correction max(phi, 0) / h + beta min(phi, 0) / h has
+    # a kink at phi = 0, where finite differences would straddle two slopes.
+    x = system.state(jnp.array([0.0, 0.0, 0.0499, 0.0, 0.0, 0.0, 1.0]), jnp.array([0.4, 0.1, 0.0, 0.0, 3.0, 1.0]))
+    u = jnp.array([0.1, 0.05, -0.2])
+    step = jax.jit(lambda a, b: system.step(a, b))
+    _, info = system.step_with_info(x, u)
+    impulse = info.impulse.reshape(2, 3)[0]
+    np.testing.assert_allclose(jnp.linalg.norm(impulse[:2]), 0.3 * impulse[2], rtol=1e-9)  # on the cone: sliding
+    jac_u = jax.jit(jax.jacfwd(lambda b: system.step(x, b)))(u)
+    np.testing.assert_allclose(jac_u, _central_differences(lambda b: step(x, jnp.asarray(b)), u), atol=1e-7)
+    jac_x = jax.jit(jax.jacrev(lambda a: system.step(a, u)))(x)
+    fd_x = _central_differences(lambda a: step(jnp.asarray(a), u), x)
+    # Columns of the quaternion are derivatives along R^4, off the unit sphere: compare all.
+    np.testing.assert_allclose(jac_x, fd_x, atol=1e-6)
+
+
+def test_sliding_cube_gradients_match_finite_differences():
+    cube = sim.cube(solver=sim.NCPSolver(tolerance=1e-12, max_iterations=2000))
+    x = sim.cube_rest_state(cube).at[7].set(0.3)  # sliding along x on the floor
+    u = jnp.array([2.0, 0.5, 1.0, 0.0, 0.0, 0.1])
+    step = jax.jit(lambda a, b: cube.step(a, b))
+    jac_u = jax.jit(jax.jacfwd(lambda b: cube.step(x, b)))(u)
+    fd_u = _central_differences(lambda b: step(x, jnp.asarray(b)), u)
+    # Four coplanar contacts: 12 impulse components for 6 dofs, so the impulses are not
+    # unique and the implicit derivative is the damped least-squares one. Velocities are
+    # unique, and their derivatives agree to about 1e-5 (not to the solver's tolerance).
+    np.testing.assert_allclose(jac_u, fd_u, atol=5e-5)
+    velocity = x[7:]
+    jac_v = jax.jit(jax.jacrev(lambda w: cube.step(x.at[7:].set(w), u)))(velocity)
+    fd_v = _central_differences(lambda w: step(x.at[7:].set(jnp.asarray(w)), u), velocity)
+    np.testing.assert_allclose(jac_v, fd_v, atol=5e-5)
+    # Friction really acts: the sliding velocity drops by mu g h per step.
+    x_next = step(x, jnp.zeros(6))
+    np.testing.assert_allclose(x_next[7], 0.3 - 0.5 * GRAVITY * 0.01, rtol=1e-6)
+
+
+def test_compliant_laws_reach_their_equilibria():
+    spring = sim.cube(contact=sim.SpringDamper(stiffness=1e4, damping=50.0, friction=0.5), time_step=0.002)
+    xs, _ = _rollout(spring, sim.cube_rest_state(spring), jnp.zeros((300, 6)))
+    # Four corners share the weight: k * penetration = m g / 4.
+    np.testing.assert_allclose(xs[-1, 2], 0.1 - GRAVITY / 4e4, atol=1e-7)
+    np.testing.assert_allclose(xs[-1, 7:], 0.0, atol=1e-6)
+    # Log barrier: the 8 corners (4 at gap d, 4 at d + 0.2) hold the cube at a distance,
+    # 4 kappa / d + 4 kappa / (d + 0.2) = m g; that state is a fixed point of the step.
+    kappa = 1e-3
+    barrier = sim.cube(contact=sim.LogBarrier(stiffness=kappa, friction=0.5), time_step=0.002)
+    gap = 4 * kappa / GRAVITY
+    for _ in range(50):  # fixed-point iteration on d = 4 kappa / (m g - 4 kappa / (d + 0.2))
+        gap = 4 * kappa / (GRAVITY - 4 * kappa / (gap + 0.2))
+    hovering = sim.cube_rest_state(barrier).at[2].add(gap)
+    xs, _ = _rollout(barrier, hovering, jnp.zeros((100, 6)))
+    np.testing.assert_allclose(xs[-1], hovering, atol=1e-9)
+    # Its gradient is informative before touching: a lifting force moves the cube at once,
+    # and so does a change of height (the hard model gives 0 for a cube in the air).
+    grad = jax.grad(lambda f: barrier.step(hovering, jnp.array([0, 0, f, 0, 0, 0.0]))[2])(0.0)
+    assert float(grad) > 0
+
+
+def test_ball_thrown_at_the_wall_stops_at_it():
+    system = sim.ball_wall()
+    x0 = system.state(jnp.array([0.0, 0.0, 0.3, 0.0, 0.0, 0.0, 1.0]))
+    us = jnp.zeros((80, 3)).at[0].set(jnp.array([40.0, 0.0, 20.0]))  # 0.4 N s throw
+    xs, infos = _rollout(system, x0, us)
+    x_positions = xs[:, 0]
+    assert float(jnp.max(x_positions)) <= 1.0 - 0.05 + 1e-4  # never through the wall
+    assert float(jnp.max(x_positions)) > 1.0 - 0.05 - 1e-3  # but reaches it
+    assert float(jnp.min(xs[:, 2])) >= 0.05 - 1e-3  # nor through the floor
+    assert bool(jnp.all(infos.ncp.converged))
+
+
+def test_solo12_stands_still_under_gravity_compensation():
+    solo = _solo()
+    x0 = sim.solo12_standing_state(solo)
+    assert solo.nx == 37 and solo.nu == 12
+    distance, _, _ = solo.contacts(solo.split(x0)[0])
+    np.testing.assert_allclose(distance, 0.0, atol=1e-12)
+    torques = sim.solo12_standing_torques(solo, x0)
+    assert float(jnp.max(jnp.abs(torques))) < sim.SOLO12_TORQUE_LIMIT
+    xs, infos = _rollout(solo, x0, jnp.tile(torques, (100, 1)))  # one second
+    np.testing.assert_allclose(xs[-1], x0, atol=1e-6)
+    feet = sim.solo12_foot_positions(solo, xs[-1])
+    np.testing.assert_allclose(feet, sim.solo12_foot_positions(solo, x0), atol=1e-6)
+    assert bool(jnp.all(infos.ncp.converged))
+    assert not bool(jnp.any(infos.torque_clipped))
+    # Without torques it collapses.
+    xs, _ = _rollout(solo, x0, jnp.zeros((30, 12)))
+    assert float(xs[-1, 2]) < float(x0[2]) - 0.02
+
+
+def test_torques_are_clipped_and_reported():
+    solo = _solo()
+    x0 = sim.solo12_standing_state(solo)
+    step = jax.jit(lambda a, b: solo.step_with_info(a, b))
+    big, info = step(x0, jnp.full(12, 10.0))
+    limited, info_limited = step(x0, jnp.full(12, sim.SOLO12_TORQUE_LIMIT))
+    assert bool(info.torque_clipped) and not bool(info_limited.torque_clipped)
+    np.testing.assert_allclose(big, limited, atol=1e-12)
+
+
+def test_step_vmaps_over_states_and_inputs(getkey):
+    cube = _cube()
+    rest = sim.cube_rest_state(cube)
+    xs = jnp.stack([rest.at[2].set(z) for z in (0.1, 0.15, 0.3)])
+    us = jax.random.normal(getkey(), (3, 6))
+    batched = jax.jit(jax.vmap(lambda a, b: cube.step(a, b)))(xs, us)
+    for i in range(3):
+        np.testing.assert_allclose(batched[i], cube.step(xs[i], us[i]), atol=1e-12)
+
+
+def test_bad_input_is_named():
+    cube = _cube()
+    rest = sim.cube_rest_state(cube)
+    with pytest.raises(ValueError, match=r"x must have shape \(nx,\) = \(13,\)"):
+        cube.step(rest[:12], jnp.zeros(6))
+    with pytest.raises(ValueError, match=r"u must have shape \(nu,\) = \(6,\)"):
+        cube.step(rest, jnp.zeros(3))
+    with pytest.raises(ValueError, match="x .* NaN"):
+        cube.step(rest.at[0].set(jnp.nan), jnp.zeros(6))
+    with pytest.raises(ValueError, match="us must have shape"):
+        cube.rollout(rest, jnp.zeros(6))
+    with pytest.raises(ValueError, match="contact must be"):
+        sim.cube(contact="springy")
+    with pytest.raises(ValueError, match="side must be positive"):
+        sim.cube(side=-1.0)
+    # Under jit a NaN state is caught at run time, with the same message.
+    with pytest.raises(Exception, match="NaN"):
+        jax.jit(lambda a: cube.step(a, jnp.zeros(6)))(rest.at[0].set(jnp.nan)).block_until_ready()
