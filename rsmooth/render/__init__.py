@@ -1,0 +1,88 @@
+"""Differentiable rendering with perturbed optimizers.
+
+Le Lidec, Laptev, Schmid, Carpentier, "Differentiable rendering with perturbed optimizers",
+NeurIPS 2021: the rasterizer's coverage test and the z-buffer's argmax are replaced by their
+randomized smoothing, estimated by Monte-Carlo with the zeroth-order (score-function) estimator
+of :mod:`rsmooth.smooth`. Hard and SoftRas-like renderers are given for comparison.
+
+Parts: meshes (:class:`Mesh`, primitives, file loading, regularizers), cameras
+(:class:`Camera`, :func:`look_at`, rotations), rasterization (signed distances, coverage,
+per-pixel culling: :func:`rasterize`), aggregation (hard, soft, perturbed), shading
+(:class:`DirectionalLight`), and the :class:`Renderer`.
+"""
+
+from rsmooth.render._aggregate import ProductNoise, hard_aggregate, perturbed_aggregate, soft_aggregate
+from rsmooth.render._camera import (
+    Camera,
+    axis_angle_to_matrix,
+    look_at,
+    quaternion_to_matrix,
+    random_rotation,
+    rotation_angle,
+)
+from rsmooth.render._mesh import (
+    Mesh,
+    box,
+    cube,
+    cylinder,
+    edge_length_loss,
+    face_normals,
+    icosphere,
+    laplacian_loss,
+    load_mesh,
+    normal_consistency_loss,
+    position_colors,
+    torus,
+    transform_mesh,
+)
+from rsmooth.render._raster import (
+    COVERAGE_MODES,
+    Fragments,
+    barycentric,
+    coverage,
+    heaviside,
+    project_faces,
+    rasterize,
+    signed_distance,
+)
+from rsmooth.render._renderer import MODES, Image, Renderer
+from rsmooth.render._shade import DirectionalLight, shade_faces
+
+__all__ = [
+    "COVERAGE_MODES",
+    "MODES",
+    "Camera",
+    "DirectionalLight",
+    "Fragments",
+    "Image",
+    "Mesh",
+    "ProductNoise",
+    "Renderer",
+    "axis_angle_to_matrix",
+    "barycentric",
+    "box",
+    "coverage",
+    "cube",
+    "cylinder",
+    "edge_length_loss",
+    "face_normals",
+    "hard_aggregate",
+    "heaviside",
+    "icosphere",
+    "laplacian_loss",
+    "load_mesh",
+    "look_at",
+    "normal_consistency_loss",
+    "perturbed_aggregate",
+    "position_colors",
+    "project_faces",
+    "quaternion_to_matrix",
+    "random_rotation",
+    "rasterize",
+    "rotation_angle",
+    "shade_faces",
+    "signed_distance",
+    "soft_aggregate",
+    "torus",
+    "transform_mesh",
+]

@@ -1,0 +1,91 @@
+"""Renderer cost at 128 x 128: hard, soft and perturbed (M = 1, 8, 32), forward and
+forward + backward, for a 1k- and a 20k-face icosphere; and one pose-optimization step.
+
+Forward + backward is the gradient of a weighted sum of the RGB image with respect to the
+mesh's translation (the backward pass goes through every fragment). Everything is jitted and
+timed in this one process (float32, JAX's default); ratios are against the hard forward pass
+on the same mesh. The pose step is one batched Adam step of the render-pose experiment
+(perturbed-gaussian, default configuration: 128 x 128, cube, 8 problems).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from benchmarks._timing import fmt, machine, median_time
+from rsmooth import render
+
+SIZE = 128
+# (subdivisions, tile_size, faces_per_tile): denser meshes need smaller tiles (see rasterize).
+MESHES = ((3, 8, 64), (5, 4, 128))
+VARIANTS = (("hard", 1), ("soft", 1), ("perturbed", 1), ("perturbed", 8), ("perturbed", 32))
+MAX_REPEATS = 10
+
+
+def _functions(mesh, camera, renderer):
+    weights = jax.random.uniform(jax.random.key(2), (SIZE, SIZE, 3))
+
+    def image(key, translation):
+        return renderer(key, render.transform_mesh(mesh, jnp.eye(3), translation), camera).rgb
+
+    forward = jax.jit(image)
+    backward = jax.jit(jax.grad(lambda key, t: jnp.sum(image(key, t) * weights), argnums=1))
+    return forward, backward
+
+
+def _pose_step_time(repeats: int) -> tuple[float, int]:
+    from rsmooth.experiments import render_pose
+
+    config = render_pose.Config()
+    mesh = render_pose.load(config.mesh)
+    cam = render_pose.camera(config)
+    _, init, step = render_pose.make_solver(config, "perturbed-gaussian", mesh, cam)
+    r_true, r_init, offset = render_pose.problems(config, jax.random.key(0), 20.0)
+    target = jax.vmap(lambda r: render.Renderer(mode="hard")(None, render.transform_mesh(mesh, r), cam).rgb)(r_true)
+    state = init(offset)
+    keys = jax.random.split(jax.random.key(1), config.problems)
+    return median_time(step, state, keys, target, r_init, repeats=repeats), config.problems
+
+
+def main(repeats: int = 5) -> list[dict]:
+    repeats = min(repeats, MAX_REPEATS)
+    print(f"machine: {machine()}")
+    print(f"image {SIZE} x {SIZE}, sigma = 1 px, gamma = 0.01, faces_per_pixel = 8; median of {repeats} jitted calls "
+          f"(capped at {MAX_REPEATS}: a call takes up to a second)\n")
+    camera = render.look_at(jnp.array([0.0, 0.0, 3.0]), image_size=(SIZE, SIZE), fov=45.0, near=1.0, far=5.0)
+    key = jax.random.key(0)
+    t0 = jnp.zeros(3)
+    rows = []
+    for subdivisions, tile_size, faces_per_tile in MESHES:
+        mesh = render.position_colors(render.icosphere(subdivisions))
+        overflow = int(render.rasterize(mesh, camera, margin=3.0, sigma=1.0, gamma=0.01, tile_size=tile_size, faces_per_tile=faces_per_tile).tile_overflow)
+        print(f"icosphere({subdivisions}): {mesh.num_faces} faces, tiles {tile_size} px, faces_per_tile {faces_per_tile} "
+              f"({overflow} tiles had more candidate faces than that; the farthest, back faces here, were dropped)")
+        header = f"{'renderer':>14} | {'forward':>11} | {'fwd+bwd':>11} | {'fwd / hard fwd':>14} | {'fwd+bwd / hard fwd':>18}"
+        print(header)
+        print("-" * len(header))
+        hard_forward = None
+        for mode, samples in VARIANTS:
+            renderer = render.Renderer(
+                mode=mode, sigma=1.0, gamma=0.01, num_samples=samples, faces_per_pixel=8,
+                faces_per_tile=faces_per_tile, tile_size=tile_size,
+            )
+            forward, backward = _functions(mesh, camera, renderer)
+            t_forward = median_time(forward, key, t0, repeats=repeats)
+            t_backward = median_time(backward, key, t0, repeats=repeats)
+            hard_forward = hard_forward or t_forward
+            name = mode if mode != "perturbed" else f"perturbed M={samples}"
+            print(f"{name:>14} | {fmt(t_forward):>11} | {fmt(t_backward):>11} | {t_forward / hard_forward:>14.2f} | {t_backward / hard_forward:>18.2f}")
+            rows.append({"faces": mesh.num_faces, "mode": mode, "num_samples": samples, "forward": t_forward, "forward_backward": t_backward})
+        ratio = next(r["forward_backward"] for r in rows if r["faces"] == mesh.num_faces and r["num_samples"] == 8) / hard_forward
+        print(f"perturbed (M=8) forward+backward / hard forward: {ratio:.2f}\n")
+    t_step, problems = _pose_step_time(repeats)
+    print(f"pose optimization (render-pose defaults: cube, {SIZE} x {SIZE}, perturbed-gaussian M=8, {problems} problems "
+          f"vmapped): {fmt(t_step)} per Adam step, {fmt(t_step / problems)} per problem")
+    rows.append({"pose_step": t_step, "problems": problems})
+    return rows
+
+
+if __name__ == "__main__":
+    main()

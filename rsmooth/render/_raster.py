@@ -1,0 +1,349 @@
+r"""Rasterization: signed distances in screen space, coverage, and per-pixel face culling.
+
+A pixel centre :math:`q` is covered by a projected triangle when its signed distance
+:math:`d(q)` to the triangle's boundary (positive inside, minus the Euclidean distance to the
+triangle outside) is positive. The hard rasterizer takes :math:`H(d)`; the perturbed one (Le
+Lidec, Laptev, Schmid, Carpentier, "Differentiable rendering with perturbed optimizers",
+NeurIPS 2021, Sec. 3: the perturbed rasterization step) its randomized smoothing
+
+.. math:: H_\sigma(d) = \mathbb{E}_{X\sim\mu}\, H(d + \sigma X) = F_\mu(d / \sigma),
+
+estimated by Monte-Carlo, with the zeroth-order estimator (with baseline) as its derivative,
+so that any noise law works (:func:`rsmooth.smooth_elementwise`); SoftRas (Liu et al., ICCV
+2019) takes a sigmoid, which is :math:`H_\sigma` for logistic noise in closed form.
+
+Per-pixel culling (:func:`rasterize`): a dense rasterizer compares every pixel with every face,
+which does not scale (see FIELD-NOTES "Rendering in JAX on CPU"). Here a non-differentiable
+pass picks, per pixel, at most `faces_per_pixel` candidate faces, as PyTorch3D's
+`faces_per_pixel`: first per tile of `tile_size` x `tile_size` pixels the `faces_per_tile`
+nearest faces whose bounding box, dilated by `margin` pixels, reaches the tile (cost: tiles x
+faces, 1/64 of pixels x faces with 8-pixel tiles); then, per pixel, the candidates of its tile
+with the largest SoftRas-like weight, from cheap affine forms (signed distances to the edge
+lines, depth plane). Only the selected (H, W, K) fragments are computed differentiably, with
+exact distances. Faces beyond the caps are dropped: the farthest first, which on a closed mesh
+are back faces (`Fragments.tile_overflow` counts the tiles where it happened).
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax import Array, lax
+from jax.typing import ArrayLike
+
+from rsmooth.noise import Gaussian, Noise
+from rsmooth.smooth import smooth_elementwise
+
+from rsmooth.render._camera import Camera
+from rsmooth.render._mesh import Mesh
+
+__all__ = [
+    "signed_distance",
+    "barycentric",
+    "heaviside",
+    "coverage",
+    "Fragments",
+    "project_faces",
+    "rasterize",
+    "COVERAGE_MODES",
+]
+
+COVERAGE_MODES = ("hard", "perturbed", "soft")
+
+_TINY = 1e-30
+
+
+def heaviside(d: ArrayLike) -> Array:
+    """H(d) = 1 where d > 0, else 0 (floating)."""
+    d = jnp.asarray(d)
+    return jnp.where(d > 0, 1.0, 0.0).astype(d.dtype)
+
+
+def _broadcast(points: Array, triangles: Array) -> tuple[Array, Array]:
+    """points (..., 2), triangles (..., 3, 2) -> both broadcast to the common leading shape."""
+    lead = jnp.broadcast_shapes(points.shape[:-1], triangles.shape[:-2])
+    return jnp.broadcast_to(points, lead + (2,)), jnp.broadcast_to(triangles, lead + (3, 2))
+
+
+def _edge_geometry(points: Array, triangles: Array) -> tuple[Array, Array]:
+    """Signed distance (...) and screen-space barycentric coordinates (..., 3)."""
+    points, triangles = _broadcast(points, triangles)
+    p0 = triangles
+    p1 = jnp.roll(triangles, -1, axis=-2)
+    e = p1 - p0
+    w = points[..., None, :] - p0
+    ee = jnp.sum(e * e, axis=-1)
+    t = jnp.clip(jnp.sum(w * e, axis=-1) / jnp.maximum(ee, _TINY), 0.0, 1.0)
+    r = w - t[..., None] * e
+    dist = jnp.sqrt(jnp.maximum(jnp.min(jnp.sum(r * r, axis=-1), axis=-1), _TINY))
+    # Edge functions: cross(p_{i+1} - p_i, q - p_i); twice the triangle's signed area.
+    edge = e[..., 0] * w[..., 1] - e[..., 1] * w[..., 0]
+    area2 = e[..., 0, 0] * (p0[..., 2, 1] - p0[..., 0, 1]) - e[..., 0, 1] * (p0[..., 2, 0] - p0[..., 0, 0])
+    safe_area = jnp.where(area2 == 0, 1.0, area2)
+    # The vertex k is opposite the edge k + 1.
+    bary = jnp.roll(edge, -1, axis=-1) / safe_area[..., None]
+    # Triangles are closed: a pixel centre on an edge shared by two faces is not lost.
+    inside = jnp.all(bary >= 0, axis=-1) & (area2 != 0)
+    return jnp.where(inside, dist, -dist), bary
+
+
+def signed_distance(points: ArrayLike, triangles: ArrayLike) -> Array:
+    """Signed distance from 2D points to triangles: positive inside, minus the Euclidean
+    distance to the triangle outside (either winding; zero-area triangles cover nothing).
+    Triangles are closed: a point on an edge gets a tiny positive distance (about 1e-15), so
+    that pixel centres on an edge shared by two faces are covered by one of them.
+
+    Args:
+        points: (..., 2).
+        triangles: (..., 3, 2), broadcast against `points`' leading axes.
+
+    Returns:
+        (...) distances.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> tri = jnp.array([[0.0, 0.0], [4.0, 0.0], [0.0, 4.0]])
+        >>> [float(v) for v in signed_distance(jnp.array([[1.0, 1.0], [-2.0, 1.0]]), tri)]
+        [1.0, -2.0]
+    """
+    return _edge_geometry(jnp.asarray(points), jnp.asarray(triangles))[0]
+
+
+def barycentric(points: ArrayLike, triangles: ArrayLike) -> Array:
+    """Screen-space barycentric coordinates (..., 3) of points (..., 2) in triangles (..., 3, 2)."""
+    return _edge_geometry(jnp.asarray(points), jnp.asarray(triangles))[1]
+
+
+def coverage(
+    distance: ArrayLike,
+    key: Array | None = None,
+    *,
+    mode: str = "hard",
+    sigma: ArrayLike = 1.0,
+    num_samples: int = 16,
+    noise: Noise = Gaussian(),
+) -> Array:
+    r"""Coverage of pixels by faces from their signed distances, elementwise.
+
+    * ``"hard"``: :math:`H(d)` (zero derivative);
+    * ``"perturbed"``: the Monte-Carlo estimate of :math:`\mathbb{E} H(d + \sigma X)` with
+      independent noise per element; its derivative is the zeroth-order estimator with the
+      baseline :math:`H(d)` (Le Lidec et al. 2021, Sec. 3; :func:`rsmooth.smooth_elementwise`);
+    * ``"soft"``: :math:`\mathrm{sigmoid}(d/\sigma)`, SoftRas' closed form (exact gradient).
+
+    Args:
+        distance: signed distances (any shape), in pixels.
+        key: PRNG key (``"perturbed"`` only).
+        mode: one of ``"hard"``, ``"perturbed"``, ``"soft"``.
+        sigma: smoothing scale in pixels (may be traced).
+        num_samples: Monte-Carlo samples per element (``"perturbed"``).
+        noise: the law of X (``"perturbed"``): Gaussian, Logistic, Cauchy, ...
+
+    Returns:
+        Coverage in [0, 1], the shape of `distance`.
+
+    Example:
+        >>> import jax, jax.numpy as jnp
+        >>> d = jnp.array([-1.0, 0.0, 1.0])
+        >>> c = coverage(d, jax.random.key(0), mode="perturbed", sigma=1.0, num_samples=20000)
+        >>> bool(jnp.allclose(c, jax.scipy.stats.norm.cdf(d), atol=0.02))
+        True
+    """
+    distance = jnp.asarray(distance)
+    if mode == "hard":
+        return heaviside(distance)
+    if mode == "soft":
+        return jax.nn.sigmoid(distance / sigma)
+    if mode == "perturbed":
+        if key is None:
+            raise ValueError("coverage(mode='perturbed') needs a key")
+        g = smooth_elementwise(heaviside, sigma=sigma, num_samples=num_samples, noise=noise)
+        return g(key, distance)
+    raise ValueError(f"mode must be one of {COVERAGE_MODES}, got {mode!r}")
+
+
+class Fragments(eqx.Module):
+    """The K candidate faces of every pixel, from :func:`rasterize` (K = faces_per_pixel).
+
+    Attributes:
+        face_index: (H, W, K) int, index of the candidate face (0 where not `present`).
+        present: (H, W, K) bool, whether the slot holds a candidate.
+        distance: (H, W, K) signed distance from the pixel centre to the projected face, pixels.
+        depth: (H, W, K) normalized inverse depth of the face's plane at the pixel:
+            (1/z - 1/far) / (1/near - 1/far), 1 at the near plane, 0 at the far one (larger is
+            nearer; it is affine in screen space, so interpolated exactly).
+        barycentric: (H, W, K, 3) perspective-correct barycentric coordinates of the pixel
+            centre, clipped to the triangle (for attribute interpolation).
+        tile_overflow: () int, the number of tiles that more faces reached than
+            `faces_per_tile` (the farthest were dropped): when it is not 0 on a dense mesh, raise
+            `faces_per_tile` or lower `tile_size`.
+    """
+
+    face_index: Array
+    present: Array
+    distance: Array
+    depth: Array
+    barycentric: Array
+    tile_overflow: Array
+
+
+def _clip_normalize(bary: Array) -> Array:
+    clipped = jnp.maximum(bary, 0.0)
+    return clipped / jnp.maximum(jnp.sum(clipped, axis=-1, keepdims=True), _TINY)
+
+
+def _face_forms(screen: Array, depth: Array) -> tuple[Array, Array]:
+    """Affine forms of the projected faces: for each edge, (a, b, c) with a x + b y + c the
+    signed distance to the edge's line, positive inside (F, 3, 3: edge, coefficient), and the
+    depth plane (F, 3): depth = p0 x + p1 y + p2. Zero-area faces get lines that nothing is
+    near."""
+    p0 = screen
+    e = jnp.roll(screen, -1, axis=-2) - p0  # (F, 3, 2)
+    area2 = e[:, 0, 0] * (p0[:, 2, 1] - p0[:, 0, 1]) - e[:, 0, 1] * (p0[:, 2, 0] - p0[:, 0, 0])
+    degenerate = area2 == 0
+    # Edge function cross(e, q - p) = -e_y x + e_x y + (e_y p_x - e_x p_y).
+    a, b = -e[..., 1], e[..., 0]
+    c = e[..., 1] * p0[..., 0] - e[..., 0] * p0[..., 1]
+    safe_area = jnp.where(degenerate, 1.0, area2)
+    # Barycentric coordinate k is edge function k + 1 over the doubled area: the depth plane.
+    bary_forms = jnp.stack([jnp.roll(f, -1, axis=-1) for f in (a, b, c)], axis=-1) / safe_area[:, None, None]
+    plane = jnp.sum(bary_forms * depth[:, :, None], axis=1)  # (F, 3)
+    scale = jnp.sign(safe_area)[:, None] / jnp.maximum(jnp.sqrt(a**2 + b**2), _TINY)
+    lines = jnp.stack([a * scale, b * scale, c * scale], axis=-1)
+    never = jnp.array([0.0, 0.0, -1e30], screen.dtype)
+    lines = jnp.where(degenerate[:, None, None], never[None, None, :], lines)
+    return lines, plane
+
+
+def project_faces(mesh: Mesh, camera: Camera):
+    """Projected faces: pixel coordinates (F, 3, 2), depths z (F, 3), normalized inverse depths
+    (F, 3) and the visibility mask (F,) of faces entirely in front of the near plane and not
+    entirely beyond the far one."""
+    xy, z = camera.project(mesh.vertices)
+    faces = mesh.faces
+    screen = xy[faces]
+    z_faces = z[faces]
+    valid = jnp.all(z_faces > camera.near, axis=-1) & jnp.any(z_faces < camera.far, axis=-1)
+    valid = valid & jnp.all(jnp.isfinite(screen), axis=(-1, -2))
+    safe_z = jnp.where(z_faces > camera.near, z_faces, camera.near)
+    inv_near, inv_far = 1.0 / camera.near, 1.0 / camera.far
+    depth = (1.0 / safe_z - inv_far) / (inv_near - inv_far)
+    return screen, z_faces, depth, valid
+
+
+def rasterize(
+    mesh: Mesh,
+    camera: Camera,
+    *,
+    faces_per_pixel: int = 8,
+    margin: ArrayLike = 0.0,
+    sigma: ArrayLike | None = None,
+    gamma: ArrayLike | None = None,
+    tile_size: int = 8,
+    faces_per_tile: int = 64,
+) -> Fragments:
+    r"""Per-pixel candidate faces and their differentiable fragments.
+
+    Candidate selection is not differentiable (it is under `stop_gradient`); the returned
+    distances, depths and barycentric coordinates are, with respect to the mesh vertices and
+    the camera. Faces crossing the near plane are culled whole (no clipping); a mesh behind the
+    camera, or out of view, gives no candidate at all (an empty image).
+
+    Args:
+        mesh: the mesh.
+        camera: the camera (its `image_size` fixes the output shape).
+        faces_per_pixel: K, candidates kept per pixel.
+        margin: dilation of the faces' bounding boxes in pixels; faces farther than this from
+            a pixel are not its candidates (use a few sigma for smoothed coverage).
+        sigma, gamma: when given, pixels rank their candidates by the SoftRas weight
+            :math:`\log\mathrm{sigmoid}(d/\sigma) + z/\gamma` (d: the distance to the nearest
+            edge line); when None (hard rendering), only covering faces are kept, nearest first.
+        tile_size: side of the square tiles of the first culling pass.
+        faces_per_tile: candidates kept per tile (nearest first).
+
+    Returns:
+        :class:`Fragments` of shape (H, W, K), K = min(faces_per_pixel, faces_per_tile, F).
+    """
+    height, width = camera.image_size
+    screen, z_faces, depth_vertices, valid = project_faces(mesh, camera)
+    num_faces = screen.shape[0]
+    k_tile = min(faces_per_tile, num_faces)
+    k_pixel = min(faces_per_pixel, k_tile)
+    ts = tile_size
+    ty, tx = math.ceil(height / ts), math.ceil(width / ts)
+    dtype = screen.dtype
+
+    s = lax.stop_gradient(screen)
+    dv = lax.stop_gradient(depth_vertices)
+    margin = lax.stop_gradient(jnp.asarray(margin, dtype))
+
+    # Pass 1: per tile, the nearest faces whose dilated bounding box reaches the tile's pixel
+    # centres.
+    low = jnp.min(s, axis=1) - margin
+    high = jnp.max(s, axis=1) + margin
+    start_x = jnp.arange(tx, dtype=dtype) * ts + 0.5
+    end_x = jnp.minimum(start_x + ts - 1, width - 0.5)
+    start_y = jnp.arange(ty, dtype=dtype) * ts + 0.5
+    end_y = jnp.minimum(start_y + ts - 1, height - 0.5)
+    over_x = (high[None, :, 0] >= start_x[:, None]) & (low[None, :, 0] <= end_x[:, None])  # (tx, F)
+    over_y = (high[None, :, 1] >= start_y[:, None]) & (low[None, :, 1] <= end_y[:, None])  # (ty, F)
+    overlap = over_y[:, None, :] & over_x[None, :, :] & valid[None, None, :]
+    nearest = jnp.max(dv, axis=1)
+    tile_key = jnp.where(overlap, nearest[None, None, :], -jnp.inf)
+    tile_values, tile_faces = lax.top_k(tile_key, k_tile)  # (ty, tx, Kt)
+    tile_ok = tile_values > -jnp.inf
+    tile_overflow = jnp.sum(jnp.sum(overlap, axis=-1) > k_tile)
+
+    # Pass 2: per pixel, rank its tile's candidates. Cheap affine forms only: the signed
+    # distances to the three edge lines (their minimum is the signed distance inside the
+    # triangle, and at least minus the distance outside, so the margin test is conservative)
+    # and the depth plane, evaluated at the pixel centres.
+    lines, plane = _face_forms(s, dv)
+    a, b, c = (lines[..., i][tile_faces][:, :, None, None] for i in range(3))  # (ty, tx, 1, 1, Kt, 3)
+    offsets = jnp.arange(ts, dtype=dtype) + 0.5
+    x = (jnp.arange(tx, dtype=dtype)[:, None] * ts + offsets[None, :])[None, :, None, :, None, None]
+    y = (jnp.arange(ty, dtype=dtype)[:, None] * ts + offsets[None, :])[:, None, :, None, None, None]
+    dist = jnp.min(a * x + b * y + c, axis=-1)  # (ty, tx, ts, ts, Kt)
+    p = plane[tile_faces][:, :, None, None]  # (ty, tx, 1, 1, Kt, 3)
+    depth = p[..., 0] * x[..., 0] + p[..., 1] * y[..., 0] + p[..., 2]
+    ok = tile_ok[:, :, None, None, :]
+    if sigma is None:
+        pixel_key = jnp.where(ok & (dist >= 0), depth, -jnp.inf)
+    else:
+        sigma = lax.stop_gradient(jnp.asarray(sigma, dtype))
+        gamma = lax.stop_gradient(jnp.asarray(1.0 if gamma is None else gamma, dtype))
+        weight = jax.nn.log_sigmoid(dist / sigma) + depth / gamma
+        pixel_key = jnp.where(ok & (dist > -margin), weight, -jnp.inf)
+    pixel_values, slot = lax.top_k(pixel_key, k_pixel)  # (ty, tx, ts, ts, K)
+    faces_tile = jnp.broadcast_to(tile_faces[:, :, None, None, :], slot.shape[:4] + (k_tile,))
+    face_index = jnp.take_along_axis(faces_tile, slot, axis=-1)
+    present = pixel_values > -jnp.inf
+
+    def to_image(a):
+        a = jnp.swapaxes(a, 1, 2)  # (ty, ts, tx, ts, ...)
+        a = a.reshape((ty * ts, tx * ts) + a.shape[4:])
+        return a[:height, :width]
+
+    face_index = jnp.where(present, face_index, 0)
+    face_index, present = to_image(face_index), to_image(present)
+
+    # The differentiable fragments of the selected faces only.
+    pixel = jnp.stack(
+        jnp.broadcast_arrays(
+            (jnp.arange(width, dtype=dtype) + 0.5)[None, :], (jnp.arange(height, dtype=dtype) + 0.5)[:, None]
+        ),
+        axis=-1,
+    )  # (H, W, 2)
+    distance, bary = _edge_geometry(pixel[:, :, None, :], screen[face_index])  # (H, W, K)
+    bary = _clip_normalize(bary)
+    depth = jnp.sum(bary * depth_vertices[face_index], axis=-1)
+    # Perspective-correct weights for attributes: screen weights divided by depth, renormalized.
+    weights = bary / jnp.maximum(z_faces[face_index], _TINY)
+    weights = weights / jnp.maximum(jnp.sum(weights, axis=-1, keepdims=True), _TINY)
+    return Fragments(
+        face_index=face_index, present=present, distance=distance, depth=depth, barycentric=weights,
+        tile_overflow=tile_overflow,
+    )

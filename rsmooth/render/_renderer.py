@@ -1,0 +1,199 @@
+r"""The renderer: rasterize, shade, aggregate, in one jittable, vmappable function.
+
+`Renderer(mode=...)` is a frozen configuration; calling it, ``renderer(key, mesh, camera)``,
+returns an :class:`Image` (RGB and alpha). Modes:
+
+* ``"hard"``: the z-buffer rasterizer; its image is piecewise constant in the geometry, so its
+  derivative with respect to a pose is zero (up to shading);
+* ``"perturbed"``: Le Lidec, Laptev, Schmid, Carpentier, "Differentiable rendering with
+  perturbed optimizers", NeurIPS 2021: each pixel is the expectation of the hard pixel under
+  noise on the signed distances (scale `sigma`, pixels) and on the depths (temperature
+  `gamma`), estimated with `num_samples` samples, differentiated with the zeroth-order
+  estimator with the hard pixel as baseline (:func:`rsmooth.render.perturbed_aggregate`);
+* ``"soft"``: SoftRas (Liu et al., ICCV 2019) with sigmoid coverage, for comparison.
+
+The cost is O(H W K) after a culling pass (:func:`rsmooth.render.rasterize`), not
+O(H W F). A camera looking away from the mesh, or a mesh behind the camera, renders the
+background (alpha 0) with zero derivatives.
+
+Example:
+    >>> import jax, jax.numpy as jnp
+    >>> from rsmooth.render import Renderer, cube, look_at
+    >>> camera = look_at(jnp.array([0.0, 0.0, 4.0]), image_size=(16, 16))
+    >>> renderer = Renderer(mode="hard", faces_per_pixel=2, faces_per_tile=12)
+    >>> image = jax.jit(lambda mesh: renderer(None, mesh, camera))(cube())
+    >>> image.rgb.shape, float(image.alpha[8, 8]), float(image.alpha[0, 0])
+    ((16, 16, 3), 1.0, 0.0)
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax import Array
+from jax.typing import ArrayLike
+
+from rsmooth import _checks
+from rsmooth.noise import Gaussian, Gumbel, Noise
+from rsmooth.render._aggregate import hard_aggregate, perturbed_aggregate, soft_aggregate
+from rsmooth.render._camera import Camera
+from rsmooth.render._mesh import Mesh
+from rsmooth.render._raster import rasterize
+from rsmooth.render._shade import DirectionalLight, _triple, shade_faces
+
+__all__ = ["Image", "Renderer", "MODES"]
+
+MODES = ("hard", "soft", "perturbed")
+
+# Signed distance given to empty candidate slots: never covered, whatever the noise.
+_NEVER = 1e20
+
+
+class Image(eqx.Module):
+    """A rendered image.
+
+    Attributes:
+        rgb: (H, W, 3) colours (background where nothing is drawn).
+        alpha: (H, W) silhouette: 1 - the background's weight.
+    """
+
+    rgb: Array
+    alpha: Array
+
+    def rgba(self) -> Array:
+        """(H, W, 4)."""
+        return jnp.concatenate([self.rgb, self.alpha[..., None]], axis=-1)
+
+
+class Renderer(eqx.Module):
+    """A mesh renderer (a frozen configuration; call it to render).
+
+    Attributes:
+        mode: ``"hard"``, ``"soft"`` or ``"perturbed"``.
+        sigma: coverage smoothing scale, in pixels (soft, perturbed); overridable per call.
+        gamma: depth temperature, in normalized inverse depth units (soft, perturbed).
+        num_samples: Monte-Carlo samples per pixel (perturbed).
+        coverage_noise: law of the noise on signed distances (perturbed): Gaussian, Logistic,
+            Cauchy, ... (any law with a differentiable density).
+        depth_noise: law of the noise on depths (perturbed): Gumbel (softmax-like) or Gaussian.
+        faces_per_pixel: candidate faces kept per pixel (K).
+        faces_per_tile: candidate faces kept per tile in the first culling pass.
+        tile_size: tile side in pixels.
+        dilation: candidate faces lie within `dilation * sigma` pixels of the pixel centre
+            (smoothed modes); the noise's tail beyond is dropped (heavy-tailed laws such as
+            Cauchy need a larger dilation).
+        light: the directional light.
+        background: background RGB.
+        background_depth: the background's normalized inverse depth (0: at the far plane).
+    """
+
+    mode: str = eqx.field(static=True, default="perturbed")
+    sigma: float = eqx.field(static=True, default=1.0, converter=float)
+    gamma: float = eqx.field(static=True, default=0.01, converter=float)
+    num_samples: int = eqx.field(static=True, default=8)
+    coverage_noise: Noise = Gaussian()
+    depth_noise: Noise = Gumbel()
+    faces_per_pixel: int = eqx.field(static=True, default=8)
+    faces_per_tile: int = eqx.field(static=True, default=64)
+    tile_size: int = eqx.field(static=True, default=8)
+    dilation: float = eqx.field(static=True, default=3.0, converter=float)
+    light: DirectionalLight = DirectionalLight()
+    background: tuple[float, float, float] = eqx.field(static=True, default=(0.0, 0.0, 0.0), converter=_triple)
+    background_depth: float = eqx.field(static=True, default=0.0, converter=float)
+
+    def __check_init__(self):
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        for name in ("sigma", "gamma"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and value > 0):
+                raise ValueError(f"{name} must be a positive number, got {value!r}")
+        for name in ("num_samples", "faces_per_pixel", "faces_per_tile", "tile_size"):
+            _checks.check_num_samples(getattr(self, name), name)
+        if not self.dilation >= 0:
+            raise ValueError(f"dilation must be >= 0, got {self.dilation}")
+        if self.faces_per_tile < self.faces_per_pixel:
+            raise ValueError(
+                f"faces_per_tile ({self.faces_per_tile}) must be >= faces_per_pixel ({self.faces_per_pixel})"
+            )
+        for name in ("coverage_noise", "depth_noise"):
+            law = getattr(self, name)
+            if not isinstance(law, Noise):
+                raise TypeError(f"{name} must be an rsmooth.noise.Noise, got {law!r}")
+            if self.mode == "perturbed" and not law.has_score:
+                raise ValueError(f"{name}: {type(law).__name__} has no differentiable density")
+
+    def __call__(
+        self,
+        key: Array | None,
+        mesh: Mesh,
+        camera: Camera,
+        *,
+        sigma: ArrayLike | None = None,
+        gamma: ArrayLike | None = None,
+    ) -> Image:
+        """Renders `mesh` seen by `camera`.
+
+        Args:
+            key: PRNG key (used by ``"perturbed"``; may be None otherwise).
+            mesh: the mesh (its vertices may be traced: the image is differentiable in them).
+            camera: the camera (static image size).
+            sigma, gamma: override the configured noise levels (may be traced, e.g. by a noise
+                schedule; the perturbed estimator then also estimates their derivatives).
+
+        Returns:
+            An :class:`Image`.
+        """
+        if not isinstance(mesh, Mesh):
+            raise TypeError(f"mesh must be an rsmooth.render.Mesh, got {type(mesh).__name__}")
+        if not isinstance(camera, Camera):
+            raise TypeError(f"camera must be an rsmooth.render.Camera, got {type(camera).__name__}")
+        if self.mode == "perturbed":
+            if key is None:
+                raise ValueError("the perturbed renderer needs a PRNG key")
+            _checks.check_key(key)
+        dtype = mesh.vertices.dtype
+        sigma = jnp.asarray(self.sigma if sigma is None else sigma, dtype)
+        gamma = jnp.asarray(self.gamma if gamma is None else gamma, dtype)
+        hard = self.mode == "hard"
+        fragments = rasterize(
+            mesh,
+            camera,
+            faces_per_pixel=self.faces_per_pixel,
+            margin=0.0 if hard else self.dilation * sigma,
+            sigma=None if hard else sigma,
+            gamma=None if hard else gamma,
+            tile_size=self.tile_size,
+            faces_per_tile=self.faces_per_tile,
+        )
+        height, width = camera.image_size
+        k = fragments.face_index.shape[-1]
+
+        diffuse, specular = shade_faces(mesh, camera, self.light)
+        albedo = mesh.albedo()[mesh.faces]  # (F, 3, 3)
+        color = jnp.sum(fragments.barycentric[..., None] * albedo[fragments.face_index], axis=-2)
+        light_color = jnp.asarray(self.light.color, dtype)
+        color = color * diffuse[fragments.face_index][..., None] * light_color[None, None, None, :] + specular[fragments.face_index]
+
+        distance = jnp.where(fragments.present, fragments.distance, -_NEVER)
+        depth = jnp.where(fragments.present, fragments.depth, 0.0)
+        if hard:
+            weights = hard_aggregate(distance, depth, self.background_depth)
+        elif self.mode == "soft":
+            weights = soft_aggregate(distance, depth, sigma=sigma, gamma=gamma, background_depth=self.background_depth)
+        else:
+            keys = jax.random.split(key, height * width)
+
+            def pixel(key, d, z):
+                return perturbed_aggregate(
+                    key, d, z, sigma=sigma, gamma=gamma, num_samples=self.num_samples,
+                    coverage_noise=self.coverage_noise, depth_noise=self.depth_noise,
+                    background_depth=self.background_depth,
+                )
+
+            weights = jax.vmap(pixel)(keys, distance.reshape(-1, k), depth.reshape(-1, k))
+            weights = weights.reshape(height, width, k + 1)
+        background = jnp.asarray(self.background, dtype)
+        rgb = jnp.sum(weights[..., :k, None] * color, axis=-2) + weights[..., k:] * background[None, None, :]
+        return Image(rgb=rgb, alpha=1.0 - weights[..., k])

@@ -1,0 +1,163 @@
+"""The renderer: areas, occlusion, aggregation, derivatives, empty views, errors."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.scipy.stats import norm
+
+from rsmooth import noise, render
+
+SIZE = 32
+CAMERA = render.look_at(jnp.array([0.0, 0.0, 4.0]), image_size=(SIZE, SIZE), fov=40.0, near=1.0, far=10.0)
+
+
+# Every test mesh has 6 vertices, 2 faces and colours: one compilation per renderer.
+FACES = np.array([[0, 1, 2], [3, 4, 5]])
+
+
+def square(side, z=0.0, color=(0.8, 0.8, 0.8)):
+    h = side / 2
+    vertices = np.array([[-h, -h, z], [h, -h, z], [h, h, z], [-h, -h, z], [h, h, z], [-h, h, z]])
+    return render.Mesh(vertices, FACES, np.tile(np.asarray(color, float), (6, 1)))
+
+
+def side_for_pixels(pixels, depth=4.0):
+    return pixels * depth / float(CAMERA.focal_length)
+
+
+@pytest.fixture(scope="module")
+def renderers():
+    """Jitted renderers f(key, mesh, camera=CAMERA), compiled once per mode for all tests."""
+    kw = dict(sigma=0.7, gamma=0.01, faces_per_pixel=4, faces_per_tile=16)
+    configs = {
+        "hard": render.Renderer(mode="hard", **kw),
+        "soft": render.Renderer(mode="soft", **kw),
+        "perturbed": render.Renderer(mode="perturbed", num_samples=64, **kw),
+    }
+
+    def wrap(renderer):
+        jitted = jax.jit(lambda k, m, c: renderer(k, m, c))
+        # The camera is always passed explicitly: jit caches a defaulted argument separately.
+        return lambda k, m, c=CAMERA: jitted(k, m, c)
+
+    return {mode: wrap(r) for mode, r in configs.items()}
+
+
+def test_fronto_parallel_square_covers_its_area(renderers, getkey):
+    mesh = square(side_for_pixels(12.0))  # 12 x 12 pixels, edges between pixel centres
+    hard = renderers["hard"](None, mesh)
+    assert float(jnp.sum(hard.alpha)) == pytest.approx(144.0)
+    assert set(np.unique(np.asarray(hard.alpha)).tolist()) == {0.0, 1.0}
+    for mode in ("soft", "perturbed"):
+        image = renderers[mode](getkey(), mesh)
+        assert float(jnp.sum(image.alpha)) == pytest.approx(144.0, rel=0.06), mode
+
+
+def test_perturbed_render_of_an_edge_is_the_smoothed_step(renderers, getkey):
+    """Across the middle of the square's left edge, alpha is Phi(d / sigma) (Gaussian noise)."""
+    mesh = square(side_for_pixels(12.5))  # edges at 9.75 and 22.25: centres at +-0.25, 0.75, ...
+    row = np.mean(np.stack([np.asarray(renderers["perturbed"](getkey(), mesh).alpha[14:18, 5:14]) for _ in range(4)]), axis=(0, 1))
+    d = np.arange(5, 14) + 0.5 - 9.75
+    np.testing.assert_allclose(row, norm.cdf(d / 0.7), atol=0.04)
+
+
+def test_nearer_triangle_occludes_the_farther_one(renderers, getkey):
+    red, green = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)
+    for z_red, z_green, winner in ((0.0, 0.5, 1), (0.5, 0.0, 0)):
+        v = np.array([[-1.0, -1, z_red], [1, -1, z_red], [0, 1, z_red], [-0.5, -0.3, z_green], [1.2, -0.3, z_green], [0.5, 1.2, z_green]])
+        colors = np.array([red] * 3 + [green] * 3)
+        mesh = render.Mesh(v, FACES, colors)
+        for mode in ("hard", "soft", "perturbed"):
+            rgb = np.asarray(renderers[mode](getkey(), mesh).rgb)
+            # A pixel in the overlap (world (0.2, 0.0) -> image column ~18.2, row ~16-ish).
+            pixel = rgb[15:17, 17:19].mean(axis=(0, 1))
+            assert np.argmax(pixel) == winner, (mode, pixel)
+            assert pixel[winner] > 5 * pixel[1 - winner], (mode, pixel)
+
+
+def test_gumbel_aggregation_is_the_softmax_of_depths(getkey):
+    depth = jnp.array([0.30, 0.32, 0.25])
+    gamma = 0.02
+    key = getkey()
+
+    def weights(z):
+        return render.perturbed_aggregate(key, jnp.full(3, 100.0), z, sigma=1.0, gamma=gamma, num_samples=20000, background_depth=0.28)
+
+    # Value and Jacobian estimate (the same samples) in one compilation.
+    w, jac = jax.jit(lambda z: (weights(z), jax.jacfwd(weights)(z)))(depth)
+    p = jax.nn.softmax(jnp.append(depth, 0.28) / gamma)
+    np.testing.assert_allclose(w, p, atol=0.02)
+    exact = (jnp.diag(p) - jnp.outer(p, p))[:, :3] / gamma
+    np.testing.assert_allclose(jac, exact, atol=0.1 * float(jnp.max(jnp.abs(exact))))
+    # The soft (SoftRas) aggregation is the softmax over faces when every face covers the pixel.
+    soft = render.soft_aggregate(jnp.full(3, 100.0), depth, sigma=1.0, gamma=gamma)
+    np.testing.assert_allclose(soft, jnp.append(jax.nn.softmax(depth / gamma), 0.0), atol=1e-12)
+    # Gaussian depth noise, one face: it beats the background with probability Phi(dz / (gamma sqrt 2)).
+    w = jax.jit(lambda k: render.perturbed_aggregate(k, jnp.array([100.0]), jnp.array([0.3]), sigma=1.0, gamma=gamma, num_samples=10000, depth_noise=noise.Gaussian(), background_depth=0.28))(getkey())
+    assert float(w[0]) == pytest.approx(float(norm.cdf(0.02 / (gamma * np.sqrt(2)))), abs=0.02)
+
+
+def test_hard_gradient_is_zero_and_perturbed_gradient_follows_finite_differences(renderers, getkey):
+    mesh = square(side_for_pixels(10.0))
+    ramp = jnp.asarray(np.arange(SIZE) - SIZE / 2.0)
+    weights = ramp[None, :] + 0.5 * ramp[:, None]
+
+    def loss(renderer, key, t):
+        return jnp.sum(renderer(key, render.transform_mesh(mesh, jnp.eye(3), t)).alpha * weights)
+
+    kw = dict(sigma=0.7, gamma=0.01, faces_per_pixel=4, faces_per_tile=16)
+    hard = render.Renderer(mode="hard", **kw)
+    perturbed = render.Renderer(mode="perturbed", num_samples=64, **kw)
+    t0 = jnp.zeros(3)
+    key = getkey()
+    assert np.all(np.asarray(jax.jit(jax.grad(lambda t: loss(lambda k, m: hard(k, m, CAMERA), key, t)))(t0)) == 0.0)
+    grad = np.asarray(jax.jit(jax.grad(lambda t: loss(lambda k, m: perturbed(k, m, CAMERA), key, t)))(t0))
+    # Finite differences of the smoothed image, on the same samples (common random numbers).
+    h = 0.05
+    fd = np.array([(float(loss(renderers["perturbed"], key, t0.at[i].add(h))) - float(loss(renderers["perturbed"], key, t0.at[i].add(-h)))) / (2 * h) for i in range(2)])
+    # +x in the world is +x (right) in the image, +y is up (smaller rows).
+    assert grad[0] > 0 and grad[1] < 0
+    np.testing.assert_array_equal(np.sign(grad[:2]), np.sign(fd))
+    np.testing.assert_allclose(grad[:2], fd, rtol=0.3)
+
+
+def test_mesh_behind_or_beside_the_camera_renders_the_background(renderers, getkey):
+    mesh = square(1.0)
+    looking_away = render.look_at(jnp.array([0.0, 0.0, 4.0]), target=jnp.array([0.0, 0.0, 8.0]), image_size=(SIZE, SIZE), near=1.0, far=10.0)
+    beside = render.look_at(jnp.array([0.0, 0.0, 4.0]), target=jnp.array([8.0, 0.0, 4.0]), image_size=(SIZE, SIZE), near=1.0, far=10.0)
+    for camera in (looking_away, beside):
+        for mode in ("hard", "soft", "perturbed"):
+            image = renderers[mode](getkey(), mesh, camera)
+            assert float(jnp.max(image.alpha)) == 0.0 and float(jnp.max(image.rgb)) == 0.0, mode
+    renderer = render.Renderer(mode="soft", sigma=0.7, gamma=0.01, faces_per_pixel=4, faces_per_tile=16)
+    grad = jax.jit(jax.grad(lambda v: jnp.sum(renderer(None, eqx.tree_at(lambda m: m.vertices, mesh, v), looking_away).rgb)))(mesh.vertices)
+    assert np.all(np.asarray(grad) == 0.0)
+
+
+def test_views_batch_under_vmap(renderers):
+    mesh = square(side_for_pixels(10.0), color=(0.2, 0.5, 0.9))
+    eyes = jnp.array([[0.0, 0.0, 4.0], [1.0, 0.5, 3.0]])
+    cameras = jax.vmap(lambda e: render.look_at(e, image_size=(SIZE, SIZE), fov=40.0, near=1.0, far=10.0))(eyes)
+    batch = jax.vmap(lambda c: renderers["hard"](None, mesh, c))(cameras)
+    for i in range(2):
+        single = renderers["hard"](None, mesh, jax.tree.map(lambda a: a[i], cameras))
+        np.testing.assert_allclose(batch.rgb[i], single.rgb, atol=1e-12)
+        assert float(jnp.sum(single.alpha)) > 20
+    assert not np.allclose(batch.alpha[0], batch.alpha[1])
+
+
+def test_bad_renderer_inputs():
+    with pytest.raises(ValueError, match="mode"):
+        render.Renderer(mode="blurry")
+    with pytest.raises(ValueError, match="sigma"):
+        render.Renderer(sigma=0.0)
+    with pytest.raises(ValueError, match="faces_per_tile"):
+        render.Renderer(faces_per_pixel=8, faces_per_tile=4)
+    with pytest.raises(ValueError, match="density"):
+        render.Renderer(coverage_noise=noise.Uniform())
+    with pytest.raises(ValueError, match="key"):
+        render.Renderer(mode="perturbed")(None, render.cube(), CAMERA)
+    with pytest.raises(TypeError, match="Mesh"):
+        render.Renderer(mode="hard")(None, np.zeros((3, 3)), CAMERA)
