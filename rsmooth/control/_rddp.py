@@ -1,0 +1,311 @@
+r"""Randomized DDP (R-DDP): DDP whose backward pass sees the randomly smoothed dynamics.
+
+Le Lidec, Schramm, Montaut, Schmid, Laptev, Carpentier (2024) replace, in the backward pass
+of DDP, the Jacobians of a non-smooth dynamics :math:`f` (contact, friction, floors: zero or
+discontinuous derivatives) by those of its randomized smoothing
+
+.. math:: f_\varepsilon(x, u) = \mathbb{E}_{z, w}\, f(x + \varepsilon s_x z,\ u + \varepsilon s_u w),
+
+estimated by Monte-Carlo at every node of the current trajectory with one of the estimators
+of :mod:`rsmooth.estimators` (first order: mean of sampled Jacobians; zeroth order: score
+function; alpha order: their blend), the samples batched with `vmap`, a fresh key per
+iteration (``fold_in(key, iteration)``, split over the nodes). ``s_x`` and ``s_u``
+(``state_noise_scale``, ``control_noise_scale``) set the relative size of the noise on the
+state and the control. An iteration costs ``T * num_samples`` evaluations of the dynamics
+(with their Jacobians for the first-order estimator). Everything else is the DDP of :func:`rsmooth.control.ddp`: the
+forward pass and the line search use the TRUE dynamics and the true cost, so every accepted
+step decreases the true cost.
+
+The noise level :math:`\varepsilon` (``eps``) is owned by a schedule, recorded in
+``solution.stats["noise"]``:
+
+* ``schedule="adaptive"`` (default, our rule): ``eps`` is kept as long as the smoothed
+  problem makes progress. The iteration *stalls* when its relative decrease of the true cost
+  :math:`(J_k - J_{k+1}) / |J_k|` is below ``stall_threshold`` (a rejected step counts as
+  no decrease) or when the expected improvement is below ``th_stop`` (the smoothed problem is
+  solved); then ``eps <- decay * eps``.
+* ``schedule="geometric"``: ``eps <- decay * eps`` at every iteration (for comparison).
+
+In both, once ``eps`` would fall below the floor ``eps_min``, or after
+``max_smoothed_iterations`` iterations, ``eps`` becomes exactly 0: the last iterations are
+plain DDP, and convergence (expected improvement below ``th_stop``) is only declared with
+``eps = 0``, so the solution is a (local) solution of the true, non-smoothed problem. With
+``eps = 0`` from the start, R-DDP is DDP, iterate for iterate.
+
+Example:
+    >>> import jax, jax.numpy as jnp
+    >>> from rsmooth import control
+    >>> # A mass on a floor lifted by a force u (gravity 1): no motion while u < 1, so that
+    >>> # d x_next / d u = 0 at u = 0 and DDP started from u = 0 stays on the floor.
+    >>> class Lift:
+    ...     nx, nu = 2, 1
+    ...     def step(self, x, u):
+    ...         v = jnp.where(x[0] <= 0.0, jnp.maximum(x[1] + 0.1 * (u[0] - 1.0), 0.0),
+    ...                       x[1] + 0.1 * (u[0] - 1.0))
+    ...         z = jnp.maximum(x[0] + 0.1 * v, 0.0)
+    ...         return jnp.stack([z, jnp.where(z <= 0.0, 0.0, v)])
+    >>> problem = control.ShootingProblem(
+    ...     Lift(), running_cost=lambda x, u: 1e-3 * jnp.sum(u**2),
+    ...     terminal_cost=lambda x: 10.0 * (x[0] - 0.2) ** 2, x0=jnp.zeros(2), horizon=10)
+    >>> solver = control.RDDP(eps=1.0, num_samples=32, estimator="first")
+    >>> solution = control.rddp(problem, jax.random.key(0), solver=solver)
+    >>> bool(solution.converged), float(solution.stats["noise"][-1])
+    (True, 0.0)
+    >>> bool(solution.xs[-1, 0] > 0.15)
+    True
+
+References:
+    Q. Le Lidec, F. Schramm, L. Montaut, C. Schmid, I. Laptev, J. Carpentier, "Leveraging
+    randomized smoothing for optimal control of nonsmooth dynamical systems", Nonlinear
+    Analysis: Hybrid Systems 52, 2024.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array, lax
+
+from rsmooth import _checks
+from rsmooth import estimators as _estimators
+from rsmooth.control._ddp import DDP, DDPState, Solution, dynamics_jacobians, map_nodes, solve
+from rsmooth.control._problem import ShootingProblem
+from rsmooth.noise import Gaussian, Noise
+
+__all__ = ["RDDP", "rddp", "smoothed_dynamics_jacobians"]
+
+ESTIMATORS = ("first", "zeroth", "alpha")
+SCHEDULES = ("adaptive", "geometric")
+
+
+def _as_scale(value):
+    """A noise scale as a hashable static value: a float, or a tuple of floats."""
+    if np.ndim(value) == 0:
+        return float(value)
+    return tuple(float(v) for v in np.asarray(value, dtype=float).reshape(-1))
+
+
+def _scale_vector(value, size: int, name: str, dtype) -> Array:
+    array = np.asarray(value, dtype=float)
+    if array.ndim == 0:
+        array = np.full((size,), float(array))
+    if array.shape != (size,):
+        raise ValueError(f"{name} must be a scalar or have {size} entries, got shape {array.shape}")
+    if not np.all(array > 0) or not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} must be positive and finite, got {value!r}")
+    return jnp.asarray(array, dtype)
+
+
+def smoothed_dynamics_jacobians(
+    problem: ShootingProblem,
+    key: Array,
+    xs: Array,
+    us: Array,
+    *,
+    eps,
+    num_samples: int,
+    estimator: str = "first",
+    noise: Noise = Gaussian(),
+    state_noise_scale: float | tuple[float, ...] = 1.0,
+    control_noise_scale: float | tuple[float, ...] = 1.0,
+    batch_size: int | None = 1,
+) -> tuple[Array, Array]:
+    r"""Monte-Carlo Jacobians of the smoothed dynamics at every node of a trajectory.
+
+    Estimates :math:`\partial f_\varepsilon / \partial x` and
+    :math:`\partial f_\varepsilon / \partial u` at :math:`(x_t, u_t)`, ``t < T``, for
+    :math:`f_\varepsilon(x, u) = \mathbb{E}\, f(x + \varepsilon s_x z, u + \varepsilon s_u w)`:
+    the estimator runs on :math:`h(y) = f(s \odot y)` at :math:`y = (x, u) / s` with noise
+    ``eps`` and its Jacobian is divided by :math:`s` column by column.
+
+    Args:
+        problem: gives the dynamics.
+        key: a `jax.random` key, split over the nodes.
+        xs, us: the trajectory, ``(T + 1, nx)`` and ``(T, nu)``.
+        eps: noise level, positive (may be traced).
+        num_samples: samples per node.
+        estimator: ``"first"``, ``"zeroth"`` or ``"alpha"``.
+        noise: the noise law.
+        state_noise_scale, control_noise_scale: ``s_x``, ``s_u``: positive scalars, or one
+            positive value per coordinate (``nx`` and ``nu`` of them).
+        batch_size: nodes estimated at a time (`lax.map` over batches; ``None``: `vmap` over
+            all nodes); the samples of a node are always batched with `vmap`.
+
+    Returns:
+        ``(fx, fu)``, shapes ``(T, nx, nx)`` and ``(T, nx, nu)``.
+    """
+    nx, nu = problem.nx, problem.nu
+    dtype = xs.dtype
+    scale = jnp.concatenate(
+        [_scale_vector(state_noise_scale, nx, "state_noise_scale", dtype), _scale_vector(control_noise_scale, nu, "control_noise_scale", dtype)]
+    )
+    method = {
+        "first": _estimators.first_order,
+        "zeroth": _estimators.zeroth_order,
+        "alpha": _estimators.alpha_order,
+    }[estimator]
+
+    def h(y):
+        y = scale * y
+        return problem.dynamics.step(y[:nx], y[nx:])
+
+    def node(key, x, u):
+        y = jnp.concatenate([x, u]) / scale
+        estimate = method(h, key, y, sigma=eps, num_samples=num_samples, noise=noise)
+        jacobian = estimate.grad / scale[None, :]
+        return jacobian[:, :nx], jacobian[:, nx:]
+
+    keys = jax.random.split(key, us.shape[0])
+    return map_nodes(node, (keys, xs[:-1], us), batch_size)
+
+
+class RDDP(DDP):
+    """Randomized DDP: the DDP options (see :class:`~rsmooth.control.DDP`) plus the smoothing.
+
+    Attributes:
+        eps: the initial noise level (>= 0; 0 is plain DDP).
+        num_samples: Monte-Carlo samples per node and iteration (>= 4 for ``"alpha"``).
+        estimator: ``"first"`` (mean of sampled Jacobians, default), ``"zeroth"`` (score
+            function: needs no derivative of the dynamics) or ``"alpha"`` (their blend).
+        noise: the noise law (:mod:`rsmooth.noise`).
+        state_noise_scale, control_noise_scale: the noise on ``x`` and ``u`` is
+            ``eps * state_noise_scale * z`` and ``eps * control_noise_scale * w``: positive
+            scalars, or one positive value per coordinate (e.g. noise on one force only).
+        schedule: ``"adaptive"`` (reduce on stall) or ``"geometric"`` (reduce every
+            iteration); see the module docstring.
+        decay: the factor in (0, 1) of each reduction.
+        eps_min: the floor: a reduction below it sets ``eps`` to 0 (plain DDP).
+        stall_threshold: the relative decrease of the true cost below which an iteration
+            stalls (adaptive schedule).
+        max_smoothed_iterations: after this many iterations ``eps`` is set to 0 (default
+            ``max_iterations // 2``), so that the plain-DDP phase always has iterations left.
+    """
+
+    eps: float = eqx.field(static=True, default=1.0)
+    num_samples: int = eqx.field(static=True, default=16)
+    estimator: str = eqx.field(static=True, default="first")
+    noise: Noise = eqx.field(static=True, default=Gaussian())
+    state_noise_scale: float | tuple[float, ...] = eqx.field(static=True, default=1.0, converter=_as_scale)
+    control_noise_scale: float | tuple[float, ...] = eqx.field(static=True, default=1.0, converter=_as_scale)
+    schedule: str = eqx.field(static=True, default="adaptive")
+    decay: float = eqx.field(static=True, default=0.5)
+    eps_min: float = eqx.field(static=True, default=1e-3)
+    stall_threshold: float = eqx.field(static=True, default=1e-3)
+    max_smoothed_iterations: int | None = eqx.field(static=True, default=None)
+
+    _needs_key: ClassVar[bool] = True
+
+    def __check_init__(self):
+        if not (isinstance(self.eps, (int, float)) and self.eps >= 0 and self.eps < float("inf")):
+            raise ValueError(f"eps must be a finite number >= 0, got {self.eps!r}")
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(f"estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
+        _checks.check_num_samples(self.num_samples, minimum=4 if self.estimator == "alpha" else 1)
+        if not isinstance(self.noise, Noise):
+            raise TypeError(f"noise must be an rsmooth.noise.Noise, got {self.noise!r}")
+        if self.estimator != "first" and not self.noise.has_score:
+            raise ValueError(f"the {self.estimator}-order estimator needs a noise law with a score; {type(self.noise).__name__} has none")
+        for name in ("state_noise_scale", "control_noise_scale"):
+            value = np.asarray(getattr(self, name))
+            if not (np.all(value > 0) and np.all(np.isfinite(value))):
+                raise ValueError(f"{name} must be positive and finite, got {getattr(self, name)!r}")
+        if self.schedule not in SCHEDULES:
+            raise ValueError(f"schedule must be one of {SCHEDULES}, got {self.schedule!r}")
+        if not 0 < self.decay < 1:
+            raise ValueError(f"decay must be in (0, 1), got {self.decay}")
+        if not self.eps_min >= 0:
+            raise ValueError(f"eps_min must be >= 0, got {self.eps_min}")
+        if not self.stall_threshold >= 0:
+            raise ValueError(f"stall_threshold must be >= 0, got {self.stall_threshold}")
+        if self.max_smoothed_iterations is not None:
+            _checks.check_num_samples(self.max_smoothed_iterations, "max_smoothed_iterations", minimum=0)
+        if self.approximation != "gauss_newton":
+            raise ValueError(
+                "RDDP supports approximation='gauss_newton' only: second derivatives of the "
+                "smoothed dynamics are not estimated"
+            )
+
+    def _initial_noise(self, dtype) -> Array:
+        return jnp.asarray(self.eps, dtype)
+
+    def _dynamics_jacobians(self, problem, state: DDPState):
+        xs, us = state.trajectory.xs, state.trajectory.us
+        key = jax.random.fold_in(state.key, state.iteration)
+        positive = state.noise > 0
+        # The estimators check that sigma > 0 at run time: hand them 1 in the eps = 0 branch,
+        # which lax.cond does not run.
+        sigma = jnp.where(positive, state.noise, 1.0)
+
+        def smoothed(_):
+            return smoothed_dynamics_jacobians(
+                problem,
+                key,
+                xs,
+                us,
+                eps=sigma,
+                num_samples=self.num_samples,
+                estimator=self.estimator,
+                noise=self.noise,
+                state_noise_scale=self.state_noise_scale,
+                control_noise_scale=self.control_noise_scale,
+                batch_size=self.node_batch_size,
+            )
+
+        def exact(_):
+            return dynamics_jacobians(problem, xs, us, self.node_batch_size)
+
+        return lax.cond(positive, smoothed, exact, None)
+
+    def _next_noise(self, state: DDPState, stop, accepted, cost_new) -> Array:
+        eps = state.noise
+        if self.schedule == "geometric":
+            reduce = jnp.ones((), bool)
+        else:
+            scale = jnp.maximum(jnp.abs(state.cost), jnp.finfo(eps.dtype).tiny)
+            relative_decrease = jnp.where(accepted, (state.cost - cost_new) / scale, 0.0)
+            reduce = stop | (relative_decrease < self.stall_threshold)
+        reduced = jnp.where(reduce, eps * self.decay, eps)
+        cap = self.max_iterations // 2 if self.max_smoothed_iterations is None else self.max_smoothed_iterations
+        to_zero = (reduced < self.eps_min) | (state.iteration + 1 >= cap)
+        return jnp.where(to_zero, 0.0, reduced).astype(eps.dtype)
+
+
+def rddp(
+    problem: ShootingProblem,
+    key: Array,
+    us_init: Array | None = None,
+    *,
+    solver: RDDP = RDDP(),
+    callback: Callable[[dict], None] | None = None,
+    progress: bool = False,
+) -> Solution:
+    """Solves a shooting problem by randomized DDP (see the module docstring).
+
+    Args:
+        problem: the :class:`~rsmooth.control.ShootingProblem`.
+        key: a `jax.random` key (the run is reproducible bit for bit for a given key).
+        us_init: initial controls ``(T, nu)`` (default zeros), projected on the box.
+        solver: the :class:`RDDP` configuration (noise, estimator, schedule, DDP options).
+        callback: called after each iteration with a dict of floats (see
+            :func:`~rsmooth.control.ddp`; ``noise`` is the ``eps`` of the next iteration).
+        progress: show a `tqdm` progress bar (imported only then).
+
+    Returns:
+        A :class:`~rsmooth.control.Solution`; ``stats["noise"]`` is the noise history.
+
+    Raises:
+        ValueError: on a wrong shape or non-finite ``us_init``, noise scales of a wrong size,
+            or a non-finite initial cost.
+        RuntimeError: with ``solver.throw`` (default), when the solve does not succeed.
+    """
+    if not isinstance(solver, RDDP):
+        raise TypeError(f"solver must be an RDDP, got {type(solver).__name__}")
+    _checks.check_key(key)
+    if isinstance(problem, ShootingProblem):
+        _scale_vector(solver.state_noise_scale, problem.nx, "state_noise_scale", problem.x0.dtype)
+        _scale_vector(solver.control_noise_scale, problem.nu, "control_noise_scale", problem.x0.dtype)
+    return solve(solver, problem, us_init, key, callback, progress, "rddp")

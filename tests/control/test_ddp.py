@@ -1,0 +1,193 @@
+"""DDP / Box-DDP against a Riccati recursion in NumPy, on a pendulum, and with box limits."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from control_systems import Linear, linear_quadratic, pendulum_swing_up, riccati
+
+from rsmooth import control
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    return pendulum_swing_up()
+
+
+@pytest.fixture(scope="module")
+def pendulum_solution(pendulum):
+    return control.ddp(pendulum, solver=control.DDP(max_iterations=100))
+
+
+def test_linear_quadratic_is_solved_by_riccati_in_one_iteration():
+    problem, (A, B, Q, R, Qf) = linear_quadratic()
+    gains, xs, us, cost = riccati(A, B, Q, R, Qf, np.asarray(problem.x0), problem.horizon)
+    # Without regularization (reg_init = 0), the first backward pass is the Riccati recursion.
+    solution = control.ddp(problem, solver=control.DDP(reg_init=0.0))
+    # Iteration 1 takes the full step to the LQR solution; iteration 2 finds nothing to improve.
+    assert solution.converged and solution.iterations == 2
+    assert float(solution.stats["step_size"][1]) == 1.0
+    np.testing.assert_allclose(solution.stats["cost"][1], cost, rtol=1e-9)
+    np.testing.assert_allclose(solution.us, us, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(solution.xs, xs, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(solution.gains, gains, rtol=1e-7, atol=1e-9)
+    # A time-varying running cost: weights w_t on the state cost.
+    weights = np.linspace(0.0, 3.0, problem.horizon)
+    varying = control.ShootingProblem(
+        problem.dynamics,
+        lambda x, u, t: 0.5 * jnp.asarray(weights)[t] * (x @ (Q @ x)) + 0.5 * u @ (R @ u),
+        problem.terminal_cost,
+        problem.x0,
+        problem.horizon,
+        time_varying=True,
+    )
+    _, _, us, cost = riccati(A, B, weights[:, None, None] * Q, R, Qf, np.asarray(problem.x0), problem.horizon)
+    solution = control.ddp(varying, solver=control.DDP(reg_init=0.0))
+    assert solution.converged and solution.iterations == 2
+    np.testing.assert_allclose(solution.us, us, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(solution.cost, cost, rtol=1e-9)
+
+
+def test_step_is_compiled_once_and_runs_in_a_while_loop():
+    reference, _ = linear_quadratic()
+
+    def problem(x0):
+        return control.ShootingProblem(reference.dynamics, reference.running_cost, reference.terminal_cost, x0, reference.horizon)
+
+    solver = control.DDP(reg_init=0.0)
+    control.ddp(problem(reference.x0), solver=solver)
+    traces = Linear.traces[0]
+    solution = control.ddp(problem(reference.x0 + 1.0), solver=solver)
+    assert solution.converged and Linear.traces[0] == traces  # no new trace
+
+    # init / step / terminate compose in a lax.while_loop, as in Optimistix.
+    @jax.jit
+    def solve(x0):
+        state = solver.init(problem(x0), jnp.zeros((reference.horizon, 2)))
+        return jax.lax.while_loop(lambda s: ~solver.terminate(s), lambda s: solver.step(problem(x0), s), state)
+
+    state = solve(reference.x0 + 1.0)
+    np.testing.assert_allclose(state.trajectory.us, solution.us, rtol=1e-9, atol=1e-12)
+
+
+def test_pendulum_swing_up_converges_with_monotone_cost(pendulum, pendulum_solution):
+    solution = pendulum_solution
+    assert solution.converged and solution.result == control.RESULTS.successful
+    costs = np.asarray(solution.stats["cost"])
+    assert np.all(np.diff(costs) <= 0.0)
+    assert costs[-1] < 0.1 * costs[0]
+    np.testing.assert_allclose(solution.xs[-1], [np.pi, 0.0], atol=0.05)
+    # The solution is a stationary point of the cost as a function of the controls.
+    gradient = jax.grad(lambda us: pendulum.cost(pendulum.rollout(us), us))(solution.us)
+    assert float(jnp.max(jnp.abs(gradient))) < 1e-4
+    # Timings and histories have one entry per iteration.
+    assert len(solution.stats["time_per_iteration"]) == solution.iterations
+    assert solution.stats["cost"].shape == (solution.iterations + 1,)
+    assert np.all(np.asarray(solution.stats["noise"]) == 0.0)
+
+
+def test_full_second_order_reaches_the_same_solution(pendulum, pendulum_solution):
+    solution = control.ddp(pendulum, solver=control.DDP(approximation="full"))
+    assert solution.converged
+    # The same local minimum (the cost is flat along it to within th_stop).
+    np.testing.assert_allclose(solution.cost, pendulum_solution.cost, rtol=1e-8)
+    np.testing.assert_allclose(solution.us, pendulum_solution.us, atol=1e-3)
+    assert solution.iterations <= pendulum_solution.iterations
+
+
+def test_box_qp_satisfies_the_kkt_conditions(getkey):
+    solve = jax.jit(control.box_qp, static_argnums=5)
+    for _ in range(5):
+        M = jax.random.normal(getkey(), (4, 4))
+        H = M @ M.T + 0.1 * jnp.eye(4)
+        q = 3.0 * jax.random.normal(getkey(), (4,))
+        lower, upper = -jnp.ones(4), jnp.array([1.0, 1.0, jnp.inf, 0.5])
+        x, free, failed = solve(H, q, lower, upper, jnp.zeros(4), 30)
+        g = q + H @ x
+        assert not bool(failed)
+        assert bool(jnp.all((x >= lower) & (x <= upper)))
+        np.testing.assert_allclose(jnp.where(free, g, 0.0), 0.0, atol=1e-8)
+        assert bool(jnp.all(jnp.where(x == lower, g >= -1e-8, True)))
+        assert bool(jnp.all(jnp.where(x == upper, g <= 1e-8, True)))
+
+
+def test_callback_progress_and_throw(pendulum):
+    seen = []
+    solver = control.DDP(max_iterations=3)
+    with pytest.raises(RuntimeError, match="max_iterations"):
+        control.ddp(pendulum, solver=solver, callback=seen.append, progress=True)
+    assert [info["iteration"] for info in seen] == [1, 2, 3]
+    assert {"cost", "noise", "step_size", "regularization", "expected_improvement", "time"} <= set(seen[0])
+    solution = control.ddp(pendulum, solver=control.DDP(max_iterations=3, throw=False))
+    assert solution.result == control.RESULTS.max_iterations_reached and not solution.converged
+
+
+def test_bad_input_raises_named_errors(pendulum):
+    with pytest.raises(ValueError, match="x0"):
+        control.ShootingProblem(pendulum.dynamics, pendulum.running_cost, pendulum.terminal_cost, jnp.zeros(3), 10)
+    with pytest.raises(ValueError, match="x0"):
+        control.ShootingProblem(pendulum.dynamics, pendulum.running_cost, pendulum.terminal_cost, jnp.array([jnp.nan, 0.0]), 10)
+    with pytest.raises(ValueError, match="horizon"):
+        control.ShootingProblem(pendulum.dynamics, pendulum.running_cost, pendulum.terminal_cost, jnp.zeros(2), 0)
+    with pytest.raises(ValueError, match="control_lower"):
+        control.ShootingProblem(pendulum.dynamics, pendulum.running_cost, pendulum.terminal_cost, jnp.zeros(2), 10, control_lower=jnp.zeros(3))
+    with pytest.raises(ValueError, match="us_init"):
+        control.ddp(pendulum, jnp.zeros((pendulum.horizon + 1, 1)))
+    with pytest.raises(ValueError, match="us_init"):
+        control.ddp(pendulum, jnp.full((pendulum.horizon, 1), jnp.nan))
+    with pytest.raises(ValueError, match="approximation"):
+        control.DDP(approximation="newton")
+    with pytest.raises(ValueError, match="max_iterations"):
+        control.DDP(max_iterations=0)
+
+
+def test_box_ddp_reaches_the_optimum_of_the_convex_box_constrained_lq_problem():
+    reference, _ = linear_quadratic()
+    problem = control.ShootingProblem(
+        reference.dynamics, reference.running_cost, reference.terminal_cost, reference.x0, reference.horizon,
+        control_lower=-2.0, control_upper=jnp.array([2.0, 1.0]),
+    )
+    solution = control.ddp(problem)
+    assert solution.converged
+    assert np.all(np.diff(np.asarray(solution.stats["cost"])) <= 0.0)
+    us = np.asarray(solution.us)
+    assert np.all((us >= -2.0) & (us <= np.array([2.0, 1.0])))
+    # Clamped controls get no feedback.
+    clamped = (us == -2.0) | (us == np.array([2.0, 1.0]))
+    assert np.any(clamped) and np.all(np.asarray(solution.gains)[clamped] == 0.0)
+    # The cost is a convex quadratic of the controls: minimize it over the box by projected
+    # gradient descent (FISTA) in NumPy, a plain reference.
+    flat_cost = lambda v: problem.cost(problem.rollout(v.reshape(-1, 2)), v.reshape(-1, 2))  # noqa: E731
+    H = np.asarray(jax.jit(jax.hessian(flat_cost))(jnp.zeros(30)))
+    g = np.asarray(jax.jit(jax.grad(flat_cost))(jnp.zeros(30)))
+    lower, upper = np.tile([-2.0, -2.0], 15), np.tile([2.0, 1.0], 15)
+    step = 1.0 / np.linalg.eigvalsh(H)[-1]
+    v = y = np.zeros(30)
+    t = 1.0
+    for _ in range(5000):
+        v_next = np.clip(y - step * (H @ y + g), lower, upper)
+        t_next = (1 + np.sqrt(1 + 4 * t**2)) / 2
+        y = v_next + (t - 1) / t_next * (v_next - v)
+        v, t = v_next, t_next
+    np.testing.assert_allclose(solution.us.reshape(-1), v, atol=1e-6)
+    assert np.any(v == lower) and np.any(v == upper)  # both limits are active
+
+
+class Wall:
+    """x_next = x + u, undefined (NaN) beyond x = 5, and raising on a non-finite state as a
+    simulator with runtime checks does."""
+
+    nx, nu = 1, 1
+
+    def step(self, x, u):
+        x = eqx.error_if(x, ~jnp.all(jnp.isfinite(x)), "non-finite state")
+        return jnp.where(x + u > 5.0, jnp.nan, x + u)
+
+
+def test_diverging_trial_steps_are_rejected_without_feeding_nan_to_the_dynamics():
+    problem = control.ShootingProblem(Wall(), lambda x, u: 0.0 * jnp.sum(u), lambda x: jnp.sum((x - 8.0) ** 2), jnp.zeros(1), 2)
+    solution = control.ddp(problem, solver=control.DDP(max_iterations=5, throw=False))
+    costs = np.asarray(solution.stats["cost"])
+    assert np.all(np.isfinite(costs)) and np.all(np.diff(costs) <= 0.0) and costs[-1] < costs[0]
+    assert float(jnp.max(solution.xs)) <= 5.0

@@ -1,0 +1,107 @@
+"""Randomized DDP: reduces to DDP without noise, lifts the cube DDP cannot, ends on the true problem."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from control_systems import cube_lift, linear_quadratic, pendulum_swing_up, riccati
+
+from rsmooth import control
+
+CUBE_SOLVER = control.RDDP(eps=1.0, num_samples=16, estimator="first", state_noise_scale=0.01, control_noise_scale=10.0)
+
+
+def test_smoothed_jacobians_of_linear_dynamics(getkey):
+    problem, (A, B, *_) = linear_quadratic(nx=3, nu=2, horizon=4)
+    xs = jax.random.normal(getkey(), (5, 3))
+    us = jax.random.normal(getkey(), (4, 2))
+    jacobians = jax.jit(
+        control.smoothed_dynamics_jacobians,
+        static_argnames=("num_samples", "estimator", "state_noise_scale", "control_noise_scale", "batch_size"),
+    )
+    options = dict(eps=0.3, state_noise_scale=(2.0, 1.0, 1.5), control_noise_scale=0.5)
+    # The mean of sampled Jacobians of a linear map is exact, whatever the noise scales (here
+    # with all nodes at once; the solvers default to one node at a time).
+    fx, fu = jacobians(problem, getkey(), xs, us, num_samples=3, estimator="first", batch_size=None, **options)
+    np.testing.assert_allclose(fx, np.broadcast_to(A, fx.shape), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(fu, np.broadcast_to(B, fu.shape), rtol=1e-12, atol=1e-12)
+    # The score-function estimate is unbiased: close with many samples.
+    fx, fu = jacobians(problem, getkey(), xs, us, num_samples=20000, estimator="zeroth", **options)
+    np.testing.assert_allclose(fx, np.broadcast_to(A, fx.shape), atol=0.05)
+    np.testing.assert_allclose(fu, np.broadcast_to(B, fu.shape), atol=0.05)
+
+
+def test_without_noise_rddp_is_ddp_iterate_for_iterate(getkey):
+    problem = pendulum_swing_up()
+    reference = control.ddp(problem)
+    solution = control.rddp(problem, getkey(), solver=control.RDDP(eps=0.0))
+    assert solution.iterations == reference.iterations and solution.converged
+    # The same program runs (lax.cond picks the exact Jacobians): equal to the last bit.
+    for name in ("cost", "step_size", "regularization", "expected_improvement"):
+        np.testing.assert_array_equal(solution.stats[name], reference.stats[name])
+    np.testing.assert_array_equal(solution.us, reference.us)
+    np.testing.assert_array_equal(solution.gains, reference.gains)
+    assert np.all(np.asarray(solution.stats["noise"]) == 0.0)
+
+
+def test_cube_lift_ddp_stays_put_and_rddp_lifts_it():
+    problem = cube_lift()
+    stuck = control.ddp(problem)
+    # Below the weight the floor takes the force: d x_next / d u = 0, DDP sees no way up.
+    assert stuck.converged and stuck.iterations == 1
+    assert float(jnp.max(jnp.abs(stuck.xs))) == 0.0 and float(jnp.max(jnp.abs(stuck.us))) == 0.0
+
+    seen = []
+    key = jax.random.key(0)
+    solution = control.rddp(problem, key, solver=CUBE_SOLVER, callback=seen.append)
+    assert solution.converged
+    assert abs(float(solution.xs[-1, 0]) - 0.5) < 0.1
+    assert float(solution.cost) < 0.1 * float(stuck.cost)
+    noise = np.asarray(solution.stats["noise"])
+    assert noise[0] == 1.0 and noise[-1] == 0.0 and np.all(np.diff(noise) <= 0.0)
+    # The true cost never increases: the line search runs on the true dynamics.
+    assert np.all(np.diff(np.asarray(solution.stats["cost"])) <= 0.0)
+    # The final solution is a stationary point of the TRUE problem: converged with eps = 0.
+    assert float(solution.stats["expected_improvement"][-1]) < CUBE_SOLVER.th_stop
+    assert [info["noise"] for info in seen] == list(noise[1:])
+    # Reproducible bit for bit from the key.
+    again = control.rddp(problem, key, solver=CUBE_SOLVER)
+    np.testing.assert_array_equal(again.us, solution.us)
+
+
+def test_alpha_order_geometric_schedule_ends_at_the_lqr_solution(getkey):
+    problem, (A, B, Q, R, Qf) = linear_quadratic()
+    _, _, us, cost = riccati(A, B, Q, R, Qf, np.asarray(problem.x0), problem.horizon)
+    solver = control.RDDP(eps=0.5, num_samples=8, estimator="alpha", schedule="geometric", decay=0.25, eps_min=1e-2)
+    solution = control.rddp(problem, getkey(), solver=solver)
+    noise = np.asarray(solution.stats["noise"])
+    np.testing.assert_allclose(noise[:4], [0.5, 0.125, 0.03125, 0.0])
+    assert solution.converged
+    np.testing.assert_allclose(solution.cost, cost, rtol=1e-8)
+    np.testing.assert_allclose(solution.us, us, rtol=1e-4, atol=1e-6)
+
+
+def test_bad_input_raises_named_errors():
+    with pytest.raises(ValueError, match="eps"):
+        control.RDDP(eps=-0.1)
+    with pytest.raises(ValueError, match="num_samples"):
+        control.RDDP(num_samples=0)
+    with pytest.raises(ValueError, match="num_samples"):
+        control.RDDP(num_samples=2, estimator="alpha")
+    with pytest.raises(ValueError, match="estimator"):
+        control.RDDP(estimator="second")
+    with pytest.raises(ValueError, match="schedule"):
+        control.RDDP(schedule="cosine")
+    with pytest.raises(ValueError, match="control_noise_scale"):
+        control.RDDP(control_noise_scale=-1.0)
+    with pytest.raises(ValueError, match="approximation"):
+        control.RDDP(approximation="full")
+    problem = cube_lift()
+    with pytest.raises(TypeError, match="key"):
+        control.rddp(problem, 0)
+    with pytest.raises(ValueError, match="us_init"):
+        control.rddp(problem, jax.random.key(0), jnp.zeros((3, 1)))
+    with pytest.raises(ValueError, match="state_noise_scale"):
+        control.rddp(problem, jax.random.key(0), solver=control.RDDP(state_noise_scale=(1.0, 1.0, 1.0)))
+    with pytest.raises(TypeError, match="rddp"):
+        control.ddp(problem, solver=control.RDDP())
