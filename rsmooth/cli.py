@@ -18,8 +18,12 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
 )
-experiment_app = typer.Typer(help="Experiments on the smoothing core.", no_args_is_help=True)
+experiment_app = typer.Typer(help="Experiments on the smoothing core and on contact.", no_args_is_help=True)
 app.add_typer(experiment_app, name="experiment")
+sim_app = typer.Typer(help="Simulation with hard frictional contact.", no_args_is_help=True)
+app.add_typer(sim_app, name="sim")
+render_app = typer.Typer(help="Differentiable perturbed rendering tasks.", no_args_is_help=True)
+app.add_typer(render_app, name="render")
 
 DEFAULT_ROOT = Path("rsmooth-out")
 
@@ -75,6 +79,73 @@ def _run_perturbed_argmax(out: Optional[Path], seed: int, quick: bool, root: Opt
     return metrics
 
 
+def _run_null_gradients(out: Optional[Path], seed: int, quick: bool, root: Optional[Path] = None) -> dict:
+    from rsmooth.experiments import null_gradients
+
+    start = time.perf_counter()
+    out, key = _prepare("null-gradients", out if root is None else root / "null-gradients", seed)
+    config = null_gradients.Config.quick() if quick else null_gradients.Config()
+    metrics = null_gradients.run(config, out, key)
+    _report("null-gradients", out, start, {
+        "exact gradient below m g (max |.|)": metrics["exact_gradient_max_abs_below_weight"],
+        "smoothed gradients, max |mean - closed form| (first, zeroth) per sigma": "; ".join(
+            f"sigma={s:g}: {metrics[f'sigma={s:g}']['first_order_max_abs_error']:.1e}, "
+            f"{metrics[f'sigma={s:g}']['zeroth_order_max_abs_error']:.1e}"
+            for s in metrics["sigmas"]
+        ),
+    })
+    return metrics
+
+
+def _run_solo12(
+    out: Optional[Path], seed: int, quick: bool, root: Optional[Path] = None,
+    torques: str = "standing", steps: Optional[int] = None,
+) -> dict:
+    import dataclasses
+
+    from rsmooth.experiments import solo12_sim
+
+    start = time.perf_counter()
+    out, key = _prepare("solo12", out if root is None else root / "solo12", seed)
+    config = solo12_sim.Config.quick() if quick else solo12_sim.Config()
+    config = dataclasses.replace(config, torques=torques, **({} if steps is None else {"steps": steps}))
+    metrics = solo12_sim.run(config, out, key)
+    _report("sim solo12", out, start, {
+        "base drift (m)": f"{metrics['base_drift']:.2e}",
+        "max foot slip (m)": f"{metrics['max_foot_slip']:.2e}",
+        "contact solves converged": f"{100 * metrics['ncp_converged_fraction']:.1f} %",
+    })
+    return metrics
+
+
+def _run_render_pose(
+    out: Optional[Path], seed: int, quick: bool, root: Optional[Path] = None,
+    mesh: str = "cube", init_errors: Optional[list[float]] = None, problems: Optional[int] = None,
+) -> dict:
+    import dataclasses
+
+    from rsmooth.experiments import render_pose
+
+    start = time.perf_counter()
+    out, key = _prepare("render-pose", out if root is None else root / "render-pose", seed)
+    config = render_pose.Config.quick() if quick else render_pose.Config()
+    changes: dict = {"mesh": mesh}
+    if init_errors:
+        changes["init_errors_deg"] = tuple(float(e) for e in init_errors)
+    if problems is not None:
+        changes["problems"] = problems
+    config = dataclasses.replace(config, **changes)
+    metrics = render_pose.run(config, out, key)
+    errors = ", ".join(f"{e:g}" for e in metrics["init_errors_deg"])
+    _report("render pose", out, start, {
+        f"{method}: solved % from {errors} deg": ", ".join(
+            f"{metrics[method][f'{e:g}']['solved_pct']:.0f}" for e in metrics["init_errors_deg"]
+        )
+        for method in metrics["methods"]
+    })
+    return metrics
+
+
 def _doc(summary: str, module: str) -> str:
     import importlib
 
@@ -95,12 +166,50 @@ def experiment_perturbed_argmax(out: Optional[Path] = OutOption, seed: int = See
     _run_perturbed_argmax(out, seed, quick)
 
 
+@experiment_app.command("null-gradients", help=_doc(
+    "A cube resting on the floor under an upward force: the exact gradient of its final height "
+    "is zero below m g; first- and zeroth-order smoothed gradients against their closed form.",
+    "null_gradients"))
+def experiment_null_gradients(out: Optional[Path] = OutOption, seed: int = SeedOption, quick: bool = QuickOption):
+    _run_null_gradients(out, seed, quick)
+
+
+@sim_app.command("solo12", help=_doc(
+    "Simulate Solo-12 on the floor under standing (gravity-compensating) or random torques and "
+    "write a stick-figure animation.", "solo12_sim"))
+def sim_solo12(
+    out: Optional[Path] = OutOption,
+    seed: int = SeedOption,
+    quick: bool = QuickOption,
+    torques: str = typer.Option("standing", "--torques", help="standing or random."),
+    steps: Optional[int] = typer.Option(None, "--steps", min=1, help="Time steps of 10 ms (default 200, quick 100)."),
+):
+    if torques not in ("standing", "random"):
+        raise typer.BadParameter(f"--torques must be 'standing' or 'random', got {torques!r}")
+    _run_solo12(out, seed, quick, torques=torques, steps=steps)
+
+
+@render_app.command("pose", help=_doc(
+    "Recover a mesh's rotation from one RGB image with the perturbed renderer (Gaussian or Cauchy "
+    "noise, adaptive noise decrease), a SoftRas-like one and the hard z-buffer.", "render_pose"))
+def render_pose_command(
+    out: Optional[Path] = OutOption,
+    seed: int = SeedOption,
+    quick: bool = QuickOption,
+    mesh: str = typer.Option("cube", "--mesh", help="cube, icosphere, torus, or a mesh file (OBJ, STL, PLY, DAE)."),
+    init_error: Optional[list[float]] = typer.Option(
+        None, "--init-error", help="Initial rotation error in degrees (repeatable; default 20, 50, 80)."),
+    problems: Optional[int] = typer.Option(None, "--problems", min=1, help="Problems per initial error."),
+):
+    _run_render_pose(out, seed, quick, mesh=mesh, init_errors=init_error, problems=problems)
+
+
 @app.command(help="Runs the quick profile of every experiment into ./rsmooth-out/ (or --out).")
 def demo(
     out: Path = typer.Option(DEFAULT_ROOT, "--out", help="Root folder; one sub-folder per experiment."),
     seed: int = SeedOption,
 ):
-    for runner in (_run_estimators, _run_perturbed_argmax):
+    for runner in (_run_estimators, _run_perturbed_argmax, _run_null_gradients, _run_solo12, _run_render_pose):
         runner(None, seed, True, root=out)
     typer.echo(f"demo: all artifacts under {out}/")
 

@@ -26,8 +26,19 @@ def test_readme_opens_with_demo_and_test_commands_and_ci_runs_the_latter():
 def test_cli_help_lists_the_experiments():
     result = CliRunner().invoke(app, ["experiment", "--help"])
     assert result.exit_code == 0
-    for name in ("estimators", "perturbed-argmax"):
+    for name in ("estimators", "perturbed-argmax", "null-gradients"):
         assert name in result.output
+    assert CliRunner().invoke(app, ["render", "pose", "--help"]).exit_code == 0
+
+
+def test_cli_sim_solo12_writes_metrics_and_animation(tmp_path):
+    result = CliRunner().invoke(app, ["sim", "solo12", "--quick", "--steps", "5", "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["steps"] == 5 and metrics["base_drift"] < 1e-6
+    assert (tmp_path / "solo12.gif").stat().st_size > 0 and (tmp_path / "solo12.png").stat().st_size > 0
+    bad = CliRunner().invoke(app, ["sim", "solo12", "--torques", "wild", "--out", str(tmp_path)])
+    assert bad.exit_code != 0 and "--torques" in bad.output
 
 
 def test_cli_perturbed_argmax_quick_writes_metrics_and_figures(tmp_path):
