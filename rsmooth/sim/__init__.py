@@ -53,6 +53,8 @@ from rsmooth.sim._systems import (
     SOLO12_FOOT_RADIUS as SOLO12_FOOT_RADIUS,
     SOLO12_TORQUE_LIMIT as SOLO12_TORQUE_LIMIT,
     ball_wall as ball_wall,
+    pusher as pusher,
+    pusher_start_state as pusher_start_state,
     cube as cube,
     cube_rest_state as cube_rest_state,
     solo12 as solo12,

@@ -120,6 +120,11 @@ class RigidBodySystem(eqx.Module):
         wrench_frame: frame index of the applied wrench (``"wrench"``).
         wrench_components: which of ``[fx, fy, fz, tx, ty, tz]`` ``u`` holds (``"wrench"``).
         input_limit: ``(nu,)`` symmetric bounds on ``u``.
+        box_frame: frame of a box body that the spheres ``box_spheres`` collide with
+            (a pusher's finger against the pushed box); ``-1`` for none.
+        box_half_extents: half side lengths of that box in its frame, ``(3,)``.
+        box_spheres: indices of the spheres that collide with the box.
+        box_friction: Coulomb coefficient between those spheres and the box.
     """
 
     model: Model
@@ -138,6 +143,10 @@ class RigidBodySystem(eqx.Module):
     wrench_frame: int = eqx.field(static=True)
     wrench_components: tuple[int, ...] = eqx.field(static=True)
     input_limit: Array
+    box_frame: int = eqx.field(static=True, default=-1)
+    box_half_extents: Array | None = None
+    box_spheres: tuple[int, ...] = eqx.field(static=True, default=())
+    box_friction: float = eqx.field(static=True, default=0.0)
 
     def __check_init__(self):
         num_spheres, num_planes = len(self.sphere_frames), self.plane_normals.shape[0]
@@ -163,6 +172,12 @@ class RigidBodySystem(eqx.Module):
         for dof in self.actuated_dofs:
             if not 0 <= dof < self.model.nv:
                 raise ValueError(f"actuated dof {dof} out of range [0, {self.model.nv})")
+        if self.box_spheres:
+            self.model.frame_id(self.box_frame)
+            if self.box_half_extents is None or self.box_half_extents.shape != (3,):
+                raise ValueError("box_half_extents must have shape (3,) when box_spheres are given")
+            if any(not 0 <= sphere < num_spheres for sphere in self.box_spheres):
+                raise ValueError(f"box_spheres must index the spheres 0..{num_spheres - 1}, got {self.box_spheres}")
         if any(c not in range(6) for c in self.wrench_components):
             raise ValueError(f"wrench_components must be in 0..5, got {self.wrench_components}")
 
@@ -180,8 +195,9 @@ class RigidBodySystem(eqx.Module):
 
     @property
     def num_contacts(self) -> int:
-        """Number of candidate contacts (every sphere against every half-space)."""
-        return len(self.sphere_frames) * self.plane_normals.shape[0]
+        """Number of candidate contacts: every sphere against every half-space, then the
+        ``box_spheres`` against the box."""
+        return len(self.sphere_frames) * self.plane_normals.shape[0] + len(self.box_spheres)
 
     def split(self, x: ArrayLike) -> tuple[Array, Array]:
         """``(q, v)`` from a state ``x`` of shape ``(..., nx)``."""
@@ -230,9 +246,10 @@ class RigidBodySystem(eqx.Module):
     def contacts(self, q: Array, kinematics=None) -> tuple[Array, Array, Array]:
         """Candidate contacts at ``q``: ``(distance (n,), frames (n, 3, 3), J (3n, nv))``.
 
-        Ordered sphere-major: contact ``s * P + p`` is sphere ``s`` against half-space ``p``.
-        ``J`` maps ``v`` to the contact-frame velocity ``[t1, t2, n]`` of the sphere point
-        deepest towards the plane.
+        Ordered sphere-major: contact ``s * P + p`` is sphere ``s`` against half-space ``p``;
+        then one contact per entry of ``box_spheres``. ``J`` maps ``v`` to the contact-frame
+        velocity ``[t1, t2, n]`` of the sphere point deepest towards the obstacle (relative to
+        the box's material point there, for box contacts).
         """
         model = self.model
         if kinematics is None:
@@ -251,8 +268,43 @@ class RigidBodySystem(eqx.Module):
             distances.append(distance)
             frames.append(rotations)
             jacobians.append(jnp.einsum("pji,pjk->pik", rotations, point_jacobians))
+        for sphere in self.box_spheres:
+            distance, rotation, jacobian = self._sphere_box_contact(kinematics, sphere)
+            distances.append(distance[None])
+            frames.append(rotation[None])
+            jacobians.append(jacobian[None])
         distance = jnp.concatenate(distances)
         return distance, jnp.concatenate(frames), jnp.concatenate(jacobians).reshape(-1, model.nv)
+
+    def _sphere_box_contact(self, kinematics, sphere: int) -> tuple[Array, Array, Array]:
+        """Signed distance, contact frame and relative contact Jacobian of a sphere against
+        the box: the box's signed distance function at the sphere centre ``p`` (box frame),
+        ``d(p) = ||max(|p| - e, 0)|| + min(max_k(|p_k| - e_k), 0)``, minus the radius; the
+        normal is its gradient (from the box towards the sphere)."""
+        model = self.model
+        frame = self.sphere_frames[sphere]
+        rotation, translation = _dynamics._frame_placement(model, kinematics.rotation, kinematics.translation, frame)
+        centre = translation + rotation @ self.sphere_offsets[sphere]
+        box_rotation, box_translation = _dynamics._frame_placement(
+            model, kinematics.rotation, kinematics.translation, self.box_frame
+        )
+        local = box_rotation.T @ (centre - box_translation)
+        excess = jnp.abs(local) - self.box_half_extents
+        outside = jnp.maximum(excess, 0.0)
+        outside_norm_squared = jnp.sum(outside**2)
+        is_outside = outside_norm_squared > 0
+        outside_norm = jnp.sqrt(jnp.where(is_outside, outside_norm_squared, 1.0))
+        face = jnp.argmax(excess)
+        inside_normal = jnp.sign(local) * (jnp.arange(3) == face)
+        outside_normal = jnp.sign(local) * outside / outside_norm
+        local_normal = jnp.where(is_outside, outside_normal, inside_normal)
+        distance = jnp.where(is_outside, outside_norm, excess[face]) - self.sphere_radii[sphere]
+        normal = box_rotation @ local_normal
+        point = centre - self.sphere_radii[sphere] * normal
+        sphere_jacobian = _point_jacobian(model, kinematics, model.frame_parents[frame], point)
+        box_jacobian = _point_jacobian(model, kinematics, model.frame_parents[self.box_frame], point)
+        contact_rotation = contact_frame(normal)
+        return distance, contact_rotation, contact_rotation.T @ (sphere_jacobian - box_jacobian)
 
     def step_with_info(self, x: ArrayLike, u: ArrayLike, *, warm_start: ArrayLike | None = None) -> tuple[Array, StepInfo]:
         """One time step and its diagnostics.
@@ -282,7 +334,10 @@ class RigidBodySystem(eqx.Module):
         v_free = v + h * jax.scipy.linalg.cho_solve(factor, tau - bias)
         distance, _, jacobian = self.contacts(q, kinematics)
         n = distance.shape[0]
-        mu = jnp.repeat(self.friction[None, :], len(self.sphere_frames), axis=0).reshape(-1)
+        mu = jnp.concatenate([
+            jnp.repeat(self.friction[None, :], len(self.sphere_frames), axis=0).reshape(-1),
+            jnp.full(len(self.box_spheres), self.box_friction, self.friction.dtype),
+        ])
         minv_jt = jax.scipy.linalg.cho_solve(factor, jacobian.T)  # (nv, 3n)
         if isinstance(self.contact, str):
             delassus = jacobian @ minv_jt

@@ -14,7 +14,7 @@ import numpy as np
 
 from rsmooth.sim import _dynamics
 from rsmooth.sim._contact import LogBarrier, NCPSolver, SpringDamper
-from rsmooth.sim._model import Model, free_body, load_urdf, solo12_standing_configuration, solo12_urdf_path
+from rsmooth.sim._model import FREE_FLYER, PRISMATIC, UNIVERSE, Model, free_body, load_urdf, solo12_standing_configuration, solo12_urdf_path
 from rsmooth.sim._simulator import ContactLaw, RigidBodySystem, _point_jacobian
 
 __all__ = [
@@ -23,6 +23,8 @@ __all__ = [
     "SOLO12_TORQUE_LIMIT",
     "ball_wall",
     "cube",
+    "pusher",
+    "pusher_start_state",
     "cube_rest_state",
     "solo12",
     "solo12_foot_positions",
@@ -181,6 +183,118 @@ def ball_wall(
         wrench_components=(0, 1, 2),
         input_limit=jnp.full(3, jnp.inf),
     )
+
+
+def _pusher_model(box_side: float, box_mass: float, finger_mass: float, finger_height: float) -> Model:
+    """A free box and a finger on two prismatic joints (x, then y) at a fixed height."""
+    eye = np.eye(3)
+    inf = np.inf
+    box_inertia = np.eye(3) * box_mass * box_side**2 / 6.0
+    finger_inertia = np.eye(3) * 1e-6  # a point-like finger (only its translation moves)
+    to_jax = lambda a: jnp.asarray(np.asarray(a, dtype=np.float64))  # noqa: E731
+    return Model(
+        joint_names=("universe", "root_joint", "finger_x", "finger_y"),
+        joint_types=(UNIVERSE, FREE_FLYER, PRISMATIC, PRISMATIC),
+        parents=(0, 0, 0, 2),
+        idx_q=(0, 0, 7, 8),
+        idx_v=(0, 0, 6, 7),
+        frame_names=("universe", "root_joint", "box", "finger_x", "finger_y", "finger"),
+        frame_parents=(0, 1, 1, 2, 3, 3),
+        nq=9,
+        nv=8,
+        joint_axes=to_jax([[0, 0, 0], [0, 0, 0], [1, 0, 0], [0, 1, 0]]),
+        joint_placement_rotation=to_jax([eye] * 4),
+        joint_placement_translation=to_jax([[0, 0, 0], [0, 0, 0], [0, 0, finger_height], [0, 0, 0]]),
+        body_mass=to_jax([0.0, box_mass, 0.0, finger_mass]),
+        body_com=to_jax(np.zeros((4, 3))),
+        body_inertia=to_jax([np.zeros((3, 3)), box_inertia, np.zeros((3, 3)), finger_inertia]),
+        frame_placement_rotation=to_jax([eye] * 6),
+        frame_placement_translation=to_jax(np.zeros((6, 3))),
+        lower_position_limit=to_jax(np.full(9, -inf)),
+        upper_position_limit=to_jax(np.full(9, inf)),
+        velocity_limit=to_jax(np.full(8, inf)),
+        effort_limit=to_jax(np.full(8, inf)),
+        armature=to_jax(np.zeros(8)),
+        gravity=to_jax([0.0, 0.0, -9.81]),
+    )
+
+
+def pusher(
+    *,
+    box_side: float = 0.2,
+    box_mass: float = 1.0,
+    finger_radius: float = 0.02,
+    finger_mass: float = 0.1,
+    floor_friction: float = 0.4,
+    finger_friction: float = 0.5,
+    force_limit: float = 20.0,
+    time_step: float = 0.01,
+    contact: ContactLaw | str = "hard",
+    solver: NCPSolver = NCPSolver(),
+    baumgarte: float = 0.2,
+) -> RigidBodySystem:
+    """A planar finger pushing a box on a floor, through sticking and sliding friction.
+
+    The box (a free body, its 8 corners against the floor) and a spherical finger moving in
+    the horizontal plane at the box's mid-height (two prismatic joints, x then y, driven by the
+    input forces ``u = [fx, fy]``, clipped to ``+-force_limit``). The finger touches the box
+    through the box's signed distance function; the finger does not touch the floor.
+    ``nx = 9 + 8 = 17`` (box position and quaternion, finger x, y; then the velocities),
+    ``nu = 2``.
+
+    Args:
+        box_side: edge of the cubic box (m).
+        box_mass: box mass (kg).
+        finger_radius: finger sphere radius (m).
+        finger_mass: finger mass (kg).
+        floor_friction: box-floor Coulomb coefficient.
+        finger_friction: finger-box Coulomb coefficient.
+        force_limit: bound on each input force (N).
+        time_step: ``h`` (s).
+        contact: ``"hard"`` (NCP), ``"spring_damper"``, ``"log_barrier"`` or a law instance.
+        solver: NCP solver configuration (hard contact).
+        baumgarte: penetration correction rate (hard contact).
+
+    Returns:
+        The system; :func:`pusher_start_state` places the finger behind the box.
+    """
+    model = _pusher_model(box_side, box_mass, finger_mass, box_side / 2)
+    corners = np.array(list(itertools.product((-0.5, 0.5), repeat=3))) * box_side
+    normals, offsets, mu = _planes([FLOOR], floor_friction)
+    box = model.frame_id("box")
+    return RigidBodySystem(
+        model=model,
+        # The finger is listed with the floor too, but it stays at the box's mid-height: its
+        # floor contact is never active (kept so every sphere is treated alike).
+        sphere_frames=(box,) * 8 + (model.frame_id("finger"),),
+        sphere_offsets=jnp.zeros((9, 3)).at[:8].set(jnp.asarray(corners)),
+        sphere_radii=jnp.zeros(9).at[8].set(float(finger_radius)),
+        plane_normals=normals,
+        plane_offsets=offsets,
+        friction=mu,
+        time_step=jnp.asarray(float(time_step)),
+        contact=_as_contact(contact, floor_friction),
+        solver=solver,
+        baumgarte=baumgarte,
+        actuation="joints",
+        actuated_dofs=(6, 7),
+        wrench_frame=0,
+        wrench_components=(),
+        input_limit=jnp.full(2, float(force_limit)),
+        box_frame=box,
+        box_half_extents=jnp.full(3, box_side / 2),
+        box_spheres=(8,),
+        box_friction=float(finger_friction),
+    )
+
+
+def pusher_start_state(system: RigidBodySystem, *, finger_gap: float = 0.05, finger_y: float = 0.0) -> jax.Array:
+    """Box at rest on the floor at the origin, finger ``finger_gap`` behind its ``-x`` face
+    (offset ``finger_y`` along the face), all at rest; shape ``(17,)``."""
+    half = float(system.box_half_extents[0])
+    radius = float(system.sphere_radii[system.box_spheres[0]])
+    q = jnp.array([0.0, 0.0, half, 0.0, 0.0, 0.0, 1.0, -(half + radius + finger_gap), finger_y])
+    return system.state(q)
 
 
 def solo12(

@@ -231,3 +231,33 @@ def test_bad_input_is_named():
     # Under jit a NaN state is caught at run time, with the same message.
     with pytest.raises(Exception, match="NaN"):
         jax.jit(lambda a: cube.step(a, jnp.zeros(6)))(rest.at[0].set(jnp.nan)).block_until_ready()
+
+
+def test_pusher_pushes_the_box_and_has_null_gradients_before_contact():
+    pusher = sim.pusher()
+    assert (pusher.nx, pusher.nu) == (17, 2)
+    x0 = sim.pusher_start_state(pusher, finger_gap=0.05)
+    xs, infos = _rollout(pusher, x0, jnp.tile(jnp.array([8.0, 0.0]), (40, 1)))
+    box_x, finger_x = xs[:, 0], xs[:, 7]
+    assert float(box_x[-1]) > 0.1  # pushed forward...
+    np.testing.assert_allclose(xs[-1, 1:3], jnp.array([0.0, 0.1]), atol=1e-6)  # ...straight, on the floor
+    np.testing.assert_allclose(xs[-1, 3:7], jnp.array([0.0, 0.0, 0.0, 1.0]), atol=1e-6)
+    # The finger stays at the face: its signed distance to the box never goes below -1 mm.
+    assert float(jnp.min(infos.distance[:, -1])) > -1e-3
+    assert float(jnp.max(finger_x - box_x)) < -0.1 - 0.02 + 1e-3
+    # Null gradient: over 5 steps a gentle push does not reach the box (5 cm away).
+    grad = jax.grad(lambda f: pusher.rollout(x0, jnp.tile(jnp.array([f, 0.0]), (5, 1)))[0][-1, 0])(1.0)
+    assert float(grad) == 0.0
+
+
+def test_pusher_gradients_match_finite_differences_while_pushing():
+    pusher = sim.pusher(solver=sim.NCPSolver(tolerance=1e-12, max_iterations=3000))
+    x0 = sim.pusher_start_state(pusher, finger_gap=0.0)
+    x = x0.at[9].set(0.2).at[9 + 6].set(0.2)  # box and finger sliding together at 0.2 m/s
+    u = jnp.array([9.0, 0.3])
+    step = jax.jit(lambda a, b: pusher.step(a, b))
+    jac = jax.jit(jax.jacfwd(lambda b: pusher.step(x, b)))(u)
+    fd = _central_differences(lambda b: step(x, jnp.asarray(b)), u)
+    # Box on 4 coplanar corners: impulses are not unique (see the sliding cube test).
+    np.testing.assert_allclose(jac, fd, atol=5e-5)
+    assert float(jnp.abs(jac[9, 0])) > 1e-3  # the finger force moves the box
