@@ -3,7 +3,7 @@
 import argparse
 import importlib
 
-NAMES = ("core", "render")
+NAMES = ("core", "render", "sim")
 
 
 def main():

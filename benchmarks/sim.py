@@ -1,0 +1,334 @@
+"""Simulator: rsmooth's JAX Solo-12 step against MuJoCo (C) and MJX, on CPU.
+
+Solo-12 from the example-robot-data URDF, free-flyer base, four sphere feet of radius
+``sim.SOLO12_FOOT_RADIUS`` at the ``*_FOOT`` frames on a floor (contacts feet vs floor only),
+12 joint torques, time step 0.01 s, friction 0.7, float64, started at the same standing posture
+under the same gravity-compensating torques. Everything is timed in this one process (median of
+``repeats`` calls after warm-up; JAX outputs blocked on).
+
+Ratios (goals from the issue): our batched step per env / ``mj_step`` (<= 2);
+``mjd_transitionFD`` / our full Jacobian w.r.t. (x, u) (>= 5); MJX step / our step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing
+import pathlib
+import re
+import statistics
+import sys
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from benchmarks._timing import fmt, machine, median_time  # noqa: E402
+from rsmooth import sim  # noqa: E402
+
+BATCH = 64
+PROBE_BATCH = 8
+SANITY_STEPS = 10
+DT = 0.01
+FRICTION = 0.7
+
+
+# ---------------------------------------------------------------------------------------------
+# MuJoCo model built from the same URDF
+
+
+def mujoco_solo12():
+    """Solo-12 in MuJoCo: the URDF with package:// paths rewritten, a free joint on the base, a
+    floor, foot spheres at the foot bodies (the only colliding pairs: feet vs floor), 12 motors."""
+    import mujoco
+
+    urdf_path = sim.solo12_urdf_path()
+    # .../share/example-robot-data/robots/solo_description/robots/solo12.urdf
+    share = urdf_path.parents[3]  # .../share/example-robot-data
+    text = urdf_path.read_text()
+    text = text.replace("package://example-robot-data/", str(share) + "/")
+    compiler = '<mujoco><compiler balanceinertia="true" discardvisual="false" fusestatic="false"/></mujoco>'
+    text = re.sub(r"(<robot[^>]*>)", r"\1" + compiler, text, count=1)
+    spec = mujoco.MjSpec.from_string(text)
+    spec.option.timestep = DT
+    base = spec.body("base_link")
+    base.add_freejoint()
+    for geom in spec.geoms:  # mesh collision geometry: no contacts
+        geom.contype = 0
+        geom.conaffinity = 0
+    floor = spec.worldbody.add_geom()
+    floor.type = mujoco.mjtGeom.mjGEOM_PLANE
+    floor.size = [0.0, 0.0, 0.05]
+    floor.contype = 0
+    floor.conaffinity = 1
+    floor.friction = [FRICTION, 0.005, 0.0001]
+    for name in sim.SOLO12_FEET:
+        foot = spec.body(name).add_geom()
+        foot.type = mujoco.mjtGeom.mjGEOM_SPHERE
+        foot.size = [sim.SOLO12_FOOT_RADIUS, 0.0, 0.0]
+        foot.contype = 1
+        foot.conaffinity = 0
+        foot.friction = [FRICTION, 0.005, 0.0001]
+    joints = [j.name for j in spec.joints if j.type == mujoco.mjtJoint.mjJNT_HINGE]
+    for name in joints:
+        motor = spec.add_actuator()
+        motor.name = name + "_motor"
+        motor.trntype = mujoco.mjtTrn.mjTRN_JOINT
+        motor.target = name
+        motor.gear = [1.0, 0, 0, 0, 0, 0]
+        motor.ctrllimited = True
+        motor.ctrlrange = [-sim.SOLO12_TORQUE_LIMIT, sim.SOLO12_TORQUE_LIMIT]
+    model = spec.compile()
+    return model, joints
+
+
+def to_mujoco_qpos(q: np.ndarray) -> np.ndarray:
+    """Our [x, y, z, qx, qy, qz, qw, joints] to MuJoCo's [x, y, z, qw, qx, qy, qz, joints]."""
+    q = np.asarray(q, dtype=np.float64)
+    return np.concatenate([q[:3], q[6:7], q[3:6], q[7:]])
+
+
+def _median_wall(fn, repeats: int, warmup: int = 2) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+# ---------------------------------------------------------------------------------------------
+# probe: does jit(vmap(jacfwd(step))) compile and run within a time limit? (it can hang XLA on CPU)
+
+
+def _probe_vmap_jacobian(batch: int, queue) -> None:  # runs in a child process
+    try:
+        jax.config.update("jax_enable_x64", True)
+        system = sim.solo12()
+        x0 = sim.solo12_standing_state(system)
+        u0 = sim.solo12_standing_torques(system, x0)
+        jac = jax.jacfwd(lambda x, u: system.step(x, u), argnums=(0, 1))
+        fn = jax.jit(jax.vmap(jac))
+        xs, us = jnp.tile(x0, (batch, 1)), jnp.tile(u0, (batch, 1))
+        start = time.perf_counter()
+        jax.block_until_ready(fn(xs, us))
+        queue.put(("ok", time.perf_counter() - start))
+    except Exception as error:  # pragma: no cover - reported
+        queue.put(("error", repr(error)))
+
+
+def probe_vmap_jacobian(batch: int, timeout: float) -> tuple[bool, str]:
+    ctx = multiprocessing.get_context("spawn")
+    queue = ctx.Queue()
+    process = ctx.Process(target=_probe_vmap_jacobian, args=(batch, queue), daemon=True)
+    process.start()
+    process.join(timeout)
+    if process.is_alive():
+        process.kill()
+        process.join()
+        return False, f"jit(vmap(jacfwd(step))) at batch {batch} did not finish in {timeout:.0f} s (hang)"
+    if queue.empty():
+        return False, f"probe at batch {batch} died (exit code {process.exitcode})"
+    status, value = queue.get()
+    if status == "ok":
+        return True, f"jit(vmap(jacfwd(step))) at batch {batch}: compiled and ran in {value:.1f} s"
+    return False, f"probe at batch {batch} failed: {value}"
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0) -> dict:
+    if quick:
+        repeats = min(repeats, 5)
+    print(f"machine: {machine()}")
+    print(
+        f"Solo-12, 4 sphere feet (r = {sim.SOLO12_FOOT_RADIUS} m) on a floor, dt = {DT} s, mu = {FRICTION}, "
+        f"float64 (jax_enable_x64); median of {repeats} calls after warm-up\n"
+    )
+    results: dict = {}
+    notes: list[str] = []
+
+    # ----- ours
+    system = sim.solo12(friction=FRICTION, time_step=DT)
+    x0 = sim.solo12_standing_state(system)
+    u0 = sim.solo12_standing_torques(system, x0)
+    nq = system.model.nq
+    step = jax.jit(lambda x, u: system.step(x, u))
+    xs = jnp.tile(x0, (BATCH, 1))
+    us = jnp.tile(u0, (BATCH, 1))
+    step_batch = jax.jit(jax.vmap(lambda x, u: system.step(x, u)))
+    jac = jax.jacfwd(lambda x, u: system.step(x, u), argnums=(0, 1))
+    jac1 = jax.jit(jac)
+
+    # sanity: 10 steps standing
+    x = x0
+    for _ in range(SANITY_STEPS):
+        x = step(x, u0)
+    ours_drift = float(x[2] - x0[2])
+    ours_joint = float(jnp.max(jnp.abs(x[7:nq] - x0[7:nq])))
+
+    results["ours_step"] = median_time(step, x0, u0, repeats=repeats)
+    results["ours_step_batch"] = median_time(step_batch, xs, us, repeats=repeats) / BATCH
+    results["ours_jac"] = median_time(jac1, x0, u0, repeats=repeats)
+    print("  (ours: step, vmapped step and Jacobian timed; probing vmap(jacfwd) in a subprocess)", flush=True)
+
+    ok, message = probe_vmap_jacobian(PROBE_BATCH, probe_timeout)
+    notes.append(message)
+    jac_label = f"jacfwd(step), vmap {BATCH}, per env"
+    if ok:
+        ok64, message64 = probe_vmap_jacobian(BATCH, probe_timeout)
+        notes.append(message64)
+        ok = ok64
+    if ok:
+        jac_batch = jax.jit(jax.vmap(jac))
+    else:
+        # sequential lax.map: a lax.map with batch_size > 1 is a vmap inside and hangs the same way
+        jac_batch = jax.jit(lambda xs, us: jax.lax.map(lambda a: jac(*a), (xs, us)))
+        jac_label = f"jacfwd(step), lax.map over {BATCH} (sequential), per env"
+        notes.append(f"batched Jacobian timed with jax.lax.map (no batch_size) instead of vmap")
+    results["ours_jac_batch"] = median_time(jac_batch, xs, us, repeats=max(3, repeats // 3)) / BATCH
+
+    # ----- MuJoCo C
+    mj_ok = True
+    try:
+        import mujoco
+
+        model, joints = mujoco_solo12()
+        data = mujoco.MjData(model)
+        qpos0 = to_mujoco_qpos(np.asarray(x0[:nq]))
+        ctrl0 = np.asarray(u0)
+        ours_joint_names = [n for n in system.model.joint_names if n in joints] if hasattr(system.model, "joint_names") else joints
+        assert list(ours_joint_names) == list(joints), (ours_joint_names, joints)
+
+        def reset():
+            mujoco.mj_resetData(model, data)
+            data.qpos[:] = qpos0
+            data.ctrl[:] = ctrl0
+            mujoco.mj_forward(model, data)
+
+        reset()
+        for _ in range(SANITY_STEPS):
+            mujoco.mj_step(model, data)
+        mj_drift = float(data.qpos[2] - qpos0[2])
+        mj_joint = float(np.max(np.abs(data.qpos[7:] - qpos0[7:])))
+        mj_ncon = int(data.ncon)
+
+        reset()
+        state0 = np.empty(mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_FULLPHYSICS))
+        mujoco.mj_getState(model, data, state0, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+
+        def one_step():
+            mujoco.mj_setState(model, data, state0, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+            mujoco.mj_step(model, data)
+
+        n_inner = 100
+        results["mj_step"] = _median_wall(lambda: [one_step() for _ in range(n_inner)], repeats) / n_inner
+        nx = 2 * model.nv + model.na
+        A = np.zeros((nx, nx))
+        B = np.zeros((nx, model.nu))
+        reset()
+        results["mjd_transitionFD"] = _median_wall(
+            lambda: mujoco.mjd_transitionFD(model, data, 1e-6, False, A, B, None, None), repeats
+        )
+        try:
+            from mujoco import rollout
+
+            nstep = 100
+            datas = [mujoco.MjData(model) for _ in range(2)]
+            init = np.tile(state0, (BATCH, 1))
+            control = np.tile(ctrl0, (BATCH, nstep, 1))
+            with rollout.Rollout(nthread=2) as runner:
+                runner.rollout(model, datas, init, control)
+                results["mj_rollout"] = _median_wall(
+                    lambda: runner.rollout(model, datas, init, control), max(3, repeats // 3), warmup=1
+                ) / (BATCH * nstep)
+        except Exception as error:
+            notes.append(f"mujoco.rollout unavailable: {error!r}")
+    except Exception as error:
+        mj_ok = False
+        notes.append(f"MuJoCo failed: {error!r}")
+
+    # ----- MJX
+    mjx_ok = False
+    if mj_ok:
+        try:
+            from mujoco import mjx
+
+            mx = mjx.put_model(model)
+            reset()
+            dx = mjx.put_data(model, data)
+            mjx_step = jax.jit(mjx.step)
+            d = dx
+            for _ in range(SANITY_STEPS):
+                d = mjx_step(mx, d)
+            mjx_drift = float(d.qpos[2] - qpos0[2])
+            results["mjx_step"] = median_time(mjx_step, mx, dx, repeats=repeats)
+            dxs = jax.tree.map(lambda a: jnp.broadcast_to(a, (BATCH,) + jnp.shape(a)), dx)
+            mjx_batch = jax.jit(jax.vmap(mjx.step, in_axes=(None, 0)))
+            results["mjx_step_batch"] = median_time(mjx_batch, mx, dxs, repeats=repeats) / BATCH
+            mjx_ok = True
+        except Exception as error:
+            notes.append(f"MJX unavailable: {error!r}"[:300])
+
+    # ----- report
+    print(f"sanity, {SANITY_STEPS} steps under the same standing torques (base height drift; max joint drift):")
+    print(f"  ours:   dz = {ours_drift:+.2e} m; joints {ours_joint:.2e} rad")
+    if mj_ok:
+        print(f"  MuJoCo: dz = {mj_drift:+.2e} m; joints {mj_joint:.2e} rad; {mj_ncon} contacts")
+    if mjx_ok:
+        print(f"  MJX:    dz = {mjx_drift:+.2e} m")
+    print()
+    rows = [
+        ("ours: jit(step), batch 1", "ours_step"),
+        (f"ours: jit(vmap(step)), batch {BATCH}, per env", "ours_step_batch"),
+        ("ours: jacfwd(step) w.r.t. (x, u), batch 1", "ours_jac"),
+        (f"ours: {jac_label}", "ours_jac_batch"),
+        ("MuJoCo: mj_step", "mj_step"),
+        ("MuJoCo: mjd_transitionFD (forward, eps 1e-6)", "mjd_transitionFD"),
+        (f"MuJoCo: rollout {BATCH} x 100 steps, 2 threads, per step", "mj_rollout"),
+        ("MJX: jit(step), batch 1", "mjx_step"),
+        (f"MJX: jit(vmap(step)), batch {BATCH}, per env", "mjx_step_batch"),
+    ]
+    width = max(len(r[0]) for r in rows)
+    for label, key in rows:
+        value = fmt(results[key]) if key in results else "     n/a"
+        print(f"{label:<{width}} | {value}")
+    print()
+
+    def ratio(a, b):
+        return results[a] / results[b] if a in results and b in results else float("nan")
+
+    ratios = [
+        ("our step per env (vmap 64) / mj_step", ratio("ours_step_batch", "mj_step"), "<= 2"),
+        ("our step (batch 1) / mj_step", ratio("ours_step", "mj_step"), ""),
+        ("mjd_transitionFD / our Jacobian (batch 1)", ratio("mjd_transitionFD", "ours_jac"), ">= 5"),
+        ("mjd_transitionFD / our Jacobian per env (batched)", ratio("mjd_transitionFD", "ours_jac_batch"), ">= 5"),
+        ("MJX step / our step (batch 1)", ratio("mjx_step", "ours_step"), ""),
+        (f"MJX step / our step (vmap {BATCH}, per env)", ratio("mjx_step_batch", "ours_step_batch"), ""),
+    ]
+    width = max(len(r[0]) for r in ratios)
+    for label, value, goal in ratios:
+        print(f"{label:<{width}} | {value:7.2f}" + (f"   (goal {goal})" if goal else ""))
+    results["ratios"] = {label: value for label, value, _ in ratios}
+    if notes:
+        print("\nnotes:")
+        for note in notes:
+            print(f"  - {note}")
+    sys.stdout.flush()
+    return results
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--repeats", type=int, default=30)
+    parser.add_argument("--quick", action="store_true", help="at most 5 repeats")
+    parser.add_argument("--probe-timeout", type=float, default=90.0)
+    args = parser.parse_args()
+    main(repeats=args.repeats, quick=args.quick, probe_timeout=args.probe_timeout)
