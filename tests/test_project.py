@@ -29,6 +29,8 @@ def test_cli_help_lists_the_experiments():
     for name in ("estimators", "perturbed-argmax", "null-gradients"):
         assert name in result.output
     assert CliRunner().invoke(app, ["render", "pose", "--help"]).exit_code == 0
+    reconstruct = CliRunner().invoke(app, ["render", "reconstruct", "--help"])
+    assert reconstruct.exit_code == 0 and "iou_3d" in reconstruct.output
 
 
 def test_cli_sim_solo12_writes_metrics_and_animation(tmp_path):

@@ -8,7 +8,9 @@ of :mod:`rsmooth.smooth`. Hard and SoftRas-like renderers are given for comparis
 Parts: meshes (:class:`Mesh`, primitives, file loading, regularizers), cameras
 (:class:`Camera`, :func:`look_at`, rotations), rasterization (signed distances, coverage,
 per-pixel culling: :func:`rasterize`), aggregation (hard, soft, perturbed), shading
-(:class:`DirectionalLight`), and the :class:`Renderer`.
+(:class:`DirectionalLight`), the :class:`Renderer`, and shape metrics for reconstruction
+(:func:`sample_surface`, :func:`chamfer_distance`, :func:`voxelize`, :func:`iou_3d`,
+:func:`silhouette_iou`).
 """
 
 from rsmooth.render._aggregate import ProductNoise, hard_aggregate, perturbed_aggregate, soft_aggregate
@@ -35,6 +37,7 @@ from rsmooth.render._mesh import (
     torus,
     transform_mesh,
 )
+from rsmooth.render._metrics import chamfer_distance, iou_3d, sample_surface, silhouette_iou, voxelize
 from rsmooth.render._raster import (
     COVERAGE_MODES,
     Fragments,
@@ -61,6 +64,7 @@ __all__ = [
     "axis_angle_to_matrix",
     "barycentric",
     "box",
+    "chamfer_distance",
     "coverage",
     "cube",
     "cylinder",
@@ -69,6 +73,7 @@ __all__ = [
     "hard_aggregate",
     "heaviside",
     "icosphere",
+    "iou_3d",
     "laplacian_loss",
     "load_mesh",
     "look_at",
@@ -80,9 +85,12 @@ __all__ = [
     "random_rotation",
     "rasterize",
     "rotation_angle",
+    "sample_surface",
     "shade_faces",
     "signed_distance",
+    "silhouette_iou",
     "soft_aggregate",
     "torus",
     "transform_mesh",
+    "voxelize",
 ]

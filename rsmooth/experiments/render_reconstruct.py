@@ -1,0 +1,464 @@
+"""Experiment: reconstruct a mesh from multi-view silhouettes by deforming an icosphere.
+
+The mesh reconstruction task of Le Lidec, Laptev, Schmid, Carpentier, "Differentiable rendering
+with perturbed optimizers", NeurIPS 2021 (after Liu et al., "Soft Rasterizer", ICCV 2019): a
+target mesh, normalized into the unit box [-1/2, 1/2]^3, is rendered (hard z-buffer) from
+`views` cameras around it, at alternating elevations; an icosphere is deformed, by an offset
+on each vertex, to minimize with Adam (optax)
+
+    mean over views of (1 - IoU(alpha, target alpha))
+        + laplacian_weight * Laplacian(offsets) + flatten_weight * normal consistency(vertices)
+
+(:func:`rsmooth.render.silhouette_iou`, :func:`rsmooth.render.laplacian_loss`,
+:func:`rsmooth.render.normal_consistency_loss`: SoftRas' silhouette loss and its Laplacian and
+flatten regularizers; the Laplacian acts on the offsets, so that the regularizers alone leave
+the icosphere in place), optionally plus `rgb_weight` times the mean squared error of grey
+shaded images, for each renderer:
+
+* ``perturbed-gaussian``: the perturbed renderer (Gaussian noise on signed distances, Gumbel
+  noise on depths) with the paper's adaptive noise decrease
+  (:class:`rsmooth.schedules.Adaptive`, as in ``render pose``);
+* ``soft``: SoftRas-like sigmoid coverage, same schedule;
+* ``hard``: the z-buffer. Its silhouette is piecewise constant in the vertices: the data term
+  has a zero gradient, and the icosphere stays where it is.
+
+The targets (primitives, meshes shipped by the installed `example-robot-data` package, or
+files) are independent problems sharing the template and the cameras: their optimizations are
+batched with `jax.vmap`, and the views of each with a nested `jax.vmap`. The reconstructions
+are scored against the targets by 3D IoU (:func:`rsmooth.render.iou_3d`, voxelized) and the
+Chamfer distance of surface samples (:func:`rsmooth.render.chamfer_distance`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from tqdm.auto import tqdm
+
+from rsmooth import noise, render, schedules, viz
+
+METRICS_DOC = """metrics.json keys: for each method (perturbed-gaussian, soft, hard), a dict keyed by
+target name holding iou_3d (voxelized IoU of the reconstruction with the target, on a
+voxel_resolution^3 grid over both bounding boxes), chamfer (symmetric Chamfer distance: the mean
+of the two directed mean squared nearest-neighbour distances between chamfer_points surface
+samples of each mesh, in unit-box units squared), silhouette_iou (mean over the views of the IoU
+of the hard-rendered silhouette of the reconstruction with the target's), final_loss (the
+smoothed silhouette loss at the last step), final_sigma (final noise scale factor),
+first_gradient_norm (norm of the silhouette loss' gradient with respect to the offsets at the
+first step: exactly 0 for hard) and seconds_per_step (wall time of one Adam step of the batch of
+all targets); 'initial', the same scores for the undeformed icosphere; also methods, targets,
+views, steps, image_size, subdivisions, num_vertices, num_faces, voxel_resolution,
+chamfer_points, target_faces."""
+
+METHODS = ("perturbed-gaussian", "soft", "hard")
+
+# Meshes of the Solo-12 quadruped shipped by example-robot-data, under
+# robots/solo_description/meshes/stl/.
+ROBOT_MESHES = {
+    "solo-upper-leg": "solo12/solo12_upper_leg_left_side.stl",
+    "solo-lower-leg": "solo12/solo12_lower_leg_left_side.stl",
+    "solo-hip": "solo12/solo12_hip_fe_fl.stl",
+    "solo-foot": "with_foot/solo_foot.stl",
+    "solo-base": "solo12/solo_12_base.stl",
+}
+PRIMITIVES = ("cube", "box", "cylinder", "torus")
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    targets: tuple[str, ...] = ("cube", "torus", "solo-upper-leg")  # names (PRIMITIVES, ROBOT_MESHES) or files
+    methods: tuple[str, ...] = METHODS
+    views: int = 8
+    image_size: int = 64
+    subdivisions: int = 2  # of the icosphere template: 162 vertices, 320 faces
+    template_radius: float = 0.5  # the sphere inscribed in the unit box
+    steps: int = 200
+    learning_rate: float = 0.02
+    final_learning_rate: float = 0.1  # fraction of learning_rate reached at the end (cosine decay)
+    laplacian_weight: float = 30.0  # on the Laplacian of the offsets (the icosphere is the rest shape)
+    flatten_weight: float = 0.01
+    rgb_weight: float = 0.0  # > 0 adds the MSE of grey shaded images (shape from shading)
+    # Coverage noise scale in pixels at image_size 64 (scaled with the size). Well below the
+    # faces' size: with independent noise on each face, a pixel on an edge shared by two faces
+    # is missed by both with probability 1/4, and the smoothed silhouette gets holes.
+    sigma: float = 0.6
+    gamma: float = 0.02  # depth temperature (normalized inverse depth)
+    num_samples: int = 8
+    faces_per_pixel: int = 8
+    faces_per_tile: int = 64
+    decay_factor: float = 2.0
+    momentum: float = 0.9
+    noise_floor: float = 0.1  # smallest noise scale factor
+    patience: int = 20  # least number of steps between two noise decreases
+    camera_distance: float = 2.8  # the unit box's circumscribed sphere stays in the field of view
+    fov: float = 40.0
+    elevation_deg: float = 30.0  # views alternate between +elevation and -elevation
+    voxel_resolution: int = 64
+    chamfer_points: int = 4096
+    gif_every: int = 5
+
+    @classmethod
+    def quick(cls) -> "Config":
+        return cls(
+            views=4, image_size=40, steps=60, learning_rate=0.03, patience=10, voxel_resolution=40,
+            chamfer_points=2048, gif_every=3,
+        )
+
+
+def _robot_mesh_path(name: str) -> Path:
+    from rsmooth.sim._model import _example_robot_data_root  # one locator of the package's files
+
+    try:
+        root = _example_robot_data_root()
+    except FileNotFoundError as error:
+        raise ValueError(f"target {name!r} needs the example-robot-data package: {error}") from None
+    path = root / "robots" / "solo_description" / "meshes" / "stl" / ROBOT_MESHES[name]
+    if not path.is_file():
+        raise ValueError(f"target {name!r}: {path} is missing from the installed example-robot-data")
+    return path
+
+
+def load_target(name: str) -> render.Mesh:
+    """A named primitive, a Solo-12 mesh of example-robot-data, or a mesh file, centred and
+    scaled so that its bounding box fits [-1/2, 1/2]^3 with its longest side 1."""
+    primitives = {
+        "cube": lambda: render.cube(1.0),
+        "box": lambda: render.box((1.0, 0.6, 0.35)),
+        "cylinder": lambda: render.cylinder(0.35, 1.0, 24),
+        "torus": lambda: render.torus(0.7, 0.3, 24, 12),
+    }
+    if name in primitives:
+        mesh = primitives[name]()
+    elif name in ROBOT_MESHES:
+        mesh = render.load_mesh(_robot_mesh_path(name))
+    elif Path(name).suffix:
+        mesh = render.load_mesh(name)
+    else:
+        raise ValueError(f"unknown target {name!r}: choose from {PRIMITIVES + tuple(ROBOT_MESHES)} or a mesh file")
+    v = np.asarray(mesh.vertices)
+    low, high = v.min(axis=0), v.max(axis=0)
+    scale = 1.0 / float(np.max(high - low))
+    # Colours are dropped: the targets are silhouettes (and grey shading).
+    return render.Mesh(render.transform_mesh(mesh, scale * np.eye(3), -scale * (low + high) / 2.0).vertices, mesh.faces)
+
+
+def cameras(config: Config, views: int | None = None, azimuth_offset_deg: float = 0.0) -> render.Camera:
+    """`views` cameras (a batch: a leading axis on the arrays) on a circle around the origin,
+    at evenly spaced azimuths and alternating elevations."""
+    views = config.views if views is None else views
+    eyes = []
+    for i in range(views):
+        azimuth = np.deg2rad(azimuth_offset_deg + 360.0 * i / views)
+        elevation = np.deg2rad(config.elevation_deg * (1 if i % 2 == 0 else -1))
+        eyes.append(config.camera_distance * np.array(
+            [np.cos(elevation) * np.sin(azimuth), np.sin(elevation), np.cos(elevation) * np.cos(azimuth)]
+        ))
+    d = config.camera_distance
+    size = (config.image_size, config.image_size)
+    batch = [render.look_at(eye, image_size=size, fov=config.fov, near=max(d - 1.5, 0.1), far=d + 1.5) for eye in eyes]
+    return jax.tree.map(lambda *leaves: jnp.stack(leaves), *batch)
+
+
+def make_renderer(config: Config, method: str) -> render.Renderer:
+    sigma = config.sigma * config.image_size / 64.0
+    common = dict(
+        sigma=sigma, gamma=config.gamma, faces_per_pixel=config.faces_per_pixel,
+        faces_per_tile=config.faces_per_tile,
+    )
+    if method == "hard":
+        return render.Renderer(mode="hard", **common)
+    if method == "soft":
+        return render.Renderer(mode="soft", dilation=6.0, **common)
+    if method == "perturbed-gaussian":
+        return render.Renderer(mode="perturbed", num_samples=config.num_samples, coverage_noise=noise.Gaussian(), **common)
+    raise ValueError(f"unknown method {method!r}; choose from {METHODS}")
+
+
+def deformed(template: render.Mesh, offsets) -> render.Mesh:
+    """The template with its vertices moved by `offsets` (no validation: may be traced, and a
+    failed reconstruction may have degenerate faces)."""
+    return eqx.tree_at(lambda m: m.vertices, template, template.vertices + offsets)
+
+
+def render_views(renderer: render.Renderer, key, mesh: render.Mesh, cams: render.Camera, **overrides) -> render.Image:
+    """Images (a batch over the cameras) of one mesh."""
+    keys = jax.random.split(key, cams.rotation.shape[0])
+    return jax.vmap(lambda k, cam: renderer(k, mesh, cam, **overrides))(keys, cams)
+
+
+def make_solver(config: Config, method: str, template: render.Mesh, cams: render.Camera):
+    """init(offsets) -> state; step(state, key, target_alpha, target_rgb) -> (state, silhouette
+    loss, data-term gradient norm); vmap them over problems."""
+    renderer = make_renderer(config, method)
+    faces = np.asarray(template.faces)
+    optimizer = optax.adam(optax.cosine_decay_schedule(config.learning_rate, config.steps, alpha=config.final_learning_rate))
+    adaptive = method != "hard"
+    schedule = (
+        schedules.Adaptive(
+            factor=config.decay_factor, momentum=config.momentum, floor=config.noise_floor, patience=config.patience
+        )
+        if adaptive else schedules.Constant()
+    )
+
+    def data_loss(offsets, scale, key, target_alpha, target_rgb):
+        images = render_views(
+            renderer, key, deformed(template, offsets), cams, sigma=scale * renderer.sigma, gamma=scale * renderer.gamma
+        )
+        loss = jnp.mean(1.0 - render.silhouette_iou(images.alpha, target_alpha))
+        if config.rgb_weight > 0:
+            loss = loss + config.rgb_weight * jnp.mean((images.rgb - target_rgb) ** 2)
+        return loss
+
+    def regularizer(offsets):
+        vertices = template.vertices + offsets
+        # The Laplacian of the offsets, not of the vertices: the Laplacian of a sphere's vertices
+        # points inwards, and Adam, which normalizes the step, would shrink it wherever no
+        # silhouette edge holds it (and the hard renderer's sphere everywhere).
+        return (
+            config.laplacian_weight * render.laplacian_loss(offsets, faces)
+            + config.flatten_weight * render.normal_consistency_loss(vertices, faces)
+        )
+
+    def init(offsets):
+        return offsets, optimizer.init(offsets), schedule.init(1.0)
+
+    def step(state, key, target_alpha, target_rgb):
+        offsets, opt_state, sched = state
+        loss, (data_grad, scale_grad) = jax.value_and_grad(data_loss, argnums=(0, 1))(
+            offsets, sched.sigma, key, target_alpha, target_rgb
+        )
+        grad = data_grad + jax.grad(regularizer)(offsets)
+        updates, opt_state = optimizer.update(grad, opt_state, offsets)
+        offsets = optax.apply_updates(offsets, updates)
+        sched = schedule.update(sched, scale_grad) if adaptive else schedule.update(sched)
+        return (offsets, opt_state, sched), loss, jnp.linalg.norm(data_grad)
+
+    return renderer, jax.vmap(init), jax.jit(jax.vmap(step))
+
+
+def _name(target: str) -> str:
+    return target if target in PRIMITIVES or target in ROBOT_MESHES else Path(target).stem
+
+
+def stack_meshes(meshes: list[render.Mesh]) -> render.Mesh:
+    """Meshes of different sizes as one batch (a leading axis on the arrays), padded to the
+    largest: extra vertices copy the first one, extra faces are (0, 0, 0). Those have zero area,
+    so they are never drawn, sampled or crossed by a voxelization ray; the batch renders with
+    one compilation and `jax.vmap`."""
+    num_vertices = max(m.vertices.shape[0] for m in meshes)
+    num_faces = max(m.faces.shape[0] for m in meshes)
+    vertices = [
+        np.concatenate([m.vertices, np.repeat(np.asarray(m.vertices[:1]), num_vertices - m.vertices.shape[0], 0)])
+        for m in meshes
+    ]
+    faces = [np.concatenate([m.faces, np.zeros((num_faces - m.faces.shape[0], 3), np.int32)]) for m in meshes]
+    # Built around the validation, which rejects the padding faces.
+    batch = (jnp.asarray(np.stack(vertices)), jnp.asarray(np.stack(faces)))
+    return eqx.tree_at(lambda m: (m.vertices, m.faces), meshes[0], batch)
+
+
+def _index(batch: render.Mesh, i: int) -> render.Mesh:
+    return jax.tree.map(lambda leaf: leaf[i], batch)
+
+
+def run(config: Config, out: Path, key, progress: bool = True) -> dict:
+    """Reconstructs every target with every method; writes metrics.json, PNGs and a GIF."""
+    out = Path(out)
+    for method in config.methods:
+        if method not in METHODS:
+            raise ValueError(f"unknown method {method!r}; choose from {METHODS}")
+    if not config.targets:
+        raise ValueError("targets must name at least one mesh")
+    names = [_name(t) for t in config.targets]
+    if len(set(names)) != len(names):
+        raise ValueError(f"target names must be distinct, got {names}")
+    meshes = [load_target(t) for t in config.targets]
+    targets = stack_meshes(meshes)
+    template = render.icosphere(config.subdivisions, config.template_radius)
+    cams = cameras(config)
+    # Targets are rendered once, hard, with room for dense meshes in the culling pass.
+    target_renderer = render.Renderer(mode="hard", faces_per_pixel=config.faces_per_pixel, faces_per_tile=256, tile_size=4)
+    hard = render.Renderer(mode="hard", faces_per_pixel=config.faces_per_pixel, faces_per_tile=config.faces_per_tile)
+    images = jax.jit(jax.vmap(lambda mesh: render_views(target_renderer, key, mesh, cams)))(targets)
+    target_alpha, target_rgb = images.alpha, images.rgb  # (T, V, H, W), (T, V, H, W, 3)
+    silhouettes = jax.jit(jax.vmap(lambda offsets: render_views(hard, key, deformed(template, offsets), cams).alpha))
+
+    k_metrics, k_run = jax.random.split(key)
+    zeros = jnp.zeros((len(names),) + template.vertices.shape, template.vertices.dtype)
+    initial = _scores(config, k_metrics, names, targets, template, target_alpha, zeros, silhouettes(zeros))
+
+    results: dict = {}
+    curves: dict = {}
+    finals: dict = {}
+    history = []  # offsets of every target, every gif_every steps, for the GIF
+    gif_method = config.methods[0]
+    with tqdm(total=len(config.methods) * config.steps, desc="render-reconstruct", disable=not progress) as bar:
+        for m_index, method in enumerate(config.methods):
+            _, init, step = make_solver(config, method, template, cams)
+            state = init(zeros)
+            run_key = jax.random.fold_in(k_run, m_index)
+            losses, elapsed = [], []
+            for t in range(config.steps):
+                keys = jax.random.split(jax.random.fold_in(run_key, t), len(names))
+                start = time.perf_counter()
+                state, loss, gradient_norm = step(state, keys, target_alpha, target_rgb)
+                jax.block_until_ready(loss)
+                elapsed.append(time.perf_counter() - start)
+                if t == 0:
+                    first_gradient = np.asarray(gradient_norm)
+                losses.append(np.asarray(loss))
+                if method == gif_method and t % config.gif_every == 0:
+                    history.append(state[0])
+                bar.update()
+            offsets = state[0]
+            curves[method] = np.stack(losses)  # (steps, T)
+            finals[method] = offsets
+            # The first step includes compilation.
+            seconds = float(np.median(elapsed[1:] if len(elapsed) > 1 else elapsed))
+            scores = _scores(config, k_metrics, names, targets, template, target_alpha, offsets, silhouettes(offsets))
+            results[method] = {
+                name: {
+                    **scores[name],
+                    "final_loss": float(curves[method][-1, i]),
+                    "final_sigma": float(np.asarray(state[2].sigma)[i]),
+                    "first_gradient_norm": float(first_gradient[i]),
+                    "seconds_per_step": seconds,
+                }
+                for i, name in enumerate(names)
+            }
+
+    shade = _shader(config, template)
+    _figures(config, out, names, targets, template, target_alpha, curves, finals, results, initial, silhouettes, shade)
+    if history:
+        frames = _gif_frames(config, targets, target_alpha, history, silhouettes, shade)
+        viz.save_animation(frames, out / "optimization.gif", fps=8)
+    metrics = {
+        **results,
+        "initial": initial,
+        "methods": list(config.methods),
+        "targets": names,
+        "views": config.views,
+        "steps": config.steps,
+        "image_size": config.image_size,
+        "subdivisions": config.subdivisions,
+        "num_vertices": int(template.vertices.shape[0]),
+        "num_faces": int(template.faces.shape[0]),
+        "voxel_resolution": config.voxel_resolution,
+        "chamfer_points": config.chamfer_points,
+        "target_faces": {name: int(mesh.faces.shape[0]) for name, mesh in zip(names, meshes)},
+        "gif": f"optimization.gif: {gif_method}; per target: target | reconstruction (grey, between the views) | "
+               "silhouette of view 0 (red: target, green: reconstruction, yellow: both)",
+    }
+    viz.write_metrics(out / "metrics.json", metrics)
+    return metrics
+
+
+def _scores(config, key, names, targets, template, target_alpha, offsets, alpha) -> dict:
+    """3D IoU, Chamfer distance and silhouette IoU of each target's reconstruction."""
+    silhouette = np.asarray(jnp.mean(render.silhouette_iou(alpha, target_alpha), axis=-1))
+    k_target, k_mesh = jax.random.split(key)
+    sample = jax.jit(jax.vmap(lambda mesh: render.sample_surface(k_target, mesh, config.chamfer_points)))
+    target_points = sample(targets)
+    sample_deformed = jax.vmap(lambda o: render.sample_surface(k_mesh, deformed(template, o), config.chamfer_points))
+    points = jax.jit(sample_deformed)(offsets)
+    chamfer = np.asarray(jax.jit(jax.vmap(render.chamfer_distance))(target_points, points))
+    scores = {}
+    for i, name in enumerate(names):
+        iou = render.iou_3d(_index(targets, i), deformed(template, offsets[i]), config.voxel_resolution)
+        scores[name] = {"iou_3d": float(iou), "chamfer": float(chamfer[i]), "silhouette_iou": float(silhouette[i])}
+    return scores
+
+
+def _shader(config: Config, template: render.Mesh):
+    """For pictures: jitted batch renderers of grey shaded images of meshes and of deformed
+    templates, from a camera between the training views, at an integer multiple of the training
+    size (96 px at least)."""
+    size = config.image_size * -(-96 // config.image_size)
+    dense = render.Renderer(mode="hard", faces_per_pixel=4, faces_per_tile=256, tile_size=4)  # for the targets
+    coarse = render.Renderer(mode="hard", faces_per_pixel=4, faces_per_tile=config.faces_per_tile)
+    grown = dataclasses.replace(config, image_size=size)
+    between = jax.tree.map(lambda leaf: leaf[0], cameras(grown, views=1, azimuth_offset_deg=35.0))
+
+    def shade(renderer, mesh):
+        return jnp.clip(renderer(None, mesh, between).rgb, 0.0, 1.0)
+
+    return (
+        jax.jit(jax.vmap(lambda mesh: shade(dense, mesh))),
+        jax.jit(jax.vmap(lambda offsets: shade(coarse, deformed(template, offsets)))),
+    )
+
+
+def _gif_frames(config, targets, target_alpha, history, silhouettes, shade):
+    shade_meshes, shade_offsets = shade
+    target_rgb = np.asarray(shade_meshes(targets))  # (T, S, S, 3)
+    factor = target_rgb.shape[1] // config.image_size
+    grow = lambda a: np.repeat(np.repeat(np.asarray(a), factor, axis=-2), factor, axis=-1)  # noqa: E731
+    target0 = grow(target_alpha[:, 0])
+    frames = []
+    for offsets in history:
+        rgb = np.asarray(shade_offsets(offsets))
+        alpha0 = grow(silhouettes(offsets)[:, 0])
+        overlay = np.stack([target0, alpha0, np.zeros_like(target0)], axis=-1)
+        rows = [np.concatenate([target_rgb[i], rgb[i], overlay[i]], axis=1) for i in range(rgb.shape[0])]
+        frames.append(np.concatenate(rows, axis=0))
+    return frames
+
+
+def _figures(config, out, names, targets, template, target_alpha, curves, finals, results, initial, silhouettes, shade):
+    methods = config.methods
+    fig, axes = viz.plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.4), squeeze=False)
+    for i, (ax, name) in enumerate(zip(axes[0], names)):
+        for method in methods:
+            ax.plot(curves[method][:, i], label=method)
+        ax.set_title(name)
+        ax.set_xlabel("Adam step")
+        ax.set_ylabel("silhouette loss (1 - IoU)")
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    viz.save_figure(fig, out / "losses.png")
+
+    zeros = jnp.zeros((len(names),) + template.vertices.shape, template.vertices.dtype)
+    alphas = {"target": np.asarray(target_alpha), "initial": np.asarray(silhouettes(zeros))}
+    alphas.update({method: np.asarray(silhouettes(finals[method])) for method in methods})
+    shown = min(config.views, 4)
+    for i, name in enumerate(names):
+        fig, axes = viz.plt.subplots(shown, len(alphas), figsize=(1.8 * len(alphas), 1.9 * shown), squeeze=False)
+        for j, (title, alpha) in enumerate(alphas.items()):
+            for v in range(shown):
+                ax = axes[v][j]
+                ax.imshow(alpha[i, v], cmap="gray", vmin=0.0, vmax=1.0)
+                ax.set_xticks([])
+                ax.set_yticks([])
+                if v == 0:
+                    ax.set_title(title, fontsize=8)
+        fig.suptitle(f"{name}: silhouettes (hard) of the first {shown} views")
+        fig.tight_layout()
+        viz.save_figure(fig, out / f"silhouettes_{name}.png")
+
+    shade_meshes, shade_offsets = shade
+    pictures = {"target": np.asarray(shade_meshes(targets)), "initial": np.asarray(shade_offsets(zeros))}
+    pictures.update({method: np.asarray(shade_offsets(finals[method])) for method in methods})
+    fig, axes = viz.plt.subplots(len(names), len(pictures), figsize=(2.2 * len(pictures), 2.4 * len(names)), squeeze=False)
+    for i, name in enumerate(names):
+        for j, (column, picture) in enumerate(pictures.items()):
+            if column == "target":
+                title = name
+            else:
+                score = initial[name] if column == "initial" else results[column][name]
+                label = "icosphere" if column == "initial" else column
+                title = f"{label}\nIoU {score['iou_3d']:.2f}, CD {score['chamfer']:.4f}"
+            ax = axes[i][j]
+            ax.imshow(picture[i])
+            ax.set_xticks([])
+            ax.set_yticks([])
+            ax.set_title(title, fontsize=7)
+    fig.suptitle("reconstructions seen from between the training views (3D IoU, Chamfer)")
+    fig.tight_layout()
+    viz.save_figure(fig, out / "reconstructions.png")
