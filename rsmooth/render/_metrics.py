@@ -139,7 +139,7 @@ def chamfer_distance(points_a: ArrayLike, points_b: ArrayLike) -> Array:
     Example:
         >>> import jax.numpy as jnp
         >>> a = jnp.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
-        >>> float(chamfer_distance(a, a + jnp.array([0.0, 0.1, 0.0])))  # doctest: +ELLIPSIS
+        >>> float(chamfer_distance(a, a + jnp.array([[0.0, 0.1, 0.0]])))  # doctest: +ELLIPSIS
         0.0100000...
     """
     a = _check_points(points_a, "points_a")
