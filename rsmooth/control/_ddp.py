@@ -210,6 +210,8 @@ def dynamics_jacobians(problem: ShootingProblem, xs: Array, us: Array, batch_siz
 
 
 def _cost_derivatives(problem: ShootingProblem, xs: Array, us: Array):
+    if problem.residuals:
+        return _residual_derivatives(problem, xs, us)
     gradient = jax.grad(problem.running, argnums=(0, 1))
     hessian = jax.hessian(problem.running, argnums=(0, 1))
     ts = jnp.arange(problem.horizon, dtype=jnp.int32)
@@ -218,6 +220,21 @@ def _cost_derivatives(problem: ShootingProblem, xs: Array, us: Array):
     lTx = jax.grad(problem.terminal_cost)(xs[-1])
     lTxx = jax.hessian(problem.terminal_cost)(xs[-1])
     return lx, lu, lxx, lxu, luu, lTx, lTxx
+
+
+def _residual_derivatives(problem: ShootingProblem, xs: Array, us: Array):
+    """Gradients and Gauss-Newton Hessians of costs ``0.5 ||r||^2`` (``problem.residuals``)."""
+
+    def node(x, u, t):
+        r = jnp.atleast_1d(problem.running_residual(x, u, t))
+        rx, ru = jax.jacfwd(lambda x, u: jnp.atleast_1d(problem.running_residual(x, u, t)), argnums=(0, 1))(x, u)
+        return rx.T @ r, ru.T @ r, rx.T @ rx, rx.T @ ru, ru.T @ ru
+
+    ts = jnp.arange(problem.horizon, dtype=jnp.int32)
+    lx, lu, lxx, lxu, luu = jax.vmap(node)(xs[:-1], us, ts)
+    terminal = lambda x: jnp.atleast_1d(problem.terminal_cost(x))  # noqa: E731
+    r, rx = terminal(xs[-1]), jax.jacfwd(terminal)(xs[-1])
+    return lx, lu, lxx, lxu, luu, rx.T @ r, rx.T @ rx
 
 
 def _cholesky_solve(matrix: Array, rhs: Array) -> tuple[Array, Array]:
@@ -431,11 +448,13 @@ class DDP(eqx.Module):
             x, cost = carry
             x_bar, u_bar, k_t, K_t, t = inputs
             u = problem.clip(u_bar + alpha * k_t + K_t @ (x - x_bar))
+            # A diverging trial is rejected (infinite cost), and the dynamics never see a
+            # non-finite state or control: a simulator may raise on one (equinox.error_if).
+            bad_control = ~jnp.all(jnp.isfinite(u))
+            u = jnp.where(bad_control, u_bar, u)
             cost = cost + problem.running(x, u, t)
             x_next = problem.dynamics.step(x, u)
-            # A diverging trial is rejected (infinite cost), and the dynamics never see a
-            # non-finite state: a simulator may raise on one (equinox.error_if).
-            diverged = ~jnp.all(jnp.isfinite(x_next)) | ~jnp.isfinite(cost)
+            diverged = bad_control | ~jnp.all(jnp.isfinite(x_next)) | ~jnp.isfinite(cost)
             x_next = jnp.where(diverged, x, x_next)
             cost = jnp.where(diverged, jnp.inf, cost)
             return (x_next, cost), (x_next, u)
@@ -444,7 +463,7 @@ class DDP(eqx.Module):
         init = (x0, jnp.zeros((), trajectory.xs.dtype))
         ts = jnp.arange(problem.horizon, dtype=jnp.int32)
         (x_last, cost), (xs, us) = lax.scan(node, init, (trajectory.xs[:-1], trajectory.us, k, K, ts))
-        cost = cost + problem.terminal_cost(x_last)
+        cost = cost + problem.terminal(x_last)
         return jnp.concatenate([x0[None], xs]), us, cost
 
     def step(self, problem: ShootingProblem, state: DDPState) -> DDPState:

@@ -52,6 +52,12 @@ class ShootingProblem(eqx.Module):
             run Box-DDP (Tassa, Mansard, Todorov, ICRA 2014).
         time_varying: the running cost takes the node index ``t`` (an int32 array, from 0 to
             ``T - 1``) as a third argument, e.g. to track a reference ``x_ref[t]``.
+        residuals: the two cost functions return residual vectors ``r`` rather than scalars,
+            and the cost of a node is ``0.5 * ||r||^2`` (Crocoddyl's residual
+            models with a quadratic activation). The solvers then use the Gauss-Newton
+            Hessians ``r_x^T r_x`` (positive semi-definite), not the exact ones, whose
+            curvature terms make ``Q_uu`` indefinite far from the target (e.g. a squared
+            foot-height error through the forward kinematics).
         bounded: whether some limit is finite (set by the constructor).
 
     The cost functions are static parts of the problem (compared by identity): define them
@@ -84,6 +90,7 @@ class ShootingProblem(eqx.Module):
     control_lower: Array | None = None
     control_upper: Array | None = None
     time_varying: bool = eqx.field(static=True, default=False)
+    residuals: bool = eqx.field(static=True, default=False)
     bounded: bool = eqx.field(static=True, default=False)
 
     def __init__(
@@ -97,6 +104,7 @@ class ShootingProblem(eqx.Module):
         control_lower: ArrayLike | None = None,
         control_upper: ArrayLike | None = None,
         time_varying: bool = False,
+        residuals: bool = False,
     ):
         for attribute in ("nx", "nu"):
             if not isinstance(getattr(dynamics, attribute, None), (int, np.integer)):
@@ -127,6 +135,7 @@ class ShootingProblem(eqx.Module):
         self.control_lower = lower
         self.control_upper = upper
         self.time_varying = bool(time_varying)
+        self.residuals = bool(residuals)
         # Whether some limit is finite (then the solvers solve box QPs); static, as it
         # changes the program.
         self.bounded = any(b is not None and bool(np.any(np.isfinite(np.asarray(b)))) for b in (lower, upper))
@@ -163,14 +172,24 @@ class ShootingProblem(eqx.Module):
         _, xs = jax.lax.scan(body, self.x0.astype(us.dtype), us)
         return jnp.concatenate([self.x0.astype(us.dtype)[None], xs])
 
-    def running(self, x: Array, u: Array, t: Array) -> Array:
-        """The running cost of node ``t``."""
+    def running_residual(self, x: Array, u: Array, t: Array) -> Array:
+        """What ``running_cost`` returns at node ``t`` (a residual vector with ``residuals``)."""
         return self.running_cost(x, u, t) if self.time_varying else self.running_cost(x, u)
+
+    def running(self, x: Array, u: Array, t: Array) -> Array:
+        """The running cost of node ``t`` (a scalar)."""
+        value = self.running_residual(x, u, t)
+        return 0.5 * jnp.sum(value**2) if self.residuals else value
+
+    def terminal(self, x: Array) -> Array:
+        """The terminal cost (a scalar)."""
+        value = self.terminal_cost(x)
+        return 0.5 * jnp.sum(value**2) if self.residuals else value
 
     def cost(self, xs: Array, us: Array) -> Array:
         """The total cost ``sum_t l(x_t, u_t) + l_T(x_T)`` of a trajectory."""
         running = jax.vmap(self.running)(xs[:-1], us, jnp.arange(self.horizon, dtype=jnp.int32))
-        return jnp.sum(running) + self.terminal_cost(xs[-1])
+        return jnp.sum(running) + self.terminal(xs[-1])
 
     def check_controls(self, us, name: str = "us_init") -> Array:
         """Host check of an initial control sequence: shape ``(T, nu)``, finite."""

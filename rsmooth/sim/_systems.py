@@ -75,12 +75,15 @@ def cube(
     contact: ContactLaw | str = "hard",
     solver: NCPSolver = NCPSolver(),
     baumgarte: float = 0.2,
+    wrench_components: tuple[int, ...] = (0, 1, 2, 3, 4, 5),
 ) -> RigidBodySystem:
     """A cube on a floor, pushed by a wrench: the system of Fig. 2 of Le Lidec et al. 2022.
 
     Its eight corners are point contacts with the floor ``z = 0``. The input is a wrench
-    ``u = [fx, fy, fz, tx, ty, tz]`` in world axes applied at the centre of mass: ``nx = 13``
-    (position, quaternion, linear and angular velocity), ``nu = 6``.
+    ``u = [fx, fy, fz, tx, ty, tz]`` in world axes applied at the centre of mass, or the
+    components of it listed in ``wrench_components`` (e.g. ``(2,)``: a vertical force only):
+    ``nx = 13`` (position, quaternion, linear and angular velocity),
+    ``nu = len(wrench_components)``.
 
     Args:
         side: edge length (m).
@@ -90,6 +93,7 @@ def cube(
         contact: ``"hard"`` (NCP), ``"spring_damper"``, ``"log_barrier"`` or a law instance.
         solver: NCP solver configuration (hard contact).
         baumgarte: penetration correction rate (hard contact).
+        wrench_components: indices into ``[fx, fy, fz, tx, ty, tz]`` of the inputs.
 
     Returns:
         The system; :func:`cube_rest_state` gives its resting state.
@@ -118,8 +122,8 @@ def cube(
         actuation="wrench",
         actuated_dofs=(),
         wrench_frame=model.frame_id("cube"),
-        wrench_components=(0, 1, 2, 3, 4, 5),
-        input_limit=jnp.full(6, jnp.inf),
+        wrench_components=tuple(int(c) for c in wrench_components),
+        input_limit=jnp.full(len(wrench_components), jnp.inf),
     )
 
 

@@ -191,3 +191,37 @@ def test_diverging_trial_steps_are_rejected_without_feeding_nan_to_the_dynamics(
     costs = np.asarray(solution.stats["cost"])
     assert np.all(np.isfinite(costs)) and np.all(np.diff(costs) <= 0.0) and costs[-1] < costs[0]
     assert float(jnp.max(solution.xs)) <= 5.0
+
+
+def test_residual_costs_use_gauss_newton_hessians_and_reach_the_same_optima(pendulum, pendulum_solution):
+    # Linear residuals: 0.5 ||r||^2 with r = [Q^1/2 x; R^1/2 u] is the LQ cost exactly, and its
+    # Gauss-Newton Hessian is exact: the Riccati solution in one iteration.
+    problem, (A, B, Q, R, Qf) = linear_quadratic()
+    Qh, Rh, Qfh = (np.linalg.cholesky(M).T for M in (Q, R, Qf))
+    residual = control.ShootingProblem(
+        problem.dynamics,
+        lambda x, u: jnp.concatenate([Qh @ x, Rh @ u]),
+        lambda x: Qfh @ x,
+        problem.x0,
+        problem.horizon,
+        residuals=True,
+    )
+    _, _, us, cost = riccati(A, B, Q, R, Qf, np.asarray(problem.x0), problem.horizon)
+    np.testing.assert_allclose(residual.cost(residual.rollout(jnp.asarray(us)), jnp.asarray(us)), cost, rtol=1e-12)
+    solution = control.ddp(residual, solver=control.DDP(reg_init=0.0))
+    assert solution.converged and solution.iterations == 2
+    np.testing.assert_allclose(solution.us, us, rtol=1e-7, atol=1e-9)
+    # The pendulum's costs as residuals (0.5 ||r||^2 = the scalar costs): the same optimum.
+    target = jnp.array([jnp.pi, 0.0])
+    pendulum_residual = control.ShootingProblem(
+        pendulum.dynamics,
+        lambda x, u: jnp.sqrt(2e-2) * jnp.concatenate([u, x - target]),
+        lambda x: jnp.sqrt(200.0) * (x - target),
+        pendulum.x0,
+        pendulum.horizon,
+        residuals=True,
+    )
+    solution = control.ddp(pendulum_residual)
+    assert solution.converged
+    np.testing.assert_allclose(solution.cost, pendulum_solution.cost, rtol=1e-6)
+    np.testing.assert_allclose(solution.us, pendulum_solution.us, atol=1e-3)
