@@ -24,6 +24,8 @@ sim_app = typer.Typer(help="Simulation with hard frictional contact.", no_args_i
 app.add_typer(sim_app, name="sim")
 render_app = typer.Typer(help="Differentiable perturbed rendering tasks.", no_args_is_help=True)
 app.add_typer(render_app, name="render")
+control_app = typer.Typer(help="Optimal control through contact: DDP and randomized DDP.", no_args_is_help=True)
+app.add_typer(control_app, name="control")
 
 DEFAULT_ROOT = Path("rsmooth-out")
 
@@ -173,6 +175,33 @@ def _run_render_reconstruct(
     return metrics
 
 
+def _run_control_cube_lift(
+    out: Optional[Path], seed: int, quick: bool, root: Optional[Path] = None,
+    method: str = "all", seeds: Optional[int] = None, height: Optional[float] = None,
+) -> dict:
+    import dataclasses
+
+    from rsmooth.experiments import control_cube_lift
+
+    start = time.perf_counter()
+    out, key = _prepare("cube-lift", out if root is None else root / "cube-lift", seed)
+    config = control_cube_lift.Config.quick() if quick else control_cube_lift.Config()
+    changes: dict = {"method": method}
+    if seeds is not None:
+        changes["seeds"] = seeds
+    if height is not None:
+        changes["height"] = height
+    config = dataclasses.replace(config, **changes)
+    metrics = control_cube_lift.run(config, out, key)
+    _report("control cube-lift", out, start, {
+        f"{name}: success rate, final height (mm), iterations": (
+            f"{100 * metrics[name]['success_rate']:.0f} %, {1000 * metrics[name]['final_height']:.1f}, {metrics[name]['iterations']}"
+        )
+        for name in metrics["methods"]
+    })
+    return metrics
+
+
 def _doc(summary: str, module: str) -> str:
     import importlib
 
@@ -245,6 +274,27 @@ def render_reconstruct_command(
     views: Optional[int] = typer.Option(None, "--views", min=1, help="Cameras around the target (default 8, quick 4)."),
 ):
     _run_render_reconstruct(out, seed, quick, meshes=mesh, views=views)
+
+
+MethodOption = typer.Option(
+    "all", "--method", help="ddp, rddp, or all (ddp, rddp and R-DDP with geometric noise decays).")
+SeedsOption = typer.Option(None, "--seeds", min=1, help="R-DDP runs per method, keys fold_in(seed, i) (default 10, quick 2).")
+
+
+@control_app.command("cube-lift", help=_doc(
+    "Lift a cube resting on the floor to a target height with a vertical force, from zero force: "
+    "DDP sees a zero gradient and stays put, R-DDP lifts it.", "control_cube_lift"))
+def control_cube_lift_command(
+    out: Optional[Path] = OutOption,
+    seed: int = SeedOption,
+    quick: bool = QuickOption,
+    method: str = MethodOption,
+    seeds: Optional[int] = SeedsOption,
+    height: Optional[float] = typer.Option(None, "--height", min=0.0, help="Target height above rest, m (default 0.1)."),
+):
+    if method not in ("ddp", "rddp", "all"):
+        raise typer.BadParameter(f"--method must be ddp, rddp or all, got {method!r}")
+    _run_control_cube_lift(out, seed, quick, method=method, seeds=seeds, height=height)
 
 
 @app.command(help="Runs the quick profile of every experiment into ./rsmooth-out/ (or --out).")

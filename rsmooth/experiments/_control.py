@@ -1,0 +1,154 @@
+"""What the optimal-control experiments share: the methods compared, the loop over methods and
+seeds with one progress bar, the summary of the runs, and the cost / noise figure.
+
+A *method* is a name: ``ddp`` (Box-DDP on the true dynamics), ``rddp`` (randomized DDP with the
+adaptive noise schedule) or ``rddp-geometric-D`` (randomized DDP whose noise is multiplied by
+``D`` at every iteration, for the comparison of schedules the control issue asks for).
+Every method starts from the same initial controls; seeds change the R-DDP samples.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Callable
+
+import jax
+import numpy as np
+from tqdm.auto import tqdm
+
+from rsmooth import control, viz
+
+METHOD_CHOICES = ("ddp", "rddp", "all")
+
+
+def method_names(method: str, geometric_decays: tuple[float, ...]) -> tuple[str, ...]:
+    """The methods a ``--method`` choice runs: one, or (``all``) DDP, adaptive R-DDP and the
+    geometric schedules."""
+    if method not in METHOD_CHOICES:
+        raise ValueError(f"method must be one of {METHOD_CHOICES}, got {method!r}")
+    if method != "all":
+        return (method,)
+    return ("ddp", "rddp") + tuple(f"rddp-geometric-{d:g}" for d in geometric_decays)
+
+
+def make_solver(name: str, rddp: control.RDDP) -> control.DDP:
+    """The solver of a method: ``rddp`` configures the smoothing (and the DDP options, which
+    every method shares)."""
+    ddp_options = {field.name: getattr(rddp, field.name) for field in dataclasses.fields(control.DDP)}
+    if name == "ddp":
+        return control.DDP(**ddp_options)
+    if name == "rddp":
+        return dataclasses.replace(rddp, schedule="adaptive")
+    if name.startswith("rddp-geometric-"):
+        return dataclasses.replace(rddp, schedule="geometric", decay=float(name.rsplit("-", 1)[1]))
+    raise ValueError(f"unknown method {name!r}")
+
+
+def solve(name: str, solver: control.DDP, problem: control.ShootingProblem, us_init, key, callback=None) -> control.Solution:
+    """Runs one method; failures are reported in the solution, not raised."""
+    solver = dataclasses.replace(solver, throw=False)
+    if name == "ddp":
+        return control.ddp(problem, us_init, solver=solver, callback=callback)
+    return control.rddp(problem, key, us_init, solver=solver, callback=callback)
+
+
+def solution_summary(solution: control.Solution) -> dict:
+    """The solver's part of a run's metrics."""
+    return {
+        "final_cost": float(solution.cost),
+        "iterations": solution.iterations,
+        "converged": solution.converged,
+        "result": str(control.RESULTS[solution.result]) or "successful",
+        "wall_time_s": float(solution.stats["total_time"]),
+        "time_per_iteration_s": float(np.median(solution.stats["time_per_iteration"][1:]))
+        if solution.iterations > 1
+        else float("nan"),
+    }
+
+
+def run_methods(
+    names: tuple[str, ...],
+    seeds: int,
+    key,
+    run_one: Callable[[str, jax.Array, Callable], tuple[control.Solution, dict]],
+    description: str,
+    progress: bool = True,
+) -> tuple[dict, dict]:
+    """Runs every method for ``seeds`` keys (``fold_in(key, i)``; DDP, deterministic, once).
+
+    ``run_one(name, key, callback)`` solves and returns the solution and the task's metrics of
+    the run, which must include ``success``. Returns ``(metrics, solutions)``: per method, the
+    aggregate (``success_rate``, medians, the runs) with the first seed's run on top, and the
+    solutions of the first seed (for figures).
+    """
+    total = sum(1 if name == "ddp" else seeds for name in names)
+    bar = tqdm(total=total, desc=description, disable=not progress)
+    metrics, solutions = {}, {}
+    try:
+        for name in names:
+            runs = []
+            for i in range(1 if name == "ddp" else seeds):
+                bar.set_description(f"{description}: {name}, seed {i}")
+
+                def callback(info):
+                    bar.set_postfix(it=info["iteration"], cost=f"{info['cost']:.4g}", eps=f"{info['noise']:.3g}", step=f"{info['step_size']:.3g}")
+
+                start = time.perf_counter()
+                solution, task_metrics = run_one(name, jax.random.fold_in(key, i), callback)
+                run = {**solution_summary(solution), **task_metrics, "run_time_s": time.perf_counter() - start}
+                runs.append(run)
+                if i == 0:
+                    solutions[name] = solution
+                bar.update()
+            success = np.array([run["success"] for run in runs], dtype=float)
+            metrics[name] = {
+                **runs[0],
+                "success_rate": float(success.mean()),
+                "runs": len(runs),
+                "median_final_cost": float(np.median([run["final_cost"] for run in runs])),
+                "median_iterations": float(np.median([run["iterations"] for run in runs])),
+                "per_seed": runs,
+            }
+    finally:
+        bar.close()
+    return metrics, solutions
+
+
+def plot_histories(axes, solutions: dict[str, control.Solution]) -> None:
+    """Cost (log scale) and noise level against the iteration, one line per method."""
+    ax_cost, ax_eps = axes
+    for index, (name, solution) in enumerate(solutions.items()):
+        cost = np.asarray(solution.stats["cost"])
+        ax_cost.semilogy(np.arange(cost.size), cost, marker=".", color=f"C{index}", label=name)
+        if name != "ddp":
+            noise = np.asarray(solution.stats["noise"])
+            ax_eps.plot(np.arange(noise.size), noise, marker=".", color=f"C{index}", label=name)
+    ax_cost.set_xlabel("iteration")
+    ax_cost.set_ylabel("true cost")
+    ax_cost.legend(fontsize=8)
+    ax_eps.set_xlabel("iteration")
+    ax_eps.set_ylabel("noise level eps")
+    if ax_eps.lines:
+        ax_eps.legend(fontsize=8)
+
+
+def top_level(metrics: dict, names: tuple[str, ...]) -> dict:
+    """With one method, its metrics also sit at the top level of metrics.json."""
+    if len(names) == 1:
+        return {**metrics[names[0]], **metrics}
+    return metrics
+
+
+def frames_side_by_side(draw: Callable[[object, str, int], None], names: tuple[str, ...], steps: int, size=(3.2, 3.2), dpi=80):
+    """Frames of an animation: one panel per method, ``draw(ax, name, t)`` fills a panel."""
+    frames = []
+    for t in range(steps):
+        fig, axes = viz.plt.subplots(1, len(names), figsize=(size[0] * len(names), size[1]), dpi=dpi, squeeze=False)
+        for ax, name in zip(axes[0], names):
+            draw(ax, name, t)
+        fig.tight_layout()
+        fig.canvas.draw()
+        frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
+        viz.plt.close(fig)
+    return frames
