@@ -202,6 +202,34 @@ def _run_control_cube_lift(
     return metrics
 
 
+def _run_control_solo_lift(
+    out: Optional[Path], seed: int, quick: bool, root: Optional[Path] = None,
+    foot: str = "FL", height: Optional[float] = None, method: str = "all", seeds: Optional[int] = None,
+) -> dict:
+    import dataclasses
+
+    from rsmooth.experiments import control_solo_lift
+
+    start = time.perf_counter()
+    out, key = _prepare("solo-lift", out if root is None else root / "solo-lift", seed)
+    config = control_solo_lift.Config.quick() if quick else control_solo_lift.Config()
+    changes: dict = {"foot": foot, "method": method}
+    if seeds is not None:
+        changes["seeds"] = seeds
+    if height is not None:
+        changes["height"] = height
+    config = dataclasses.replace(config, **changes)
+    metrics = control_solo_lift.run(config, out, key)
+    _report(f"control solo-lift {foot}", out, start, {
+        f"{name}: success rate, foot height (mm), other feet max height (mm), iterations": (
+            f"{100 * metrics[name]['success_rate']:.0f} %, {1000 * metrics[name]['foot_height']:.1f}, "
+            f"{1000 * metrics[name]['other_feet_max_height']:.1f}, {metrics[name]['iterations']}"
+        )
+        for name in metrics["methods"]
+    })
+    return metrics
+
+
 def _doc(summary: str, module: str) -> str:
     import importlib
 
@@ -297,12 +325,37 @@ def control_cube_lift_command(
     _run_control_cube_lift(out, seed, quick, method=method, seeds=seeds, height=height)
 
 
-@app.command(help="Runs the quick profile of every experiment into ./rsmooth-out/ (or --out).")
+@control_app.command("solo-lift", help=_doc(
+    "Solo-12 standing on its four feet lifts one foot to a target height while the others stay "
+    "on the floor, from the gravity-compensating torques: DDP sees a zero gradient, R-DDP breaks "
+    "the contact.", "control_solo_lift"))
+def control_solo_lift_command(
+    out: Optional[Path] = OutOption,
+    seed: int = SeedOption,
+    quick: bool = QuickOption,
+    foot: str = typer.Option("FL", "--foot", help="FL, FR, HL or HR."),
+    height: Optional[float] = typer.Option(None, "--height", help="Target height of the foot above its start, m (default 0.05)."),
+    method: str = MethodOption,
+    seeds: Optional[int] = SeedsOption,
+):
+    if method not in ("ddp", "rddp", "all"):
+        raise typer.BadParameter(f"--method must be ddp, rddp or all, got {method!r}")
+    if foot not in ("FL", "FR", "HL", "HR"):
+        raise typer.BadParameter(f"--foot must be FL, FR, HL or HR, got {foot!r}")
+    if height is not None and not 0 < height <= 0.15:
+        raise typer.BadParameter(f"--height must be in (0, 0.15] m, got {height}")
+    _run_control_solo_lift(out, seed, quick, foot=foot, height=height, method=method, seeds=seeds)
+
+
+@app.command(help=(
+    "Runs the quick profile of the experiments into ./rsmooth-out/ (or --out): estimators, "
+    "perturbed-argmax, null-gradients, sim solo12, render pose, control cube-lift."))
 def demo(
     out: Path = typer.Option(DEFAULT_ROOT, "--out", help="Root folder; one sub-folder per experiment."),
     seed: int = SeedOption,
 ):
-    for runner in (_run_estimators, _run_perturbed_argmax, _run_null_gradients, _run_solo12, _run_render_pose):
+    runners = (_run_estimators, _run_perturbed_argmax, _run_null_gradients, _run_solo12, _run_render_pose, _run_control_cube_lift)
+    for runner in runners:
         runner(None, seed, True, root=out)
     typer.echo(f"demo: all artifacts under {out}/")
 

@@ -31,6 +31,10 @@ def test_cli_help_lists_the_experiments():
     assert CliRunner().invoke(app, ["render", "pose", "--help"]).exit_code == 0
     reconstruct = CliRunner().invoke(app, ["render", "reconstruct", "--help"])
     assert reconstruct.exit_code == 0 and "iou_3d" in reconstruct.output
+    control = CliRunner().invoke(app, ["control", "--help"])
+    assert control.exit_code == 0
+    for name in ("cube-lift", "solo-lift"):
+        assert name in control.output
 
 
 def test_cli_sim_solo12_writes_metrics_and_animation(tmp_path):

@@ -65,7 +65,8 @@ def _skeleton(system, x) -> tuple[np.ndarray, list[tuple[int, int]]]:
     return points, segments
 
 
-def _frame(system, x, title: str) -> np.ndarray:
+def stick_figure(system, x, title: str) -> np.ndarray:
+    """An RGB image of the robot at state ``x`` (matplotlib, 3-D stick figure over the floor)."""
     points, segments = _skeleton(system, x)
     fig = viz.plt.figure(figsize=(4.8, 4.0), dpi=80)
     ax = fig.add_subplot(projection="3d")
@@ -153,7 +154,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     bar.update()
     frames = []
     for k in np.linspace(0, config.steps, config.frames).round().astype(int):
-        frames.append(_frame(system, xs[k], f"t = {k * dt:.2f} s"))
+        frames.append(stick_figure(system, xs[k], f"t = {k * dt:.2f} s"))
         bar.update()
     bar.close()
     viz.save_animation(frames, out / "solo12.gif", fps=max(1, round(config.frames / (config.steps * dt))))

@@ -1,0 +1,217 @@
+"""Experiment: Solo-12, standing on its four feet, lifts one foot (Le Lidec et al. 2022, Fig. 3-4).
+
+The robot (hard frictional contact, joint torques within +-2.7 N m) starts standing still
+under its gravity-compensating torques, which are also every method's initial guess. The
+task: the chosen foot's centre ``height`` above where it started at the end of the horizon,
+the three other feet where they were. The costs are residuals (``0.5 ||r||^2``, solved with
+Gauss-Newton Hessians):
+
+* running: posture (joints ``0.1``, base position and orientation ``10``), velocities
+  ``1e-3``, torque change from the standing torques ``1e-2`` (weights of the squares);
+* terminal: lifted-foot height ``1e3``, other feet positions ``1e3``, base position ``10``,
+  velocities ``1e-3``.
+
+With the four feet pressed on the floor, the foot's height does not change under a small
+change of torque (the contact impulse absorbs it): its derivative is exactly zero, DDP's first
+backward pass sees no descent direction and the robot keeps its four feet on the floor.
+R-DDP's smoothed dynamics (noise on the torques and on the state) contain samples where the
+foot leaves the floor; their averaged Jacobians give the direction that lifts it, and the
+forward pass on the true dynamics accepts it when the true cost decreases.
+
+A run succeeds when the lifted foot ends within ``tolerance`` of the target height, the other
+feet never rise more than ``max_other_height`` above the floor and slip less than
+``max_other_slip``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rsmooth import control, sim, viz
+from rsmooth.experiments import _control
+from rsmooth.experiments.solo12_sim import stick_figure
+
+FEET = ("FL", "FR", "HL", "HR")
+
+METRICS_DOC = """metrics.json keys: task, foot, target_height (m above the foot's start), methods,
+seeds, and per method (ddp, rddp, rddp-geometric-D): success (first seed), final_cost,
+iterations, converged, result, wall_time_s (the solve, compilation included),
+time_per_iteration_s (median, compiled), foot_height (final height of the lifted foot above its
+start, m), other_feet_max_height (highest the other feet rose over the horizon, m),
+other_feet_max_slip (their largest horizontal displacement, m), base_tilt_deg (final angle of
+the base's vertical axis), base_drift (final base displacement, m), success_rate (over seeds),
+median_final_cost, median_iterations, per_seed (the runs). With --method ddp or rddp, the keys
+of that method are also at the top level."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    foot: str = "FL"
+    height: float = 0.05  # m
+    method: str = "all"  # ddp, rddp or all (ddp, rddp and the geometric schedules)
+    horizon: int = 20  # steps of 10 ms
+    seeds: int = 5
+    num_samples: int = 8
+    eps: float = 1.0
+    torque_noise: float = 1.0  # N m (x eps)
+    position_noise: float = 1e-2  # m and rad, base position and joint angles (x eps)
+    velocity_noise: float = 1e-1  # m/s and rad/s (x eps)
+    estimator: str = "first"
+    max_iterations: int = 40
+    geometric_decays: tuple[float, ...] = (0.5,)
+    tolerance: float = 0.01  # m on the lifted foot's height
+    max_other_height: float = 0.005  # m
+    max_other_slip: float = 0.01  # m
+
+    @classmethod
+    def quick(cls, **changes) -> "Config":
+        return dataclasses.replace(cls(seeds=2, geometric_decays=()), **changes)
+
+    def __post_init__(self):
+        _control.method_names(self.method, self.geometric_decays)
+        if self.foot not in FEET:
+            raise ValueError(f"foot must be one of {FEET}, got {self.foot!r}")
+        if not 0 < self.height <= 0.15:
+            raise ValueError(f"height must be in (0, 0.15] m, got {self.height}")
+        if self.horizon < 2:
+            raise ValueError(f"horizon must be >= 2, got {self.horizon}")
+        if self.seeds < 1:
+            raise ValueError(f"seeds must be >= 1, got {self.seeds}")
+
+    def solver(self) -> control.RDDP:
+        # Base position, quaternion (kept unit: negligible noise), joints; then velocities.
+        state_scale = (self.position_noise,) * 3 + (1e-6,) * 4 + (self.position_noise,) * 12 + (self.velocity_noise,) * 18
+        return control.RDDP(
+            eps=self.eps,
+            num_samples=self.num_samples,
+            estimator=self.estimator,
+            control_noise_scale=self.torque_noise,
+            state_noise_scale=state_scale,
+            max_iterations=self.max_iterations,
+        )
+
+
+def build_problem(config: Config, system=None):
+    """The system, the shooting problem (residual costs, torque box) and the standing torques."""
+    system = sim.solo12() if system is None else system
+    x0 = sim.solo12_standing_state(system)
+    u0 = sim.solo12_standing_torques(system, x0)
+    q0 = x0[:19]
+    feet0 = sim.solo12_foot_positions(system, x0)
+    lifted = FEET.index(config.foot)
+    others = np.array([i for i in range(4) if i != lifted])
+    target = feet0[lifted, 2] + config.height
+    w = lambda weight: float(np.sqrt(2.0 * weight))  # noqa: E731  (0.5 r^2 = weight * e^2)
+
+    def running(x, u):
+        q, v = x[:19], x[19:]
+        return jnp.concatenate([w(0.1) * (q[7:] - q0[7:]), w(10.0) * (q[:6] - q0[:6]), w(1e-3) * v, w(1e-2) * (u - u0)])
+
+    def terminal(x):
+        feet = sim.solo12_foot_positions(system, x)
+        return jnp.concatenate([
+            w(1e3) * (feet[lifted, 2:3] - target),
+            w(1e3) * (feet[others] - feet0[others]).reshape(-1),
+            w(10.0) * (x[:3] - q0[:3]),
+            w(1e-3) * x[19:],
+        ])
+
+    limit = system.input_limit
+    problem = control.ShootingProblem(
+        system, running, terminal, x0, config.horizon, control_lower=-limit, control_upper=limit, residuals=True
+    )
+    return system, problem, u0
+
+
+def base_tilt_deg(x) -> float:
+    """The angle between the base's vertical axis and the world's (quaternion x, y, z, w)."""
+    qx, qy = float(x[3]), float(x[4])
+    return float(np.degrees(np.arccos(np.clip(1.0 - 2.0 * (qx**2 + qy**2), -1.0, 1.0))))
+
+
+def trajectory_metrics(system, xs, foot: str, config: Config) -> dict:
+    """Foot heights, slips and base motion along a trajectory, and whether the task succeeded."""
+    feet = np.asarray(jax.vmap(lambda x: sim.solo12_foot_positions(system, x))(xs))
+    lifted = FEET.index(foot)
+    others = [i for i in range(4) if i != lifted]
+    height = float(feet[-1, lifted, 2] - feet[0, lifted, 2])
+    other_height = float(np.max(feet[:, others, 2] - feet[:1, others, 2]))
+    other_slip = float(np.max(np.linalg.norm(feet[:, others, :2] - feet[:1, others, :2], axis=-1)))
+    return {
+        "foot_height": height,
+        "other_feet_max_height": other_height,
+        "other_feet_max_slip": other_slip,
+        "base_tilt_deg": base_tilt_deg(xs[-1]),
+        "base_drift": float(np.linalg.norm(np.asarray(xs[-1, :3] - xs[0, :3]))),
+        "success": bool(
+            abs(height - config.height) < config.tolerance
+            and other_height < config.max_other_height
+            and other_slip < config.max_other_slip
+        ),
+    }
+
+
+def run(config: Config, out: Path, key, progress: bool = True) -> dict:
+    """Solves with each method and seed; writes metrics.json, solo_lift.png, solo_lift.gif."""
+    start = time.perf_counter()
+    system, problem, u0 = build_problem(config)
+    names = _control.method_names(config.method, config.geometric_decays)
+    rddp = config.solver()
+    solvers = {name: _control.make_solver(name, rddp) for name in names}
+    us_init = jnp.tile(u0, (config.horizon, 1))
+
+    def run_one(name, key, callback):
+        solution = _control.solve(name, solvers[name], problem, us_init, key, callback)
+        return solution, trajectory_metrics(system, solution.xs, config.foot, config)
+
+    per_method, solutions = _control.run_methods(names, config.seeds, key, run_one, f"solo-lift {config.foot}", progress)
+    metrics = {
+        "task": "solo-lift",
+        "foot": config.foot,
+        "target_height": config.height,
+        "methods": list(names),
+        "seeds": config.seeds,
+        **per_method,
+    }
+
+    dt = float(system.time_step)
+    times = np.arange(config.horizon + 1) * dt
+    lifted = FEET.index(config.foot)
+    fig, axes = viz.plt.subplots(1, 4, figsize=(18, 3.6))
+    _control.plot_histories(axes[:2], solutions)
+    axes[0].set_title(f"solo-lift {config.foot}: true cost (first seed)")
+    for index, (name, solution) in enumerate(solutions.items()):
+        feet = np.asarray(jax.vmap(lambda x: sim.solo12_foot_positions(system, x))(solution.xs))
+        heights = feet[:, :, 2] - feet[:1, :, 2]
+        axes[2].plot(times, heights[:, lifted], color=f"C{index}", label=f"{name}: {config.foot}")
+        for i in range(4):
+            if i != lifted:
+                axes[2].plot(times, heights[:, i], color=f"C{index}", ls=":", lw=1)
+        axes[3].plot(times[:-1], np.asarray(solution.us - u0[None]), color=f"C{index}", lw=0.8)
+    axes[2].axhline(config.height, color="k", ls="--", lw=1, label="target")
+    axes[2].set_xlabel("time (s)")
+    axes[2].set_ylabel("foot height above start (m); dotted: other feet")
+    axes[2].legend(fontsize=8)
+    axes[3].set_xlabel("time (s)")
+    axes[3].set_ylabel("torque - standing torque (N m)")
+    axes[3].set_title("12 joint torques per method")
+    fig.tight_layout()
+    viz.save_figure(fig, out / "solo_lift.png")
+
+    shown = tuple(n for n in ("ddp", "rddp") if n in solutions) or names[:1]
+    frames = []
+    for t in range(config.horizon + 1):
+        panels = [stick_figure(system, solutions[name].xs[t], f"{name}, t = {t * dt:.2f} s") for name in shown]
+        frames.append(np.concatenate(panels, axis=1))
+    frames += frames[-1:] * 5  # hold the final posture
+    viz.save_animation(frames, out / "solo_lift.gif", fps=8)
+    metrics = _control.top_level(metrics, names)
+    metrics["wall_time_s"] = time.perf_counter() - start
+    viz.write_metrics(out / "metrics.json", metrics)
+    return metrics
