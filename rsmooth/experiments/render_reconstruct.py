@@ -113,10 +113,10 @@ class Config:
 
 
 def _robot_mesh_path(name: str) -> Path:
-    from rsmooth.sim._model import _example_robot_data_root  # one locator of the package's files
+    from rsmooth.sim import example_robot_data_root
 
     try:
-        root = _example_robot_data_root()
+        root = example_robot_data_root()
     except FileNotFoundError as error:
         raise ValueError(f"target {name!r} needs the example-robot-data package: {error}") from None
     path = root / "robots" / "solo_description" / "meshes" / "stl" / ROBOT_MESHES[name]

@@ -37,6 +37,7 @@ from rsmooth.sim._dynamics import (
 )
 from rsmooth.sim._model import (
     Model as Model,
+    example_robot_data_root as example_robot_data_root,
     free_body as free_body,
     from_pinocchio as from_pinocchio,
     load_urdf as load_urdf,

@@ -318,7 +318,13 @@ def load_urdf(path: str | pathlib.Path, *, floating_base: bool = True) -> Model:
     return from_pinocchio(pin_model)
 
 
-def _example_robot_data_root() -> pathlib.Path:
+def example_robot_data_root() -> pathlib.Path:
+    """The folder of the files shipped by the installed ``example-robot-data`` package
+    (``robots/<name>_description/{robots,srdf,meshes}``), found without importing it.
+
+    Raises:
+        FileNotFoundError: if example-robot-data is not installed.
+    """
     relative = pathlib.Path("cmeel.prefix", "share", "example-robot-data")
     candidates = []
     try:
@@ -345,14 +351,14 @@ def solo12_urdf_path() -> pathlib.Path:
     Raises:
         FileNotFoundError: if example-robot-data is not installed.
     """
-    path = _example_robot_data_root() / "robots" / "solo_description" / "robots" / "solo12.urdf"
+    path = example_robot_data_root() / "robots" / "solo_description" / "robots" / "solo12.urdf"
     if not path.is_file():
         raise FileNotFoundError(f"Solo-12 URDF not found at {path}")
     return path
 
 
 def _solo12_srdf_path() -> pathlib.Path:
-    path = _example_robot_data_root() / "robots" / "solo_description" / "srdf" / "solo.srdf"
+    path = example_robot_data_root() / "robots" / "solo_description" / "srdf" / "solo.srdf"
     if not path.is_file():
         raise FileNotFoundError(f"Solo SRDF not found at {path}")
     return path
