@@ -230,6 +230,34 @@ def _run_control_solo_lift(
     return metrics
 
 
+def _run_control_pusher(
+    out: Optional[Path], seed: int, quick: bool, root: Optional[Path] = None, method: str = "all",
+    seeds: Optional[int] = None, target_x: Optional[float] = None, target_y: Optional[float] = None,
+    target_yaw: Optional[float] = None,
+) -> dict:
+    import dataclasses
+
+    from rsmooth.experiments import control_pusher
+
+    start = time.perf_counter()
+    out, key = _prepare("pusher", out if root is None else root / "pusher", seed)
+    config = control_pusher.Config.quick() if quick else control_pusher.Config()
+    changes: dict = {"method": method}
+    for name, value in (("seeds", seeds), ("target_x", target_x), ("target_y", target_y), ("target_yaw", target_yaw)):
+        if value is not None:
+            changes[name] = value
+    config = dataclasses.replace(config, **changes)
+    metrics = control_pusher.run(config, out, key)
+    _report("control pusher", out, start, {
+        f"{name}: success rate, position error (mm), yaw error (deg), iterations": (
+            f"{100 * metrics[name]['success_rate']:.0f} %, {1000 * metrics[name]['position_error']:.1f}, "
+            f"{metrics[name]['yaw_error_deg']:.1f}, {metrics[name]['iterations']}"
+        )
+        for name in metrics["methods"]
+    })
+    return metrics
+
+
 def _doc(summary: str, module: str) -> str:
     import importlib
 
@@ -345,6 +373,26 @@ def control_solo_lift_command(
     if height is not None and not 0 < height <= 0.15:
         raise typer.BadParameter(f"--height must be in (0, 0.15] m, got {height}")
     _run_control_solo_lift(out, seed, quick, foot=foot, height=height, method=method, seeds=seeds)
+
+
+@control_app.command("pusher", help=_doc(
+    "Push a box to a target pose (position and yaw) with a finger that starts 3 cm behind it, "
+    "through sticking and sliding friction, from zero force: DDP sees a zero gradient and leaves "
+    "the box, R-DDP pushes it.", "control_pusher"))
+def control_pusher_command(
+    out: Optional[Path] = OutOption,
+    seed: int = SeedOption,
+    quick: bool = QuickOption,
+    method: str = MethodOption,
+    seeds: Optional[int] = SeedsOption,
+    target_x: Optional[float] = typer.Option(None, "--target-x", help="Target box centre x, m (the box starts at 0; default 0.1)."),
+    target_y: Optional[float] = typer.Option(None, "--target-y", help="Target box centre y, m (default 0)."),
+    target_yaw: Optional[float] = typer.Option(
+        None, "--target-yaw", min=-89.0, max=89.0, help="Target yaw, degrees counter-clockwise (default 15)."),
+):
+    if method not in ("ddp", "rddp", "all"):
+        raise typer.BadParameter(f"--method must be ddp, rddp or all, got {method!r}")
+    _run_control_pusher(out, seed, quick, method=method, seeds=seeds, target_x=target_x, target_y=target_y, target_yaw=target_yaw)
 
 
 @app.command(help=(
