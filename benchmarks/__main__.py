@@ -1,17 +1,27 @@
-"""`python -m benchmarks NAME [--repeats N]`."""
+"""`python -m benchmarks NAME [--repeats N] [--quick]`."""
 
 import argparse
 import importlib
+import inspect
 
-NAMES = ("core", "render", "sim")
+NAMES = ("core", "render", "sim", "control")
+# A control iteration takes up to seconds: fewer repeats there.
+DEFAULT_REPEATS = {"control": 5}
 
 
 def main():
     parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__)
     parser.add_argument("name", choices=NAMES)
-    parser.add_argument("--repeats", type=int, default=30, help="timed calls per measurement (median)")
+    parser.add_argument("--repeats", type=int, default=None, help="timed calls per measurement (median); default 30, control 5")
+    parser.add_argument("--quick", action="store_true", help="a reduced size (the benchmarks that have one: sim, control)")
     args = parser.parse_args()
-    importlib.import_module(f"benchmarks.{args.name}").main(repeats=args.repeats)
+    benchmark = importlib.import_module(f"benchmarks.{args.name}").main
+    options = {"repeats": args.repeats if args.repeats is not None else DEFAULT_REPEATS.get(args.name, 30)}
+    if args.quick:
+        if "quick" not in inspect.signature(benchmark).parameters:
+            parser.error(f"the {args.name} benchmark has no --quick")
+        options["quick"] = True
+    benchmark(**options)
 
 
 if __name__ == "__main__":
