@@ -7,9 +7,11 @@ and writes `DIR/metrics.json` beside its figures.
 
 from __future__ import annotations
 
+import dataclasses
+import importlib
 import time
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import typer
 
@@ -49,246 +51,133 @@ def _report(name: str, out: Path, start: float, summary: dict) -> None:
         typer.echo(f"  {key}: {value}")
 
 
-def _run_estimators(out: Optional[Path], seed: int, quick: bool, root: Optional[Path] = None) -> dict:
-    from rsmooth.experiments import estimators
+@dataclasses.dataclass(frozen=True)
+class _Experiment:
+    """How the command line runs one experiment module and prints its summary."""
 
-    start = time.perf_counter()
-    out, key = _prepare("estimators", out if root is None else root / "estimators", seed)
-    config = estimators.Config.quick() if quick else estimators.Config()
-    metrics = estimators.run(config, out, key)
-    _report("estimators", out, start, {
-        "first-order gradient of the Heaviside (max |.|)": metrics["heaviside_first_order_grad_max_abs"],
-        "Heaviside: max |mean gradient - truth| (first, zeroth, alpha)": ", ".join(
-            f"{metrics[f'heaviside_{e}_max_abs_error']:.3f}" for e in ("first", "zeroth", "alpha")
-        ),
-    })
-    return metrics
+    name: str  # the output sub-folder: ./rsmooth-out/NAME
+    module: str  # rsmooth.experiments.MODULE: Config, Config.quick() and run(config, out, key)
+    title: str  # names the run in the printed summary
+    summary: Callable[[dict], dict]  # metrics -> the lines printed after the run
 
 
-def _run_perturbed_argmax(out: Optional[Path], seed: int, quick: bool, root: Optional[Path] = None) -> dict:
-    from rsmooth.experiments import perturbed_argmax
-
-    start = time.perf_counter()
-    out, key = _prepare("perturbed-argmax", out if root is None else root / "perturbed-argmax", seed)
-    config = perturbed_argmax.Config.quick() if quick else perturbed_argmax.Config()
-    metrics = perturbed_argmax.run(config, out, key)
-    _report("perturbed-argmax", out, start, {
-        "max |perturbed argmax - softmax|": round(metrics["softmax_max_abs_error"], 4),
-        "held-out Spearman correlation, before -> after": (
-            f"{metrics['ranking_test_spearman_initial']:.3f} -> {metrics['ranking_test_spearman_final']:.3f}"
-        ),
-    })
-    return metrics
-
-
-def _run_null_gradients(out: Optional[Path], seed: int, quick: bool, root: Optional[Path] = None) -> dict:
-    from rsmooth.experiments import null_gradients
-
-    start = time.perf_counter()
-    out, key = _prepare("null-gradients", out if root is None else root / "null-gradients", seed)
-    config = null_gradients.Config.quick() if quick else null_gradients.Config()
-    metrics = null_gradients.run(config, out, key)
-    _report("null-gradients", out, start, {
-        "exact gradient below m g (max |.|)": metrics["exact_gradient_max_abs_below_weight"],
-        "smoothed gradients, max |mean - closed form| (first, zeroth) per sigma": "; ".join(
-            f"sigma={s:g}: {metrics[f'sigma={s:g}']['first_order_max_abs_error']:.1e}, "
-            f"{metrics[f'sigma={s:g}']['zeroth_order_max_abs_error']:.1e}"
-            for s in metrics["sigmas"]
-        ),
-    })
-    return metrics
-
-
-def _run_solo12(
-    out: Optional[Path], seed: int, quick: bool, root: Optional[Path] = None,
-    torques: str = "standing", steps: Optional[int] = None,
+def _run(
+    experiment: _Experiment, out: Optional[Path], seed: int, quick: bool, root: Optional[Path] = None,
+    title: Optional[str] = None, **overrides,
 ) -> dict:
-    import dataclasses
-
-    from rsmooth.experiments import solo12_sim
-
+    """Runs an experiment at its default or quick size, the ``overrides`` that are not None
+    replacing fields of its Config, and prints its summary; returns its metrics."""
+    module = importlib.import_module(f"rsmooth.experiments.{experiment.module}")
     start = time.perf_counter()
-    out, key = _prepare("solo12", out if root is None else root / "solo12", seed)
-    config = solo12_sim.Config.quick() if quick else solo12_sim.Config()
-    config = dataclasses.replace(config, torques=torques, **({} if steps is None else {"steps": steps}))
-    metrics = solo12_sim.run(config, out, key)
-    _report("sim solo12", out, start, {
-        "base drift (m)": f"{metrics['base_drift']:.2e}",
-        "max foot slip (m)": f"{metrics['max_foot_slip']:.2e}",
-        "contact solves converged": f"{100 * metrics['ncp_converged_fraction']:.1f} %",
-    })
+    out, key = _prepare(experiment.name, out if root is None else root / experiment.name, seed)
+    config = module.Config.quick() if quick else module.Config()
+    changes = {name: value for name, value in overrides.items() if value is not None}
+    if changes:
+        config = dataclasses.replace(config, **changes)
+    metrics = module.run(config, out, key)
+    _report(title or experiment.title, out, start, experiment.summary(metrics))
     return metrics
 
 
-def _run_render_pose(
-    out: Optional[Path], seed: int, quick: bool, root: Optional[Path] = None,
-    mesh: str = "cube", init_errors: Optional[list[float]] = None, problems: Optional[int] = None,
-) -> dict:
-    import dataclasses
+_ESTIMATORS = _Experiment("estimators", "estimators", "estimators", lambda metrics: {
+    "first-order gradient of the Heaviside (max |.|)": metrics["heaviside_first_order_grad_max_abs"],
+    "Heaviside: max |mean gradient - truth| (first, zeroth, alpha)": ", ".join(
+        f"{metrics[f'heaviside_{e}_max_abs_error']:.3f}" for e in ("first", "zeroth", "alpha")
+    ),
+})
 
-    from rsmooth.experiments import render_pose
+_PERTURBED_ARGMAX = _Experiment("perturbed-argmax", "perturbed_argmax", "perturbed-argmax", lambda metrics: {
+    "max |perturbed argmax - softmax|": round(metrics["softmax_max_abs_error"], 4),
+    "held-out Spearman correlation, before -> after": (
+        f"{metrics['ranking_test_spearman_initial']:.3f} -> {metrics['ranking_test_spearman_final']:.3f}"
+    ),
+})
 
-    start = time.perf_counter()
-    out, key = _prepare("render-pose", out if root is None else root / "render-pose", seed)
-    config = render_pose.Config.quick() if quick else render_pose.Config()
-    changes: dict = {"mesh": mesh}
-    if init_errors:
-        changes["init_errors_deg"] = tuple(float(e) for e in init_errors)
-    if problems is not None:
-        changes["problems"] = problems
-    config = dataclasses.replace(config, **changes)
-    metrics = render_pose.run(config, out, key)
+_NULL_GRADIENTS = _Experiment("null-gradients", "null_gradients", "null-gradients", lambda metrics: {
+    "exact gradient below m g (max |.|)": metrics["exact_gradient_max_abs_below_weight"],
+    "smoothed gradients, max |mean - closed form| (first, zeroth) per sigma": "; ".join(
+        f"sigma={s:g}: {metrics[f'sigma={s:g}']['first_order_max_abs_error']:.1e}, "
+        f"{metrics[f'sigma={s:g}']['zeroth_order_max_abs_error']:.1e}"
+        for s in metrics["sigmas"]
+    ),
+})
+
+_SOLO12 = _Experiment("solo12", "solo12_sim", "sim solo12", lambda metrics: {
+    "base drift (m)": f"{metrics['base_drift']:.2e}",
+    "max foot slip (m)": f"{metrics['max_foot_slip']:.2e}",
+    "contact solves converged": f"{100 * metrics['ncp_converged_fraction']:.1f} %",
+})
+
+
+def _render_pose_summary(metrics: dict) -> dict:
     errors = ", ".join(f"{e:g}" for e in metrics["init_errors_deg"])
-    _report("render pose", out, start, {
+    return {
         f"{method}: solved % from {errors} deg": ", ".join(
             f"{metrics[method][f'{e:g}']['solved_pct']:.0f}" for e in metrics["init_errors_deg"]
         )
         for method in metrics["methods"]
-    })
-    return metrics
+    }
 
 
-def _run_render_reconstruct(
-    out: Optional[Path], seed: int, quick: bool, root: Optional[Path] = None,
-    meshes: Optional[list[str]] = None, views: Optional[int] = None,
-) -> dict:
-    import dataclasses
+_RENDER_POSE = _Experiment("render-pose", "render_pose", "render pose", _render_pose_summary)
 
-    from rsmooth.experiments import render_reconstruct
-
-    start = time.perf_counter()
-    out, key = _prepare("render-reconstruct", out if root is None else root / "render-reconstruct", seed)
-    config = render_reconstruct.Config.quick() if quick else render_reconstruct.Config()
-    changes: dict = {}
-    if meshes:
-        changes["targets"] = tuple(meshes)
-    if views is not None:
-        changes["views"] = views
-    config = dataclasses.replace(config, **changes)
-    metrics = render_reconstruct.run(config, out, key)
-    _report("render reconstruct", out, start, {
-        f"{method}: 3D IoU / Chamfer ({', '.join(metrics['targets'])})": ", ".join(
-            f"{metrics[method][t]['iou_3d']:.2f} / {metrics[method][t]['chamfer']:.4f}" for t in metrics["targets"]
-        )
-        for method in metrics["methods"]
-    })
-    return metrics
+_RENDER_RECONSTRUCT = _Experiment("render-reconstruct", "render_reconstruct", "render reconstruct", lambda metrics: {
+    f"{method}: 3D IoU / Chamfer ({', '.join(metrics['targets'])})": ", ".join(
+        f"{metrics[method][t]['iou_3d']:.2f} / {metrics[method][t]['chamfer']:.4f}" for t in metrics["targets"]
+    )
+    for method in metrics["methods"]
+})
 
 
-def _run_control_cube_lift(
-    out: Optional[Path], seed: int, quick: bool, root: Optional[Path] = None,
-    method: str = "all", seeds: Optional[int] = None, height: Optional[float] = None,
-) -> dict:
-    import dataclasses
-
-    from rsmooth.experiments import control_cube_lift
-
-    start = time.perf_counter()
-    out, key = _prepare("cube-lift", out if root is None else root / "cube-lift", seed)
-    config = control_cube_lift.Config.quick() if quick else control_cube_lift.Config()
-    changes: dict = {"method": method}
-    if seeds is not None:
-        changes["seeds"] = seeds
-    if height is not None:
-        changes["height"] = height
-    config = dataclasses.replace(config, **changes)
-    metrics = control_cube_lift.run(config, out, key)
-    _report("control cube-lift", out, start, {
-        f"{name}: success rate, final height (mm), iterations": (
-            f"{100 * metrics[name]['success_rate']:.0f} %, {1000 * metrics[name]['final_height']:.1f}, {metrics[name]['iterations']}"
-        )
+def _control_summary(columns: str, row: Callable[[dict], str]) -> Callable[[dict], dict]:
+    """A control experiment's summary: per method, its success rate then ``row(its metrics)``."""
+    return lambda metrics: {
+        f"{name}: success rate, {columns}": f"{100 * metrics[name]['success_rate']:.0f} %, {row(metrics[name])}"
         for name in metrics["methods"]
-    })
-    return metrics
+    }
 
 
-def _run_control_solo_lift(
-    out: Optional[Path], seed: int, quick: bool, root: Optional[Path] = None,
-    foot: str = "FL", height: Optional[float] = None, method: str = "all", seeds: Optional[int] = None,
-) -> dict:
-    import dataclasses
+_CUBE_LIFT = _Experiment("cube-lift", "control_cube_lift", "control cube-lift", _control_summary(
+    "final height (mm), iterations", lambda metrics: f"{1000 * metrics['final_height']:.1f}, {metrics['iterations']}"))
 
-    from rsmooth.experiments import control_solo_lift
+_SOLO_LIFT = _Experiment("solo-lift", "control_solo_lift", "control solo-lift", _control_summary(
+    "foot height (mm), other feet max height (mm), iterations",
+    lambda metrics: f"{1000 * metrics['foot_height']:.1f}, {1000 * metrics['other_feet_max_height']:.1f}, {metrics['iterations']}"))
 
-    start = time.perf_counter()
-    out, key = _prepare("solo-lift", out if root is None else root / "solo-lift", seed)
-    config = control_solo_lift.Config.quick() if quick else control_solo_lift.Config()
-    changes: dict = {"foot": foot, "method": method}
-    if seeds is not None:
-        changes["seeds"] = seeds
-    if height is not None:
-        changes["height"] = height
-    config = dataclasses.replace(config, **changes)
-    metrics = control_solo_lift.run(config, out, key)
-    _report(f"control solo-lift {foot}", out, start, {
-        f"{name}: success rate, foot height (mm), other feet max height (mm), iterations": (
-            f"{100 * metrics[name]['success_rate']:.0f} %, {1000 * metrics[name]['foot_height']:.1f}, "
-            f"{1000 * metrics[name]['other_feet_max_height']:.1f}, {metrics[name]['iterations']}"
-        )
-        for name in metrics["methods"]
-    })
-    return metrics
+_PUSHER = _Experiment("pusher", "control_pusher", "control pusher", _control_summary(
+    "position error (mm), yaw error (deg), iterations",
+    lambda metrics: f"{1000 * metrics['position_error']:.1f}, {metrics['yaw_error_deg']:.1f}, {metrics['iterations']}"))
 
 
-def _run_control_pusher(
-    out: Optional[Path], seed: int, quick: bool, root: Optional[Path] = None, method: str = "all",
-    seeds: Optional[int] = None, target_x: Optional[float] = None, target_y: Optional[float] = None,
-    target_yaw: Optional[float] = None,
-) -> dict:
-    import dataclasses
-
-    from rsmooth.experiments import control_pusher
-
-    start = time.perf_counter()
-    out, key = _prepare("pusher", out if root is None else root / "pusher", seed)
-    config = control_pusher.Config.quick() if quick else control_pusher.Config()
-    changes: dict = {"method": method}
-    for name, value in (("seeds", seeds), ("target_x", target_x), ("target_y", target_y), ("target_yaw", target_yaw)):
-        if value is not None:
-            changes[name] = value
-    config = dataclasses.replace(config, **changes)
-    metrics = control_pusher.run(config, out, key)
-    _report("control pusher", out, start, {
-        f"{name}: success rate, position error (mm), yaw error (deg), iterations": (
-            f"{100 * metrics[name]['success_rate']:.0f} %, {1000 * metrics[name]['position_error']:.1f}, "
-            f"{metrics[name]['yaw_error_deg']:.1f}, {metrics[name]['iterations']}"
-        )
-        for name in metrics["methods"]
-    })
-    return metrics
-
-
-def _doc(summary: str, module: str) -> str:
-    import importlib
-
-    return summary + "\n\n" + importlib.import_module(f"rsmooth.experiments.{module}").METRICS_DOC
+def _doc(summary: str, experiment: _Experiment) -> str:
+    return summary + "\n\n" + importlib.import_module(f"rsmooth.experiments.{experiment.module}").METRICS_DOC
 
 
 @experiment_app.command("estimators", help=_doc(
     "Zeroth-, first- and alpha-order gradient estimates on the Heaviside, |x|, a stiff sigmoid "
-    "and Coulomb friction: means, spread and error against the number of samples.", "estimators"))
+    "and Coulomb friction: means, spread and error against the number of samples.", _ESTIMATORS))
 def experiment_estimators(out: Optional[Path] = OutOption, seed: int = SeedOption, quick: bool = QuickOption):
-    _run_estimators(out, seed, quick)
+    _run(_ESTIMATORS, out, seed, quick)
 
 
 @experiment_app.command("perturbed-argmax", help=_doc(
     "Gumbel-perturbed argmax against the softmax, and learning to rank with the perturbed "
-    "Fenchel-Young loss.", "perturbed_argmax"))
+    "Fenchel-Young loss.", _PERTURBED_ARGMAX))
 def experiment_perturbed_argmax(out: Optional[Path] = OutOption, seed: int = SeedOption, quick: bool = QuickOption):
-    _run_perturbed_argmax(out, seed, quick)
+    _run(_PERTURBED_ARGMAX, out, seed, quick)
 
 
 @experiment_app.command("null-gradients", help=_doc(
     "A cube resting on the floor under an upward force: the exact gradient of its final height "
     "is zero below m g; first- and zeroth-order smoothed gradients against their closed form.",
-    "null_gradients"))
+    _NULL_GRADIENTS))
 def experiment_null_gradients(out: Optional[Path] = OutOption, seed: int = SeedOption, quick: bool = QuickOption):
-    _run_null_gradients(out, seed, quick)
+    _run(_NULL_GRADIENTS, out, seed, quick)
 
 
 @sim_app.command("solo12", help=_doc(
     "Simulate Solo-12 on the floor under standing (gravity-compensating) or random torques and "
-    "write a stick-figure animation.", "solo12_sim"))
+    "write a stick-figure animation.", _SOLO12))
 def sim_solo12(
     out: Optional[Path] = OutOption,
     seed: int = SeedOption,
@@ -298,12 +187,12 @@ def sim_solo12(
 ):
     if torques not in ("standing", "random"):
         raise typer.BadParameter(f"--torques must be 'standing' or 'random', got {torques!r}")
-    _run_solo12(out, seed, quick, torques=torques, steps=steps)
+    _run(_SOLO12, out, seed, quick, torques=torques, steps=steps)
 
 
 @render_app.command("pose", help=_doc(
     "Recover a mesh's rotation from one RGB image with the perturbed renderer (Gaussian or Cauchy "
-    "noise, adaptive noise decrease), a SoftRas-like one and the hard z-buffer.", "render_pose"))
+    "noise, adaptive noise decrease), a SoftRas-like one and the hard z-buffer.", _RENDER_POSE))
 def render_pose_command(
     out: Optional[Path] = OutOption,
     seed: int = SeedOption,
@@ -313,13 +202,14 @@ def render_pose_command(
         None, "--init-error", help="Initial rotation error in degrees (repeatable; default 20, 50, 80)."),
     problems: Optional[int] = typer.Option(None, "--problems", min=1, help="Problems per initial error."),
 ):
-    _run_render_pose(out, seed, quick, mesh=mesh, init_errors=init_error, problems=problems)
+    init_errors_deg = tuple(float(e) for e in init_error) if init_error else None
+    _run(_RENDER_POSE, out, seed, quick, mesh=mesh, init_errors_deg=init_errors_deg, problems=problems)
 
 
 @render_app.command("reconstruct", help=_doc(
     "Reconstruct meshes from multi-view silhouettes by deforming an icosphere (Laplacian and "
     "flattening regularizers) with the perturbed renderer, a SoftRas-like one and the hard "
-    "z-buffer; 3D IoU and Chamfer distance to the targets.", "render_reconstruct"))
+    "z-buffer; 3D IoU and Chamfer distance to the targets.", _RENDER_RECONSTRUCT))
 def render_reconstruct_command(
     out: Optional[Path] = OutOption,
     seed: int = SeedOption,
@@ -329,17 +219,24 @@ def render_reconstruct_command(
         "solo-hip, solo-foot, solo-base (example-robot-data), or a mesh file. Default: cube, torus, solo-upper-leg."),
     views: Optional[int] = typer.Option(None, "--views", min=1, help="Cameras around the target (default 8, quick 4)."),
 ):
-    _run_render_reconstruct(out, seed, quick, meshes=mesh, views=views)
+    _run(_RENDER_RECONSTRUCT, out, seed, quick, targets=tuple(mesh) if mesh else None, views=views)
 
 
 MethodOption = typer.Option(
     "all", "--method", help="ddp, rddp, or all (ddp, rddp and R-DDP with geometric noise decays).")
-SeedsOption = typer.Option(None, "--seeds", min=1, help="R-DDP runs per method, keys fold_in(seed, i) (default 10, quick 2).")
+SeedsOption = typer.Option(
+    None, "--seeds", min=1, help="R-DDP runs per method, keys fold_in(seed, i) (default: the experiment's, 10 or 5 for solo-lift; quick 2)."
+)
+
+
+def _check_method(method: str) -> None:
+    if method not in ("ddp", "rddp", "all"):
+        raise typer.BadParameter(f"--method must be ddp, rddp or all, got {method!r}")
 
 
 @control_app.command("cube-lift", help=_doc(
     "Lift a cube resting on the floor to a target height with a vertical force, from zero force: "
-    "DDP sees a zero gradient and stays put, R-DDP lifts it.", "control_cube_lift"))
+    "DDP sees a zero gradient and stays put, R-DDP lifts it.", _CUBE_LIFT))
 def control_cube_lift_command(
     out: Optional[Path] = OutOption,
     seed: int = SeedOption,
@@ -348,15 +245,14 @@ def control_cube_lift_command(
     seeds: Optional[int] = SeedsOption,
     height: Optional[float] = typer.Option(None, "--height", min=0.0, help="Target height above rest, m (default 0.1)."),
 ):
-    if method not in ("ddp", "rddp", "all"):
-        raise typer.BadParameter(f"--method must be ddp, rddp or all, got {method!r}")
-    _run_control_cube_lift(out, seed, quick, method=method, seeds=seeds, height=height)
+    _check_method(method)
+    _run(_CUBE_LIFT, out, seed, quick, method=method, seeds=seeds, height=height)
 
 
 @control_app.command("solo-lift", help=_doc(
     "Solo-12 standing on its four feet lifts one foot to a target height while the others stay "
     "on the floor, from the gravity-compensating torques: DDP sees a zero gradient, R-DDP breaks "
-    "the contact.", "control_solo_lift"))
+    "the contact.", _SOLO_LIFT))
 def control_solo_lift_command(
     out: Optional[Path] = OutOption,
     seed: int = SeedOption,
@@ -366,19 +262,18 @@ def control_solo_lift_command(
     method: str = MethodOption,
     seeds: Optional[int] = SeedsOption,
 ):
-    if method not in ("ddp", "rddp", "all"):
-        raise typer.BadParameter(f"--method must be ddp, rddp or all, got {method!r}")
+    _check_method(method)
     if foot not in ("FL", "FR", "HL", "HR"):
         raise typer.BadParameter(f"--foot must be FL, FR, HL or HR, got {foot!r}")
     if height is not None and not 0 < height <= 0.15:
         raise typer.BadParameter(f"--height must be in (0, 0.15] m, got {height}")
-    _run_control_solo_lift(out, seed, quick, foot=foot, height=height, method=method, seeds=seeds)
+    _run(_SOLO_LIFT, out, seed, quick, title=f"control solo-lift {foot}", foot=foot, height=height, method=method, seeds=seeds)
 
 
 @control_app.command("pusher", help=_doc(
     "Push a box to a target pose (position and yaw) with a finger that starts 3 cm behind it, "
     "through sticking and sliding friction, from zero force: DDP sees a zero gradient and leaves "
-    "the box, R-DDP pushes it.", "control_pusher"))
+    "the box, R-DDP pushes it.", _PUSHER))
 def control_pusher_command(
     out: Optional[Path] = OutOption,
     seed: int = SeedOption,
@@ -390,9 +285,8 @@ def control_pusher_command(
     target_yaw: Optional[float] = typer.Option(
         None, "--target-yaw", min=-89.0, max=89.0, help="Target yaw, degrees counter-clockwise (default 15)."),
 ):
-    if method not in ("ddp", "rddp", "all"):
-        raise typer.BadParameter(f"--method must be ddp, rddp or all, got {method!r}")
-    _run_control_pusher(out, seed, quick, method=method, seeds=seeds, target_x=target_x, target_y=target_y, target_yaw=target_yaw)
+    _check_method(method)
+    _run(_PUSHER, out, seed, quick, method=method, seeds=seeds, target_x=target_x, target_y=target_y, target_yaw=target_yaw)
 
 
 @app.command(help=(
@@ -402,9 +296,8 @@ def demo(
     out: Path = typer.Option(DEFAULT_ROOT, "--out", help="Root folder; one sub-folder per experiment."),
     seed: int = SeedOption,
 ):
-    runners = (_run_estimators, _run_perturbed_argmax, _run_null_gradients, _run_solo12, _run_render_pose, _run_control_cube_lift)
-    for runner in runners:
-        runner(None, seed, True, root=out)
+    for experiment in (_ESTIMATORS, _PERTURBED_ARGMAX, _NULL_GRADIENTS, _SOLO12, _RENDER_POSE, _CUBE_LIFT):
+        _run(experiment, None, seed, True, root=out)
     typer.echo(f"demo: all artifacts under {out}/")
 
 

@@ -45,6 +45,47 @@ def make_solver(name: str, rddp: control.RDDP) -> control.DDP:
     raise ValueError(f"unknown method {name!r}")
 
 
+def make_solvers(config) -> dict[str, control.DDP]:
+    """The solver of each method that a control experiment's ``Config`` runs, in the order of
+    ``method_names``; ``config.solver()`` gives the R-DDP options."""
+    rddp = config.solver()
+    return {name: make_solver(name, rddp) for name in method_names(config.method, config.geometric_decays)}
+
+
+def check_config(config) -> None:
+    """The checks every control experiment's ``Config`` shares: its ``method`` (with its
+    ``geometric_decays``), ``horizon`` and ``seeds``. Raises ``ValueError``."""
+    method_names(config.method, config.geometric_decays)
+    if config.horizon < 2:
+        raise ValueError(f"horizon must be >= 2, got {config.horizon}")
+    if config.seeds < 1:
+        raise ValueError(f"seeds must be >= 1, got {config.seeds}")
+
+
+def free_body_state_noise(position: float, rest: tuple[float, ...]) -> tuple[float, ...]:
+    """Noise scales of a state that starts with a free body's position (3) and unit quaternion
+    (4), then ``rest``. Noise on the quaternion would leave the unit sphere: it stays negligible.
+
+    Example:
+        >>> free_body_state_noise(0.01, (0.1,) * 2)
+        (0.01, 0.01, 0.01, 1e-06, 1e-06, 1e-06, 1e-06, 0.1, 0.1)
+    """
+    return (position,) * 3 + (1e-6,) * 4 + tuple(rest)
+
+
+def rddp_solver(config, control_noise_scale: float, state_noise_scale: tuple[float, ...]) -> control.RDDP:
+    """The R-DDP solver of a control experiment's ``Config`` (its ``eps``, ``num_samples``,
+    ``estimator`` and ``max_iterations``) with the noise scales of its controls and state."""
+    return control.RDDP(
+        eps=config.eps,
+        num_samples=config.num_samples,
+        estimator=config.estimator,
+        control_noise_scale=control_noise_scale,
+        state_noise_scale=state_noise_scale,
+        max_iterations=config.max_iterations,
+    )
+
+
 def solve(name: str, solver: control.DDP, problem: control.ShootingProblem, us_init, key, callback=None) -> control.Solution:
     """Runs one method; failures are reported in the solution, not raised."""
     solver = dataclasses.replace(solver, throw=False)

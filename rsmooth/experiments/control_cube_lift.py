@@ -57,25 +57,14 @@ class Config:
         return dataclasses.replace(cls(seeds=2, geometric_decays=(0.5,)), **changes)
 
     def __post_init__(self):
-        _control.method_names(self.method, self.geometric_decays)
+        _control.check_config(self)
         if not self.height > 0:
             raise ValueError(f"height must be positive (m), got {self.height}")
-        if self.horizon < 2:
-            raise ValueError(f"horizon must be >= 2, got {self.horizon}")
-        if self.seeds < 1:
-            raise ValueError(f"seeds must be >= 1, got {self.seeds}")
 
     def solver(self) -> control.RDDP:
-        # Noise on the quaternion would leave the unit sphere: keep it negligible.
-        state_scale = (self.position_noise,) * 3 + (1e-6,) * 4 + (self.velocity_noise,) * 6
-        return control.RDDP(
-            eps=self.eps,
-            num_samples=self.num_samples,
-            estimator=self.estimator,
-            control_noise_scale=self.force_noise,
-            state_noise_scale=state_scale,
-            max_iterations=self.max_iterations,
-        )
+        # State: position (3), quaternion (4), linear and angular velocities (6).
+        state_noise = _control.free_body_state_noise(self.position_noise, (self.velocity_noise,) * 6)
+        return _control.rddp_solver(self, self.force_noise, state_noise)
 
 
 def build_problem(config: Config):
@@ -119,9 +108,8 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     start = time.perf_counter()
     system, problem, target = build_problem(config)
     rest = float(problem.x0[2])
-    names = _control.method_names(config.method, config.geometric_decays)
-    rddp = config.solver()
-    solvers = {name: _control.make_solver(name, rddp) for name in names}
+    solvers = _control.make_solvers(config)
+    names = tuple(solvers)
     us_init = jnp.zeros((config.horizon, system.nu))
 
     def run_one(name, key, callback):

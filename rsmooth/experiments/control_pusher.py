@@ -88,17 +88,13 @@ class Config:
         return dataclasses.replace(cls(seeds=2, geometric_decays=(), max_iterations=12), **changes)
 
     def __post_init__(self):
-        _control.method_names(self.method, self.geometric_decays)
+        _control.check_config(self)
         if not self.finger_gap >= 0:
             raise ValueError(f"finger_gap must be >= 0 (m), got {self.finger_gap}")
         if not abs(self.finger_y) < 0.1:
             raise ValueError(f"finger_y must be within the box's half side, |finger_y| < 0.1 m, got {self.finger_y}")
         if not abs(self.target_yaw) < 90:
             raise ValueError(f"target_yaw must be in (-90, 90) degrees, got {self.target_yaw}")
-        if self.horizon < 2:
-            raise ValueError(f"horizon must be >= 2, got {self.horizon}")
-        if self.seeds < 1:
-            raise ValueError(f"seeds must be >= 1, got {self.seeds}")
         for name in ("position_tolerance", "yaw_tolerance", "speed_tolerance"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
@@ -109,20 +105,12 @@ class Config:
 
     def solver(self) -> control.RDDP:
         # State: box position (3), quaternion (4), finger x, y; box linear and angular
-        # velocities (6), finger velocities (2). Noise on the quaternion would leave the unit
-        # sphere: keep it negligible.
-        state_scale = (
-            (self.box_position_noise,) * 3 + (1e-6,) * 4 + (self.finger_position_noise,) * 2
-            + (self.box_velocity_noise,) * 6 + (self.finger_velocity_noise,) * 2
+        # velocities (6), finger velocities (2).
+        state_noise = _control.free_body_state_noise(
+            self.box_position_noise,
+            (self.finger_position_noise,) * 2 + (self.box_velocity_noise,) * 6 + (self.finger_velocity_noise,) * 2,
         )
-        return control.RDDP(
-            eps=self.eps,
-            num_samples=self.num_samples,
-            estimator=self.estimator,
-            control_noise_scale=self.force_noise,
-            state_noise_scale=state_scale,
-            max_iterations=self.max_iterations,
-        )
+        return _control.rddp_solver(self, self.force_noise, state_noise)
 
 
 def box_pose(xs) -> np.ndarray:
@@ -236,9 +224,8 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     """Solves with each method and seed; writes metrics.json, pusher.png and pusher.gif."""
     start_time = time.perf_counter()
     system, problem, target = build_problem(config)
-    names = _control.method_names(config.method, config.geometric_decays)
-    rddp = config.solver()
-    solvers = {name: _control.make_solver(name, rddp) for name in names}
+    solvers = _control.make_solvers(config)
+    names = tuple(solvers)
     us_init = jnp.zeros((config.horizon, system.nu))
 
     def run_one(name, key, callback):

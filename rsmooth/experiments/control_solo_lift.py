@@ -74,27 +74,16 @@ class Config:
         return dataclasses.replace(cls(seeds=2, geometric_decays=()), **changes)
 
     def __post_init__(self):
-        _control.method_names(self.method, self.geometric_decays)
+        _control.check_config(self)
         if self.foot not in FEET:
             raise ValueError(f"foot must be one of {FEET}, got {self.foot!r}")
         if not 0 < self.height <= 0.15:
             raise ValueError(f"height must be in (0, 0.15] m, got {self.height}")
-        if self.horizon < 2:
-            raise ValueError(f"horizon must be >= 2, got {self.horizon}")
-        if self.seeds < 1:
-            raise ValueError(f"seeds must be >= 1, got {self.seeds}")
 
     def solver(self) -> control.RDDP:
-        # Base position, quaternion (kept unit: negligible noise), joints; then velocities.
-        state_scale = (self.position_noise,) * 3 + (1e-6,) * 4 + (self.position_noise,) * 12 + (self.velocity_noise,) * 18
-        return control.RDDP(
-            eps=self.eps,
-            num_samples=self.num_samples,
-            estimator=self.estimator,
-            control_noise_scale=self.torque_noise,
-            state_noise_scale=state_scale,
-            max_iterations=self.max_iterations,
-        )
+        # State: base position (3), quaternion (4), joints (12); then velocities (18).
+        state_noise = _control.free_body_state_noise(self.position_noise, (self.position_noise,) * 12 + (self.velocity_noise,) * 18)
+        return _control.rddp_solver(self, self.torque_noise, state_noise)
 
 
 def build_problem(config: Config, system=None):
@@ -161,9 +150,8 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     """Solves with each method and seed; writes metrics.json, solo_lift.png, solo_lift.gif."""
     start = time.perf_counter()
     system, problem, u0 = build_problem(config)
-    names = _control.method_names(config.method, config.geometric_decays)
-    rddp = config.solver()
-    solvers = {name: _control.make_solver(name, rddp) for name in names}
+    solvers = _control.make_solvers(config)
+    names = tuple(solvers)
     us_init = jnp.tile(u0, (config.horizon, 1))
 
     def run_one(name, key, callback):

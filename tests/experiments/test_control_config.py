@@ -1,0 +1,34 @@
+"""What the control experiments' Configs share: validation and the solvers they build."""
+
+import pytest
+
+from rsmooth import control
+from rsmooth.experiments import _control, control_cube_lift, control_pusher, control_solo_lift
+
+EXPERIMENTS = [(control_cube_lift, 13, "force_noise"), (control_solo_lift, 37, "torque_noise"), (control_pusher, 17, "force_noise")]
+
+
+@pytest.mark.parametrize("module, nx, control_noise", EXPERIMENTS)
+def test_solver_takes_the_configs_options_and_keeps_the_quaternion_still(module, nx, control_noise):
+    config = module.Config(method="rddp", eps=0.5, num_samples=4, estimator="zeroth", max_iterations=3)
+    solver = config.solver()
+    assert isinstance(solver, control.RDDP)
+    assert (solver.eps, solver.num_samples, solver.estimator, solver.max_iterations) == (0.5, 4, "zeroth", 3)
+    assert solver.control_noise_scale == getattr(config, control_noise)
+    assert len(solver.state_noise_scale) == nx and solver.state_noise_scale[3:7] == (1e-6,) * 4
+
+
+@pytest.mark.parametrize("module", [module for module, *_ in EXPERIMENTS])
+def test_make_solvers_gives_one_solver_per_method(module):
+    solvers = _control.make_solvers(module.Config(geometric_decays=(0.5,)))
+    assert tuple(solvers) == ("ddp", "rddp", "rddp-geometric-0.5")
+    assert type(solvers["ddp"]) is control.DDP
+    assert solvers["rddp"].schedule == "adaptive" and solvers["rddp-geometric-0.5"].decay == 0.5
+    assert tuple(_control.make_solvers(module.Config(method="ddp"))) == ("ddp",)
+
+
+@pytest.mark.parametrize("module", [module for module, *_ in EXPERIMENTS])
+@pytest.mark.parametrize("changes, match", [({"method": "sgd"}, "method"), ({"horizon": 1}, "horizon"), ({"seeds": 0}, "seeds")])
+def test_configs_reject_what_every_control_experiment_rejects(module, changes, match):
+    with pytest.raises(ValueError, match=match):
+        module.Config(**changes)

@@ -1,0 +1,58 @@
+"""The command line's generic experiment runner."""
+
+import dataclasses
+import sys
+import types
+
+import pytest
+
+from rsmooth import cli
+
+
+@dataclasses.dataclass(frozen=True)
+class FakeConfig:
+    size: int = 10
+    label: str = "full"
+
+    @classmethod
+    def quick(cls):
+        return cls(size=2, label="quick")
+
+
+@pytest.fixture
+def fake_experiment(monkeypatch):
+    calls = []
+
+    def run(config, out, key):
+        calls.append((config, out))
+        return {"methods": ["ddp", "rddp"], "ddp": {"score": 0.25}, "rddp": {"score": 0.75}}
+
+    module = types.SimpleNamespace(Config=FakeConfig, run=run)
+    monkeypatch.setitem(sys.modules, "rsmooth.experiments.fake", module)
+    summary = lambda metrics: {f"{name} score": metrics[name]["score"] for name in metrics["methods"]}  # noqa: E731
+    return cli._Experiment("fake-name", "fake", "fake title", summary), calls
+
+
+def test_run_builds_the_config_runs_and_reports(fake_experiment, tmp_path, capsys):
+    experiment, calls = fake_experiment
+    metrics = cli._run(experiment, tmp_path / "out", 0, True, size=5, label=None)
+    # Overrides that are None keep the Config's value; the others replace it.
+    assert calls == [(FakeConfig(size=5, label="quick"), tmp_path / "out")]
+    assert metrics["rddp"]["score"] == 0.75
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("fake title: done in ") and lines[0].endswith(f"artifacts in {tmp_path / 'out'}/")
+    assert lines[1:] == ["  ddp score: 0.25", "  rddp score: 0.75"]
+
+
+def test_run_under_a_root_uses_the_experiment_name_and_a_given_title(fake_experiment, tmp_path, capsys):
+    experiment, calls = fake_experiment
+    cli._run(experiment, None, 0, False, root=tmp_path, title="other title")
+    assert calls == [(FakeConfig(), tmp_path / "fake-name")]
+    assert (tmp_path / "fake-name").is_dir()
+    assert capsys.readouterr().out.startswith("other title: done in ")
+
+
+def test_control_summary_prints_the_success_rate_then_the_row():
+    summary = cli._control_summary("height (mm)", lambda metrics: f"{1000 * metrics['height']:.1f}")
+    metrics = {"methods": ["ddp"], "ddp": {"success_rate": 0.5, "height": 0.0123}}
+    assert summary(metrics) == {"ddp: success rate, height (mm)": "50 %, 12.3"}
