@@ -13,6 +13,7 @@ Ratios (goals from the issue): our batched step per env / ``mj_step`` (<= 2);
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import multiprocessing
 import pathlib
 import re
@@ -177,6 +178,10 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0) ->
     results["ours_step"] = median_time(step, x0, u0, repeats=repeats)
     results["ours_step_batch"] = median_time(step_batch, xs, us, repeats=repeats) / BATCH
     results["ours_jac"] = median_time(jac1, x0, u0, repeats=repeats)
+    # the reference derivative: autodiff through CRBA, Cholesky and the Delassus matrix
+    reference = dataclasses.replace(system, derivative="autodiff")
+    jac_autodiff = jax.jit(jax.jacfwd(lambda x, u: reference.step(x, u), argnums=(0, 1)))
+    results["ours_jac_autodiff"] = median_time(jac_autodiff, x0, u0, repeats=repeats)
     print("  (ours: step, vmapped step and Jacobian timed; probing vmap(jacfwd) in a subprocess)", flush=True)
 
     ok, message = probe_vmap_jacobian(PROBE_BATCH, probe_timeout)
@@ -289,6 +294,7 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0) ->
         ("ours: jit(step), batch 1", "ours_step"),
         (f"ours: jit(vmap(step)), batch {BATCH}, per env", "ours_step_batch"),
         ("ours: jacfwd(step) w.r.t. (x, u), batch 1", "ours_jac"),
+        ("ours: jacfwd(step), derivative='autodiff' (reference), batch 1", "ours_jac_autodiff"),
         (f"ours: {jac_label}", "ours_jac_batch"),
         ("MuJoCo: mj_step", "mj_step"),
         ("MuJoCo: mjd_transitionFD (forward, eps 1e-6)", "mjd_transitionFD"),
@@ -309,6 +315,7 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0) ->
         ("our step per env (vmap 64) / mj_step", ratio("ours_step_batch", "mj_step"), "<= 2"),
         ("our step (batch 1) / mj_step", ratio("ours_step", "mj_step"), ""),
         ("mjd_transitionFD / our Jacobian (batch 1)", ratio("mjd_transitionFD", "ours_jac"), ">= 5"),
+        ("our autodiff-reference Jacobian / our implicit one", ratio("ours_jac_autodiff", "ours_jac"), ""),
         ("mjd_transitionFD / our Jacobian per env (batched)", ratio("mjd_transitionFD", "ours_jac_batch"), ">= 5"),
         ("MJX step / our step (batch 1)", ratio("mjx_step", "ours_step"), ""),
         (f"MJX step / our step (vmap {BATCH}, per env)", ratio("mjx_step_batch", "ours_step_batch"), ""),

@@ -328,7 +328,7 @@ class NCPState(eqx.Module):
     complementarity: Array
 
 
-def _fixed_point_step_sizes(G: Array, n: int) -> Array:
+def fixed_point_step_sizes(G: Array, n: int) -> Array:
     """Per-contact step ``r_i = 3 / trace(G_ii)`` of the natural map (a scalar per contact
     keeps the cone geometry: ``-r c~`` is in the polar cone iff ``c~`` is in the dual)."""
     diagonal = jnp.diagonal(G).reshape(n, 3)
@@ -347,9 +347,15 @@ def _natural_map(impulse: Array, G: Array, g: Array, mu: Array, step_sizes: Arra
     boundary (sliding), so implicit differentiation of ``F = 0`` treats separated contacts
     as absent, sticking ones as bilateral constraints and sliding ones on the boundary.
     """
+    return natural_map_of_velocity(impulse, G @ impulse + g, mu, step_sizes)
+
+
+def natural_map_of_velocity(impulse: Array, velocity: Array, mu: Array, step_sizes: Array) -> Array:
+    """The natural map of :func:`_natural_map` given the contact velocity ``c = G lambda + g``
+    (flat ``(3 n,)``) instead of ``(G, g)``: the form in which a simulator's step states it."""
     n = mu.shape[0]
     impulse_by_contact = impulse.reshape(n, 3)
-    velocity = _de_saxce_velocity((G @ impulse + g).reshape(n, 3), mu)
+    velocity = _de_saxce_velocity(velocity.reshape(n, 3), mu)
     projected = project_to_friction_cone(
         impulse_by_contact - step_sizes[:, None] * velocity, mu
     )
@@ -373,14 +379,26 @@ def _with_implicit_derivative_jvp(regularization, primals, tangents):
     impulse, G, g, mu = primals
     _, G_dot, g_dot, mu_dot = tangents
     impulse = lax.stop_gradient(impulse)
-    n = mu.shape[0]
-    step_sizes = _fixed_point_step_sizes(G, n)
-    jacobian = jax.jacfwd(_natural_map)(impulse, G, g, mu, step_sizes)
+    step_sizes = fixed_point_step_sizes(G, mu.shape[0])
     _, rhs = jax.jvp(
         lambda G_, g_, mu_: _natural_map(impulse, G_, g_, mu_, step_sizes),
         (G, g, mu),
         (G_dot, g_dot, mu_dot),
     )
+    return impulse, implicit_impulse_tangent(regularization, impulse, G, g, mu, step_sizes, rhs)
+
+
+def implicit_impulse_tangent(
+    regularization: float, impulse: Array, G: Array, g: Array, mu: Array, step_sizes: Array, rhs: Array
+) -> Array:
+    """``dlambda`` solving ``dF/dlambda dlambda = -rhs`` at an NCP solution ``impulse``.
+
+    ``rhs`` is the change of the natural map ``F`` (:func:`_natural_map`) caused by the
+    parameters at fixed ``lambda``; ``dF/dlambda`` is taken at the primal ``(G, g, mu)`` and
+    does not depend on the tangents (under ``jacfwd`` it is computed once for all columns).
+    """
+    n = mu.shape[0]
+    jacobian = jax.jacfwd(_natural_map)(impulse, G, g, mu, step_sizes)
     # Separated contacts (lambda_i = 0 exactly: the solver's projection returns exact zeros)
     # have dlambda_i = 0; decoupling their rows and columns makes that zero exact instead of
     # ~1e-13 from the regularized solve. A degenerate lambda_i = 0, c_i = 0 contact is thereby
@@ -400,7 +418,7 @@ def _with_implicit_derivative_jvp(regularization, primals, tangents):
     for _ in range(3):
         residual = -rhs - jacobian @ impulse_dot
         impulse_dot = impulse_dot + jax.scipy.linalg.cho_solve(factor, jacobian.T @ residual)
-    return impulse, impulse_dot
+    return impulse_dot
 
 
 class NCPSolver(eqx.Module):

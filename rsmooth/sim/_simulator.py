@@ -27,9 +27,11 @@ state ``x = [q, v]``:
    wall every step; with the decoupled update the velocity constraint on a sphere's centre
    holds exactly at the position level.
 
-Derivatives of ``step`` come from JAX autodiff of the dynamics plus the implicit derivative of
-the contact solve: exactly zero where physics says so (a resting cube under a small upward
-force does not move), equal to finite differences where the contact mode does not change.
+Derivatives of ``step`` (hard contact) come from the implicit function theorem applied to the
+whole velocity update, the momentum balance together with the NCP's natural map (see
+``RigidBodySystem.derivative``): exactly zero where physics says so (a resting cube under a
+small upward force does not move), equal to finite differences where the contact mode does not
+change.
 
 References:
     D. E. Stewart, J. C. Trinkle, "An implicit time-stepping scheme for rigid body dynamics
@@ -40,12 +42,13 @@ References:
 
 from __future__ import annotations
 
-from typing import Literal, Union
+from typing import Literal, NamedTuple, Union
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg
+from jax import lax
 import numpy as np
 from jax.typing import ArrayLike
 
@@ -59,6 +62,9 @@ from rsmooth.sim._contact import (
     SpringDamper,
     contact_frame,
     corrected_free_velocity,
+    fixed_point_step_sizes,
+    implicit_impulse_tangent,
+    natural_map_of_velocity,
     solve_ncp,
 )
 from rsmooth.sim._model import Model
@@ -84,6 +90,25 @@ class StepInfo(eqx.Module):
     impulse: Array
     ncp: NCPInfo
     torque_clipped: Array
+
+
+class _VelocityUpdate(NamedTuple):
+    """One step's velocity update and the quantities its implicit derivative reuses."""
+
+    v_next: Array
+    impulse: Array
+    distance: Array
+    ncp: NCPInfo
+    clipped: Array
+    mass_factor: tuple[Array, bool]  # Cholesky factor of M (jax.scipy.linalg.cho_factor)
+    jacobian: Array  # contact Jacobian J, (3 n, nv)
+    minv_jt: Array  # M^-1 Jᵀ, (nv, 3 n)
+    delassus: Array  # G = J M^-1 Jᵀ
+    free_velocity: Array  # g: the NCP's free contact velocity (hard contact)
+    mu: Array  # friction coefficient per contact
+
+    def public(self) -> tuple[Array, Array, Array, NCPInfo, Array]:
+        return self.v_next, self.impulse, self.distance, self.ncp, self.clipped
 
 
 class RigidBodySystem(eqx.Module):
@@ -125,6 +150,17 @@ class RigidBodySystem(eqx.Module):
         box_half_extents: half side lengths of that box in its frame, ``(3,)``.
         box_spheres: indices of the spheres that collide with the box.
         box_friction: Coulomb coefficient between those spheres and the box.
+        derivative: how ``step`` is differentiated with hard contact (static).
+            ``"implicit"`` (default): the implicit function theorem on the step's own
+            equations, momentum balance ``M (v+ - v) + h (b - tau) - Jᵀ lambda = 0`` and the
+            NCP's natural map, so a derivative costs one forward-mode pass through inverse
+            dynamics (RNEA) and contact kinematics plus linear solves with the already
+            factored ``M`` and natural-map Jacobian; no derivative of the mass matrix, its
+            Cholesky factor or the Delassus matrix is formed (the ABA-derivative identity
+            ``d(M^-1 r) = -M^-1 dRNEA``, Carpentier and Mansard, RSS 2018). ``"autodiff"``:
+            JAX autodiff through CRBA, Cholesky and the Delassus matrix, with only the NCP
+            solve differentiated implicitly; the same derivative, several times slower,
+            kept as a reference. Compliant contact laws always use ``"autodiff"``.
     """
 
     model: Model
@@ -147,6 +183,7 @@ class RigidBodySystem(eqx.Module):
     box_half_extents: Array | None = None
     box_spheres: tuple[int, ...] = eqx.field(static=True, default=())
     box_friction: float = eqx.field(static=True, default=0.0)
+    derivative: str = eqx.field(static=True, default="implicit")
 
     def __check_init__(self):
         num_spheres, num_planes = len(self.sphere_frames), self.plane_normals.shape[0]
@@ -159,6 +196,8 @@ class RigidBodySystem(eqx.Module):
             raise ValueError("plane_normals must have shape (P, 3) and plane_offsets (P,)")
         if self.friction.shape != (num_planes,):
             raise ValueError(f"friction must have shape ({num_planes},), got {self.friction.shape}")
+        if self.derivative not in ("implicit", "autodiff"):
+            raise ValueError(f"derivative must be 'implicit' or 'autodiff', got {self.derivative!r}")
         if self.actuation not in ("joints", "wrench"):
             raise ValueError(f"actuation must be 'joints' or 'wrench', got {self.actuation!r}")
         if self.input_limit.shape != (self.nu,):
@@ -323,8 +362,26 @@ class RigidBodySystem(eqx.Module):
                 ``equinox`` runtime error with the same message).
         """
         x, u = self._check(x, u)
-        model, h = self.model, self.time_step
         q, v = self.split(x)
+        if isinstance(self.contact, str) and self.derivative == "implicit":
+            v_next, impulse, distance, ncp, clipped = _implicit_velocity_update(self, q, v, u, warm_start)
+        else:
+            update = self._velocity_update(q, v, u, warm_start)
+            v_next, impulse, distance, ncp, clipped = update.public()
+        q_next = _integrate_decoupled(self.model, q, v_next, self.time_step)
+        info = StepInfo(distance=distance, impulse=impulse, ncp=ncp, torque_clipped=clipped)
+        return jnp.concatenate([q_next, v_next]), info
+
+    def contact_friction(self) -> Array:
+        """Coulomb coefficient of every candidate contact, ``(n,)`` (order of :meth:`contacts`)."""
+        return jnp.concatenate([
+            jnp.repeat(self.friction[None, :], len(self.sphere_frames), axis=0).reshape(-1),
+            jnp.full(len(self.box_spheres), self.box_friction, self.friction.dtype),
+        ])
+
+    def _velocity_update(self, q: Array, v: Array, u: Array, warm_start) -> _VelocityUpdate:
+        """The velocity update of one step and the quantities its derivative reuses."""
+        model, h = self.model, self.time_step
         kinematics = _dynamics._kinematics(model, q)
         inertias = _dynamics._world_inertias(model, kinematics)
         mass = _dynamics._crba(model, kinematics, inertias) + jnp.diag(model.armature)
@@ -333,11 +390,7 @@ class RigidBodySystem(eqx.Module):
         factor = jax.scipy.linalg.cho_factor(mass, lower=True)
         v_free = v + h * jax.scipy.linalg.cho_solve(factor, tau - bias)
         distance, _, jacobian = self.contacts(q, kinematics)
-        n = distance.shape[0]
-        mu = jnp.concatenate([
-            jnp.repeat(self.friction[None, :], len(self.sphere_frames), axis=0).reshape(-1),
-            jnp.full(len(self.box_spheres), self.box_friction, self.friction.dtype),
-        ])
+        mu = self.contact_friction()
         minv_jt = jax.scipy.linalg.cho_solve(factor, jacobian.T)  # (nv, 3n)
         if isinstance(self.contact, str):
             delassus = jacobian @ minv_jt
@@ -345,13 +398,13 @@ class RigidBodySystem(eqx.Module):
             free_velocity = corrected_free_velocity(jacobian @ v_free, distance, h, baumgarte=self.baumgarte)
             impulse, ncp = solve_ncp(delassus, free_velocity, mu, solver=self.solver, warm_start=warm_start)
         else:
-            impulse = self._compliant_impulse(distance, jacobian @ v_free, jacobian @ minv_jt, h)
+            delassus = jacobian @ minv_jt
+            free_velocity = jacobian @ v_free
+            impulse = self._compliant_impulse(distance, free_velocity, delassus, h)
             zero = jnp.zeros((), distance.dtype)
             ncp = NCPInfo(jnp.zeros((), jnp.int32), zero, zero, zero, jnp.ones((), bool), zero)
         v_next = v_free + minv_jt @ impulse
-        q_next = _integrate_decoupled(model, q, v_next, h)
-        info = StepInfo(distance=distance, impulse=impulse, ncp=ncp, torque_clipped=clipped)
-        return jnp.concatenate([q_next, v_next]), info
+        return _VelocityUpdate(v_next, impulse, distance, ncp, clipped, factor, jacobian, minv_jt, delassus, free_velocity, mu)
 
     def _compliant_impulse(self, distance: Array, free_velocity: Array, delassus: Array, h: Array) -> Array:
         """Impulses ``h f(phi, c+)`` of a compliant law, linearly implicit in the velocity.
@@ -392,6 +445,66 @@ class RigidBodySystem(eqx.Module):
         impulse0 = jnp.zeros(3 * self.num_contacts, jnp.result_type(x0, float))
         _, (xs, infos) = jax.lax.scan(body, (x0, impulse0), us)
         return jnp.concatenate([x0[None], xs]), infos
+
+
+@eqx.filter_custom_jvp
+def _implicit_velocity_update(system: RigidBodySystem, q: Array, v: Array, u: Array, warm_start):
+    """``(v_next, impulse, distance, ncp, clipped)`` of a hard-contact step, with the
+    derivative of :attr:`RigidBodySystem.derivative` ``= "implicit"``."""
+    return system._velocity_update(q, v, u, warm_start).public()
+
+
+@_implicit_velocity_update.def_jvp
+def _implicit_velocity_update_jvp(primals, tangents):
+    # The step's velocity update solves, for the unknowns (v+, lambda) at parameters
+    # theta = (system, q, v, u):
+    #   E(theta, v+, lambda) = h ID(q, v, (v+ - v) / h) - h tau(q, u) - J(q)ᵀ lambda = 0,
+    #   F(lambda, c(theta, v+), mu) = 0,  c = J(q) v+ + phi-correction(q)  (= G lambda + g),
+    # with ID the inverse dynamics M a + b (plus armature) and F the NCP's natural map.
+    # dE/dv+ = M, dE/dlambda = -Jᵀ, so at fixed lambda dv+ = -M^-1 dE|_theta and
+    # dc|_lambda = dc|_theta - J M^-1 dE|_theta; the NCP's implicit solve gives dlambda from
+    # dF|_lambda = dF/dc dc|_lambda + dF/dmu dmu, then dv+ = M^-1 (Jᵀ dlambda - dE|_theta).
+    # The only tangent pass is through ID and contact kinematics (no CRBA, Cholesky or
+    # Delassus derivative); the factors are primal and shared by all columns under jacfwd.
+    system, q, v, u, warm_start = primals
+    t_system, t_q, t_v, t_u, _ = tangents
+    update = system._velocity_update(q, v, u, warm_start)
+    v_next, impulse = lax.stop_gradient(update.v_next), lax.stop_gradient(update.impulse)
+
+    def residuals(system: RigidBodySystem, q: Array, v: Array, u: Array):
+        model, h = system.model, system.time_step
+        kinematics = _dynamics._kinematics(model, q)
+        inertias = _dynamics._world_inertias(model, kinematics)
+        acceleration = (v_next - v) / h
+        inverse_dynamics = (
+            _dynamics._rnea(model, kinematics, inertias, v, acceleration, model.gravity)
+            + model.armature * acceleration
+        )
+        tau, _ = system.generalized_forces(q, u, kinematics)
+        distance, _, jacobian = system.contacts(q, kinematics)
+        momentum = h * (inverse_dynamics - tau) - jacobian.T @ impulse
+        velocity = corrected_free_velocity(jacobian @ v_next, distance, h, baumgarte=system.baumgarte)
+        return momentum, velocity, distance, system.contact_friction()
+
+    outputs, output_tangents = eqx.filter_jvp(residuals, (system, q, v, u), (t_system, t_q, t_v, t_u))
+    momentum_dot, velocity_dot, distance_dot, mu_dot = (
+        jnp.zeros_like(primal) if tangent is None else tangent for primal, tangent in zip(outputs, output_tangents)
+    )
+    free_motion_dot = -jax.scipy.linalg.cho_solve(update.mass_factor, momentum_dot)  # dv+ at fixed lambda
+    velocity_dot = velocity_dot + update.jacobian @ free_motion_dot
+    G, g, mu = update.delassus, update.free_velocity, update.mu
+    step_sizes = fixed_point_step_sizes(G, mu.shape[0])
+    _, rhs = jax.jvp(
+        lambda c, mu_: natural_map_of_velocity(impulse, c, mu_, step_sizes),
+        (G @ impulse + g, mu),
+        (velocity_dot, mu_dot),
+    )
+    impulse_dot = implicit_impulse_tangent(
+        system.solver.implicit_regularization, impulse, G, g, mu, step_sizes, rhs
+    )
+    v_next_dot = free_motion_dot + update.minv_jt @ impulse_dot
+    no_tangent = jax.tree.map(lambda _: None, update.ncp)  # diagnostics: symbolic zeros
+    return update.public(), (v_next_dot, impulse_dot, distance_dot, no_tangent, None)
 
 
 def _integrate_decoupled(model: Model, q: Array, v: Array, h: Array) -> Array:

@@ -261,3 +261,79 @@ def test_pusher_gradients_match_finite_differences_while_pushing():
     # Box on 4 coplanar corners: impulses are not unique (see the sliding cube test).
     np.testing.assert_allclose(jac, fd, atol=5e-5)
     assert float(jnp.abs(jac[9, 0])) > 1e-3  # the finger force moves the box
+
+
+def _sliding_ball():
+    system = sim.ball_wall(solver=sim.NCPSolver(tolerance=1e-13, max_iterations=2000))
+    x = system.state(jnp.array([0.0, 0.0, 0.0499, 0.0, 0.0, 0.0, 1.0]), jnp.array([0.4, 0.1, 0.0, 0.0, 3.0, 1.0]))
+    return system, x, jnp.array([0.1, 0.05, -0.2])
+
+
+def _pushing():
+    pusher = sim.pusher(solver=sim.NCPSolver(tolerance=1e-12, max_iterations=3000))
+    x = sim.pusher_start_state(pusher, finger_gap=0.0).at[9].set(0.2).at[15].set(0.2)
+    return pusher, x, jnp.array([9.0, 0.3])
+
+
+def _solo_stepping():
+    solo = _solo()
+    x = sim.solo12_standing_state(solo)
+    noise = jax.random.normal(jax.random.key(3), x.shape) * jnp.concatenate([jnp.full(19, 1e-3), jnp.full(18, 1e-2)])
+    x = (x + noise).at[3:7].set(x[3:7] / jnp.linalg.norm(x[3:7]))
+    return solo, x, sim.solo12_standing_torques(solo, x) + 0.1
+
+
+# (Reverse mode goes through the same rule: the finite-difference tests above use jacrev.)
+# Four coplanar contacts (the pushed box) leave the impulses non-unique: the damped least-squares
+# solve then amplifies rounding differences by up to ~1 / sqrt(1e-12), so the two derivatives,
+# computed in different orders, agree to ~1e-6 there (finite differences only to ~1e-5).
+@pytest.mark.parametrize(
+    "case, tolerance", [(_sliding_ball, 1e-9), (_pushing, 1e-5), (_solo_stepping, 1e-9)]
+)
+def test_implicit_step_derivative_equals_the_autodiff_reference(case, tolerance):
+    """The default derivative (implicit function theorem on momentum balance + NCP) equals
+    autodiff through CRBA, Cholesky and the Delassus matrix, for the next state and the
+    impulses (unique ones), with respect to state and input."""
+    import dataclasses
+
+    system, x, u = case()
+    reference = dataclasses.replace(system, derivative="autodiff")
+    assert system.derivative == "implicit"
+
+    def jacobians(s):
+        def outputs(a, b):
+            x_next, info = s.step_with_info(a, b)
+            return x_next, info.impulse
+
+        return jax.jit(jax.jacfwd(outputs, argnums=(0, 1)))(x, u)
+
+    (ours_x, ours_impulse), (theirs_x, theirs_impulse) = jacobians(system), jacobians(reference)
+    for ours, theirs in zip(ours_x, theirs_x):  # d x_next / d x, d x_next / d u
+        scale = float(jnp.max(jnp.abs(theirs)))
+        assert scale > 0
+        np.testing.assert_allclose(ours, theirs, rtol=0, atol=tolerance * scale)
+    if tolerance < 1e-6:  # unique impulses only
+        for ours, theirs in zip(ours_impulse, theirs_impulse):
+            np.testing.assert_allclose(ours, theirs, rtol=0, atol=tolerance * float(jnp.max(jnp.abs(theirs))) + 1e-15)
+
+
+def test_implicit_step_derivative_with_respect_to_system_parameters():
+    """Derivatives with respect to the friction coefficient and the time step (fields of the
+    system) also go through the implicit rule and equal the autodiff reference."""
+    import dataclasses
+
+    import equinox as eqx
+
+    system, x, u = _sliding_ball()
+    reference = dataclasses.replace(system, derivative="autodiff")
+
+    def by_parameters(s):
+        def step(friction, time_step):
+            varied = eqx.tree_at(lambda t: (t.friction, t.time_step), s, (friction, time_step))
+            return varied.step(x, u)
+
+        return jax.jit(jax.jacfwd(step, argnums=(0, 1)))(s.friction, s.time_step)
+
+    for ours, theirs in zip(by_parameters(system), by_parameters(reference)):
+        assert float(jnp.max(jnp.abs(theirs))) > 1e-3
+        np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-9 * float(jnp.max(jnp.abs(theirs))))
