@@ -36,6 +36,7 @@ from typing import Callable, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 from jax.flatten_util import ravel_pytree
 from jax.typing import ArrayLike
@@ -206,9 +207,16 @@ def value_and_jacobian(f_flat: Callable[[Array], Array], v: Array) -> tuple[Arra
     return y, jacobian
 
 
-def _first_order_flat(flat: _Flat, key, sigma, num_samples, noise, antithetic) -> _FlatEstimate:
+def _first_order_flat(flat: _Flat, key, sigma, num_samples, noise, antithetic, jacobian_fn=None) -> _FlatEstimate:
     z, points = perturbed_points(noise, key, flat.x, sigma, num_samples, antithetic)
-    values, jacobians = jax.vmap(lambda v: value_and_jacobian(flat.f, v))(points)
+    if jacobian_fn is None:
+        values, jacobians = jax.vmap(lambda v: value_and_jacobian(flat.f, v))(points)
+    else:
+        def given(v):
+            value, jac = jacobian_fn(flat.unravel(v))
+            return jnp.reshape(value, (-1,)).astype(v.dtype), jnp.reshape(jac, (-1, v.shape[0])).astype(v.dtype)
+
+        values, jacobians = jax.vmap(given)(points)
     values = _checks.check_finite(values, _NONFINITE_F)
     jacobians = _checks.check_finite(jacobians, _NONFINITE_GRAD)
     units = jacobians
@@ -368,6 +376,7 @@ def first_order(
     num_samples: int,
     noise: Noise = Gaussian(),
     antithetic: bool = False,
+    value_and_jacobian: Callable | None = None,
 ) -> Estimate:
     r"""First-order (pathwise) estimate: the mean of sampled gradients.
 
@@ -383,6 +392,10 @@ def first_order(
         num_samples: number of samples M (even with `antithetic`).
         noise: the noise law (any, `Uniform` included).
         antithetic: use pairs `(z, -z)` (symmetric laws only).
+        value_and_jacobian: optional `x -> (f(x), J(x))` for an `f` that has a faster
+            Jacobian than JAX's autodiff of it (e.g. a simulator's `step_and_jacobians`);
+            `x` must then be one array and `J(x)` of shape `f(x).shape + x.shape`. By
+            default the Jacobian is autodiff of `f`.
 
     Returns:
         An :class:`Estimate`.
@@ -397,7 +410,9 @@ def first_order(
     _checks.check_key(key)
     sigma, num_samples = _check_options(sigma, num_samples, noise, antithetic=antithetic)
     flat = _flatten(f, x)
-    return _package(flat, _first_order_flat(flat, key, sigma, num_samples, noise, antithetic))
+    if value_and_jacobian is not None and not isinstance(x, (jax.Array, np.ndarray)):
+        raise TypeError(f"value_and_jacobian needs x to be one array, got {type(x).__name__}")
+    return _package(flat, _first_order_flat(flat, key, sigma, num_samples, noise, antithetic, value_and_jacobian))
 
 
 def alpha_order(

@@ -203,9 +203,15 @@ def map_nodes(function: Callable, inputs, batch_size: int | None):
 
 
 def dynamics_jacobians(problem: ShootingProblem, xs: Array, us: Array, batch_size: int | None = 1) -> tuple[Array, Array]:
-    """``f_x`` ``(T, nx, nx)`` and ``f_u`` ``(T, nx, nu)`` along a trajectory, by autodiff,
-    ``batch_size`` nodes at a time (see :class:`DDP`)."""
-    jacobian = jax.jacfwd(problem.dynamics.step, argnums=(0, 1))
+    """``f_x`` ``(T, nx, nx)`` and ``f_u`` ``(T, nx, nu)`` along a trajectory, ``batch_size``
+    nodes at a time (see :class:`DDP`): by the dynamics' own ``step_and_jacobians(x, u) ->
+    (x_next, f_x, f_u)`` when it has one (the simulator's faster implicit Jacobians), else by
+    autodiff of ``step``."""
+    step_and_jacobians = getattr(problem.dynamics, "step_and_jacobians", None)
+    if step_and_jacobians is not None:
+        jacobian = lambda x, u: step_and_jacobians(x, u)[1:]  # noqa: E731
+    else:
+        jacobian = jax.jacfwd(problem.dynamics.step, argnums=(0, 1))
     return map_nodes(jacobian, (xs[:-1], us), batch_size)
 
 

@@ -40,7 +40,9 @@ class ShootingProblem(eqx.Module):
 
     Attributes:
         dynamics: any pytree with ``step(x, u) -> x_next`` (pure JAX) and int attributes
-            ``nx`` and ``nu``.
+            ``nx`` and ``nu``; optionally ``step_and_jacobians(x, u) -> (x_next, f_x, f_u)``,
+            which the solvers then use instead of autodiff of ``step`` (the simulator's
+            :meth:`~rsmooth.sim.RigidBodySystem.step_and_jacobians`).
         running_cost: ``l(x, u) -> scalar``, differentiable twice by JAX (its gradient and
             Hessian come from autodiff); ``l(x, u, t)`` with ``time_varying=True``.
         terminal_cost: ``l_T(x) -> scalar``, differentiable twice by JAX.

@@ -153,9 +153,20 @@ def smoothed_dynamics_jacobians(
         y = scale * y
         return problem.dynamics.step(y[:nx], y[nx:])
 
+    options = {}
+    step_and_jacobians = getattr(problem.dynamics, "step_and_jacobians", None)
+    if estimator == "first" and step_and_jacobians is not None:
+
+        def value_and_jacobian(y):  # the dynamics' own Jacobians, in the scaled variable y
+            y = scale * y
+            x_next, fx, fu = step_and_jacobians(y[:nx], y[nx:])
+            return x_next, jnp.concatenate([fx, fu], axis=1) * scale[None, :]
+
+        options["value_and_jacobian"] = value_and_jacobian
+
     def node(key, x, u):
         y = jnp.concatenate([x, u]) / scale
-        estimate = method(h, key, y, sigma=eps, num_samples=num_samples, noise=noise)
+        estimate = method(h, key, y, sigma=eps, num_samples=num_samples, noise=noise, **options)
         jacobian = estimate.grad / scale[None, :]
         return jacobian[:, :nx], jacobian[:, nx:]
 

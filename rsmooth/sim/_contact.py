@@ -394,8 +394,9 @@ def implicit_impulse_tangent(
     """``dlambda`` solving ``dF/dlambda dlambda = -rhs`` at an NCP solution ``impulse``.
 
     ``rhs`` is the change of the natural map ``F`` (:func:`_natural_map`) caused by the
-    parameters at fixed ``lambda``; ``dF/dlambda`` is taken at the primal ``(G, g, mu)`` and
-    does not depend on the tangents (under ``jacfwd`` it is computed once for all columns).
+    parameters at fixed ``lambda``, ``(3 n,)`` or a matrix of such columns ``(3 n, k)``;
+    ``dF/dlambda`` is taken at the primal ``(G, g, mu)`` and does not depend on the tangents
+    (under ``jacfwd`` it is computed once for all columns).
     """
     n = mu.shape[0]
     jacobian = jax.jacfwd(_natural_map)(impulse, G, g, mu, step_sizes)
@@ -406,7 +407,7 @@ def implicit_impulse_tangent(
     active = jnp.repeat(jnp.any(impulse.reshape(n, 3) != 0, axis=-1), 3)
     identity = jnp.eye(3 * n, dtype=jacobian.dtype)
     jacobian = jnp.where(active[:, None] & active[None, :], jacobian, identity)
-    rhs = jnp.where(active, rhs, 0.0)
+    rhs = jnp.where(active.reshape(active.shape + (1,) * (rhs.ndim - 1)), rhs, 0.0)
     # Damped least squares (Tikhonov) with two steps of iterative refinement:
     #   dlambda = -(JᵀJ + eps I)^{-1} Jᵀ rhs, refined on the residual rhs - J dlambda.
     # J is O(1) thanks to the step sizes r_i. Where J is nonsingular the refinement removes

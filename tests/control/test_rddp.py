@@ -105,3 +105,42 @@ def test_bad_input_raises_named_errors():
         control.rddp(problem, jax.random.key(0), solver=control.RDDP(state_noise_scale=(1.0, 1.0, 1.0)))
     with pytest.raises(TypeError, match="rddp"):
         control.ddp(problem, solver=control.RDDP())
+
+
+def test_solvers_use_the_dynamics_own_jacobians(getkey):
+    """A dynamics with ``step_and_jacobians`` (the simulator's fast implicit Jacobians) is
+    differentiated by it, not by autodiff, in DDP and in R-DDP's first-order estimate."""
+    import equinox as eqx
+    from control_systems import Pendulum
+
+    from rsmooth.control._ddp import dynamics_jacobians
+
+    class ScaledJacobians(Pendulum):
+        """The pendulum whose own Jacobians are autodiff's times ``factor``."""
+
+        factor: float = 1.0
+
+        def step_and_jacobians(self, x, u):
+            fx, fu = jax.jacfwd(self.step, argnums=(0, 1))(x, u)
+            return self.step(x, u), self.factor * fx, self.factor * fu
+
+    base = pendulum_swing_up(horizon=6)
+    xs = jax.random.normal(getkey(), (7, 2))
+    us = jax.random.normal(getkey(), (6, 1))
+    key = getkey()
+    results = {}
+    for factor in (1.0, 2.0):
+        problem = eqx.tree_at(lambda p: p.dynamics, base, ScaledJacobians(factor=factor))
+        results[factor] = (
+            dynamics_jacobians(problem, xs, us),
+            control.smoothed_dynamics_jacobians(problem, key, xs, us, eps=0.1, num_samples=4),
+        )
+    reference = (
+        dynamics_jacobians(base, xs, us),
+        control.smoothed_dynamics_jacobians(base, key, xs, us, eps=0.1, num_samples=4),
+    )
+    for which in range(2):  # exact, smoothed
+        for ours, theirs in zip(results[1.0][which], reference[which]):
+            np.testing.assert_allclose(ours, theirs, rtol=1e-12, atol=1e-14)
+        for ours, theirs in zip(results[2.0][which], reference[which]):
+            np.testing.assert_allclose(ours, 2.0 * theirs, rtol=1e-12, atol=1e-14)
