@@ -50,8 +50,10 @@ from rsmooth.sim._simulator import (
     energy as energy,
 )
 from rsmooth.sim._systems import (
+    SOLO12_ARMATURE as SOLO12_ARMATURE,
     SOLO12_FEET as SOLO12_FEET,
     SOLO12_FOOT_RADIUS as SOLO12_FOOT_RADIUS,
+    SOLO12_JOINT_DAMPING as SOLO12_JOINT_DAMPING,
     SOLO12_TORQUE_LIMIT as SOLO12_TORQUE_LIMIT,
     ball_wall as ball_wall,
     pusher as pusher,

@@ -5,7 +5,10 @@ A :class:`RigidBodySystem` is a pure, frozen pytree with ``step(x, u) -> x_next`
 state ``x = [q, v]``:
 
 1. Free motion (semi-implicit Euler on velocities):
-   ``v_f = v + h M(q)^-1 (tau(q, u) - C(q, v) v - g(q))``.
+   ``v_f = v + h W^-1 (tau(q, u) - C(q, v) v - g(q) - D v)`` with ``W = M(q) + h D``: the
+   joint damping ``D`` (:attr:`RigidBodySystem.joint_damping`, zero by default) is implicit,
+   ``D v+``, so it dissipates at any ``h``. ``M`` includes the rotor inertia
+   (``model.armature``); the rest of the system below uses ``W`` where it says ``M``.
 2. Contacts between the system's spheres (a point is a sphere of radius 0) and the world's
    half-spaces, with signed distance ``phi``, contact frame ``R`` and contact Jacobian
    ``J = R^T J_p(q)`` (``3 n x nv``, rows ``[t1, t2, n]`` per contact).
@@ -84,12 +87,19 @@ class StepInfo(eqx.Module):
         ncp: the :class:`~rsmooth.sim.NCPInfo` of the contact solve (hard contact; for a
             compliant law it reports zero iterations and ``converged = True``).
         torque_clipped: whether an input was beyond its limit and was clipped.
+        diverged: whether the step left the range where it means anything: a non-finite
+            next state, or a velocity component with ``|v+| h`` above
+            :attr:`RigidBodySystem.max_motion_per_step` (default 1: more than a radian or a
+            metre per step, where the step's linearizations of the motion and the contacts
+            fail and semi-implicit Euler injects energy). :meth:`RigidBodySystem.rollout`
+            holds the state from such a step on; treat the rest of that trajectory as invalid.
     """
 
     distance: Array
     impulse: Array
     ncp: NCPInfo
     torque_clipped: Array
+    diverged: Array
 
 
 class _VelocityUpdate(NamedTuple):
@@ -150,6 +160,12 @@ class RigidBodySystem(eqx.Module):
         box_half_extents: half side lengths of that box in its frame, ``(3,)``.
         box_spheres: indices of the spheres that collide with the box.
         box_friction: Coulomb coefficient between those spheres and the box.
+        joint_damping: viscous damping ``(nv,)`` (N m s/rad or N s/m) of each dof, ``>= 0``,
+            integrated implicitly; ``None`` for none. It bounds the speed a constant torque
+            gives a free joint (``tau / d``), which explicit velocity-product (Coriolis)
+            terms otherwise let grow until the step diverges.
+        max_motion_per_step: bound on ``|v+| h`` (rad or m) beyond which a step is reported
+            as diverged (static; ``inf`` reports only non-finite states).
         derivative: how ``step`` is differentiated with hard contact (static).
             ``"implicit"`` (default): the implicit function theorem on the step's own
             equations, momentum balance ``M (v+ - v) + h (b - tau) - Jᵀ lambda = 0`` and the
@@ -184,9 +200,16 @@ class RigidBodySystem(eqx.Module):
     box_spheres: tuple[int, ...] = eqx.field(static=True, default=())
     box_friction: float = eqx.field(static=True, default=0.0)
     derivative: str = eqx.field(static=True, default="implicit")
+    joint_damping: Array | None = None
+    max_motion_per_step: float = eqx.field(static=True, default=1.0)
 
     def __check_init__(self):
         num_spheres, num_planes = len(self.sphere_frames), self.plane_normals.shape[0]
+        if self.joint_damping is not None:
+            if self.joint_damping.shape != (self.model.nv,):
+                raise ValueError(f"joint_damping must have shape ({self.model.nv},), got {self.joint_damping.shape}")
+            if not _checks.is_traced(self.joint_damping) and np.any(np.asarray(self.joint_damping) < 0):
+                raise ValueError("joint_damping must be non-negative")
         if self.sphere_offsets.shape != (num_spheres, 3) or self.sphere_radii.shape != (num_spheres,):
             raise ValueError(
                 f"sphere_offsets must have shape ({num_spheres}, 3) and sphere_radii ({num_spheres},), got "
@@ -369,8 +392,16 @@ class RigidBodySystem(eqx.Module):
             update = self._velocity_update(q, v, u, warm_start)
             v_next, impulse, distance, ncp, clipped = update.public()
         q_next = _integrate_decoupled(self.model, q, v_next, self.time_step)
-        info = StepInfo(distance=distance, impulse=impulse, ncp=ncp, torque_clipped=clipped)
-        return jnp.concatenate([q_next, v_next]), info
+        x_next = jnp.concatenate([q_next, v_next])
+        diverged = ~jnp.all(jnp.isfinite(x_next)) | ~(jnp.max(jnp.abs(v_next)) * self.time_step <= self.max_motion_per_step)
+        info = StepInfo(distance=distance, impulse=impulse, ncp=ncp, torque_clipped=clipped, diverged=diverged)
+        return x_next, info
+
+    def damping(self) -> Array:
+        """The joint damping ``(nv,)`` (zeros when :attr:`joint_damping` is ``None``)."""
+        if self.joint_damping is None:
+            return jnp.zeros(self.model.nv, self.time_step.dtype)
+        return self.joint_damping
 
     def contact_friction(self) -> Array:
         """Coulomb coefficient of every candidate contact, ``(n,)`` (order of :meth:`contacts`)."""
@@ -384,8 +415,10 @@ class RigidBodySystem(eqx.Module):
         model, h = self.model, self.time_step
         kinematics = _dynamics._kinematics(model, q)
         inertias = _dynamics._world_inertias(model, kinematics)
-        mass = _dynamics._crba(model, kinematics, inertias) + jnp.diag(model.armature)
-        bias = _dynamics._rnea(model, kinematics, inertias, v, None, model.gravity)
+        damping = self.damping()
+        # W = M + h D: the damping force D v+ is implicit (see the module docstring)
+        mass = _dynamics._crba(model, kinematics, inertias) + jnp.diag(model.armature + h * damping)
+        bias = _dynamics._rnea(model, kinematics, inertias, v, None, model.gravity) + damping * v
         tau, clipped = self.generalized_forces(q, u, kinematics)
         factor = jax.scipy.linalg.cho_factor(mass, lower=True)
         v_free = v + h * jax.scipy.linalg.cho_solve(factor, tau - bias)
@@ -448,18 +481,26 @@ class RigidBodySystem(eqx.Module):
 
     def rollout(self, x0: ArrayLike, us: ArrayLike) -> tuple[Array, StepInfo]:
         """States ``(T + 1, nx)`` from ``x0`` under inputs ``us`` ``(T, nu)``, warm-starting
-        each contact solve from the previous impulses, and the per-step diagnostics."""
+        each contact solve from the previous impulses, and the per-step diagnostics.
+
+        From the first step whose ``info.diverged`` is set, the state is held at the last
+        valid one (and ``diverged`` stays set), so a diverging sample of a batch stays
+        finite instead of turning into NaN (or a runtime error) several steps later."""
         x0, us = jnp.asarray(x0), jnp.asarray(us)
         if us.ndim != 2 or us.shape[1] != self.nu:
             raise ValueError(f"us must have shape (T, nu) = (T, {self.nu}), got {us.shape}")
 
         def body(carry, u):
-            x, impulse = carry
+            x, impulse, diverged = carry
             x_next, info = self.step_with_info(x, u, warm_start=impulse if isinstance(self.contact, str) else None)
-            return (x_next, info.impulse), (x_next, info)
+            diverged = diverged | info.diverged
+            x_next = jnp.where(diverged, x, x_next)
+            impulse_next = jnp.where(diverged, impulse, info.impulse)
+            info = eqx.tree_at(lambda i: i.diverged, info, diverged)
+            return (x_next, impulse_next, diverged), (x_next, info)
 
         impulse0 = jnp.zeros(3 * self.num_contacts, jnp.result_type(x0, float))
-        _, (xs, infos) = jax.lax.scan(body, (x0, impulse0), us)
+        _, (xs, infos) = jax.lax.scan(body, (x0, impulse0, jnp.zeros((), bool)), us)
         return jnp.concatenate([x0[None], xs]), infos
 
 
@@ -508,6 +549,7 @@ def _step_residuals(update: _VelocityUpdate):
         inverse_dynamics = (
             _dynamics._rnea(model, kinematics, inertias, v, acceleration, model.gravity)
             + model.armature * acceleration
+            + system.damping() * v_next  # implicit damping: dE/dv+ = M + h D, the factored W
         )
         tau, _ = system.generalized_forces(q, u, kinematics)
         distance, _, jacobian = system.contacts(q, kinematics)

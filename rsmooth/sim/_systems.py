@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import itertools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -18,8 +19,10 @@ from rsmooth.sim._model import FREE_FLYER, PRISMATIC, UNIVERSE, Model, free_body
 from rsmooth.sim._simulator import ContactLaw, RigidBodySystem, _point_jacobian
 
 __all__ = [
+    "SOLO12_ARMATURE",
     "SOLO12_FEET",
     "SOLO12_FOOT_RADIUS",
+    "SOLO12_JOINT_DAMPING",
     "SOLO12_TORQUE_LIMIT",
     "ball_wall",
     "cube",
@@ -43,6 +46,18 @@ SOLO12_FOOT_RADIUS = 0.019
 # "An open torque-controlled modular robot architecture for legged locomotion research",
 # IEEE RA-L 2020. The URDF's 1000 N m are placeholders.
 SOLO12_TORQUE_LIMIT = 2.7
+# Rotor inertia reflected through the 9:1 transmission, I_rotor N^2 = 4.5e-6 kg m^2 x 81: the
+# values ODRI's robot_properties_solo sets on its Pinocchio model (config.py, Solo12Config:
+# motor_inertia = 0.0000045, motor_gear_ration = 9.0); the 9:1 dual-stage belt reduction is
+# that of the ODRI actuator module (open_robot_actuator_hardware, actuator_module_v1). The URDF
+# has none. It is 0.67 of the knee's own inertia about its axis (5.4e-4 kg m^2 standing).
+SOLO12_ARMATURE = 4.5e-6 * 9.0**2
+# Viscous joint damping (N m s/rad). NOT identified on the hardware: the smallest round value
+# with which open-loop random torques (up to the torque limit) never made the 10 ms step
+# diverge in our trials (0.003 still diverged in 4 of 15). It is small next to the damping
+# of a voltage-driven motor, (Kt N)^2 / R = (0.025 x 9)^2 / 0.23 = 0.22 N m s/rad, and gives
+# 0.27 N m (10% of the torque limit) at 27 rad/s.
+SOLO12_JOINT_DAMPING = 0.01
 
 
 def _as_contact(contact: ContactLaw | str, friction: float) -> ContactLaw:
@@ -310,6 +325,8 @@ def solo12(
     baumgarte: float = 0.2,
     torque_limit: float = SOLO12_TORQUE_LIMIT,
     model: Model | None = None,
+    armature: float = SOLO12_ARMATURE,
+    joint_damping: float = SOLO12_JOINT_DAMPING,
 ) -> RigidBodySystem:
     """The Solo-12 quadruped (18 dofs) with spherical feet on the floor and joint torques.
 
@@ -328,6 +345,11 @@ def solo12(
         baumgarte: penetration correction rate (hard contact).
         torque_limit: joint torque bound (N m).
         model: an already loaded Solo-12 model (default: loaded from the URDF).
+        armature: reflected rotor inertia of each of the 12 joints (kg m^2), set on the
+            model (:data:`SOLO12_ARMATURE`; the URDF has none).
+        joint_damping: viscous damping of each of the 12 joints (N m s/rad), implicit
+            (:data:`SOLO12_JOINT_DAMPING`). With neither, open-loop torques spin a lifted
+            lower leg up without bound and the 10 ms step diverges within a second.
 
     Returns:
         The system; :func:`solo12_standing_state` and :func:`solo12_standing_torques` give a
@@ -335,6 +357,9 @@ def solo12(
     """
     if model is None:
         model = load_urdf(solo12_urdf_path())
+    if armature < 0 or joint_damping < 0:
+        raise ValueError(f"armature and joint_damping must be non-negative, got {armature} and {joint_damping}")
+    model = eqx.tree_at(lambda m: m.armature, model, model.armature.at[6:].set(float(armature)))
     feet = tuple(model.frame_id(name) for name in SOLO12_FEET)
     normals, offsets, mu = _planes([FLOOR], friction)
     return RigidBodySystem(
@@ -354,6 +379,7 @@ def solo12(
         wrench_frame=0,
         wrench_components=(),
         input_limit=jnp.full(model.nv - 6, float(torque_limit)),
+        joint_damping=jnp.zeros(model.nv).at[6:].set(float(joint_damping)),
     )
 
 

@@ -3,6 +3,7 @@ implicit gradients against finite differences, Solo-12 standing, bad input."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
@@ -193,6 +194,66 @@ def test_solo12_stands_still_under_gravity_compensation():
     assert float(xs[-1, 2]) < float(x0[2]) - 0.02
 
 
+def test_solo12_under_random_open_loop_torques_stays_finite():
+    """Open-loop torques (standing torques plus uniform noise of +-0.3 N m, fresh every step)
+    make Solo fall: a physical outcome. With the rotor inertia and the implicit joint damping
+    the fall stays finite and the contact solves converge; without them (the bare URDF) a
+    lifted lower leg spins up until semi-implicit Euler creates energy: the step is then
+    flagged as diverged, and the rollout held, before any value turns non-finite."""
+    import equinox as eqx
+
+    solo = _solo()
+    bare = sim.solo12(armature=0.0, joint_damping=0.0, model=solo.model)
+    x0 = sim.solo12_standing_state(solo)
+    standing = sim.solo12_standing_torques(solo, x0)
+    noise = jax.random.uniform(jax.random.key(0), (3, 300, 12), minval=-0.3, maxval=0.3)
+    rollout = eqx.filter_jit(lambda system, us: jax.vmap(lambda u: system.rollout(x0, u))(us))
+    us = standing[None, None] + noise
+    xs, infos = rollout(solo, us)
+    assert bool(jnp.all(jnp.isfinite(xs)))
+    assert not bool(jnp.any(infos.diverged))
+    assert float(jnp.mean(infos.ncp.converged)) > 0.99
+    assert float(jnp.min(xs[:, -1, 2])) < float(x0[2]) - 0.05  # it did fall
+    xs, infos = rollout(bare, us)
+    assert bool(jnp.all(jnp.isfinite(xs)))  # held at the last valid state, not NaN
+    assert bool(jnp.all(infos.diverged[:, -1]))  # every run left the valid range...
+    first = jnp.argmax(infos.diverged, axis=1)
+    assert bool(jnp.all(first > 10))  # ...after the fall started, not at once
+    held = xs[jnp.arange(3), first + 1]
+    np.testing.assert_array_equal(xs[:, -1], held)
+
+
+def test_joint_damping_is_implicit_and_dissipates():
+    """A free-floating Solo (no gravity, far from the floor) with spinning joints: damping
+    removes kinetic energy (below the undamped run at every step, which itself drifts only by
+    the integrator's error), and at a huge damping the implicit step stops the joints within
+    a step instead of reversing them (an explicit ``D v`` would overshoot once h d / I > 2)."""
+    solo = _solo()
+    x0 = sim.solo12_standing_state(solo).at[2].add(1.0)  # one metre up: no contact
+    nq = solo.model.nq
+    x0 = x0.at[nq + 6 :].set(5.0)
+    free = dataclasses.replace(solo, model=dataclasses.replace(solo.model, gravity=jnp.zeros(3)))
+    undamped = dataclasses.replace(free, joint_damping=None)
+    heavy = dataclasses.replace(free, joint_damping=free.damping() * 1e4)
+    us = jnp.zeros((20, 12))
+
+    def energies(system):
+        xs, infos = _rollout(system, x0, us)
+        assert not bool(jnp.any(infos.diverged))
+        return xs, jax.vmap(lambda x: sim.energy(system, x))(xs)
+
+    _, e_undamped = energies(undamped)
+    _, e_damped = energies(free)
+    xs, e_heavy = energies(heavy)
+    np.testing.assert_allclose(e_undamped, e_undamped[0], rtol=0.03)  # semi-implicit Euler drift
+    assert bool(jnp.all(e_damped[1:] < e_undamped[1:] - 1e-3))
+    assert bool(jnp.all(jnp.diff(e_damped) < 0))
+    assert float(e_heavy[1]) < 0.5 * float(e_damped[1])
+    joint_speeds = xs[1:, nq + 6 :]
+    assert float(jnp.min(joint_speeds[0])) >= 0.0  # the first step did not reverse them
+    assert float(jnp.max(jnp.abs(joint_speeds))) < 0.05  # stopped at once, and stay stopped
+
+
 def test_torques_are_clipped_and_reported():
     solo = _solo()
     x0 = sim.solo12_standing_state(solo)
@@ -228,6 +289,10 @@ def test_bad_input_is_named():
         sim.cube(contact="springy")
     with pytest.raises(ValueError, match="side must be positive"):
         sim.cube(side=-1.0)
+    with pytest.raises(ValueError, match="joint_damping must be non-negative"):
+        sim.solo12(joint_damping=-0.1, model=_solo().model)
+    with pytest.raises(ValueError, match=r"joint_damping must have shape \(6,\)"):
+        dataclasses.replace(cube, joint_damping=jnp.ones(3))
     # Under jit a NaN state is caught at run time, with the same message.
     with pytest.raises(Exception, match="NaN"):
         jax.jit(lambda a: cube.step(a, jnp.zeros(6)))(rest.at[0].set(jnp.nan)).block_until_ready()
