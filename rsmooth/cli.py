@@ -106,6 +106,7 @@ _SOLO12 = _Experiment("solo12", "solo12_sim", "sim solo12", lambda metrics: {
     "base drift (m)": f"{metrics['base_drift']:.2e}",
     "max foot slip (m)": f"{metrics['max_foot_slip']:.2e}",
     "contact solves converged": f"{100 * metrics['ncp_converged_fraction']:.1f} %",
+    "diverged steps": metrics["diverged_steps"],
 })
 
 
@@ -184,10 +185,15 @@ def sim_solo12(
     quick: bool = QuickOption,
     torques: str = typer.Option("standing", "--torques", help="standing or random."),
     steps: Optional[int] = typer.Option(None, "--steps", min=1, help="Time steps of 10 ms (default 200, quick 100)."),
+    random_scale: Optional[float] = typer.Option(
+        None, "--random-scale", min=0.0, help="Amplitude of the random torques, N m (default 0.1)."),
+    open_loop: bool = typer.Option(
+        False, "--open-loop", help="No posture PD under random torques: the robot falls (default: PD on)."),
 ):
     if torques not in ("standing", "random"):
         raise typer.BadParameter(f"--torques must be 'standing' or 'random', got {torques!r}")
-    _run(_SOLO12, out, seed, quick, torques=torques, steps=steps)
+    gains = dict(stiffness=0.0, damping=0.0) if open_loop else {}
+    _run(_SOLO12, out, seed, quick, torques=torques, steps=steps, random_scale=random_scale, **gains)
 
 
 @render_app.command("pose", help=_doc(

@@ -4,9 +4,11 @@
 hold still. ``random`` adds uniform random torques (a fresh draw every ``hold`` steps) to them
 and to a joint PD controller that holds the standing posture: the robot shakes, feet may slip
 or leave the floor, and the simulation must stay sane (contact solver converged, no
-penetration). The PD term is there because a standing robot under open-loop random torques
-drifts until its legs fold and spin (tens of rad/s within a second), which no fixed-step
-simulator integrates meaningfully at 10 ms. The animation is a stick figure drawn with matplotlib.
+penetration, no diverged step). The PD term keeps the robot up, so the animation shows it
+shaking rather than falling; with ``stiffness = damping = 0`` the torques are open loop and
+the robot falls, which the simulator integrates too (the model's rotor inertia and joint
+damping keep the lifted legs from spinning up, see :func:`rsmooth.sim.solo12`). The
+animation is a stick figure drawn with matplotlib.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import dataclasses
 import time
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -26,7 +29,8 @@ METRICS_DOC = """metrics.json keys: torques ('standing' or 'random'), steps, tim
 base_height_initial, base_height_final, base_height_min, base_drift (|final - initial base
 position|, m), max_foot_slip (largest horizontal foot displacement, m), min_foot_distance
 (signed distance of the lowest foot, m: penetration if negative), ncp_converged_fraction,
-ncp_max_iterations, torque_clipped_steps, wall_time_s (compile included)."""
+ncp_max_iterations, torque_clipped_steps, diverged_steps (steps flagged by StepInfo.diverged;
+the state is held from the first one on), wall_time_s (compile included)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,6 +50,8 @@ class Config:
     def __post_init__(self):
         if self.torques not in ("standing", "random"):
             raise ValueError(f"torques must be 'standing' or 'random', got {self.torques!r}")
+        if self.stiffness < 0 or self.damping < 0:
+            raise ValueError(f"stiffness and damping must be non-negative, got {self.stiffness} and {self.damping}")
         if self.steps < 1:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
 
@@ -107,14 +113,17 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     @jax.jit
     def simulate(x0, perturbations):
         def body(carry, perturbation):
-            x, impulse = carry
+            x, impulse, diverged = carry
             q, v = system.split(x)
             u = standing + gains[0] * (posture - q[7:]) - gains[1] * v[6:] + perturbation
             x_next, info = system.step_with_info(x, u, warm_start=impulse)
-            return (x_next, info.impulse), (x_next, info)
+            diverged = diverged | info.diverged  # as RigidBodySystem.rollout: hold the state
+            x_next = jnp.where(diverged, x, x_next)
+            info = eqx.tree_at(lambda i: i.diverged, info, diverged)
+            return (x_next, info.impulse, diverged), (x_next, info)
 
         impulse0 = jnp.zeros(3 * system.num_contacts)
-        _, (xs, infos) = jax.lax.scan(body, (x0, impulse0), perturbations)
+        _, (xs, infos) = jax.lax.scan(body, (x0, impulse0, jnp.zeros((), bool)), perturbations)
         return jnp.concatenate([x0[None], xs]), infos
 
     xs, infos = simulate(x0, perturbations)
@@ -137,6 +146,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "ncp_converged_fraction": float(np.mean(np.asarray(infos.ncp.converged))),
         "ncp_max_iterations": int(np.max(np.asarray(infos.ncp.iterations))),
         "torque_clipped_steps": int(np.sum(np.asarray(infos.torque_clipped))),
+        "diverged_steps": int(np.sum(np.asarray(infos.diverged))),
     }
     times = np.arange(config.steps + 1) * dt
     fig, (ax_base, ax_feet) = viz.plt.subplots(1, 2, figsize=(11, 3.6))

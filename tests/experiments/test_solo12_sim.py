@@ -17,3 +17,13 @@ def test_solo12_standing_and_random(tmp_path, getkey):
     for folder in ("standing", "random"):
         assert json.loads((tmp_path / folder / "metrics.json").read_text())["steps"] == 30
         assert (tmp_path / folder / "solo12.gif").stat().st_size > 1000
+
+
+def test_solo12_falls_under_open_loop_random_torques_without_diverging(tmp_path, getkey):
+    """No posture controller, torques of +-0.5 N m around the standing ones for 1.5 s: the
+    robot falls (a physical outcome) and every step stays valid."""
+    config = solo12_sim.Config(torques="random", steps=150, frames=2, random_scale=0.5, stiffness=0.0, damping=0.0)
+    fallen = solo12_sim.run(config, tmp_path, getkey(), progress=False)
+    assert fallen["base_height_min"] < fallen["base_height_initial"] - 0.05
+    assert fallen["diverged_steps"] == 0
+    assert fallen["ncp_converged_fraction"] > 0.95
