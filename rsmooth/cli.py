@@ -103,7 +103,7 @@ _NULL_GRADIENTS = _Experiment("null-gradients", "null_gradients", "null-gradient
 })
 
 _SOLO12 = _Experiment("solo12", "solo12_sim", "sim solo12", lambda metrics: {
-    "base drift (m)": f"{metrics['base_drift']:.2e}",
+    "base drift (m)": f"{metrics['base_drift']:.2e} (height {metrics['base_height_drift']:.2e})",
     "max foot slip (m)": f"{metrics['max_foot_slip']:.2e}",
     "contact solves converged": f"{100 * metrics['ncp_converged_fraction']:.1f} %",
     "diverged steps": metrics["diverged_steps"],
@@ -189,11 +189,14 @@ def sim_solo12(
         None, "--random-scale", min=0.0, help="Amplitude of the random torques, N m (default 0.1)."),
     open_loop: bool = typer.Option(
         False, "--open-loop", help="No posture PD under random torques: the robot falls (default: PD on)."),
+    body_contacts: bool = typer.Option(
+        True, "--body-contacts/--feet-only", help="Whether the base and knees collide with the floor too."),
 ):
     if torques not in ("standing", "random"):
         raise typer.BadParameter(f"--torques must be 'standing' or 'random', got {torques!r}")
     gains = dict(stiffness=0.0, damping=0.0) if open_loop else {}
-    _run(_SOLO12, out, seed, quick, torques=torques, steps=steps, random_scale=random_scale, **gains)
+    _run(_SOLO12, out, seed, quick, torques=torques, steps=steps, random_scale=random_scale,
+         body_contacts=body_contacts, **gains)
 
 
 @render_app.command("pose", help=_doc(

@@ -1,10 +1,15 @@
 """Experiment: simulate Solo-12 with hard frictional contact and write an animation.
 
 ``standing`` applies the gravity-compensating torques of the standing posture: the robot must
-hold still. ``random`` adds uniform random torques (a fresh draw every ``hold`` steps) to them
+hold still. Under constant torques that posture is an unstable equilibrium (bending a knee
+lengthens gravity's lever arm while the torque stays the same): errors at the contact solver's
+tolerance (1e-10) grow by about 10^4 per second, so the robot stands for about 2 s (200 steps:
+base height drift ~3e-7 m, foot slip ~3e-4 m with body contacts, 1e-8 m feet only) and
+collapses within 3-4 s; standing longer needs feedback, as on the real robot. ``random`` adds uniform random torques (a fresh draw every ``hold`` steps) to them
 and to a joint PD controller that holds the standing posture: the robot shakes, feet may slip
 or leave the floor, and the simulation must stay sane (contact solver converged, no
-penetration, no diverged step). The PD term keeps the robot up, so the animation shows it
+penetration, no diverged step). The base and the knees collide with the floor as well (unless
+``body_contacts`` is off). The PD term keeps the robot up, so the animation shows it
 shaking rather than falling; with ``stiffness = damping = 0`` the torques are open loop and
 the robot falls, which the simulator integrates too (the model's rotor inertia and joint
 damping keep the lifted legs from spinning up, see :func:`rsmooth.sim.solo12`). The
@@ -27,8 +32,9 @@ from rsmooth import sim, viz
 
 METRICS_DOC = """metrics.json keys: torques ('standing' or 'random'), steps, time_step,
 base_height_initial, base_height_final, base_height_min, base_drift (|final - initial base
-position|, m), max_foot_slip (largest horizontal foot displacement, m), min_foot_distance
-(signed distance of the lowest foot, m: penetration if negative), ncp_converged_fraction,
+position|, m), base_height_drift (|final - initial base height|, m), max_foot_slip (largest horizontal foot displacement, m), min_foot_distance
+(signed distance of the lowest foot, m: penetration if negative), min_body_distance (the same for
+the base and knee spheres; null without body contacts), ncp_converged_fraction,
 ncp_max_iterations, torque_clipped_steps, diverged_steps (steps flagged by StepInfo.diverged;
 the state is held from the first one on), wall_time_s (compile included)."""
 
@@ -42,6 +48,7 @@ class Config:
     stiffness: float = 1.0  # N m / rad, PD gains of the posture controller (random torques)
     damping: float = 0.02  # N m s / rad
     frames: int = 50
+    body_contacts: bool = True  # base and knees collide with the floor too (sim.solo12)
 
     @classmethod
     def quick(cls, **changes) -> "Config":
@@ -97,7 +104,7 @@ def stick_figure(system, x, title: str) -> np.ndarray:
 def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     """Simulates, writes metrics.json, solo12.png and solo12.gif under `out`."""
     start = time.perf_counter()
-    system = sim.solo12()
+    system = sim.solo12(body_contacts=config.body_contacts)
     x0 = sim.solo12_standing_state(system)
     standing = sim.solo12_standing_torques(system, x0)
     perturbations = jnp.zeros((config.steps, system.nu))
@@ -141,8 +148,10 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "base_height_final": float(xs[-1, 2]),
         "base_height_min": float(jnp.min(xs[:, 2])),
         "base_drift": float(jnp.linalg.norm(xs[-1, :3] - xs[0, :3])),
+        "base_height_drift": float(jnp.abs(xs[-1, 2] - xs[0, 2])),
         "max_foot_slip": float(slip),
-        "min_foot_distance": float(distances.min()),
+        "min_foot_distance": float(distances[:, :4].min()),
+        "min_body_distance": float(distances[:, 4:].min()) if config.body_contacts else None,
         "ncp_converged_fraction": float(np.mean(np.asarray(infos.ncp.converged))),
         "ncp_max_iterations": int(np.max(np.asarray(infos.ncp.iterations))),
         "torque_clipped_steps": int(np.sum(np.asarray(infos.torque_clipped))),

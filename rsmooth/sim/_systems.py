@@ -20,6 +20,8 @@ from rsmooth.sim._simulator import ContactLaw, RigidBodySystem, _point_jacobian
 
 __all__ = [
     "SOLO12_ARMATURE",
+    "SOLO12_BASE_HALF_EXTENTS",
+    "SOLO12_KNEE_RADIUS",
     "SOLO12_FEET",
     "SOLO12_FOOT_RADIUS",
     "SOLO12_JOINT_DAMPING",
@@ -42,6 +44,16 @@ SOLO12_FEET = ("FL_FOOT", "FR_FOOT", "HL_FOOT", "HR_FOOT")
 # foot centres above the floor in the SRDF's standing posture, i.e. the foot radius for which
 # that posture just touches the floor.
 SOLO12_FOOT_RADIUS = 0.019
+# Body collision spheres (``solo12(body_contacts=True)``), from the bounding boxes of the URDF's
+# collision meshes (example-robot-data, meshes/stl): the base (solo_12_base.stl) spans
+# [-0.2241, 0.2241] x [-0.1095, 0.1095] x [-0.025, 0.028] m in base_link; four spheres of its
+# half thickness at its corners, inset by that radius, touch the floor where its bottom edges
+# would. Each knee gets a sphere at the KFE axis whose radius reaches the end of the upper leg
+# below the axis (solo_upper_leg_*.stl ends 0.022 m past it) and covers the lower leg's width.
+SOLO12_BASE_HALF_EXTENTS = (0.2241, 0.1095, 0.0265)
+SOLO12_BASE_CENTRE_Z = 0.0015
+SOLO12_KNEE_RADIUS = 0.022
+SOLO12_KNEES = ("FL_KFE", "FR_KFE", "HL_KFE", "HR_KFE")
 # Peak joint torque of Solo-12's actuators (0.025 N m/A x 9:1 gear x 12 A): Grimminger et al.,
 # "An open torque-controlled modular robot architecture for legged locomotion research",
 # IEEE RA-L 2020. The URDF's 1000 N m are placeholders.
@@ -327,6 +339,7 @@ def solo12(
     model: Model | None = None,
     armature: float = SOLO12_ARMATURE,
     joint_damping: float = SOLO12_JOINT_DAMPING,
+    body_contacts: bool = False,
 ) -> RigidBodySystem:
     """The Solo-12 quadruped (18 dofs) with spherical feet on the floor and joint torques.
 
@@ -334,8 +347,10 @@ def solo12(
     base): ``nx = 19 + 18 = 37``, ``nu = 12`` joint torques ordered as the URDF's joints
     (``FL_HAA, FL_HFE, FL_KFE, FR_..., HL_..., HR_...``), clipped to ``+-torque_limit``
     (reported in the step's diagnostics). Feet are spheres of radius
-    :data:`SOLO12_FOOT_RADIUS` at the ``*_FOOT`` frames; the rest of the robot does not
-    collide.
+    :data:`SOLO12_FOOT_RADIUS` at the ``*_FOOT`` frames (contacts 0-3); with
+    ``body_contacts`` the base (four spheres at its corners) and the knees (a sphere each) also
+    collide with the floor (contacts 4-11: base, then knees), so that a fallen robot lies on
+    the floor instead of passing through it; without, the rest of the robot does not collide.
 
     Args:
         friction: Coulomb coefficient of the floor.
@@ -350,6 +365,8 @@ def solo12(
         joint_damping: viscous damping of each of the 12 joints (N m s/rad), implicit
             (:data:`SOLO12_JOINT_DAMPING`). With neither, open-loop torques spin a lifted
             lower leg up without bound and the 10 ms step diverges within a second.
+        body_contacts: whether the base and the knees collide too (8 more contacts, each
+            solved in every step: costlier, and not needed while the robot stands).
 
     Returns:
         The system; :func:`solo12_standing_state` and :func:`solo12_standing_torques` give a
@@ -360,13 +377,25 @@ def solo12(
     if armature < 0 or joint_damping < 0:
         raise ValueError(f"armature and joint_damping must be non-negative, got {armature} and {joint_damping}")
     model = eqx.tree_at(lambda m: m.armature, model, model.armature.at[6:].set(float(armature)))
-    feet = tuple(model.frame_id(name) for name in SOLO12_FEET)
+    frames = [model.frame_id(name) for name in SOLO12_FEET]
+    centres = [np.zeros(3)] * 4
+    radii = [SOLO12_FOOT_RADIUS] * 4
+    if body_contacts:
+        hx, hy, radius = SOLO12_BASE_HALF_EXTENTS
+        for sx, sy in itertools.product((1.0, -1.0), repeat=2):
+            frames.append(model.frame_id("base_link"))
+            centres.append(np.array([sx * (hx - radius), sy * (hy - radius), SOLO12_BASE_CENTRE_Z]))
+            radii.append(radius)
+        for name in SOLO12_KNEES:
+            frames.append(model.frame_id(name))
+            centres.append(np.zeros(3))
+            radii.append(SOLO12_KNEE_RADIUS)
     normals, offsets, mu = _planes([FLOOR], friction)
     return RigidBodySystem(
         model=model,
-        sphere_frames=feet,
-        sphere_offsets=jnp.zeros((4, 3)),
-        sphere_radii=jnp.full(4, SOLO12_FOOT_RADIUS),
+        sphere_frames=tuple(frames),
+        sphere_offsets=jnp.asarray(np.stack(centres)),
+        sphere_radii=jnp.asarray(radii),
         plane_normals=normals,
         plane_offsets=offsets,
         friction=mu,
@@ -421,7 +450,7 @@ def solo12_standing_torques(system: RigidBodySystem, x: jax.Array) -> jax.Array:
     gravity = _dynamics.gravity_torques(model, q)
     kinematics = _dynamics._kinematics(model, q)
     foot_jacobians = []
-    for frame in system.sphere_frames:
+    for frame in system.sphere_frames[: len(SOLO12_FEET)]:  # the feet come first
         _, translation = _dynamics._frame_placement(model, kinematics.rotation, kinematics.translation, frame)
         contact_point = translation - jnp.array([0.0, 0.0, SOLO12_FOOT_RADIUS])
         foot_jacobians.append(_point_jacobian(model, kinematics, model.frame_parents[frame], contact_point))

@@ -8,6 +8,7 @@ from rsmooth.experiments import solo12_sim
 def test_solo12_standing_and_random(tmp_path, getkey):
     standing = solo12_sim.run(solo12_sim.Config(steps=30, frames=3), tmp_path / "standing", getkey(), progress=False)
     assert standing["base_drift"] < 1e-6 and standing["max_foot_slip"] < 1e-6
+    assert standing["base_height_drift"] <= standing["base_drift"]
     assert standing["ncp_converged_fraction"] == 1.0
     config = solo12_sim.Config(torques="random", steps=30, frames=3)
     shaken = solo12_sim.run(config, tmp_path / "random", getkey(), progress=False)
@@ -21,9 +22,11 @@ def test_solo12_standing_and_random(tmp_path, getkey):
 
 def test_solo12_falls_under_open_loop_random_torques_without_diverging(tmp_path, getkey):
     """No posture controller, torques of +-0.5 N m around the standing ones for 1.5 s: the
-    robot falls (a physical outcome) and every step stays valid."""
+    robot falls (a physical outcome), every step stays valid, and its base and knees land on
+    the floor instead of passing through it (without body contacts the base sinks 0.25 m)."""
     config = solo12_sim.Config(torques="random", steps=150, frames=2, random_scale=0.5, stiffness=0.0, damping=0.0)
     fallen = solo12_sim.run(config, tmp_path, getkey(), progress=False)
     assert fallen["base_height_min"] < fallen["base_height_initial"] - 0.05
     assert fallen["diverged_steps"] == 0
     assert fallen["ncp_converged_fraction"] > 0.95
+    assert fallen["min_body_distance"] > -0.02

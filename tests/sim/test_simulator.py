@@ -254,6 +254,32 @@ def test_joint_damping_is_implicit_and_dissipates():
     assert float(jnp.max(jnp.abs(joint_speeds))) < 0.05  # stopped at once, and stay stopped
 
 
+def test_solo12_body_spheres_lie_within_the_urdf_collision_meshes():
+    """The base and knee spheres of ``solo12(body_contacts=True)`` are taken from the bounding
+    boxes of the URDF's collision meshes: every sphere stays inside the box of the mesh of its
+    body, and the base spheres reach its bottom face."""
+    import trimesh
+
+    meshes = sim.example_robot_data_root() / "robots" / "solo_description" / "meshes" / "stl"
+    base = trimesh.load(meshes / "solo12" / "solo_12_base.stl").bounds
+    solo = sim.solo12(body_contacts=True, model=_solo().model)
+    assert solo.num_contacts == 12
+    centres, radii = np.asarray(solo.sphere_offsets[4:8]), np.asarray(solo.sphere_radii[4:8])
+    mm = 1e-4  # the constants are rounded to 0.1 mm
+    assert np.all(centres - radii[:, None] >= base[0] - mm) and np.all(centres + radii[:, None] <= base[1] + mm)
+    np.testing.assert_allclose(centres[:, 2] - radii, np.full(4, base[0, 2]), atol=mm)
+    np.testing.assert_allclose(np.abs(centres[:, :2]) + radii[:, None], np.tile(base[1, :2], (4, 1)), atol=mm)
+    # The knee sphere covers the lower leg's width at the knee and the upper leg's end.
+    lower = trimesh.load(meshes / "with_foot" / "solo_lower_leg_left_side.stl").bounds
+    assert sim.SOLO12_KNEE_RADIUS >= max(np.abs(lower[:, 0]).max(), lower[1, 2])
+    # Standing, only the feet touch; the standing torques still hold the robot.
+    x0 = sim.solo12_standing_state(solo)
+    distance, _, _ = solo.contacts(solo.split(x0)[0])
+    np.testing.assert_allclose(distance[:4], 0.0, atol=1e-12)
+    assert float(jnp.min(distance[4:])) > 0.05
+    np.testing.assert_allclose(sim.solo12_standing_torques(solo, x0), sim.solo12_standing_torques(_solo(), x0), atol=1e-12)
+
+
 def test_torques_are_clipped_and_reported():
     solo = _solo()
     x0 = sim.solo12_standing_state(solo)
