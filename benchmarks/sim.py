@@ -44,7 +44,8 @@ FRICTION = 0.7
 
 def mujoco_solo12():
     """Solo-12 in MuJoCo: the URDF with package:// paths rewritten, a free joint on the base, a
-    floor, foot spheres at the foot bodies (the only colliding pairs: feet vs floor), 12 motors."""
+    floor, foot spheres at the foot bodies (the only colliding pairs: feet vs floor), 12 motors,
+    the rotor inertia and joint damping of :func:`rsmooth.sim.solo12` on the 12 hinges."""
     import mujoco
 
     urdf_path = sim.solo12_urdf_path()
@@ -75,6 +76,10 @@ def mujoco_solo12():
         foot.conaffinity = 0
         foot.friction = [FRICTION, 0.005, 0.0001]
     joints = [j.name for j in spec.joints if j.type == mujoco.mjtJoint.mjJNT_HINGE]
+    for joint in spec.joints:  # the same rotor inertia and joint damping as sim.solo12()
+        if joint.type == mujoco.mjtJoint.mjJNT_HINGE:
+            joint.armature = sim.SOLO12_ARMATURE
+            joint.damping = [sim.SOLO12_JOINT_DAMPING, 0.0, 0.0]  # MuJoCo 4 takes 3 numbers; the first is the linear damping
     for name in joints:
         motor = spec.add_actuator()
         motor.name = name + "_motor"
@@ -182,6 +187,11 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0) ->
     reference = dataclasses.replace(system, derivative="autodiff")
     jac_autodiff = jax.jit(jax.jacfwd(lambda x, u: reference.step(x, u), argnums=(0, 1)))
     results["ours_jac_autodiff"] = median_time(jac_autodiff, x0, u0, repeats=repeats)
+    # what DDP and R-DDP call: the next state and both Jacobians from one contact solve
+    step_jac = jax.jit(lambda x, u: system.step_and_jacobians(x, u))
+    results["ours_step_jac"] = median_time(step_jac, x0, u0, repeats=repeats)
+    step_jac_batch = jax.jit(jax.vmap(lambda x, u: system.step_and_jacobians(x, u)))
+    results["ours_step_jac_batch"] = median_time(step_jac_batch, xs, us, repeats=max(3, repeats // 3)) / BATCH
     print("  (ours: step, vmapped step and Jacobian timed; probing vmap(jacfwd) in a subprocess)", flush=True)
 
     ok, message = probe_vmap_jacobian(PROBE_BATCH, probe_timeout)
@@ -296,6 +306,8 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0) ->
         ("ours: jacfwd(step) w.r.t. (x, u), batch 1", "ours_jac"),
         ("ours: jacfwd(step), derivative='autodiff' (reference), batch 1", "ours_jac_autodiff"),
         (f"ours: {jac_label}", "ours_jac_batch"),
+        ("ours: step_and_jacobians (next state, d/dx, d/du), batch 1", "ours_step_jac"),
+        (f"ours: vmap(step_and_jacobians), batch {BATCH}, per env", "ours_step_jac_batch"),
         ("MuJoCo: mj_step", "mj_step"),
         ("MuJoCo: mjd_transitionFD (forward, eps 1e-6)", "mjd_transitionFD"),
         (f"MuJoCo: rollout {BATCH} x 100 steps, 2 threads, per step", "mj_rollout"),
@@ -317,6 +329,8 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0) ->
         ("mjd_transitionFD / our Jacobian (batch 1)", ratio("mjd_transitionFD", "ours_jac"), ">= 5"),
         ("our autodiff-reference Jacobian / our implicit one", ratio("ours_jac_autodiff", "ours_jac"), ""),
         ("mjd_transitionFD / our Jacobian per env (batched)", ratio("mjd_transitionFD", "ours_jac_batch"), ">= 5"),
+        ("mjd_transitionFD / our step_and_jacobians (batch 1)", ratio("mjd_transitionFD", "ours_step_jac"), ">= 5"),
+        (f"mjd_transitionFD / vmap(step_and_jacobians) per env", ratio("mjd_transitionFD", "ours_step_jac_batch"), ">= 5"),
         ("MJX step / our step (batch 1)", ratio("mjx_step", "ours_step"), ""),
         (f"MJX step / our step (vmap {BATCH}, per env)", ratio("mjx_step_batch", "ours_step_batch"), ""),
     ]
