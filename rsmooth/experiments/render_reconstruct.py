@@ -24,7 +24,8 @@ shaded images, for each renderer:
 
 The targets (primitives, meshes shipped by the installed `example-robot-data` package, or
 files) are independent problems sharing the template and the cameras: their optimizations are
-batched with `jax.vmap`, and the views of each with a nested `jax.vmap`. The reconstructions
+batched with `jax.vmap` (spread over the devices when there are several, see
+:mod:`rsmooth.parallel`), and the views of each with a nested `jax.vmap`. The reconstructions
 are scored against the targets by 3D IoU (:func:`rsmooth.render.iou_3d`, voxelized) and the
 Chamfer distance of surface samples (:func:`rsmooth.render.chamfer_distance`).
 """
@@ -42,7 +43,7 @@ import numpy as np
 import optax
 from tqdm.auto import tqdm
 
-from rsmooth import noise, render, schedules, viz
+from rsmooth import noise, parallel, render, schedules, viz
 
 METRICS_DOC = """metrics.json keys: for each method (perturbed-gaussian, soft, hard), a dict keyed by
 target name holding iou_3d (voxelized IoU of the reconstruction with the target, on a
@@ -240,7 +241,8 @@ def make_solver(config: Config, method: str, template: render.Mesh, cams: render
         sched = schedule.update(sched, scale_grad) if adaptive else schedule.update(sched)
         return (offsets, opt_state, sched), loss, jnp.linalg.norm(data_grad)
 
-    return renderer, jax.vmap(init), jax.jit(jax.vmap(step))
+    # independent problems: one per device share when there are several (rsmooth.parallel)
+    return renderer, jax.vmap(init), jax.jit(parallel.vmap_samples(step))
 
 
 def _name(target: str) -> str:
