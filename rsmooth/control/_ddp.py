@@ -223,8 +223,8 @@ def _cost_derivatives(problem: ShootingProblem, xs: Array, us: Array):
     ts = jnp.arange(problem.horizon, dtype=jnp.int32)
     lx, lu = jax.vmap(gradient)(xs[:-1], us, ts)
     ((lxx, lxu), (_, luu)) = jax.vmap(hessian)(xs[:-1], us, ts)
-    lTx = jax.grad(problem.terminal_cost)(xs[-1])
-    lTxx = jax.hessian(problem.terminal_cost)(xs[-1])
+    lTx = jax.grad(problem.terminal_residual)(xs[-1])
+    lTxx = jax.hessian(problem.terminal_residual)(xs[-1])
     return lx, lu, lxx, lxu, luu, lTx, lTxx
 
 
@@ -238,7 +238,7 @@ def _residual_derivatives(problem: ShootingProblem, xs: Array, us: Array):
 
     ts = jnp.arange(problem.horizon, dtype=jnp.int32)
     lx, lu, lxx, lxu, luu = jax.vmap(node)(xs[:-1], us, ts)
-    terminal = lambda x: jnp.atleast_1d(problem.terminal_cost(x))  # noqa: E731
+    terminal = lambda x: jnp.atleast_1d(problem.terminal_residual(x))  # noqa: E731
     r, rx = terminal(xs[-1]), jax.jacfwd(terminal)(xs[-1])
     return lx, lu, lxx, lxu, luu, rx.T @ r, rx.T @ rx
 

@@ -54,6 +54,10 @@ class ShootingProblem(eqx.Module):
             run Box-DDP (Tassa, Mansard, Todorov, ICRA 2014).
         time_varying: the running cost takes the node index ``t`` (an int32 array, from 0 to
             ``T - 1``) as a third argument, e.g. to track a reference ``x_ref[t]``.
+        params: ``None``, or a pytree of arrays (targets, weights, references) that both
+            costs then take as their last argument: ``l(x, u[, t], params)`` and
+            ``l_T(x, params)``. Its arrays are traced, so problems that differ only in them
+            (another target, another foot) share one compiled solver step.
         residuals: the two cost functions return residual vectors ``r`` rather than scalars,
             and the cost of a node is ``0.5 * ||r||^2`` (Crocoddyl's residual
             models with a quadratic activation). The solvers then use the Gauss-Newton
@@ -64,7 +68,7 @@ class ShootingProblem(eqx.Module):
 
     The cost functions are static parts of the problem (compared by identity): define them
     once, not anew for every solve, so that later solves reuse the compiled solver step; the
-    arrays (``x0``, the limits, the arrays inside ``dynamics``) may change freely.
+    arrays (``x0``, the limits, ``params``, the arrays inside ``dynamics``) may change freely.
 
     Raises:
         ValueError: when ``x0`` has not the shape ``(nx,)`` or is not finite, when
@@ -94,6 +98,7 @@ class ShootingProblem(eqx.Module):
     time_varying: bool = eqx.field(static=True, default=False)
     residuals: bool = eqx.field(static=True, default=False)
     bounded: bool = eqx.field(static=True, default=False)
+    params: Any = None
 
     def __init__(
         self,
@@ -107,6 +112,7 @@ class ShootingProblem(eqx.Module):
         control_upper: ArrayLike | None = None,
         time_varying: bool = False,
         residuals: bool = False,
+        params: Any = None,
     ):
         for attribute in ("nx", "nu"):
             if not isinstance(getattr(dynamics, attribute, None), (int, np.integer)):
@@ -138,6 +144,7 @@ class ShootingProblem(eqx.Module):
         self.control_upper = upper
         self.time_varying = bool(time_varying)
         self.residuals = bool(residuals)
+        self.params = params
         # Whether some limit is finite (then the solvers solve box QPs); static, as it
         # changes the program.
         self.bounded = any(b is not None and bool(np.any(np.isfinite(np.asarray(b)))) for b in (lower, upper))
@@ -176,7 +183,12 @@ class ShootingProblem(eqx.Module):
 
     def running_residual(self, x: Array, u: Array, t: Array) -> Array:
         """What ``running_cost`` returns at node ``t`` (a residual vector with ``residuals``)."""
-        return self.running_cost(x, u, t) if self.time_varying else self.running_cost(x, u)
+        args = (x, u, t) if self.time_varying else (x, u)
+        return self.running_cost(*args) if self.params is None else self.running_cost(*args, self.params)
+
+    def terminal_residual(self, x: Array) -> Array:
+        """What ``terminal_cost`` returns (a residual vector with ``residuals``)."""
+        return self.terminal_cost(x) if self.params is None else self.terminal_cost(x, self.params)
 
     def running(self, x: Array, u: Array, t: Array) -> Array:
         """The running cost of node ``t`` (a scalar)."""
@@ -185,7 +197,7 @@ class ShootingProblem(eqx.Module):
 
     def terminal(self, x: Array) -> Array:
         """The terminal cost (a scalar)."""
-        value = self.terminal_cost(x)
+        value = self.terminal_residual(x)
         return 0.5 * jnp.sum(value**2) if self.residuals else value
 
     def cost(self, xs: Array, us: Array) -> Array:

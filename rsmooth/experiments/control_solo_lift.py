@@ -86,34 +86,54 @@ class Config:
         return _control.rddp_solver(self, self.torque_noise, state_noise)
 
 
+def _weight(weight: float) -> float:
+    return float(np.sqrt(2.0 * weight))  # 0.5 r^2 = weight * e^2
+
+
+def _running(x, u, params):
+    q, v = x[:19], x[19:]
+    q0, u0 = params["q0"], params["u0"]
+    return jnp.concatenate([
+        _weight(0.1) * (q[7:] - q0[7:]), _weight(10.0) * (q[:6] - q0[:6]), _weight(1e-3) * v, _weight(1e-2) * (u - u0)
+    ])
+
+
+def _terminal(x, params):
+    feet = sim.solo12_foot_positions(params["system"], x)
+    lifted, others = params["lifted"], params["others"]  # (4,) one-hot and (3, 4) selection
+    return jnp.concatenate([
+        _weight(1e3) * (lifted @ feet[:, 2:3] - params["target"]),
+        _weight(1e3) * (others @ (feet - params["feet0"])).reshape(-1),
+        _weight(10.0) * (x[:3] - params["q0"][:3]),
+        _weight(1e-3) * x[19:],
+    ])
+
+
 def build_problem(config: Config, system=None):
-    """The system, the shooting problem (residual costs, torque box) and the standing torques."""
+    """The system, the shooting problem (residual costs, torque box) and the standing torques.
+
+    The costs are defined once, here at module level, and the foot, the target height and the
+    standing posture are their traced ``params``: solving for another foot or height reuses
+    the compiled solver steps."""
     system = sim.solo12() if system is None else system
     x0 = sim.solo12_standing_state(system)
     u0 = sim.solo12_standing_torques(system, x0)
-    q0 = x0[:19]
     feet0 = sim.solo12_foot_positions(system, x0)
     lifted = FEET.index(config.foot)
-    others = np.array([i for i in range(4) if i != lifted])
-    target = feet0[lifted, 2] + config.height
-    w = lambda weight: float(np.sqrt(2.0 * weight))  # noqa: E731  (0.5 r^2 = weight * e^2)
-
-    def running(x, u):
-        q, v = x[:19], x[19:]
-        return jnp.concatenate([w(0.1) * (q[7:] - q0[7:]), w(10.0) * (q[:6] - q0[:6]), w(1e-3) * v, w(1e-2) * (u - u0)])
-
-    def terminal(x):
-        feet = sim.solo12_foot_positions(system, x)
-        return jnp.concatenate([
-            w(1e3) * (feet[lifted, 2:3] - target),
-            w(1e3) * (feet[others] - feet0[others]).reshape(-1),
-            w(10.0) * (x[:3] - q0[:3]),
-            w(1e-3) * x[19:],
-        ])
-
+    selection = jnp.eye(4, dtype=x0.dtype)
+    params = {
+        "system": system,
+        "q0": x0[:19],
+        "u0": u0,
+        "feet0": feet0,
+        "lifted": selection[lifted],
+        "others": selection[np.array([i for i in range(4) if i != lifted])],
+        "target": feet0[lifted, 2:3] + config.height,
+    }
     limit = system.input_limit
     problem = control.ShootingProblem(
-        system, running, terminal, x0, config.horizon, control_lower=-limit, control_upper=limit, residuals=True
+        system, _running, _terminal, x0, config.horizon, control_lower=-limit, control_upper=limit, residuals=True,
+        params=params,
     )
     return system, problem, u0
 

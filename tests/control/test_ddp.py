@@ -71,6 +71,58 @@ def test_step_is_compiled_once_and_runs_in_a_while_loop():
     np.testing.assert_allclose(state.trajectory.us, solution.us, rtol=1e-9, atol=1e-12)
 
 
+def test_cost_parameters_are_traced_and_share_one_compiled_step():
+    """Costs that take ``params`` (here a target state and a terminal weight): two problems
+    differing only in them reuse the compiled step, and each solve equals the one with the
+    values written into the cost (closures), in residual and in scalar form."""
+    reference, (A, B, Q, R, Qf) = linear_quadratic()
+    traces = []
+
+    def running(x, u, params):
+        traces.append("running")
+        return 0.5 * (x - params["target"]) @ (Q @ (x - params["target"])) + 0.5 * u @ (R @ u)
+
+    def terminal(x, params):
+        traces.append("terminal")
+        return 0.5 * params["weight"] * (x - params["target"]) @ (x - params["target"])
+
+    def with_params(target, weight):
+        params = {"target": jnp.asarray(target), "weight": jnp.asarray(weight)}
+        return control.ShootingProblem(reference.dynamics, running, terminal, reference.x0, reference.horizon, params=params)
+
+    def closed(target, weight):
+        return control.ShootingProblem(
+            reference.dynamics,
+            lambda x, u: 0.5 * (x - target) @ (Q @ (x - target)) + 0.5 * u @ (R @ u),
+            lambda x: 0.5 * weight * (x - target) @ (x - target),
+            reference.x0,
+            reference.horizon,
+        )
+
+    solver = control.DDP(reg_init=0.0)
+    first = control.ddp(with_params(np.zeros(4), 10.0), solver=solver)
+    count = len(traces)
+    target = np.array([1.0, -0.5, 0.2, 0.0])
+    second = control.ddp(with_params(target, 3.0), solver=solver)
+    assert len(traces) == count  # no new trace: the target and weight were traced
+    for solution, (t, w) in ((first, (np.zeros(4), 10.0)), (second, (target, 3.0))):
+        expected = control.ddp(closed(t, w), solver=solver)
+        assert solution.converged
+        np.testing.assert_allclose(solution.us, expected.us, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(solution.cost, expected.cost, rtol=1e-12)
+    # residual costs take params the same way
+    residual = control.ShootingProblem(
+        reference.dynamics,
+        lambda x, u, p: jnp.concatenate([jnp.linalg.cholesky(Q).T @ (x - p["target"]), jnp.linalg.cholesky(R).T @ u]),
+        lambda x, p: jnp.sqrt(p["weight"]) * (x - p["target"]),
+        reference.x0,
+        reference.horizon,
+        residuals=True,
+        params={"target": jnp.asarray(target), "weight": jnp.asarray(3.0)},
+    )
+    np.testing.assert_allclose(control.ddp(residual, solver=solver).us, second.us, rtol=1e-7, atol=1e-10)
+
+
 def test_pendulum_swing_up_converges_with_monotone_cost(pendulum, pendulum_solution):
     solution = pendulum_solution
     assert solution.converged and solution.result == control.RESULTS.successful

@@ -1,5 +1,6 @@
 """The Solo-12 lift-foot experiment: DDP keeps the four feet down, R-DDP lifts the chosen foot."""
 
+import dataclasses
 import json
 
 import pytest
@@ -25,6 +26,11 @@ def test_ddp_keeps_four_feet_down_and_rddp_lifts_the_foot(tmp_path, getkey):
     assert written["foot"] == "HR" and written["rddp"]["success_rate"] == 1.0
     assert (tmp_path / "solo_lift.png").stat().st_size > 0 and (tmp_path / "solo_lift.gif").stat().st_size > 0
     assert not list(tmp_path.glob(".*"))
+    # Another foot and height: the foot and target are traced cost parameters, so this solve
+    # reuses the compiled R-DDP step; it lifts the diagonally opposite foot as well.
+    other = dataclasses.replace(config, foot="FL", height=0.04, method="rddp")
+    rddp = control_solo_lift.run(other, tmp_path / "FL", getkey(), progress=False)["rddp"]
+    assert rddp["success"] and abs(rddp["foot_height"] - 0.04) < config.tolerance, rddp
 
 
 def test_solo_lift_rejects_bad_feet_and_heights(tmp_path):
