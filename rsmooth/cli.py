@@ -266,17 +266,29 @@ def control_solo_lift_command(
     out: Optional[Path] = OutOption,
     seed: int = SeedOption,
     quick: bool = QuickOption,
-    foot: str = typer.Option("FL", "--foot", help="FL, FR, HL or HR."),
+    foot: str = typer.Option(
+        "FL", "--foot", help="FL, FR, HL, HR, or all (each foot in turn, into OUT/FOOT; compiled once)."),
     height: Optional[float] = typer.Option(None, "--height", help="Target height of the foot above its start, m (default 0.05)."),
     method: str = MethodOption,
     seeds: Optional[int] = SeedsOption,
 ):
     _check_method(method)
-    if foot not in ("FL", "FR", "HL", "HR"):
-        raise typer.BadParameter(f"--foot must be FL, FR, HL or HR, got {foot!r}")
+    feet = ("FL", "FR", "HL", "HR")
+    if foot not in feet + ("all",):
+        raise typer.BadParameter(f"--foot must be FL, FR, HL, HR or all, got {foot!r}")
     if height is not None and not 0 < height <= 0.15:
         raise typer.BadParameter(f"--height must be in (0, 0.15] m, got {height}")
-    _run(_SOLO_LIFT, out, seed, quick, title=f"control solo-lift {foot}", foot=foot, height=height, method=method, seeds=seeds)
+    if foot != "all":
+        _run(_SOLO_LIFT, out, seed, quick, title=f"control solo-lift {foot}", foot=foot, height=height, method=method, seeds=seeds)
+        return
+    root = Path(out) if out is not None else DEFAULT_ROOT / _SOLO_LIFT.name
+    rates = {}
+    for name in feet:  # the foot is a traced cost parameter: one compilation for all four
+        metrics = _run(_SOLO_LIFT, root / name, seed, quick, title=f"control solo-lift {name}", foot=name, height=height,
+                       method=method, seeds=seeds)
+        rates[name] = {m: metrics[m]["success_rate"] for m in metrics["methods"]}
+    typer.echo("success rate per foot: " + "; ".join(
+        f"{name}: " + ", ".join(f"{m} {100 * r:.0f} %" for m, r in rate.items()) for name, rate in rates.items()))
 
 
 @control_app.command("pusher", help=_doc(

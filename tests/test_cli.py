@@ -56,3 +56,21 @@ def test_control_summary_prints_the_success_rate_then_the_row():
     summary = cli._control_summary("height (mm)", lambda metrics: f"{1000 * metrics['height']:.1f}")
     metrics = {"methods": ["ddp"], "ddp": {"success_rate": 0.5, "height": 0.0123}}
     assert summary(metrics) == {"ddp: success rate, height (mm)": "50 %, 12.3"}
+
+
+def test_solo_lift_all_feet_runs_each_foot_into_its_folder(monkeypatch, tmp_path):
+    from typer.testing import CliRunner
+
+    calls = []
+
+    def fake_run(experiment, out, seed, quick, title=None, **overrides):
+        calls.append((experiment.name, out, overrides["foot"], overrides["method"]))
+        return {"methods": ["rddp"], "rddp": {"success_rate": 1.0 if overrides["foot"] != "HR" else 0.5}}
+
+    monkeypatch.setattr(cli, "_run", fake_run)
+    result = CliRunner().invoke(cli.app, ["control", "solo-lift", "--foot", "all", "--method", "rddp", "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert [(c[1], c[2]) for c in calls] == [(tmp_path / f, f) for f in ("FL", "FR", "HL", "HR")]
+    assert "HR: rddp 50 %" in result.output and "FL: rddp 100 %" in result.output
+    bad = CliRunner().invoke(cli.app, ["control", "solo-lift", "--foot", "every", "--out", str(tmp_path)])
+    assert bad.exit_code != 0 and "--foot" in bad.output
