@@ -58,8 +58,10 @@ def test_fronto_parallel_square_covers_its_area(renderers, getkey):
 def test_perturbed_render_of_an_edge_is_the_smoothed_step(renderers, getkey):
     """Across the middle of the square's left edge, alpha is Phi(d / sigma) (Gaussian noise)."""
     mesh = square(side_for_pixels(12.5))  # edges at 9.75 and 22.25: centres at +-0.25, 0.75, ...
-    row = np.mean(np.stack([np.asarray(renderers["perturbed"](getkey(), mesh).alpha[14:18, 5:14]) for _ in range(4)]), axis=(0, 1))
-    d = np.arange(5, 14) + 0.5 - 9.75
+    # Columns 5-12: in these rows column 13 comes within 1 px of the square's diagonal, an edge inside the
+    # silhouette where each triangle's own coverage is below 1 (the seam of a perturbed render).
+    row = np.mean(np.stack([np.asarray(renderers["perturbed"](getkey(), mesh).alpha[14:18, 5:13]) for _ in range(4)]), axis=(0, 1))
+    d = np.arange(5, 13) + 0.5 - 9.75
     np.testing.assert_allclose(row, norm.cdf(d / 0.7), atol=0.04)
 
 
