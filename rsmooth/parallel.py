@@ -4,7 +4,7 @@
 one-dimensional mesh (``jax.sharding``), so that under `jax.jit` XLA's SPMD partitioner gives
 each device its share of the batch, and reductions over it become cross-device sums. Nothing
 changes with one device, which is the default on CPU: the same code runs on a laptop, a GPU,
-or several. `rsmooth render pose` spreads its problems this way.
+or several. `rsmooth render pose` and `rsmooth render reconstruct` spread their problems this way.
 
 Not yet used by the estimators: sharding the samples of a first-order estimate through the
 contact simulator over two forced CPU devices hung XLA (no progress, no CPU use), although

@@ -15,7 +15,8 @@ the rendered and the target images with Adam (optax), for each renderer:
   derivative with respect to the scale is exact);
 * ``hard``: the z-buffer; only shading and colour interpolation give it a gradient.
 
-Independent problems are batched with `jax.vmap`. The mesh's vertices are coloured by their
+Independent problems are batched with `jax.vmap`, spread over the devices when there are several
+(:mod:`rsmooth.parallel`). The mesh's vertices are coloured by their
 position, so that symmetric shapes (cube, sphere) have a unique pose. The rotation is
 parametrized as R = exp([delta]) R_init with delta in R^3 starting at 0; the translation, when
 optimized, starts off by `init_translation` in a random direction.
@@ -33,7 +34,7 @@ import numpy as np
 import optax
 from tqdm.auto import tqdm
 
-from rsmooth import noise, render, schedules, viz
+from rsmooth import noise, parallel, render, schedules, viz
 
 METRICS_DOC = """metrics.json keys: for each method (perturbed-gaussian, perturbed-cauchy, soft, hard),
 a dict keyed by the initial rotation error in degrees (as a string) holding solved_pct (percent of
@@ -171,7 +172,8 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
         sched = schedule.update(sched, scale_grad) if adaptive else schedule.update(sched)
         return (params, opt_state, sched), loss, pose(params, r_init)[0]
 
-    return renderer, jax.vmap(init), jax.jit(jax.vmap(step))
+    # independent problems: one share per device when there are several (rsmooth.parallel)
+    return renderer, jax.vmap(init), jax.jit(parallel.vmap_samples(step))
 
 
 def _degrees(r1, r2):
