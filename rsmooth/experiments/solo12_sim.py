@@ -22,7 +22,6 @@ import dataclasses
 import time
 from pathlib import Path
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -117,21 +116,13 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     posture = system.split(x0)[0][7:]
     bar = tqdm(total=2 + config.frames, desc=f"solo12 ({config.torques})", disable=not progress)
 
+    def posture_pd(x):
+        q, v = system.split(x)
+        return gains[0] * (posture - q[7:]) - gains[1] * v[6:]
+
     @jax.jit
     def simulate(x0, perturbations):
-        def body(carry, perturbation):
-            x, impulse, diverged = carry
-            q, v = system.split(x)
-            u = standing + gains[0] * (posture - q[7:]) - gains[1] * v[6:] + perturbation
-            x_next, info = system.step_with_info(x, u, warm_start=impulse)
-            diverged = diverged | info.diverged  # as RigidBodySystem.rollout: hold the state
-            x_next = jnp.where(diverged, x, x_next)
-            info = eqx.tree_at(lambda i: i.diverged, info, diverged)
-            return (x_next, info.impulse, diverged), (x_next, info)
-
-        impulse0 = jnp.zeros(3 * system.num_contacts)
-        _, (xs, infos) = jax.lax.scan(body, (x0, impulse0, jnp.zeros((), bool)), perturbations)
-        return jnp.concatenate([x0[None], xs]), infos
+        return system.rollout(x0, standing[None] + perturbations, feedback=posture_pd)
 
     xs, infos = simulate(x0, perturbations)
     xs = jax.block_until_ready(xs)

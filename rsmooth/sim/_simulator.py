@@ -479,9 +479,13 @@ class RigidBodySystem(eqx.Module):
         q, v = self.split(x)
         return _step_and_jacobians(self, q, v, u)
 
-    def rollout(self, x0: ArrayLike, us: ArrayLike) -> tuple[Array, StepInfo]:
+    def rollout(self, x0: ArrayLike, us: ArrayLike, feedback=None) -> tuple[Array, StepInfo]:
         """States ``(T + 1, nx)`` from ``x0`` under inputs ``us`` ``(T, nu)``, warm-starting
         each contact solve from the previous impulses, and the per-step diagnostics.
+
+        ``feedback``, if given, is a state-feedback term ``x -> (nu,)`` (e.g. a PD around a
+        posture) added to ``us[t]`` at every step: the input of step ``t`` is
+        ``us[t] + feedback(x_t)``.
 
         From the first step whose ``info.diverged`` is set, the state is held at the last
         valid one (and ``diverged`` stays set), so a diverging sample of a batch stays
@@ -492,6 +496,8 @@ class RigidBodySystem(eqx.Module):
 
         def body(carry, u):
             x, impulse, diverged = carry
+            if feedback is not None:
+                u = u + feedback(x)
             x_next, info = self.step_with_info(x, u, warm_start=impulse if isinstance(self.contact, str) else None)
             diverged = diverged | info.diverged
             x_next = jnp.where(diverged, x, x_next)
