@@ -34,6 +34,8 @@ import numpy as np
 from jax import lax
 from jax.typing import ArrayLike
 
+from rsmooth.sim._spatial import sum_last
+
 Array = jax.Array
 
 __all__ = [
@@ -82,7 +84,7 @@ def _check_nonnegative(name: str, x: Array) -> Array:
 
 def _safe_norm(x: Array) -> Array:
     """Euclidean norm over the last axis whose derivative at 0 is 0 instead of NaN."""
-    squared = jnp.sum(x * x, axis=-1)
+    squared = sum_last(x * x)  # unrolled: see rsmooth.sim._spatial
     nonzero = squared > 0
     return jnp.where(nonzero, jnp.sqrt(jnp.where(nonzero, squared, 1.0)), 0.0)
 
@@ -287,7 +289,7 @@ def ncp_residuals(G: Array, g: Array, mu: Array, impulse: Array) -> tuple[Array,
     velocity = _de_saxce_velocity((G @ impulse + g).reshape(n, 3), mu)
     primal = _safe_norm(impulse_by_contact - project_to_friction_cone(impulse_by_contact, mu))
     dual = _safe_norm(project_to_friction_cone(-velocity, mu))
-    complementarity = jnp.abs(jnp.sum(impulse_by_contact * velocity, axis=-1))
+    complementarity = jnp.abs(sum_last(impulse_by_contact * velocity))
     return jnp.max(primal), jnp.max(dual), jnp.max(complementarity)
 
 
@@ -332,7 +334,7 @@ def fixed_point_step_sizes(G: Array, n: int) -> Array:
     """Per-contact step ``r_i = 3 / trace(G_ii)`` of the natural map (a scalar per contact
     keeps the cone geometry: ``-r c~`` is in the polar cone iff ``c~`` is in the dual)."""
     diagonal = jnp.diagonal(G).reshape(n, 3)
-    scale = jnp.sum(diagonal, axis=-1) / 3.0
+    scale = sum_last(diagonal) / 3.0
     floor = jnp.maximum(jnp.max(scale), 1.0) * 1e-12
     return lax.stop_gradient(1.0 / jnp.maximum(scale, floor))
 

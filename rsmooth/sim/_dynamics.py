@@ -121,6 +121,14 @@ def _tree_structure(
     )
 
 
+def _mask_sum(mask: np.ndarray, values: jax.Array) -> jax.Array:
+    """``mask @ values`` for a static 0/1 ``mask`` and values ``(n, 6)``, computed as
+    ``(values.T @ mask.T).T``: under ``vmap``/``jacfwd`` the batched operand is then the
+    GEMM's row-major left factor, so XLA on CPU need not move the contracted axis to the
+    front of the whole batch (a strided copy that took most of the batched step Jacobian)."""
+    return (values.T @ jnp.asarray(mask.T, values.dtype)).T
+
+
 def _tree(model: Model) -> _Tree:
     return _tree_structure(model.joint_types, model.parents, model.idx_q, model.idx_v)
 
@@ -368,17 +376,16 @@ def _rnea(
     tree = _tree(model)
     subspace = kinematics.motion_subspace
     dof_twists = subspace * v[:, None]  # S_j qd_j for every dof
-    support = jnp.asarray(tree.support, dtype=subspace.dtype)
-    velocities = support @ dof_twists  # (njoints, 6)
+    velocities = _mask_sum(tree.support, dof_twists)  # (njoints, 6)
     bias = _motion_cross_motion(velocities[tree.dof_owner], dof_twists)
     if a is not None:
         bias = bias + subspace * a[:, None]
     world_acceleration = jnp.concatenate([-gravity, jnp.zeros_like(gravity)]).astype(subspace.dtype)
-    accelerations = support @ bias + world_acceleration[None, :]
+    accelerations = _mask_sum(tree.support, bias) + world_acceleration[None, :]
     momenta = _inertia_apply(inertias, velocities)
     forces = _inertia_apply(inertias, accelerations) + _motion_cross_force(velocities, momenta)
-    subtree_forces = jnp.asarray(tree.subtree, dtype=forces.dtype) @ forces
-    return jnp.sum(subspace * subtree_forces[tree.dof_owner], axis=1)
+    subtree_forces = _mask_sum(tree.subtree, forces)
+    return spatial.sum_last(subspace * subtree_forces[tree.dof_owner])
 
 
 def _crba(model: Model, kinematics: _Kinematics, inertias: spatial.SpatialInertia) -> jax.Array:
@@ -399,7 +406,7 @@ def _crba(model: Model, kinematics: _Kinematics, inertias: spatial.SpatialInerti
     owner_composite = jax.tree_util.tree_map(lambda x: x[tree.dof_owner], composite)
     composite_forces = _inertia_apply(owner_composite, subspace)  # I^c_{owner(b)} S_b
     # [a, b] = S_a^T I^c_{owner(b)} S_b (elementwise: a batched 18x6x18 dot is slower on CPU)
-    pairings = jnp.sum(subspace[:, None, :] * composite_forces[None, :, :], axis=-1)
+    pairings = spatial.sum_last(subspace[:, None, :] * composite_forces[None, :, :])
     upper = jnp.where(tree.dof_ancestor, pairings, 0.0)
     return upper + upper.T - jnp.where(tree.dof_same_joint, pairings, 0.0)
 

@@ -329,7 +329,8 @@ class RigidBodySystem(eqx.Module):
             rotations = contact_frame(self.plane_normals)  # (P, 3, 3)
             distances.append(distance)
             frames.append(rotations)
-            jacobians.append(jnp.einsum("pji,pjk->pik", rotations, point_jacobians))
+            # R_p^T J_p, unrolled over the 3-axis (a batched 3x3 dot is slow on CPU: _spatial)
+            jacobians.append(sum(rotations[:, j, :, None] * point_jacobians[:, j, None, :] for j in range(3)))
         for sphere in self.box_spheres:
             distance, rotation, jacobian = self._sphere_box_contact(kinematics, sphere)
             distances.append(distance[None])
@@ -559,7 +560,9 @@ def _step_residuals(update: _VelocityUpdate):
         )
         tau, _ = system.generalized_forces(q, u, kinematics)
         distance, _, jacobian = system.contacts(q, kinematics)
-        momentum = h * (inverse_dynamics - tau) - jacobian.T @ impulse
+        # J^T lambda as an unrolled sum of rows: under jacfwd/vmap a dot transposes J's
+        # batch and a reduction goes to YNNPACK, both several times slower on CPU (_spatial)
+        momentum = h * (inverse_dynamics - tau) - sum(impulse[i] * jacobian[i] for i in range(impulse.shape[0]))
         velocity = corrected_free_velocity(jacobian @ v_next, distance, h, baumgarte=system.baumgarte)
         return momentum, velocity, distance, system.contact_friction()
 
@@ -620,7 +623,7 @@ def _integrate_decoupled(model: Model, q: Array, v: Array, h: Array) -> Array:
         linear, angular = step[start_v : start_v + 3], step[start_v + 3 : start_v + 6]
         position = position + spatial.rotate(spatial.quaternion_to_rotation(quaternion), linear)
         quaternion = spatial.quaternion_multiply(quaternion, spatial.quaternion_exp(angular))
-        quaternion = quaternion / jnp.linalg.norm(quaternion)
+        quaternion = quaternion / jnp.sqrt(spatial.sum_last(quaternion * quaternion))
         result = result.at[start_q : start_q + 7].set(jnp.concatenate([position, quaternion]))
     return result
 
