@@ -223,6 +223,25 @@ def test_agrees_with_pinocchio_admm(getkey, n):
         np.testing.assert_allclose(impulse[i], reference, atol=1e-7 * (1 + np.abs(reference).max()))
 
 
+SPECTRAL = NCPSolver(tolerance=1e-13, max_iterations=20000, rho_update_power=0.05)
+_solve_spectral_batch = jax.jit(jax.vmap(lambda G, g, mu: solve_ncp(G, g, mu, solver=SPECTRAL)))
+
+
+@pytest.mark.parametrize("n", [2, 4])
+def test_spectral_penalty_update_solves_the_same_problems(getkey, n):
+    """The spectral rho update (Solo-12's default) reaches the tight tolerance on random
+    problems (unique solutions: full-rank J) and agrees with Pinocchio's ADMM there."""
+    G, g, mu = problem_batch(getkey, n, BATCH)
+    impulse, info = _solve_spectral_batch(G, g, mu)
+    assert bool(jnp.all(info.converged))
+    for i in range(G.shape[0]):
+        check_ncp_numpy(G[i], g[i], mu[i], impulse[i], atol=1e-12)
+        reference = _pinocchio_solve(G[i], g[i], mu[i])
+        np.testing.assert_allclose(impulse[i], reference, atol=1e-7 * (1 + np.abs(reference).max()))
+    with pytest.raises(ValueError, match="rho_update_power"):
+        NCPSolver(rho_update_power=0.0)
+
+
 # ----------------------------------------------------------------------------- a point mass
 
 MASS, STEP, GRAVITY, FRICTION = 2.0, 0.01, 9.81, 0.5
