@@ -34,6 +34,7 @@ import jax.numpy as jnp
 from jax import Array, lax
 from jax.typing import ArrayLike
 
+from rsmooth._unrolled import all_last, min_last, sum_last
 from rsmooth.noise import Gaussian, Noise
 from rsmooth.smooth import smooth_elementwise
 
@@ -75,10 +76,11 @@ def _edge_geometry(points: Array, triangles: Array) -> tuple[Array, Array]:
     p1 = jnp.roll(triangles, -1, axis=-2)
     e = p1 - p0
     w = points[..., None, :] - p0
-    ee = jnp.sum(e * e, axis=-1)
-    t = jnp.clip(jnp.sum(w * e, axis=-1) / jnp.maximum(ee, _TINY), 0.0, 1.0)
+    # Short reductions unrolled (2 coordinates, 3 edges): see rsmooth._unrolled.
+    ee = sum_last(e * e)
+    t = jnp.clip(sum_last(w * e) / jnp.maximum(ee, _TINY), 0.0, 1.0)
     r = w - t[..., None] * e
-    dist = jnp.sqrt(jnp.maximum(jnp.min(jnp.sum(r * r, axis=-1), axis=-1), _TINY))
+    dist = jnp.sqrt(jnp.maximum(min_last(sum_last(r * r)), _TINY))
     # Edge functions: cross(p_{i+1} - p_i, q - p_i); twice the triangle's signed area.
     edge = e[..., 0] * w[..., 1] - e[..., 1] * w[..., 0]
     area2 = e[..., 0, 0] * (p0[..., 2, 1] - p0[..., 0, 1]) - e[..., 0, 1] * (p0[..., 2, 0] - p0[..., 0, 0])
@@ -86,7 +88,7 @@ def _edge_geometry(points: Array, triangles: Array) -> tuple[Array, Array]:
     # The vertex k is opposite the edge k + 1.
     bary = jnp.roll(edge, -1, axis=-1) / safe_area[..., None]
     # Triangles are closed: a pixel centre on an edge shared by two faces is not lost.
-    inside = jnp.all(bary >= 0, axis=-1) & (area2 != 0)
+    inside = all_last(bary >= 0) & (area2 != 0)
     return jnp.where(inside, dist, -dist), bary
 
 
@@ -192,7 +194,7 @@ class Fragments(eqx.Module):
 
 def _clip_normalize(bary: Array) -> Array:
     clipped = jnp.maximum(bary, 0.0)
-    return clipped / jnp.maximum(jnp.sum(clipped, axis=-1, keepdims=True), _TINY)
+    return clipped / jnp.maximum(sum_last(clipped, keepdims=True), _TINY)
 
 
 def _face_forms(screen: Array, depth: Array) -> tuple[Array, Array]:
@@ -306,7 +308,7 @@ def rasterize(
     offsets = jnp.arange(ts, dtype=dtype) + 0.5
     x = (jnp.arange(tx, dtype=dtype)[:, None] * ts + offsets[None, :])[None, :, None, :, None, None]
     y = (jnp.arange(ty, dtype=dtype)[:, None] * ts + offsets[None, :])[:, None, :, None, None, None]
-    dist = jnp.min(a * x + b * y + c, axis=-1)  # (ty, tx, ts, ts, Kt)
+    dist = min_last(a * x + b * y + c)  # (ty, tx, ts, ts, Kt)
     p = plane[tile_faces][:, :, None, None]  # (ty, tx, 1, 1, Kt, 3)
     depth = p[..., 0] * x[..., 0] + p[..., 1] * y[..., 0] + p[..., 2]
     ok = tile_ok[:, :, None, None, :]
@@ -339,10 +341,10 @@ def rasterize(
     )  # (H, W, 2)
     distance, bary = _edge_geometry(pixel[:, :, None, :], screen[face_index])  # (H, W, K)
     bary = _clip_normalize(bary)
-    depth = jnp.sum(bary * depth_vertices[face_index], axis=-1)
+    depth = sum_last(bary * depth_vertices[face_index])
     # Perspective-correct weights for attributes: screen weights divided by depth, renormalized.
     weights = bary / jnp.maximum(z_faces[face_index], _TINY)
-    weights = weights / jnp.maximum(jnp.sum(weights, axis=-1, keepdims=True), _TINY)
+    weights = weights / jnp.maximum(sum_last(weights, keepdims=True), _TINY)
     return Fragments(
         face_index=face_index, present=present, distance=distance, depth=depth, barycentric=weights,
         tile_overflow=tile_overflow,

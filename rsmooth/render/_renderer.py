@@ -35,6 +35,7 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from rsmooth import _checks
+from rsmooth._unrolled import sum_last
 from rsmooth.noise import Gaussian, Gumbel, Noise
 from rsmooth.render._aggregate import hard_aggregate, perturbed_aggregate, soft_aggregate
 from rsmooth.render._camera import Camera
@@ -172,7 +173,8 @@ class Renderer(eqx.Module):
 
         diffuse, specular = shade_faces(mesh, camera, self.light)
         albedo = mesh.albedo()[mesh.faces]  # (F, 3, 3)
-        color = jnp.sum(fragments.barycentric[..., None] * albedo[fragments.face_index], axis=-2)
+        # sums over the 3 vertices and the K faces of a pixel unrolled (rsmooth._unrolled)
+        color = sum_last(jnp.swapaxes(fragments.barycentric[..., None] * albedo[fragments.face_index], -1, -2))
         light_color = jnp.asarray(self.light.color, dtype)
         color = color * diffuse[fragments.face_index][..., None] * light_color[None, None, None, :] + specular[fragments.face_index]
 
@@ -195,5 +197,5 @@ class Renderer(eqx.Module):
             weights = jax.vmap(pixel)(keys, distance.reshape(-1, k), depth.reshape(-1, k))
             weights = weights.reshape(height, width, k + 1)
         background = jnp.asarray(self.background, dtype)
-        rgb = jnp.sum(weights[..., :k, None] * color, axis=-2) + weights[..., k:] * background[None, None, :]
+        rgb = sum_last(jnp.swapaxes(weights[..., :k, None] * color, -1, -2)) + weights[..., k:] * background[None, None, :]
         return Image(rgb=rgb, alpha=1.0 - weights[..., k])

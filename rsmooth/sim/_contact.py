@@ -34,7 +34,7 @@ import numpy as np
 from jax import lax
 from jax.typing import ArrayLike
 
-from rsmooth.sim._spatial import sum_last
+from rsmooth._unrolled import sum_last
 
 Array = jax.Array
 
@@ -84,7 +84,7 @@ def _check_nonnegative(name: str, x: Array) -> Array:
 
 def _safe_norm(x: Array) -> Array:
     """Euclidean norm over the last axis whose derivative at 0 is 0 instead of NaN."""
-    squared = sum_last(x * x)  # unrolled: see rsmooth.sim._spatial
+    squared = sum_last(x * x)  # unrolled: see rsmooth._unrolled
     nonzero = squared > 0
     return jnp.where(nonzero, jnp.sqrt(jnp.where(nonzero, squared, 1.0)), 0.0)
 

@@ -13,9 +13,9 @@ Functions act on single vectors and matrices; batch them with ``jax.vmap``. Prod
 3x3 matrices and 3-vectors are written as sums of elementwise products (:func:`rotate`,
 :func:`matmul3`): XLA fuses these into one loop, whereas it lowers a batched 3x3 ``dot``
 under ``vmap``/``jacfwd`` to thousands of tiny matrix products (about 10x slower on CPU).
-For the same reason short sums are unrolled (:func:`dot3`, :func:`sum_last`): jaxlib 0.10's
-CPU backend hands a reduction over a length-3 axis of a large batch to YNNPACK, which was
-measured 6x slower than the unrolled sum inside the batched step Jacobian of Solo-12.
+For the same reason short sums are unrolled (:func:`dot3`, ``rsmooth._unrolled.sum_last``):
+jaxlib 0.10's CPU backend hands a reduction over a length-3 axis of a large batch to YNNPACK,
+which was measured 6x slower than the unrolled sum inside the batched step Jacobian of Solo-12.
 
 Every function is branch-free (``jnp.where`` instead of Python ``if`` on values), so it jits
 once, vmaps, and is differentiable everywhere, including at zero rotation, where the usual
@@ -35,6 +35,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 from jax.typing import ArrayLike
+
+from rsmooth._unrolled import sum_last  # noqa: F401  (re-exported for the simulator)
 
 # Below this angle (rad) the closed forms are replaced by their Taylor series. The series
 # below are truncated after the theta^4 term, whose successor is < 1e-17 at this angle; the
@@ -78,14 +80,6 @@ def rotate_inverse(rotation: jax.Array, vector: jax.Array) -> jax.Array:
         Shape ``(3,)``.
     """
     return rotation[0] * vector[0] + rotation[1] * vector[1] + rotation[2] * vector[2]
-
-
-def sum_last(values: jax.Array) -> jax.Array:
-    """``jnp.sum(values, axis=-1)`` for a short last axis, unrolled into additions."""
-    total = values[..., 0]
-    for i in range(1, values.shape[-1]):
-        total = total + values[..., i]
-    return total
 
 
 def dot3(left: jax.Array, right: jax.Array) -> jax.Array:
