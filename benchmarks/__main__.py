@@ -15,6 +15,9 @@ def main():
     parser.add_argument("--repeats", type=int, default=None, help="timed calls per measurement (median); default 30, control 5")
     parser.add_argument("--quick", action="store_true", help="a reduced size (the benchmarks that have one: sim, control)")
     args = parser.parse_args()
+    from rsmooth import _xla
+
+    _xla.apply_cpu_defaults()  # the settings the rsmooth command runs with (rsmooth._xla)
     benchmark = importlib.import_module(f"benchmarks.{args.name}").main
     options = {"repeats": args.repeats if args.repeats is not None else DEFAULT_REPEATS.get(args.name, 30)}
     if args.quick:

@@ -21,7 +21,8 @@ def machine() -> str:
         pass
     return (
         f"{platform.node()}: {cpu}, {os.cpu_count()} cores; python {platform.python_version()}, "
-        f"jax {jax.__version__} on {devices[0].platform} ({len(devices)} device(s): {devices[0].device_kind})"
+        f"jax {jax.__version__} on {devices[0].platform} ({len(devices)} device(s): {devices[0].device_kind}); "
+        f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}"
     )
 
 

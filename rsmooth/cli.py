@@ -323,6 +323,9 @@ def demo(
 
 
 def main():  # the console-script entry point
+    from rsmooth import _xla
+
+    _xla.apply_cpu_defaults()  # before JAX starts its backend (see rsmooth._xla)
     app()
 
 

@@ -1,0 +1,43 @@
+"""XLA settings that the `rsmooth` command (and `python -m benchmarks`) applies for itself.
+
+jaxlib 0.10's CPU backend hands reductions over short axes to YNNPACK kernels that are slow
+for rsmooth's per-pixel and per-contact sums (see :mod:`rsmooth._unrolled`). The forward
+code unrolls its own sums, but the sums that autodiff inserts (transposes of broadcasts) still
+go there; ``--xla_cpu_experimental_ynn_fusion_type=`` (an empty list of fusion types) turns
+the kernels off: a batched pose-optimization step ran 1.3x faster with it and the hard
+renderer's forward+backward 3.5x (measured on the 2-core CI machine, see benchmarks/RESULTS.md).
+
+XLA aborts the process on a flag it does not know, so the flag is added only for the jaxlib
+versions where it was measured, only when the user has not set it, and never by merely
+importing rsmooth (a library must not change its host's XLA configuration): the console entry
+point calls :func:`apply_cpu_defaults` before JAX creates its backend. ``RSMOOTH_XLA_DEFAULTS=0``
+leaves ``XLA_FLAGS`` alone.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import os
+
+YNN_FLAG = "--xla_cpu_experimental_ynn_fusion_type"
+# jaxlib versions on which the flag exists and was measured to help (see the module docstring)
+KNOWN_JAXLIB = ("0.10.",)
+
+
+def apply_cpu_defaults(environ: dict | None = None) -> bool:
+    """Add the YNNPACK opt-out to ``XLA_FLAGS`` when it is known to be safe; True if added.
+
+    Call it before the first JAX computation (XLA reads its flags when the backend starts).
+    """
+    environ = os.environ if environ is None else environ
+    if environ.get("RSMOOTH_XLA_DEFAULTS", "1") == "0":
+        return False
+    try:
+        version = importlib.metadata.version("jaxlib")
+    except importlib.metadata.PackageNotFoundError:
+        return False
+    flags = environ.get("XLA_FLAGS", "")
+    if not version.startswith(KNOWN_JAXLIB) or YNN_FLAG in flags:
+        return False
+    environ["XLA_FLAGS"] = f"{flags} {YNN_FLAG}=".strip()
+    return True

@@ -1,0 +1,50 @@
+import importlib.metadata
+import os
+import subprocess
+import sys
+
+import pytest
+
+from rsmooth import _xla
+
+
+def _version(monkeypatch, version):
+    monkeypatch.setattr(importlib.metadata, "version", lambda name: version)
+
+
+def test_flag_added_once_on_a_known_jaxlib(monkeypatch):
+    _version(monkeypatch, "0.10.2")
+    env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    assert _xla.apply_cpu_defaults(env)
+    assert env["XLA_FLAGS"] == f"--xla_force_host_platform_device_count=2 {_xla.YNN_FLAG}="
+    assert not _xla.apply_cpu_defaults(env)  # already there: unchanged
+    assert env["XLA_FLAGS"].count(_xla.YNN_FLAG) == 1
+
+
+@pytest.mark.parametrize(
+    "version, env",
+    [
+        ("0.9.1", {}),  # a jaxlib where the flag was not measured (XLA aborts on unknown flags)
+        ("0.11.0", {}),
+        ("0.10.2", {"RSMOOTH_XLA_DEFAULTS": "0"}),  # the opt-out
+        ("0.10.2", {"XLA_FLAGS": f"{_xla.YNN_FLAG}=reduce"}),  # the user's own choice
+    ],
+)
+def test_flags_left_alone(monkeypatch, version, env):
+    _version(monkeypatch, version)
+    before = dict(env)
+    assert not _xla.apply_cpu_defaults(env)
+    assert env == before
+
+
+def test_installed_xla_accepts_what_is_added():
+    # On the installed jaxlib: whatever apply_cpu_defaults adds, XLA must start with it (an
+    # unknown flag aborts the process).
+    code = (
+        "from rsmooth import _xla; added = _xla.apply_cpu_defaults(); "
+        "import jax.numpy as jnp; print(added, float(jnp.sum(jnp.arange(4.0))))"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "RSMOOTH_XLA_DEFAULTS")}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split()[-1] == "6.0"
