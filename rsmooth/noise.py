@@ -41,6 +41,15 @@ __all__ = [
 EULER_GAMMA = 0.5772156649015329
 
 
+def _flat(draw, key: Array, shape, dtype, **kwargs) -> Array:
+    """`draw(key, shape, dtype)` drawn as a flat vector and reshaped. The values are the same
+    (JAX's threefry counts elements in row-major order), but XLA on CPU generates some
+    multi-dimensional shapes several times slower: measured with jaxlib 0.10, uniform
+    (16384, 8, 9) 20 ms, the same numbers flat 5 ms (the renderer's per-pixel noise)."""
+    shape = tuple(shape)
+    return draw(key, (math.prod(shape),), dtype, **kwargs).reshape(shape)
+
+
 class Noise(eqx.Module):
     """Base class: a standard (location 0, scale 1) one-dimensional law, used coordinatewise.
 
@@ -78,7 +87,7 @@ class Gaussian(Noise):
     """Standard normal noise; score(z) = -z."""
 
     def sample(self, key, shape, dtype=float):
-        return jax.random.normal(key, shape, dtype)
+        return _flat(jax.random.normal, key, shape, dtype)
 
     def log_prob(self, z):
         z = jnp.asarray(z)
@@ -98,7 +107,7 @@ class Gumbel(Noise):
     symmetric: ClassVar[bool] = False
 
     def sample(self, key, shape, dtype=float):
-        return jax.random.gumbel(key, shape, dtype)
+        return _flat(jax.random.gumbel, key, shape, dtype)
 
     def log_prob(self, z):
         z = jnp.asarray(z)
@@ -115,7 +124,7 @@ class Laplace(Noise):
     """Standard Laplace noise (density exp(-|z|)/2); score(z) = -sign(z)."""
 
     def sample(self, key, shape, dtype=float):
-        return jax.random.laplace(key, shape, dtype)
+        return _flat(jax.random.laplace, key, shape, dtype)
 
     def log_prob(self, z):
         return -jnp.abs(jnp.asarray(z)) - math.log(2.0)
@@ -132,7 +141,7 @@ class Logistic(Noise):
     """Standard logistic noise; its CDF is the sigmoid, score(z) = -tanh(z / 2)."""
 
     def sample(self, key, shape, dtype=float):
-        return jax.random.logistic(key, shape, dtype)
+        return _flat(jax.random.logistic, key, shape, dtype)
 
     def log_prob(self, z):
         z = jnp.asarray(z)
@@ -149,7 +158,7 @@ class Cauchy(Noise):
     """Standard Cauchy noise (heavy tails, no mean); score(z) = -2z / (1 + z^2)."""
 
     def sample(self, key, shape, dtype=float):
-        return jax.random.cauchy(key, shape, dtype)
+        return _flat(jax.random.cauchy, key, shape, dtype)
 
     def log_prob(self, z):
         z = jnp.asarray(z)
@@ -174,7 +183,7 @@ class Uniform(Noise):
     has_score: ClassVar[bool] = False
 
     def sample(self, key, shape, dtype=float):
-        return jax.random.uniform(key, shape, dtype, minval=-1.0, maxval=1.0)
+        return _flat(jax.random.uniform, key, shape, dtype, minval=-1.0, maxval=1.0)
 
     def log_prob(self, z):
         z = jnp.asarray(z)
