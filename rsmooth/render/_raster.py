@@ -34,7 +34,7 @@ import jax.numpy as jnp
 from jax import Array, lax
 from jax.typing import ArrayLike
 
-from rsmooth._unrolled import all_last, min_last, sum_last
+from rsmooth._unrolled import min_last
 from rsmooth.noise import Gaussian, Noise
 from rsmooth.smooth import smooth_elementwise
 
@@ -69,27 +69,42 @@ def _broadcast(points: Array, triangles: Array) -> tuple[Array, Array]:
     return jnp.broadcast_to(points, lead + (2,)), jnp.broadcast_to(triangles, lead + (3, 2))
 
 
+def _edge_geometry_xy(
+    qx: Array, qy: Array, xs: tuple[Array, Array, Array], ys: tuple[Array, Array, Array]
+) -> tuple[Array, list[Array]]:
+    """Signed distance (...) and the three screen-space barycentric coordinates (each (...)) of
+    the points (qx, qy) in the triangles of vertices (xs[i], ys[i]), all broadcast together.
+
+    Written per coordinate and per edge, with no axis of length 2 or 3: the renderer calls it
+    on (H, W, K) fragments, where XLA on CPU handles short axes badly (reductions handed to
+    YNNPACK, see rsmooth._unrolled; `roll`s whose transposes become pads in the gradient)."""
+    dist2, edge = [], []
+    for i in range(3):
+        j = (i + 1) % 3
+        ex, ey = xs[j] - xs[i], ys[j] - ys[i]
+        wx, wy = qx - xs[i], qy - ys[i]
+        t = jnp.clip((wx * ex + wy * ey) / jnp.maximum(ex * ex + ey * ey, _TINY), 0.0, 1.0)
+        rx, ry = wx - t * ex, wy - t * ey
+        dist2.append(rx * rx + ry * ry)
+        # Edge function: cross(p_{i+1} - p_i, q - p_i).
+        edge.append(ex * wy - ey * wx)
+    dist = jnp.sqrt(jnp.maximum(jnp.minimum(jnp.minimum(dist2[0], dist2[1]), dist2[2]), _TINY))
+    area2 = (xs[1] - xs[0]) * (ys[2] - ys[0]) - (ys[1] - ys[0]) * (xs[2] - xs[0])  # twice the signed area
+    safe_area = jnp.where(area2 == 0, 1.0, area2)
+    # The vertex k is opposite the edge k + 1.
+    bary = [edge[1] / safe_area, edge[2] / safe_area, edge[0] / safe_area]
+    # Triangles are closed: a pixel centre on an edge shared by two faces is not lost.
+    inside = (bary[0] >= 0) & (bary[1] >= 0) & (bary[2] >= 0) & (area2 != 0)
+    return jnp.where(inside, dist, -dist), bary
+
+
 def _edge_geometry(points: Array, triangles: Array) -> tuple[Array, Array]:
     """Signed distance (...) and screen-space barycentric coordinates (..., 3)."""
     points, triangles = _broadcast(points, triangles)
-    p0 = triangles
-    p1 = jnp.roll(triangles, -1, axis=-2)
-    e = p1 - p0
-    w = points[..., None, :] - p0
-    # Short reductions unrolled (2 coordinates, 3 edges): see rsmooth._unrolled.
-    ee = sum_last(e * e)
-    t = jnp.clip(sum_last(w * e) / jnp.maximum(ee, _TINY), 0.0, 1.0)
-    r = w - t[..., None] * e
-    dist = jnp.sqrt(jnp.maximum(min_last(sum_last(r * r)), _TINY))
-    # Edge functions: cross(p_{i+1} - p_i, q - p_i); twice the triangle's signed area.
-    edge = e[..., 0] * w[..., 1] - e[..., 1] * w[..., 0]
-    area2 = e[..., 0, 0] * (p0[..., 2, 1] - p0[..., 0, 1]) - e[..., 0, 1] * (p0[..., 2, 0] - p0[..., 0, 0])
-    safe_area = jnp.where(area2 == 0, 1.0, area2)
-    # The vertex k is opposite the edge k + 1.
-    bary = jnp.roll(edge, -1, axis=-1) / safe_area[..., None]
-    # Triangles are closed: a pixel centre on an edge shared by two faces is not lost.
-    inside = all_last(bary >= 0) & (area2 != 0)
-    return jnp.where(inside, dist, -dist), bary
+    xs = tuple(triangles[..., i, 0] for i in range(3))
+    ys = tuple(triangles[..., i, 1] for i in range(3))
+    dist, bary = _edge_geometry_xy(points[..., 0], points[..., 1], xs, ys)
+    return dist, jnp.stack(bary, axis=-1)
 
 
 def signed_distance(points: ArrayLike, triangles: ArrayLike) -> Array:
@@ -192,9 +207,10 @@ class Fragments(eqx.Module):
     tile_overflow: Array
 
 
-def _clip_normalize(bary: Array) -> Array:
-    clipped = jnp.maximum(bary, 0.0)
-    return clipped / jnp.maximum(sum_last(clipped, keepdims=True), _TINY)
+def _clip_normalize(bary: list[Array]) -> list[Array]:
+    clipped = [jnp.maximum(b, 0.0) for b in bary]
+    total = jnp.maximum(clipped[0] + clipped[1] + clipped[2], _TINY)
+    return [b / total for b in clipped]
 
 
 def _face_forms(screen: Array, depth: Array) -> tuple[Array, Array]:
@@ -220,16 +236,24 @@ def _face_forms(screen: Array, depth: Array) -> tuple[Array, Array]:
     return lines, plane
 
 
-def project_faces(mesh: Mesh, camera: Camera):
+def project_faces(mesh: Mesh, camera: Camera, cull_backfaces: bool = False):
     """Projected faces: pixel coordinates (F, 3, 2), depths z (F, 3), normalized inverse depths
     (F, 3) and the visibility mask (F,) of faces entirely in front of the near plane and not
-    entirely beyond the far one."""
+    entirely beyond the far one (and, with `cull_backfaces`, facing the camera: their
+    right-handed normal (v1 - v0) x (v2 - v0) points towards it)."""
     xy, z = camera.project(mesh.vertices)
     faces = mesh.faces
     screen = xy[faces]
     z_faces = z[faces]
     valid = jnp.all(z_faces > camera.near, axis=-1) & jnp.any(z_faces < camera.far, axis=-1)
     valid = valid & jnp.all(jnp.isfinite(screen), axis=(-1, -2))
+    if cull_backfaces:
+        # In the camera frame (a rotation of the world's: cross products keep their sense)
+        # the camera is at the origin: a face is seen from the front when its normal points
+        # from the face towards the origin.
+        p = lax.stop_gradient(camera.to_camera(mesh.vertices))[faces]  # (F, 3, 3)
+        normal = jnp.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        valid = valid & (jnp.sum(normal * p[:, 0], axis=-1) < 0)
     safe_z = jnp.where(z_faces > camera.near, z_faces, camera.near)
     inv_near, inv_far = 1.0 / camera.near, 1.0 / camera.far
     depth = (1.0 / safe_z - inv_far) / (inv_near - inv_far)
@@ -246,6 +270,7 @@ def rasterize(
     gamma: ArrayLike | None = None,
     tile_size: int = 8,
     faces_per_tile: int = 64,
+    cull_backfaces: bool = False,
 ) -> Fragments:
     r"""Per-pixel candidate faces and their differentiable fragments.
 
@@ -265,12 +290,16 @@ def rasterize(
             edge line); when None (hard rendering), only covering faces are kept, nearest first.
         tile_size: side of the square tiles of the first culling pass.
         faces_per_tile: candidates kept per tile (nearest first).
+        cull_backfaces: drop the faces seen from behind (see :func:`project_faces`). On a
+            closed, outward-oriented mesh they are hidden anyway, so the hard image does not
+            change, while every pixel's K candidates go to faces that can be seen; smoothed
+            images lose the (small) weight of the hidden faces.
 
     Returns:
         :class:`Fragments` of shape (H, W, K), K = min(faces_per_pixel, faces_per_tile, F).
     """
     height, width = camera.image_size
-    screen, z_faces, depth_vertices, valid = project_faces(mesh, camera)
+    screen, z_faces, depth_vertices, valid = project_faces(mesh, camera, cull_backfaces)
     num_faces = screen.shape[0]
     k_tile = min(faces_per_tile, num_faces)
     k_pixel = min(faces_per_pixel, k_tile)
@@ -332,19 +361,18 @@ def rasterize(
     face_index = jnp.where(present, face_index, 0)
     face_index, present = to_image(face_index), to_image(present)
 
-    # The differentiable fragments of the selected faces only.
-    pixel = jnp.stack(
-        jnp.broadcast_arrays(
-            (jnp.arange(width, dtype=dtype) + 0.5)[None, :], (jnp.arange(height, dtype=dtype) + 0.5)[:, None]
-        ),
-        axis=-1,
-    )  # (H, W, 2)
-    distance, bary = _edge_geometry(pixel[:, :, None, :], screen[face_index])  # (H, W, K)
+    # The differentiable fragments of the selected faces only, gathered per vertex and
+    # coordinate as (H, W, K) arrays (see _edge_geometry_xy).
+    qx = (jnp.arange(width, dtype=dtype) + 0.5)[None, :, None]
+    qy = (jnp.arange(height, dtype=dtype) + 0.5)[:, None, None]
+    xs = tuple(screen[:, i, 0][face_index] for i in range(3))
+    ys = tuple(screen[:, i, 1][face_index] for i in range(3))
+    distance, bary = _edge_geometry_xy(qx, qy, xs, ys)  # (H, W, K), 3 x (H, W, K)
     bary = _clip_normalize(bary)
-    depth = sum_last(bary * depth_vertices[face_index])
+    depth = sum(b * depth_vertices[:, i][face_index] for i, b in enumerate(bary))
     # Perspective-correct weights for attributes: screen weights divided by depth, renormalized.
-    weights = bary / jnp.maximum(z_faces[face_index], _TINY)
-    weights = weights / jnp.maximum(sum_last(weights, keepdims=True), _TINY)
+    weights = _clip_normalize([b / jnp.maximum(z_faces[:, i][face_index], _TINY) for i, b in enumerate(bary)])
+    weights = jnp.stack(weights, axis=-1)
     return Fragments(
         face_index=face_index, present=present, distance=distance, depth=depth, barycentric=weights,
         tile_overflow=tile_overflow,

@@ -81,6 +81,9 @@ class Renderer(eqx.Module):
         faces_per_pixel: candidate faces kept per pixel (K).
         faces_per_tile: candidate faces kept per tile in the first culling pass.
         tile_size: tile side in pixels.
+        cull_backfaces: drop the faces seen from behind before choosing each pixel's
+            candidates (for closed, outward-oriented meshes: the hard image is unchanged and a
+            smaller `faces_per_pixel` suffices).
         dilation: candidate faces lie within `dilation * sigma` pixels of the pixel centre
             (smoothed modes); the noise's tail beyond is dropped (heavy-tailed laws such as
             Cauchy need a larger dilation).
@@ -98,6 +101,7 @@ class Renderer(eqx.Module):
     faces_per_pixel: int = eqx.field(static=True, default=8)
     faces_per_tile: int = eqx.field(static=True, default=64)
     tile_size: int = eqx.field(static=True, default=8)
+    cull_backfaces: bool = eqx.field(static=True, default=False)
     dilation: float = eqx.field(static=True, default=3.0, converter=float)
     light: DirectionalLight = DirectionalLight()
     background: tuple[float, float, float] = eqx.field(static=True, default=(0.0, 0.0, 0.0), converter=_triple)
@@ -167,6 +171,7 @@ class Renderer(eqx.Module):
             gamma=None if hard else gamma,
             tile_size=self.tile_size,
             faces_per_tile=self.faces_per_tile,
+            cull_backfaces=self.cull_backfaces,
         )
         height, width = camera.image_size
         k = fragments.face_index.shape[-1]

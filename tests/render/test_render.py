@@ -163,3 +163,31 @@ def test_bad_renderer_inputs():
         render.Renderer(mode="perturbed")(None, render.cube(), CAMERA)
     with pytest.raises(TypeError, match="Mesh"):
         render.Renderer(mode="hard")(None, np.zeros((3, 3)), CAMERA)
+
+
+@pytest.mark.parametrize(
+    "name, mesh",
+    [("cube", render.cube(1.2)), ("icosphere", render.icosphere(1)), ("torus", render.torus(0.7, 0.3, 12, 6))],
+)
+def test_backface_culling_keeps_the_hard_image_of_closed_meshes(name, mesh, getkey):
+    # Closed, outward-oriented primitives: the faces seen from behind are hidden anyway, so
+    # culling them changes no pixel (and would blank the visible side if the sense were wrong).
+    mesh = render.position_colors(mesh)
+    kw = dict(mode="hard", faces_per_pixel=8, faces_per_tile=64)
+    plain = jax.jit(lambda m: render.Renderer(**kw)(None, m, CAMERA))
+    culled = jax.jit(lambda m: render.Renderer(cull_backfaces=True, **kw)(None, m, CAMERA))
+    for _ in range(2):
+        posed = render.transform_mesh(mesh, render.random_rotation(getkey()))
+        a, b = plain(posed), culled(posed)
+        assert float(jnp.sum(a.alpha)) > 50
+        np.testing.assert_array_equal(np.asarray(a.alpha), np.asarray(b.alpha))
+        np.testing.assert_allclose(np.asarray(a.rgb), np.asarray(b.rgb), atol=1e-12)
+
+
+def test_backface_culling_drops_a_square_seen_from_behind(getkey):
+    front = square(side_for_pixels(10.0))
+    back = render.Mesh(front.vertices, front.faces[:, ::-1], front.colors)
+    for mode, extra in [("hard", {}), ("perturbed", dict(num_samples=8))]:
+        r = render.Renderer(mode=mode, cull_backfaces=True, sigma=0.7, faces_per_pixel=4, faces_per_tile=16, **extra)
+        assert float(jnp.sum(r(getkey(), front, CAMERA).alpha)) > 80
+        assert float(jnp.max(r(getkey(), back, CAMERA).alpha)) == 0.0
