@@ -42,7 +42,8 @@ problems whose final rotation error is below success_deg), mean_error_deg and st
 rotation error over problems), median_error_deg, final_errors_deg (per problem), final_sigma (mean
 final noise scale factor), mean_translation_error (distance of the final translation to the true
 one, 0 unless optimize_translation) and seconds_per_step (wall time of one batched Adam step); also
-methods, init_errors_deg, success_deg, problems, steps, image_size, mesh, num_faces."""
+methods, init_errors_deg, success_deg, problems, steps, image_size, mesh, num_faces, faces_per_pixel and
+cull_backfaces (whether faces seen from behind were dropped: by default when the mesh is closed)."""
 
 METHODS = ("perturbed-gaussian", "perturbed-cauchy", "soft", "hard")
 
@@ -59,8 +60,11 @@ class Config:
     sigma: float = 3.0  # coverage noise scale in pixels at image_size 128 (scaled with the size)
     gamma: float = 0.02  # depth temperature (normalized inverse depth)
     num_samples: int = 8
-    faces_per_pixel: int = 8
+    faces_per_pixel: int = 4  # with back faces culled, a closed mesh rarely has more candidates per pixel
     faces_per_tile: int = 64  # raise for dense meshes (see rsmooth.render.rasterize)
+    # drop faces seen from behind (rsmooth.render.Renderer); None: when the mesh is closed and
+    # outward-oriented (rsmooth.render.is_closed_outward), where the hard image is the same
+    cull_backfaces: bool | None = None
     decay_factor: float = 2.0
     momentum: float = 0.9
     noise_floor: float = 0.05  # smallest noise scale factor
@@ -75,7 +79,7 @@ class Config:
 
     @classmethod
     def quick(cls) -> "Config":
-        return cls(image_size=48, problems=4, steps=60, num_samples=8, faces_per_pixel=6, faces_per_tile=32)
+        return cls(image_size=48, problems=4, steps=60, num_samples=8, faces_per_tile=32)
 
 
 def load(name: str) -> render.Mesh:
@@ -92,11 +96,15 @@ def load(name: str) -> render.Mesh:
     return render.position_colors(mesh)
 
 
-def make_renderer(config: Config, method: str) -> render.Renderer:
+def make_renderer(config: Config, method: str, mesh: render.Mesh | None = None) -> render.Renderer:
+    """The renderer of `method`; `mesh` decides `cull_backfaces` when the config leaves it None."""
     sigma = config.sigma * config.image_size / 128.0
+    cull = config.cull_backfaces
+    if cull is None:
+        cull = mesh is not None and render.is_closed_outward(mesh)
     common = dict(
         sigma=sigma, gamma=config.gamma, faces_per_pixel=config.faces_per_pixel,
-        faces_per_tile=config.faces_per_tile,
+        faces_per_tile=config.faces_per_tile, cull_backfaces=cull,
     )
     if method == "hard":
         return render.Renderer(mode="hard", **common)
@@ -137,7 +145,7 @@ def problems(config: Config, key, init_error_deg: float):
 
 def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Camera):
     """init(r_init, offset) -> state; step(state, key, target, r_init) -> (state, loss, pose)."""
-    renderer = make_renderer(config, method)
+    renderer = make_renderer(config, method, mesh)
     optimizer = optax.adam(optax.cosine_decay_schedule(config.learning_rate, config.steps, alpha=config.final_learning_rate))
     adaptive = method != "hard"
     schedule = (
@@ -188,7 +196,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
             raise ValueError(f"unknown method {method!r}; choose from {METHODS}")
     mesh = load(config.mesh)
     cam = camera(config)
-    target_renderer = render.Renderer(mode="hard", faces_per_pixel=config.faces_per_pixel, faces_per_tile=config.faces_per_tile)
+    target_renderer = make_renderer(config, "hard", mesh)
     render_hard = jax.jit(jax.vmap(lambda r, t: target_renderer(None, render.transform_mesh(mesh, r, t), cam).rgb))
 
     k_problems, k_run = jax.random.split(key)
@@ -260,6 +268,8 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "image_size": config.image_size,
         "mesh": config.mesh,
         "num_faces": int(mesh.faces.shape[0]),
+        "faces_per_pixel": config.faces_per_pixel,
+        "cull_backfaces": target_renderer.cull_backfaces,
         "gif": f"optimization.gif: {gif_method}, initial error {gif_error:g} deg, problem 0 (target | current)",
     }
     viz.write_metrics(out / "metrics.json", metrics)

@@ -148,6 +148,21 @@ def position_colors(mesh: Mesh) -> Mesh:
     return Mesh(mesh.vertices, mesh.faces, colors)
 
 
+def is_closed_outward(mesh: Mesh) -> bool:
+    """True when the mesh is watertight, consistently wound and encloses a positive volume
+    (trimesh's tests): its faces seen from behind are then always hidden, and renderers may
+    cull them (``Renderer(cull_backfaces=True)``). Needs concrete (not traced) arrays.
+
+    Example:
+        >>> is_closed_outward(cube(1.0)), is_closed_outward(Mesh(cube(1.0).vertices, cube(1.0).faces[:, ::-1]))
+        (True, False)
+    """
+    import trimesh
+
+    tm = trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), process=False)
+    return bool(tm.is_watertight and tm.is_winding_consistent and tm.volume > 0)
+
+
 def _from_trimesh(tm, name: str) -> Mesh:
     vertices = np.asarray(tm.vertices, float)
     faces = np.asarray(tm.faces, np.int64)
