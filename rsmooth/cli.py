@@ -209,7 +209,7 @@ def render_pose_command(
     mesh: str = typer.Option("cube", "--mesh", help="cube, icosphere, torus, or a mesh file (OBJ, STL, PLY, DAE)."),
     init_error: Optional[list[float]] = typer.Option(
         None, "--init-error", help="Initial rotation error in degrees (repeatable; default 20, 50, 80)."),
-    problems: Optional[int] = typer.Option(None, "--problems", min=1, help="Problems per initial error."),
+    problems: Optional[int] = typer.Option(None, "--problems", min=1, help="Problems per initial error (default 100, quick 4)."),
 ):
     init_errors_deg = tuple(float(e) for e in init_error) if init_error else None
     _run(_RENDER_POSE, out, seed, quick, mesh=mesh, init_errors_deg=init_errors_deg, problems=problems)

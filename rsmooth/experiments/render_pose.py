@@ -15,7 +15,8 @@ the rendered and the target images with Adam (optax), for each renderer:
   derivative with respect to the scale is exact);
 * ``hard``: the z-buffer; only shading and colour interpolation give it a gradient.
 
-Independent problems are batched with `jax.vmap`, spread over the devices when there are several
+Independent problems are batched with `jax.vmap` (`batch_size` at a time, which bounds the
+memory), spread over the devices when there are several
 (:mod:`rsmooth.parallel`). The mesh's vertices are coloured by their
 position, so that symmetric shapes (cube, sphere) have a unique pose. The rotation is
 parametrized as R = exp([delta]) R_init with delta in R^3 starting at 0; the translation, when
@@ -41,8 +42,9 @@ a dict keyed by the initial rotation error in degrees (as a string) holding solv
 problems whose final rotation error is below success_deg), mean_error_deg and std_error_deg (final
 rotation error over problems), median_error_deg, final_errors_deg (per problem), final_sigma (mean
 final noise scale factor), mean_translation_error (distance of the final translation to the true
-one, 0 unless optimize_translation) and seconds_per_step (wall time of one batched Adam step); also
-methods, init_errors_deg, success_deg, problems, steps, image_size, mesh, num_faces, faces_per_pixel and
+one, 0 unless optimize_translation), seconds_per_step (wall time of one batched Adam step of
+batch_size problems, first steps excluded; null when there is none) and seconds_per_problem_step
+(the same per problem); also methods, init_errors_deg, success_deg, problems, batch_size, steps, image_size, mesh, num_faces, faces_per_pixel and
 cull_backfaces (whether faces seen from behind were dropped: by default when the mesh is closed)."""
 
 METHODS = ("perturbed-gaussian", "perturbed-cauchy", "soft", "hard")
@@ -53,7 +55,8 @@ class Config:
     mesh: str = "cube"  # cube, icosphere, torus, or a mesh file path
     image_size: int = 128
     init_errors_deg: tuple[float, ...] = (20.0, 50.0, 80.0)
-    problems: int = 8
+    problems: int = 100  # per initial error (the paper's count); --problems for fewer
+    batch_size: int = 25  # problems optimized at once (vmapped); the rest wait their turn
     steps: int = 100
     methods: tuple[str, ...] = METHODS
     learning_rate: float = 0.05
@@ -191,6 +194,10 @@ def _degrees(r1, r2):
 def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     """Runs every method from every initial error; writes metrics.json, PNGs and a GIF."""
     out = Path(out)
+    for name in ("problems", "batch_size", "steps"):
+        value = getattr(config, name)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be an int >= 1, got {value!r}")
     for method in config.methods:
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; choose from {METHODS}")
@@ -212,48 +219,55 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     gif_frames = []
     gif_method = config.methods[0]
     gif_error = config.init_errors_deg[len(config.init_errors_deg) // 2]
-    total = len(config.methods) * len(config.init_errors_deg) * config.steps
+    batch = min(config.batch_size, config.problems)
+    chunks = [slice(lo, min(lo + batch, config.problems)) for lo in range(0, config.problems, batch)]
+    total = len(config.methods) * len(config.init_errors_deg) * len(chunks) * config.steps
     with tqdm(total=total, desc="render-pose", disable=not progress) as bar:
         for m_index, method in enumerate(config.methods):
             _, init, step = make_solver(config, method, mesh, cam)
             results[method] = {}
             for e_index, err in enumerate(config.init_errors_deg):
                 r_true, r_init, offset, targets = setups[err]
-                state = init(offset)
                 run_key = jax.random.fold_in(jax.random.fold_in(k_run, m_index), e_index)
-                errors = [_degrees(r_init, r_true)]
                 record = method == gif_method and err == gif_error
-                poses = []
-                elapsed = []
-                for t in range(config.steps):
-                    keys = jax.random.split(jax.random.fold_in(run_key, t), config.problems)
-                    start = time.perf_counter()
-                    state, loss, rotation = step(state, keys, targets, r_init)
-                    jax.block_until_ready(rotation)
-                    elapsed.append(time.perf_counter() - start)
-                    errors.append(_degrees(rotation, r_true))
-                    if record and t % config.gif_every == 0:
-                        poses.append((rotation[0], state[0]["translation"][0]))
-                    bar.update()
-                final = errors[-1]
-                curves[(method, err)] = np.stack(errors)
-                finals[(method, err)] = (rotation, state[0]["translation"])
+                errors, rotations, translations, sigmas, elapsed = [], [], [], [], []
+                for c_index, chunk in enumerate(chunks):
+                    state = init(offset[chunk])
+                    chunk_key = jax.random.fold_in(run_key, c_index)
+                    chunk_errors = [_degrees(r_init[chunk], r_true[chunk])]
+                    for t in range(config.steps):
+                        keys = jax.random.split(jax.random.fold_in(chunk_key, t), chunk.stop - chunk.start)
+                        start = time.perf_counter()
+                        state, loss, rotation = step(state, keys, targets[chunk], r_init[chunk])
+                        jax.block_until_ready(rotation)
+                        # timed: full batches after their first step (which may compile)
+                        if t > 0 and chunk.stop - chunk.start == batch:
+                            elapsed.append(time.perf_counter() - start)
+                        chunk_errors.append(_degrees(rotation, r_true[chunk]))
+                        if record and c_index == 0 and t % config.gif_every == 0:
+                            target0 = np.asarray(targets[0])
+                            current = np.asarray(render_hard(rotation[:1], state[0]["translation"][:1])[0])
+                            gif_frames.append(np.concatenate([target0, current], axis=1))
+                        bar.update()
+                    errors.append(np.stack(chunk_errors))
+                    rotations.append(rotation)
+                    translations.append(state[0]["translation"])
+                    sigmas.append(np.asarray(state[2].sigma))
+                curves[(method, err)] = np.concatenate(errors, axis=1)
+                final = curves[(method, err)][-1]
+                translation = jnp.concatenate(translations)
+                finals[(method, err)] = (jnp.concatenate(rotations), translation)
                 results[method][f"{err:g}"] = {
                     "solved_pct": float(100.0 * np.mean(final < config.success_deg)),
                     "mean_error_deg": float(np.mean(final)),
                     "std_error_deg": float(np.std(final)),
                     "median_error_deg": float(np.median(final)),
                     "final_errors_deg": final.tolist(),
-                    "final_sigma": float(np.mean(np.asarray(state[2].sigma))),
-                    "mean_translation_error": float(np.mean(np.linalg.norm(np.asarray(state[0]["translation"]), axis=-1))),
-                    # The first step includes compilation.
-                    "seconds_per_step": float(np.median(elapsed[1:] if len(elapsed) > 1 else elapsed)),
+                    "final_sigma": float(np.mean(np.concatenate(sigmas))),
+                    "mean_translation_error": float(np.mean(np.linalg.norm(np.asarray(translation), axis=-1))),
+                    "seconds_per_step": float(np.median(elapsed)) if elapsed else None,
+                    "seconds_per_problem_step": float(np.median(elapsed)) / batch if elapsed else None,
                 }
-                if record:
-                    target0 = np.asarray(targets[0])
-                    for rotation0, translation0 in poses:
-                        current = np.asarray(render_hard(rotation0[None], translation0[None])[0])
-                        gif_frames.append(np.concatenate([target0, current], axis=1))
 
     _figures(config, out, setups, curves, finals, render_hard)
     if gif_frames:
@@ -264,6 +278,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "init_errors_deg": list(config.init_errors_deg),
         "success_deg": config.success_deg,
         "problems": config.problems,
+        "batch_size": batch,
         "steps": config.steps,
         "image_size": config.image_size,
         "mesh": config.mesh,

@@ -4,6 +4,7 @@ import dataclasses
 import json
 
 import jax
+import numpy as np
 import pytest
 
 from rsmooth.experiments import render_pose
@@ -27,7 +28,23 @@ def test_perturbed_renderer_solves_a_cube_from_20_degrees(tmp_path):
     assert not list(tmp_path.glob(".*"))
 
 
-def test_unknown_method_is_rejected(tmp_path):
-    config = dataclasses.replace(render_pose.Config.quick(), methods=("blurry",))
-    with pytest.raises(ValueError, match="blurry"):
+def test_problems_run_in_batches(tmp_path):
+    # 3 problems, 2 at a time: every problem gets its result, and the first batch's are those of
+    # a run of exactly its 2 problems (same targets, same keys).
+    small = dataclasses.replace(
+        render_pose.Config.quick(), image_size=24, steps=3, methods=("perturbed-gaussian",), init_errors_deg=(30.0,),
+        gif_every=1,
+    )
+    batched = render_pose.run(dataclasses.replace(small, problems=3, batch_size=2), tmp_path / "a", jax.random.key(3), progress=False)
+    result = batched["perturbed-gaussian"]["30"]
+    assert len(result["final_errors_deg"]) == 3 and batched["batch_size"] == 2
+    assert result["seconds_per_step"] > 0
+    alone = render_pose.run(dataclasses.replace(small, problems=2, batch_size=2), tmp_path / "b", jax.random.key(3), progress=False)
+    np.testing.assert_allclose(result["final_errors_deg"][:2], alone["perturbed-gaussian"]["30"]["final_errors_deg"], atol=1e-4)
+
+
+@pytest.mark.parametrize("change", [{"methods": ("blurry",)}, {"batch_size": 0}, {"problems": 0}])
+def test_bad_config_is_rejected(tmp_path, change):
+    config = dataclasses.replace(render_pose.Config.quick(), **change)
+    with pytest.raises(ValueError, match=next(iter(change)) if "methods" not in change else "blurry"):
         render_pose.run(config, tmp_path, jax.random.key(0), progress=False)
