@@ -1,7 +1,8 @@
 """Renderer cost at 128 x 128: hard, soft and perturbed (M = 1, 8, 32), forward and
 forward + backward, for a 1k- and a 20k-face icosphere; and one pose-optimization step.
 
-Forward + backward is the gradient of a weighted sum of the RGB image with respect to the
+Peak memory is XLA's own account of the compiled call (arguments, outputs and temporaries
+that are live at once). Forward + backward is the gradient of a weighted sum of the RGB image with respect to the
 mesh's translation (the backward pass goes through every fragment). Everything is jitted and
 timed in this one process (float32, JAX's default); ratios are against the hard forward pass
 on the same mesh. The pose step is one batched Adam step of the render-pose experiment
@@ -23,6 +24,15 @@ VARIANTS = (("hard", 1), ("soft", 1), ("perturbed", 1), ("perturbed", 8), ("pert
 MAX_REPEATS = 10
 
 
+def _peak_mb(fn, *args) -> float:
+    """XLA's memory for the compiled call, in MB: arguments, outputs and the temporary buffer
+    (the buffer assignment's live set at its largest), independent of the allocator. (On CPU
+    `peak_memory_in_bytes` leaves the temporaries out: 0.3 MB for every renderer here.)"""
+    stats = fn.lower(*args).compile().memory_analysis()
+    total = stats.argument_size_in_bytes + stats.output_size_in_bytes + stats.temp_size_in_bytes - stats.alias_size_in_bytes
+    return total / 1e6
+
+
 def _functions(mesh, camera, renderer):
     weights = jax.random.uniform(jax.random.key(2), (SIZE, SIZE, 3))
 
@@ -34,10 +44,12 @@ def _functions(mesh, camera, renderer):
     return forward, backward
 
 
-def _pose_step_time(repeats: int) -> tuple[float, int]:
+def _pose_step_time(repeats: int, problems: int = 8) -> tuple[float, int]:
+    import dataclasses
+
     from rsmooth.experiments import render_pose
 
-    config = render_pose.Config()
+    config = dataclasses.replace(render_pose.Config(), problems=problems)
     mesh = render_pose.load(config.mesh)
     cam = render_pose.camera(config)
     _, init, step = render_pose.make_solver(config, "perturbed-gaussian", mesh, cam)
@@ -62,7 +74,8 @@ def main(repeats: int = 5) -> list[dict]:
         overflow = int(render.rasterize(mesh, camera, margin=3.0, sigma=1.0, gamma=0.01, tile_size=tile_size, faces_per_tile=faces_per_tile).tile_overflow)
         print(f"icosphere({subdivisions}): {mesh.num_faces} faces, tiles {tile_size} px, faces_per_tile {faces_per_tile} "
               f"({overflow} tiles had more candidate faces than that; the farthest, back faces here, were dropped)")
-        header = f"{'renderer':>14} | {'forward':>11} | {'fwd+bwd':>11} | {'fwd / hard fwd':>14} | {'fwd+bwd / hard fwd':>18}"
+        header = (f"{'renderer':>14} | {'forward':>11} | {'fwd+bwd':>11} | {'fwd / hard fwd':>14} | {'fwd+bwd / hard fwd':>18} "
+                  f"| {'peak MB fwd':>11} | {'peak MB fwd+bwd':>15}")
         print(header)
         print("-" * len(header))
         hard_forward = None
@@ -74,12 +87,19 @@ def main(repeats: int = 5) -> list[dict]:
             forward, backward = _functions(mesh, camera, renderer)
             t_forward = median_time(forward, key, t0, repeats=repeats)
             t_backward = median_time(backward, key, t0, repeats=repeats)
+            m_forward, m_backward = _peak_mb(forward, key, t0), _peak_mb(backward, key, t0)
             hard_forward = hard_forward or t_forward
             name = mode if mode != "perturbed" else f"perturbed M={samples}"
-            print(f"{name:>14} | {fmt(t_forward):>11} | {fmt(t_backward):>11} | {t_forward / hard_forward:>14.2f} | {t_backward / hard_forward:>18.2f}")
-            rows.append({"faces": mesh.num_faces, "mode": mode, "num_samples": samples, "forward": t_forward, "forward_backward": t_backward})
+            print(f"{name:>14} | {fmt(t_forward):>11} | {fmt(t_backward):>11} | {t_forward / hard_forward:>14.2f} | {t_backward / hard_forward:>18.2f} "
+                  f"| {m_forward:>11.1f} | {m_backward:>15.1f}")
+            rows.append({"faces": mesh.num_faces, "mode": mode, "num_samples": samples, "forward": t_forward, "forward_backward": t_backward,
+                         "peak_mb_forward": m_forward, "peak_mb_forward_backward": m_backward})
         ratio = next(r["forward_backward"] for r in rows if r["faces"] == mesh.num_faces and r["num_samples"] == 8) / hard_forward
         print(f"perturbed (M=8) forward+backward / hard forward: {ratio:.2f}\n")
+    t_one, _ = _pose_step_time(repeats, problems=1)
+    print(f"pose optimization, one problem (render-pose defaults: cube, back faces culled, 4 faces per pixel, "
+          f"perturbed-gaussian M=8): {fmt(t_one)} per Adam step (goal: under 50 ms per iteration)")
+    rows.append({"pose_step": t_one, "problems": 1})
     t_step, problems = _pose_step_time(repeats)
     print(f"pose optimization (render-pose defaults: cube, {SIZE} x {SIZE}, perturbed-gaussian M=8, {problems} problems "
           f"vmapped): {fmt(t_step)} per Adam step, {fmt(t_step / problems)} per problem")
