@@ -84,6 +84,11 @@ class Renderer(eqx.Module):
         cull_backfaces: drop the faces seen from behind before choosing each pixel's
             candidates (for closed, outward-oriented meshes: the hard image is unchanged and a
             smaller `faces_per_pixel` suffices).
+        interior_edges: smooth the coverage across every triangle edge, as SoftRas and the
+            perturbed renderer of Le Lidec et al. do, which draws seams (coverage about 3/4)
+            along the edges shared by two faces of a continuous surface; False (the default)
+            smooths only the silhouette and boundary edges, where the image is discontinuous
+            (see :func:`rsmooth.render.rasterize`). Hard rendering is the same either way.
         dilation: candidate faces lie within `dilation * sigma` pixels of the pixel centre
             (smoothed modes); the noise's tail beyond is dropped (heavy-tailed laws such as
             Cauchy need a larger dilation).
@@ -102,6 +107,7 @@ class Renderer(eqx.Module):
     faces_per_tile: int = eqx.field(static=True, default=64)
     tile_size: int = eqx.field(static=True, default=8)
     cull_backfaces: bool = eqx.field(static=True, default=False)
+    interior_edges: bool = eqx.field(static=True, default=False)
     dilation: float = eqx.field(static=True, default=3.0, converter=float)
     light: DirectionalLight = DirectionalLight()
     background: tuple[float, float, float] = eqx.field(static=True, default=(0.0, 0.0, 0.0), converter=_triple)
@@ -172,6 +178,7 @@ class Renderer(eqx.Module):
             tile_size=self.tile_size,
             faces_per_tile=self.faces_per_tile,
             cull_backfaces=self.cull_backfaces,
+            interior_edges=hard or self.interior_edges,
         )
         height, width = camera.image_size
         k = fragments.face_index.shape[-1]

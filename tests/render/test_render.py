@@ -59,7 +59,8 @@ def test_perturbed_render_of_an_edge_is_the_smoothed_step(renderers, getkey):
     """Across the middle of the square's left edge, alpha is Phi(d / sigma) (Gaussian noise)."""
     mesh = square(side_for_pixels(12.5))  # edges at 9.75 and 22.25: centres at +-0.25, 0.75, ...
     # Columns 5-12: in these rows column 13 comes within 1 px of the square's diagonal, an edge inside the
-    # silhouette where each triangle's own coverage is below 1 (the seam of a perturbed render).
+    # silhouette; this square's triangles share no vertex, so the diagonal is a boundary edge of both
+    # and leaves a seam (see test_interior_edges_leave_no_seam for a connected square).
     row = np.mean(np.stack([np.asarray(renderers["perturbed"](getkey(), mesh).alpha[14:18, 5:13]) for _ in range(4)]), axis=(0, 1))
     d = np.arange(5, 13) + 0.5 - 9.75
     np.testing.assert_allclose(row, norm.cdf(d / 0.7), atol=0.04)
@@ -191,3 +192,39 @@ def test_backface_culling_drops_a_square_seen_from_behind(getkey):
         r = render.Renderer(mode=mode, cull_backfaces=True, sigma=0.7, faces_per_pixel=4, faces_per_tile=16, **extra)
         assert float(jnp.sum(r(getkey(), front, CAMERA).alpha)) > 80
         assert float(jnp.max(r(getkey(), back, CAMERA).alpha)) == 0.0
+
+
+@pytest.mark.parametrize("mode", ["soft", "perturbed"])
+def test_interior_edges_leave_no_seam(renderers, mode, getkey):
+    # The square's two triangles share a diagonal. Smoothing every triangle edge (SoftRas, the
+    # paper's perturbed coverage) gives each side coverage ~1/2 there: alpha ~3/4 along it.
+    # Smoothing only the silhouette keeps the inside covered; the outline is the same.
+    # (Edges are matched by vertex index: the two triangles share the diagonal's two vertices.)
+    loose = square(side_for_pixels(12.5))  # outer edges at 9.75 and 22.25 px
+    mesh = render.Mesh(loose.vertices[np.array([0, 1, 2, 5])], np.array([[0, 1, 2], [0, 2, 3]]), loose.colors[:4])
+    kw = dict(mode=mode, sigma=0.7, gamma=0.01, faces_per_pixel=4, faces_per_tile=16, num_samples=64)
+    seamed, seamless = render.Renderer(interior_edges=True, **kw), render.Renderer(**kw)
+    with_seam = np.asarray(seamed(getkey(), mesh, CAMERA).alpha)
+    without = np.asarray(seamless(getkey(), mesh, CAMERA).alpha)
+    inside = (slice(13, 19), slice(13, 19))  # >= 3.25 px = 4.6 sigma from the outer edges
+    assert with_seam[inside].min() < 0.85
+    assert without[inside].min() > 0.98
+    tolerance = 1e-6 if mode == "soft" else 0.25  # one Monte-Carlo draw per pixel, M = 64
+    y, x = np.mgrid[:SIZE, :SIZE] + 0.5
+    outline = (np.abs(x - y) > 4) & (np.abs(x + y - SIZE) > 4)  # away from both diagonals: the same edges
+    np.testing.assert_allclose(without[outline], with_seam[outline], atol=tolerance)
+
+
+def test_edge_neighbors_pair_the_faces_of_closed_and_open_meshes():
+    for mesh in (render.icosphere(1), render.torus(0.7, 0.3, 12, 6), render.cube(1.0)):
+        faces = np.asarray(mesh.faces)
+        neighbor = np.asarray(render.edge_neighbors(faces))
+        assert (neighbor >= 0).all()  # closed: every edge has a face across
+        for f in range(len(faces)):
+            for i in range(3):
+                g = neighbor[f, i]
+                edge = {faces[f, i], faces[f, (i + 1) % 3]}
+                assert g != f and edge <= set(faces[g].tolist())
+    np.testing.assert_array_equal(np.asarray(render.edge_neighbors(FACES)), -np.ones((2, 3)))  # two separate triangles
+    open_square = np.array([[0, 1, 2], [0, 2, 3]])
+    np.testing.assert_array_equal(np.asarray(render.edge_neighbors(open_square)), [[-1, -1, 1], [0, -1, -1]])
