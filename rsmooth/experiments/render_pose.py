@@ -45,7 +45,8 @@ final noise scale factor), mean_translation_error (distance of the final transla
 one, 0 unless optimize_translation), seconds_per_step (wall time of one batched Adam step of
 batch_size problems, first steps excluded; null when there is none) and seconds_per_problem_step
 (the same per problem); also methods, init_errors_deg, success_deg, problems, batch_size, steps, image_size, mesh, num_faces, faces_per_pixel and
-cull_backfaces (whether faces seen from behind were dropped: by default when the mesh is closed)."""
+cull_backfaces (whether faces seen from behind were dropped: by default when the mesh is closed) and
+interior_edges (whether coverage was smoothed across every triangle edge, as in the paper)."""
 
 METHODS = ("perturbed-gaussian", "perturbed-cauchy", "soft", "hard")
 
@@ -68,6 +69,11 @@ class Config:
     # drop faces seen from behind (rsmooth.render.Renderer); None: when the mesh is closed and
     # outward-oriented (rsmooth.render.is_closed_outward), where the hard image is the same
     cull_backfaces: bool | None = None
+    # smooth coverage across every triangle edge, as the paper's perturbed renderer and SoftRas
+    # do (seams along shared edges), rather than the silhouette only (rsmooth.render.Renderer);
+    # measured on 16 cubes per angle, seed 5: Gaussian 100/75/37.5 % solved at 20/50/80 deg
+    # with, 93.75/68.75/18.75 % without; soft 87.5/68.75/18.75 % with, 93.75/75/31.25 % without
+    interior_edges: bool = True
     decay_factor: float = 2.0
     momentum: float = 0.9
     noise_floor: float = 0.05  # smallest noise scale factor
@@ -107,7 +113,7 @@ def make_renderer(config: Config, method: str, mesh: render.Mesh | None = None) 
         cull = mesh is not None and render.is_closed_outward(mesh)
     common = dict(
         sigma=sigma, gamma=config.gamma, faces_per_pixel=config.faces_per_pixel,
-        faces_per_tile=config.faces_per_tile, cull_backfaces=cull,
+        faces_per_tile=config.faces_per_tile, cull_backfaces=cull, interior_edges=config.interior_edges,
     )
     if method == "hard":
         return render.Renderer(mode="hard", **common)
@@ -285,6 +291,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "num_faces": int(mesh.faces.shape[0]),
         "faces_per_pixel": config.faces_per_pixel,
         "cull_backfaces": target_renderer.cull_backfaces,
+        "interior_edges": config.interior_edges,
         "gif": f"optimization.gif: {gif_method}, initial error {gif_error:g} deg, problem 0 (target | current)",
     }
     viz.write_metrics(out / "metrics.json", metrics)
