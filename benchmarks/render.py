@@ -44,12 +44,12 @@ def _functions(mesh, camera, renderer):
     return forward, backward
 
 
-def _pose_step_time(repeats: int, problems: int = 8) -> tuple[float, int]:
+def _pose_step_time(repeats: int, problems: int = 8, **changes) -> tuple[float, int]:
     import dataclasses
 
     from rsmooth.experiments import render_pose
 
-    config = dataclasses.replace(render_pose.Config(), problems=problems)
+    config = dataclasses.replace(render_pose.Config(), problems=problems, **changes)
     mesh = render_pose.load(config.mesh)
     cam = render_pose.camera(config)
     _, init, step = render_pose.make_solver(config, "perturbed-gaussian", mesh, cam)
@@ -96,10 +96,11 @@ def main(repeats: int = 5) -> list[dict]:
                          "peak_mb_forward": m_forward, "peak_mb_forward_backward": m_backward})
         ratio = next(r["forward_backward"] for r in rows if r["faces"] == mesh.num_faces and r["num_samples"] == 8) / hard_forward
         print(f"perturbed (M=8) forward+backward / hard forward: {ratio:.2f}\n")
-    t_one, _ = _pose_step_time(repeats, problems=1)
-    print(f"pose optimization, one problem (render-pose defaults: cube, back faces culled, 4 faces per pixel, "
-          f"perturbed-gaussian M=8): {fmt(t_one)} per Adam step (goal: under 50 ms per iteration)")
-    rows.append({"pose_step": t_one, "problems": 1})
+    for k in (8, 4):
+        t_one, _ = _pose_step_time(repeats, problems=1, faces_per_pixel=k)
+        print(f"pose optimization, one problem (render-pose defaults: cube, back faces culled, perturbed-gaussian M=8; "
+              f"{k} faces per pixel): {fmt(t_one)} per Adam step (goal: under 50 ms per iteration)")
+        rows.append({"pose_step": t_one, "problems": 1, "faces_per_pixel": k})
     t_step, problems = _pose_step_time(repeats)
     print(f"pose optimization (render-pose defaults: cube, {SIZE} x {SIZE}, perturbed-gaussian M=8, {problems} problems "
           f"vmapped): {fmt(t_step)} per Adam step, {fmt(t_step / problems)} per problem")
