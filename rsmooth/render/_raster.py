@@ -31,6 +31,7 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array, lax
 from jax.typing import ArrayLike
 
@@ -259,21 +260,24 @@ def edge_neighbors(faces: ArrayLike) -> Array:
         >>> edge_neighbors(jnp.array([[0, 1, 2], [2, 1, 3]])).tolist()
         [[-1, 1, -1], [0, -1, -1]]
     """
-    faces = jnp.asarray(faces)
+    # Concrete faces (the usual case: a fixed topology) are paired with numpy, since XLA would
+    # constant-fold the sort at compile time (seconds for 20k faces); traced ones with jnp.
+    xp = jnp if isinstance(faces, jax.core.Tracer) else np
+    faces = xp.asarray(faces)
     num = faces.shape[0] * 3
-    a, b = faces, jnp.roll(faces, -1, axis=1)
-    lo, hi = jnp.minimum(a, b).reshape(num), jnp.maximum(a, b).reshape(num)
-    order = jnp.lexsort((hi, lo))
+    a, b = faces, xp.roll(faces, -1, axis=1)
+    lo, hi = xp.minimum(a, b).reshape(num), xp.maximum(a, b).reshape(num)
+    order = xp.lexsort((hi, lo))
     lo_s, hi_s = lo[order], hi[order]
     same = (lo_s[1:] == lo_s[:-1]) & (hi_s[1:] == hi_s[:-1])  # sorted entry j equals entry j + 1
-    with_next = jnp.concatenate([same, jnp.zeros((1,), bool)])
-    with_prev = jnp.concatenate([jnp.zeros((1,), bool), same])
+    with_next = xp.concatenate([same, xp.zeros((1,), bool)])
+    with_prev = xp.concatenate([xp.zeros((1,), bool), same])
     # pair each entry with its next equal one, else its previous one (chains of 3+ pair up loosely)
-    nxt = jnp.concatenate([order[1:], order[:1]])
-    prv = jnp.concatenate([order[-1:], order[:-1]])
-    partner = jnp.where(with_next, nxt, jnp.where(with_prev, prv, -1))
-    halfedge = jnp.zeros((num,), order.dtype).at[order].set(partner)
-    return jnp.where(halfedge >= 0, halfedge // 3, -1).reshape(faces.shape)
+    nxt = xp.concatenate([order[1:], order[:1]])
+    prv = xp.concatenate([order[-1:], order[:-1]])
+    partner = xp.where(with_next, nxt, xp.where(with_prev, prv, -1))
+    halfedge = partner[xp.argsort(order)]  # back to the unsorted order
+    return jnp.asarray(xp.where(halfedge >= 0, halfedge // 3, -1).reshape(faces.shape))
 
 
 def _front_facing(mesh: Mesh, camera: Camera) -> Array:

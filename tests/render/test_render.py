@@ -218,7 +218,8 @@ def test_interior_edges_leave_no_seam(renderers, mode, getkey):
 def test_edge_neighbors_pair_the_faces_of_closed_and_open_meshes():
     for mesh in (render.icosphere(1), render.torus(0.7, 0.3, 12, 6), render.cube(1.0)):
         faces = np.asarray(mesh.faces)
-        neighbor = np.asarray(render.edge_neighbors(faces))
+        neighbor = np.asarray(render.edge_neighbors(faces))  # concrete faces: paired with numpy
+        np.testing.assert_array_equal(np.asarray(jax.jit(render.edge_neighbors)(faces)), neighbor)  # traced: jnp
         assert (neighbor >= 0).all()  # closed: every edge has a face across
         for f in range(len(faces)):
             for i in range(3):
