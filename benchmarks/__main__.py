@@ -17,7 +17,8 @@ def main():
     args = parser.parse_args()
     from rsmooth import _xla
 
-    _xla.apply_cpu_defaults()  # the settings the rsmooth command runs with (rsmooth._xla)
+    if args.name == "render":
+        _xla.apply_cpu_defaults()  # the settings `rsmooth render` runs with (rsmooth._xla)
     benchmark = importlib.import_module(f"benchmarks.{args.name}").main
     options = {"repeats": args.repeats if args.repeats is not None else DEFAULT_REPEATS.get(args.name, 30)}
     if args.quick:

@@ -323,9 +323,12 @@ def demo(
 
 
 def main():  # the console-script entry point
+    import sys
+
     from rsmooth import _xla
 
-    _xla.apply_cpu_defaults()  # before JAX starts its backend (see rsmooth._xla)
+    if sys.argv[1:2] == ["render"]:
+        _xla.apply_cpu_defaults()  # before JAX starts its backend (see rsmooth._xla)
     app()
 
 
