@@ -40,7 +40,7 @@ from rsmooth.noise import Gaussian, Noise
 from rsmooth.smooth import smooth_elementwise
 
 from rsmooth.render._camera import Camera
-from rsmooth.render._mesh import Mesh
+from rsmooth.render._mesh import Mesh, _is_concrete
 
 __all__ = [
     "signed_distance",
@@ -262,7 +262,7 @@ def edge_neighbors(faces: ArrayLike) -> Array:
     """
     # Concrete faces (the usual case: a fixed topology) are paired with numpy, since XLA would
     # constant-fold the sort at compile time (seconds for 20k faces); traced ones with jnp.
-    xp = jnp if isinstance(faces, jax.core.Tracer) else np
+    xp = np if _is_concrete(faces) else jnp
     faces = xp.asarray(faces)
     num = faces.shape[0] * 3
     a, b = faces, xp.roll(faces, -1, axis=1)
