@@ -194,6 +194,19 @@ def test_backface_culling_drops_a_square_seen_from_behind(getkey):
         assert float(jnp.max(r(getkey(), back, CAMERA).alpha)) == 0.0
 
 
+def test_slots_beyond_any_noise_have_zero_sigma_derivative(getkey):
+    # A face with no silhouette edge is at 1e15 px (always covered), an empty slot at -1e20
+    # (never): the weights then depend on the depth noise only, so the estimated derivative
+    # with respect to sigma is 0, not the 1e14-sized d(d / sigma)/d sigma of the raw distance.
+    def weights(sigma):
+        return render.perturbed_aggregate(
+            getkey(), jnp.array([1e15, 1e15, -1e20]), jnp.array([0.3, 0.31, 0.5]), sigma=sigma, gamma=0.02, num_samples=16
+        )
+
+    d_sigma = jax.jacfwd(weights)(2.0)
+    np.testing.assert_array_equal(np.asarray(d_sigma), 0.0)
+
+
 @pytest.mark.parametrize("mode", ["soft", "perturbed"])
 def test_interior_edges_leave_no_seam(renderers, mode, getkey):
     # The square's two triangles share a diagonal. Smoothing every triangle edge (SoftRas, the
