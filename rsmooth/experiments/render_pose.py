@@ -64,19 +64,21 @@ class Config:
     sigma: float = 3.0  # coverage noise scale in pixels at image_size 128 (scaled with the size)
     gamma: float = 0.02  # depth temperature (normalized inverse depth)
     num_samples: int = 8
-    # candidates per pixel: 4 suffice for the cube with back faces culled (a step 2x faster, the
-    # same solve rates), but not for finer meshes (torus, 20 deg, 12 problems: mean final error
-    # 62 deg with 4, 28 deg with 8), whose faces within the dilated margin outnumber them
-    faces_per_pixel: int = 8
+    # candidates per pixel: since the candidate-selection fix of session 9, 4 suffice for the
+    # torus (8 problems, seed 11, seamless: the same % solved at 20/50 deg as with 8, a step
+    # 1.3-1.6x faster) as for the culled cube (session 8: the same solve rates, a step 2x faster)
+    faces_per_pixel: int = 4
     faces_per_tile: int = 64  # raise for dense meshes (see rsmooth.render.rasterize)
     # drop faces seen from behind (rsmooth.render.Renderer); None: when the mesh is closed and
     # outward-oriented (rsmooth.render.is_closed_outward), where the hard image is the same
     cull_backfaces: bool | None = None
     # smooth coverage across every triangle edge, as the paper's perturbed renderer and SoftRas
-    # do (seams along shared edges), rather than the silhouette only (rsmooth.render.Renderer);
-    # measured on 16 cubes per angle, seed 5: Gaussian 100/75/37.5 % solved at 20/50/80 deg
-    # with, 93.75/68.75/18.75 % without; soft 87.5/68.75/18.75 % with, 93.75/75/31.25 % without
-    interior_edges: bool = True
+    # do (seams along shared edges), rather than the silhouette only (rsmooth.render.Renderer).
+    # Off: on a torus of small faces (8 problems per angle, seed 11, % solved at 20/50 deg)
+    # the seams cost Gaussian 100/87.5 -> 50/87.5 and soft 100/100 -> 75/75; on the cube
+    # (16 problems, seed 5, before the candidate-selection fix of session 9) they helped:
+    # Gaussian 93.75/68.75/18.75 without, 100/75/37.5 % with at 20/50/80 deg
+    interior_edges: bool = False
     decay_factor: float = 2.0
     momentum: float = 0.9
     noise_floor: float = 0.05  # smallest noise scale factor
