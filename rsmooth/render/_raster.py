@@ -15,14 +15,16 @@ so that any noise law works (:func:`rsmooth.smooth_elementwise`); SoftRas (Liu e
 Per-pixel culling (:func:`rasterize`): a dense rasterizer compares every pixel with every face,
 which does not scale (see FIELD-NOTES "Rendering in JAX on CPU"). Here a non-differentiable
 pass picks, per pixel, at most `faces_per_pixel` candidate faces, as PyTorch3D's
-`faces_per_pixel`: first per tile of `tile_size` x `tile_size` pixels the `faces_per_tile`
-nearest faces whose bounding box, dilated by `margin` pixels, reaches the tile (cost: tiles x
-faces, 1/64 of pixels x faces with 8-pixel tiles); then, per pixel, the candidates of its tile
+`faces_per_pixel`: first per tile of `tile_size` x `tile_size` pixels at most `faces_per_tile`
+faces whose bounding box, dilated by `margin` pixels, reaches the tile (cost: tiles x faces,
+1/64 of pixels x faces with 8-pixel tiles): those whose own box reaches it first, nearest
+first, then the others by their gap to the tile; then, per pixel, the candidates of its tile
 most likely to show under noise (the visible face first, then those that noise may make cover
 the pixel, the ones behind the visible surface last), from cheap affine forms (signed
-distances to the edge lines, depth plane). Only the selected (H, W, K) fragments are computed differentiably, with
-exact distances. Faces beyond the caps are dropped: the farthest first, which on a closed mesh
-are back faces (`Fragments.tile_overflow` counts the tiles where it happened).
+distances to the edge lines, depth plane). Only the selected (H, W, K) fragments are computed
+differentiably, with exact distances. Faces beyond the caps are dropped: the farthest first
+among those that reach a tile, which on a closed mesh are back faces
+(`Fragments.tile_overflow` counts the tiles where it happened).
 """
 
 from __future__ import annotations
@@ -356,7 +358,8 @@ def rasterize(
             visible surface last; when None (hard rendering), only covering faces are kept,
             nearest first.
         tile_size: side of the square tiles of the first culling pass.
-        faces_per_tile: candidates kept per tile (nearest first).
+        faces_per_tile: candidates kept per tile (faces whose own box reaches the tile first,
+            nearest first; then faces reached through the margin, smallest gap first).
         cull_backfaces: drop the faces seen from behind (see :func:`project_faces`). On a
             closed, outward-oriented mesh they are hidden anyway, so the hard image does not
             change, while every pixel's K candidates go to faces that can be seen; smoothed
