@@ -439,10 +439,11 @@ def rasterize(
         # faces behind by how likely the depth noise lets them through. The visible face
         # (log-probability above log 1/2, no gap) always ranks first. (A SoftRas-like
         # log sigmoid(d / sigma) + z / gamma let nearer faces that do not cover the pixel fill
-        # every slot on a torus: the visible face was missing at 30-60 % of its pixels.)
+        # the slots on a torus: with K = 8 the visible face was missing at 60 % of its pixels
+        # with a 9-px margin, at all of them with 18 px.) Where no face covers the pixel,
+        # front is -inf and the gap term is 0.
         front = jnp.max(jnp.where(ok & (dist >= 0), depth, -jnp.inf), axis=-1, keepdims=True)
-        behind = jnp.minimum(depth - front, 0.0) / gamma
-        weight = jax.nn.log_sigmoid(dist / sigma) + jnp.where(jnp.isfinite(front), behind, 0.0)
+        weight = jax.nn.log_sigmoid(dist / sigma) + jnp.minimum(depth - front, 0.0) / gamma
         pixel_key = jnp.where(ok & (dist > -margin), weight, -jnp.inf)
     pixel_values, slot = lax.top_k(pixel_key, k_pixel)  # (ty, tx, ts, ts, K)
     faces_tile = jnp.broadcast_to(tile_faces[:, :, None, None, :], slot.shape[:4] + (k_tile,))
