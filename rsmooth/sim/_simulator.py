@@ -316,21 +316,30 @@ class RigidBodySystem(eqx.Module):
         model = self.model
         if kinematics is None:
             kinematics = _dynamics._kinematics(model, q)
-        distances, frames, jacobians = [], [], []
-        for s, frame in enumerate(self.sphere_frames):
-            rotation, translation = _dynamics._frame_placement(
-                model, kinematics.rotation, kinematics.translation, frame
-            )
-            centre = translation + rotation @ self.sphere_offsets[s]
-            distance = self.plane_normals @ centre - self.plane_offsets - self.sphere_radii[s]  # (P,)
-            points = centre[None, :] - self.sphere_radii[s] * self.plane_normals  # (P, 3)
-            joint = model.frame_parents[frame]
-            point_jacobians = jax.vmap(lambda p: _point_jacobian(model, kinematics, joint, p))(points)  # (P, 3, nv)
-            rotations = contact_frame(self.plane_normals)  # (P, 3, 3)
-            distances.append(distance)
-            frames.append(rotations)
-            # R_p^T J_p, unrolled over the 3-axis (a batched 3x3 dot is slow on CPU: _spatial)
-            jacobians.append(sum(rotations[:, j, :, None] * point_jacobians[:, j, None, :] for j in range(3)))
+        # All spheres at once (one batched expression per quantity, not one per sphere: the
+        # traced graph, and the compile time of every solver built on the step, would grow
+        # with the number of spheres). The sphere -> joint map is static.
+        sphere_frames = np.asarray(self.sphere_frames)
+        joints = np.asarray(model.frame_parents)[sphere_frames]
+        rotation, translation = _dynamics._compose(
+            kinematics.rotation[joints],
+            kinematics.translation[joints],
+            model.frame_placement_rotation[sphere_frames],
+            model.frame_placement_translation[sphere_frames],
+        )
+        centres = translation + jax.vmap(spatial.rotate)(rotation, self.sphere_offsets)  # (S, 3)
+        radii = self.sphere_radii[:, None]
+        distance = centres @ self.plane_normals.T - self.plane_offsets[None, :] - radii  # (S, P)
+        points = centres[:, None, :] - radii[:, :, None] * self.plane_normals[None]  # (S, P, 3)
+        moves = _dynamics._tree(model).support[joints][:, :, None]  # (S, nv, 1)
+        columns = jnp.where(moves, kinematics.motion_subspace[None], 0.0)[:, None]  # (S, 1, nv, 6)
+        point_jacobians = columns[..., :3] - jnp.cross(points[:, :, None, :], columns[..., 3:])  # (S, P, nv, 3)
+        rotations = contact_frame(self.plane_normals)  # (P, 3, 3)
+        # R_p^T J_p, unrolled over the 3-axis (a batched 3x3 dot is slow on CPU: _spatial)
+        jacobians = sum(rotations[None, :, j, :, None] * point_jacobians[:, :, None, :, j] for j in range(3))  # (S, P, 3, nv)
+        distances = [distance.reshape(-1)]
+        frames = [jnp.broadcast_to(rotations, (len(self.sphere_frames),) + rotations.shape).reshape(-1, 3, 3)]
+        jacobians = [jacobians.reshape(-1, 3, model.nv)]
         for sphere in self.box_spheres:
             distance, rotation, jacobian = self._sphere_box_contact(kinematics, sphere)
             distances.append(distance[None])
