@@ -253,7 +253,13 @@ def _world_inertias(model: Model, kinematics: _Kinematics) -> spatial.SpatialIne
 # Kinematics: public functions
 # --------------------------------------------------------------------------------------
 
+# The public functions are jitted: called eagerly (tests, set-up code such as standing
+# torques), each of their few hundred small operations would otherwise be compiled and
+# dispatched one by one (measured: ~15 s of one-operation compilations to set up Solo-12).
+# Inside a caller's jit they are inlined as before.
 
+
+@jax.jit
 def forward_kinematics(model: Model, q: ArrayLike) -> tuple[jax.Array, jax.Array]:
     """Placements of all joint frames in the world (Pinocchio's ``data.oMi``).
 
@@ -279,6 +285,7 @@ def _frame_placement(
     )
 
 
+@functools.partial(jax.jit, static_argnames=("frame",))
 def frame_placement(model: Model, q: ArrayLike, frame: str | int) -> tuple[jax.Array, jax.Array]:
     """Placement of a frame in the world (Pinocchio's ``data.oMf[frame]``).
 
@@ -294,6 +301,7 @@ def frame_placement(model: Model, q: ArrayLike, frame: str | int) -> tuple[jax.A
     return _frame_placement(model, *_world_placements(model, q), model.frame_id(frame))
 
 
+@functools.partial(jax.jit, static_argnames=("frame", "reference"))
 def frame_jacobian(
     model: Model, q: ArrayLike, frame: str | int, reference: Reference = "local_world_aligned"
 ) -> jax.Array:
@@ -331,6 +339,7 @@ def frame_jacobian(
     return columns.T
 
 
+@functools.partial(jax.jit, static_argnames=("frame", "reference"))
 def frame_velocity(
     model: Model, q: ArrayLike, v: ArrayLike, frame: str | int, reference: Reference = "local_world_aligned"
 ) -> jax.Array:
@@ -411,6 +420,7 @@ def _crba(model: Model, kinematics: _Kinematics, inertias: spatial.SpatialInerti
     return upper + upper.T - jnp.where(tree.dof_same_joint, pairings, 0.0)
 
 
+@jax.jit
 def crba(model: Model, q: ArrayLike) -> jax.Array:
     """Joint-space mass matrix ``M(q)`` (full and symmetric, armature included).
 
@@ -429,6 +439,7 @@ def crba(model: Model, q: ArrayLike) -> jax.Array:
     return _crba(model, kinematics, _world_inertias(model, kinematics)) + jnp.diag(model.armature)
 
 
+@jax.jit
 def rnea(
     model: Model, q: ArrayLike, v: ArrayLike, a: ArrayLike, gravity: ArrayLike | None = None
 ) -> jax.Array:
@@ -455,6 +466,7 @@ def rnea(
     return tau + model.armature * a
 
 
+@jax.jit
 def nonlinear_effects(model: Model, q: ArrayLike, v: ArrayLike, gravity: ArrayLike | None = None) -> jax.Array:
     """Coriolis, centrifugal and gravity terms ``C(q, v) v + g(q)`` (``pin.nonLinearEffects``).
 
@@ -473,6 +485,7 @@ def nonlinear_effects(model: Model, q: ArrayLike, v: ArrayLike, gravity: ArrayLi
     return _rnea(model, kinematics, _world_inertias(model, kinematics), v, None, _gravity(model, gravity))
 
 
+@jax.jit
 def gravity_torques(model: Model, q: ArrayLike, gravity: ArrayLike | None = None) -> jax.Array:
     """Generalized gravity forces ``g(q)`` (``pin.computeGeneralizedGravity``).
 
@@ -513,6 +526,7 @@ def _solve_positive_definite(matrix: jax.Array, rhs: jax.Array) -> jax.Array:
     )
 
 
+@jax.jit
 def forward_dynamics(
     model: Model, q: ArrayLike, v: ArrayLike, tau: ArrayLike, gravity: ArrayLike | None = None
 ) -> jax.Array:
@@ -545,6 +559,7 @@ def forward_dynamics(
 # --------------------------------------------------------------------------------------
 
 
+@jax.jit
 def integrate(model: Model, q: ArrayLike, v: ArrayLike, dt: ArrayLike = 1.0) -> jax.Array:
     """Configuration reached from ``q`` by the constant velocity ``v`` during ``dt``.
 
@@ -584,6 +599,7 @@ def integrate(model: Model, q: ArrayLike, v: ArrayLike, dt: ArrayLike = 1.0) -> 
     return result
 
 
+@jax.jit
 def difference(model: Model, q0: ArrayLike, q1: ArrayLike) -> jax.Array:
     """Velocity that goes from ``q0`` to ``q1`` in unit time (``pin.difference``).
 

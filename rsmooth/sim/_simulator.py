@@ -554,13 +554,16 @@ def _implicit_velocity_update_jvp(primals, tangents):
 
 def _step_residuals(update: _VelocityUpdate):
     """The step's equations at the solution ``(v+, lambda)`` of ``update``, as a function of
-    the parameters ``(system, q, v, u)``: ``(E, c, distance, mu)`` (see the JVP rule above)."""
+    the parameters ``(system, q, v, u)``: ``(E, c, distance, mu)`` (see the JVP rule above).
+
+    ``residuals(system, q, v, u, geometry=None)``: ``geometry`` is what depends on ``q`` only
+    (:func:`_step_geometry`); pass the primal one to differentiate with respect to ``v`` or
+    ``u`` without tracing the kinematics again."""
     v_next, impulse = lax.stop_gradient(update.v_next), lax.stop_gradient(update.impulse)
 
-    def residuals(system: RigidBodySystem, q: Array, v: Array, u: Array):
+    def residuals(system: RigidBodySystem, q: Array, v: Array, u: Array, geometry=None):
         model, h = system.model, system.time_step
-        kinematics = _dynamics._kinematics(model, q)
-        inertias = _dynamics._world_inertias(model, kinematics)
+        kinematics, inertias, distance, jacobian = _step_geometry(system, q) if geometry is None else geometry
         acceleration = (v_next - v) / h
         inverse_dynamics = (
             _dynamics._rnea(model, kinematics, inertias, v, acceleration, model.gravity)
@@ -568,7 +571,6 @@ def _step_residuals(update: _VelocityUpdate):
             + system.damping() * v_next  # implicit damping: dE/dv+ = M + h D, the factored W
         )
         tau, _ = system.generalized_forces(q, u, kinematics)
-        distance, _, jacobian = system.contacts(q, kinematics)
         # J^T lambda as an unrolled sum of rows: under jacfwd/vmap a dot transposes J's
         # batch and a reduction goes to YNNPACK, both several times slower on CPU (_spatial)
         momentum = h * (inverse_dynamics - tau) - sum(impulse[i] * jacobian[i] for i in range(impulse.shape[0]))
@@ -576,6 +578,14 @@ def _step_residuals(update: _VelocityUpdate):
         return momentum, velocity, distance, system.contact_friction()
 
     return residuals
+
+
+def _step_geometry(system: RigidBodySystem, q: Array):
+    """What the step's equations need of ``q`` alone: ``(kinematics, inertias, distance, J)``."""
+    kinematics = _dynamics._kinematics(system.model, q)
+    inertias = _dynamics._world_inertias(system.model, kinematics)
+    distance, _, jacobian = system.contacts(q, kinematics)
+    return kinematics, inertias, distance, jacobian
 
 
 def _velocity_update_tangent(
@@ -606,8 +616,11 @@ def _step_and_jacobians(system: RigidBodySystem, q: Array, v: Array, u: Array) -
     update = system._velocity_update(q, v, u, None)
     residuals = _step_residuals(update)
     by_q = jax.jacfwd(lambda q_: residuals(system, q_, v, u)[:2])(q)
-    by_v = jax.jacfwd(lambda v_: residuals(system, q, v_, u)[:2])(v)
-    by_u = jax.jacfwd(lambda u_: residuals(system, q, v, u_)[:2])(u)
+    # v and u do not enter the kinematics: their passes reuse the primal geometry, so the
+    # traced graph (and the compile time of every solver built on it) holds it once.
+    geometry = _step_geometry(system, q)
+    by_v = jax.jacfwd(lambda v_: residuals(system, q, v_, u, geometry)[:2])(v)
+    by_u = jax.jacfwd(lambda u_: residuals(system, q, v, u_, geometry)[:2])(u)
     momentum_dot, velocity_dot = (jnp.concatenate(parts, axis=1) for parts in zip(by_q, by_v, by_u))
     columns = momentum_dot.shape[1]
     mu_dot = jnp.zeros((update.mu.shape[0], columns), momentum_dot.dtype)

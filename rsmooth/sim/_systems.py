@@ -414,15 +414,21 @@ def solo12(
     )
 
 
+# Jitted so that set-up code calling it eagerly compiles one program instead of dispatching
+# (and compiling) the kinematics' few hundred small operations one by one.
+_contacts = eqx.filter_jit(lambda system, q: system.contacts(q))
+
+
 def solo12_standing_state(system: RigidBodySystem) -> jax.Array:
     """The SRDF's standing posture, base lowered so that the feet just touch the floor,
     at zero velocity, shape ``(37,)``."""
     q = np.array(solo12_standing_configuration(system.model))
-    distance, _, _ = system.contacts(jnp.asarray(q))
+    distance, _, _ = _contacts(system, jnp.asarray(q))
     q[2] -= float(jnp.min(distance))
     return system.state(jnp.asarray(q))
 
 
+@eqx.filter_jit
 def solo12_foot_positions(system: RigidBodySystem, x: jax.Array) -> jax.Array:
     """World positions of the four foot centres (FL, FR, HL, HR), shape ``(4, 3)``."""
     q, _ = system.split(x)
@@ -433,6 +439,7 @@ def solo12_foot_positions(system: RigidBodySystem, x: jax.Array) -> jax.Array:
     ])
 
 
+@eqx.filter_jit
 def solo12_standing_torques(system: RigidBodySystem, x: jax.Array) -> jax.Array:
     """Joint torques that hold the robot still at ``x`` with its four feet on the floor.
 
