@@ -21,7 +21,9 @@ One iteration, around the current trajectory :math:`(\bar x, \bar u)`:
    regularization; when :math:`\tilde Q_{uu}` is not positive definite the pass is redone
    with :math:`\mu` multiplied by ``reg_factor`` (up to ``reg_max``).
 3. *Convergence test*: the expected improvement of the full step,
-   :math:`\Delta = -\sum_t (k_t^\top Q_u + \tfrac12 k_t^\top Q_{uu} k_t)`, below ``th_stop``.
+   :math:`\Delta = -\sum_t (k_t^\top Q_u + \tfrac12 k_t^\top Q_{uu} k_t)`, below
+   ``max(th_stop, th_stop_relative * |J|)`` with :math:`J` the current true cost (the
+   relative part, off by default, makes the test independent of the cost's scale).
 4. *Forward pass* (a `lax.scan`) with backtracking line search on the true cost:
    :math:`u_t = \mathrm{clip}(\bar u_t + \alpha k_t + K_t (x_t - \bar x_t))`, step sizes
    :math:`\alpha = 1, 1/2, \ldots`, accepted when the cost decreases by at least
@@ -88,7 +90,8 @@ class RESULTS(eqx.Enumeration):
     successful = ""
     max_iterations_reached = (
         "the solver did not converge within max_iterations (the expected improvement stayed "
-        "above th_stop); raise max_iterations or th_stop, or pass throw=False"
+        "above th_stop and th_stop_relative * |cost|); raise max_iterations, th_stop or "
+        "th_stop_relative, or pass throw=False"
     )
     regularization_exceeded = (
         "the backward pass failed: Quu + reg I is not positive definite even with reg = reg_max"
@@ -304,6 +307,9 @@ class DDP(eqx.Module):
     Attributes:
         max_iterations: iteration cap.
         th_stop: convergence threshold on the expected improvement of the full step.
+        th_stop_relative: convergence threshold relative to the current cost: the solve
+            also stops when the expected improvement is below ``th_stop_relative * |cost|``
+            (default 0: absolute test only).
         approximation: ``"gauss_newton"`` (iLQR: first-order dynamics, exact cost
             Hessians) or ``"full"`` (DDP: adds the second derivatives of the dynamics
             contracted with the value gradient).
@@ -324,6 +330,7 @@ class DDP(eqx.Module):
 
     max_iterations: int = eqx.field(static=True, default=100)
     th_stop: float = eqx.field(static=True, default=1e-9)
+    th_stop_relative: float = eqx.field(static=True, default=0.0)
     approximation: str = eqx.field(static=True, default="gauss_newton")
     reg_init: float = eqx.field(static=True, default=1e-9)
     reg_min: float = eqx.field(static=True, default=1e-9)
@@ -352,6 +359,8 @@ class DDP(eqx.Module):
             raise ValueError(f"approximation must be one of {APPROXIMATIONS}, got {self.approximation!r}")
         if not self.th_stop >= 0:
             raise ValueError(f"th_stop must be >= 0, got {self.th_stop}")
+        if not 0 <= self.th_stop_relative < 1:
+            raise ValueError(f"th_stop_relative must be in [0, 1), got {self.th_stop_relative}")
         if not 0 < self.reg_min <= self.reg_max:
             raise ValueError(f"need 0 < reg_min <= reg_max, got reg_min={self.reg_min}, reg_max={self.reg_max}")
         if not 0 <= self.reg_init <= self.reg_max:
@@ -497,7 +506,7 @@ class DDP(eqx.Module):
         )
         failed = backward.failed | nonfinite
         improvement = jnp.where(failed, jnp.nan, -(backward.d1 + 0.5 * backward.d2))
-        stop = ~failed & (improvement < self.th_stop)
+        stop = ~failed & (improvement < jnp.maximum(self.th_stop, self.th_stop_relative * jnp.abs(state.cost)))
 
         alphas = 2.0 ** -jnp.arange(self.num_step_sizes, dtype=dtype)
         trajectory = state.trajectory

@@ -277,3 +277,31 @@ def test_residual_costs_use_gauss_newton_hessians_and_reach_the_same_optima(pend
     assert solution.converged
     np.testing.assert_allclose(solution.cost, pendulum_solution.cost, rtol=1e-6)
     np.testing.assert_allclose(solution.us, pendulum_solution.us, atol=1e-3)
+
+
+def test_relative_stopping_test_ends_a_solve_that_the_absolute_one_does_not():
+    """Terminal cost |x_T - 1| (a kink at the optimum): the quadratic model keeps promising
+    ~3e-9 there, above the absolute th_stop = 1e-9 whatever the iterations; relative to the
+    cost (1/300), that is 1e-6."""
+
+    class Integrator:
+        nx, nu = 1, 1
+
+        def step(self, x, u):
+            return x + u
+
+    problem = control.ShootingProblem(
+        Integrator(), lambda x, u: 1e-2 * jnp.sum(u**2), lambda x: jnp.abs(x[0] - 1.0), jnp.zeros(1), 3
+    )
+    optimum = 1e-2 * 3 * (1 / 3) ** 2  # x_T = 1 in three equal steps
+    absolute = control.ddp(problem, solver=control.DDP(max_iterations=60, throw=False))
+    assert absolute.result == control.RESULTS.max_iterations_reached
+    assert abs(float(absolute.cost) - optimum) < 1e-9
+    relative = control.ddp(problem, solver=control.DDP(max_iterations=60, th_stop_relative=1e-5))
+    assert relative.converged and relative.iterations < 40
+    assert abs(float(relative.cost) - optimum) < 1e-6 * optimum
+    # The test compares with the cost before the step: the last expected improvement is below it.
+    last = float(relative.stats["expected_improvement"][-1])
+    assert last < 1e-5 * float(relative.stats["cost"][-2]) and last > 1e-9
+    with pytest.raises(ValueError, match="th_stop_relative"):
+        control.DDP(th_stop_relative=-1.0)
