@@ -56,7 +56,7 @@ def test_dropped_cube_comes_to_rest_without_gaining_energy():
     axis = jnp.array([0.3, 0.1, 0.0, 1.0])
     x0 = rest.at[2].set(0.4).at[3:7].set(axis / jnp.linalg.norm(axis)).at[7:10].set(jnp.array([0.5, 0.0, 0.0]))
     xs, infos = _rollout(cube, x0, jnp.zeros((150, 6)))
-    energies = jax.vmap(lambda x: sim.energy(cube, x))(xs)
+    energies = jax.jit(jax.vmap(lambda x: sim.energy(cube, x)))(xs)
     # Inelastic contact and friction only dissipate (and semi-implicit Euler loses m g^2 h^2 / 2
     # per step of free fall). The only gain allowed is the Baumgarte push-out of the
     # penetration left by integrating rotating corners over a step: m g x (under 1 um).
@@ -73,7 +73,7 @@ def test_impulses_satisfy_cone_and_complementarity():
     cube = _cube()
     x = sim.cube_rest_state(cube)
     push = jnp.array([3.0, 1.0, 0.0, 0.0, 0.0, 0.2])  # below the friction bound: sticks
-    _, info = cube.step_with_info(x, push)
+    _, info = jax.jit(lambda a, b: cube.step_with_info(a, b))(x, push)
     impulse = info.impulse.reshape(8, 3)
     assert bool(jnp.all(jnp.linalg.norm(impulse[:, :2], axis=1) <= 0.5 * impulse[:, 2] + 1e-10))
     assert bool(jnp.all(impulse[:, 2] >= -1e-12))
@@ -117,7 +117,7 @@ def test_sliding_ball_gradients_match_finite_differences():
     x = system.state(jnp.array([0.0, 0.0, 0.0499, 0.0, 0.0, 0.0, 1.0]), jnp.array([0.4, 0.1, 0.0, 0.0, 3.0, 1.0]))
     u = jnp.array([0.1, 0.05, -0.2])
     step = jax.jit(lambda a, b: system.step(a, b))
-    _, info = system.step_with_info(x, u)
+    _, info = jax.jit(lambda a, b: system.step_with_info(a, b))(x, u)
     impulse = info.impulse.reshape(2, 3)[0]
     np.testing.assert_allclose(jnp.linalg.norm(impulse[:2]), 0.3 * impulse[2], rtol=1e-9)  # on the cone: sliding
     jac_u = jax.jit(jax.jacfwd(lambda b: system.step(x, b)))(u)
@@ -166,7 +166,7 @@ def test_compliant_laws_reach_their_equilibria():
     np.testing.assert_allclose(xs[-1], hovering, atol=1e-9)
     # Its gradient is informative before touching: a lifting force moves the cube at once,
     # and so does a change of height (the hard model gives 0 for a cube in the air).
-    grad = jax.grad(lambda f: barrier.step(hovering, jnp.array([0, 0, f, 0, 0, 0.0]))[2])(0.0)
+    grad = jax.jit(jax.grad(lambda f: barrier.step(hovering, jnp.array([0, 0, f, 0, 0, 0.0]))[2]))(0.0)
     assert float(grad) > 0
 
 
@@ -247,7 +247,7 @@ def test_joint_damping_is_implicit_and_dissipates():
     def energies(system):
         xs, infos = _rollout(system, x0, us)
         assert not bool(jnp.any(infos.diverged))
-        return xs, jax.vmap(lambda x: sim.energy(system, x))(xs)
+        return xs, jax.jit(jax.vmap(lambda x: sim.energy(system, x)))(xs)
 
     _, e_undamped = energies(undamped)
     _, e_damped = energies(free)
@@ -320,8 +320,9 @@ def test_step_vmaps_over_states_and_inputs(getkey):
     xs = jnp.stack([rest.at[2].set(z) for z in (0.1, 0.15, 0.3)])
     us = jax.random.normal(getkey(), (3, 6))
     batched = jax.jit(jax.vmap(lambda a, b: cube.step(a, b)))(xs, us)
+    step = jax.jit(lambda a, b: cube.step(a, b))
     for i in range(3):
-        np.testing.assert_allclose(batched[i], cube.step(xs[i], us[i]), atol=1e-12)
+        np.testing.assert_allclose(batched[i], step(xs[i], us[i]), atol=1e-12)
 
 
 def test_bad_input_is_named():
@@ -361,7 +362,7 @@ def test_pusher_pushes_the_box_and_has_null_gradients_before_contact():
     assert float(jnp.min(infos.distance[:, -1])) > -1e-3
     assert float(jnp.max(finger_x - box_x)) < -0.1 - 0.02 + 1e-3
     # Null gradient: over 5 steps a gentle push does not reach the box (5 cm away).
-    grad = jax.grad(lambda f: pusher.rollout(x0, jnp.tile(jnp.array([f, 0.0]), (5, 1)))[0][-1, 0])(1.0)
+    grad = jax.jit(jax.grad(lambda f: pusher.rollout(x0, jnp.tile(jnp.array([f, 0.0]), (5, 1)))[0][-1, 0]))(1.0)
     assert float(grad) == 0.0
 
 
