@@ -36,10 +36,11 @@ SeedOption = typer.Option(0, "--seed", help="Seed of the jax.random key.")
 QuickOption = typer.Option(False, "--quick", help="Reduced size: about two minutes on 2 CPU cores.")
 
 
-def _prepare(name: str, out: Optional[Path], seed: int):
+def _prepare(name: str, out: Optional[Path], seed: int, x64: bool = True):
     import jax
 
-    jax.config.update("jax_enable_x64", True)
+    # One experiment per process: its precision is set once, before any array exists.
+    jax.config.update("jax_enable_x64", x64)
     out = Path(out) if out is not None else DEFAULT_ROOT / name
     out.mkdir(parents=True, exist_ok=True)
     return out, jax.random.key(seed)
@@ -59,6 +60,9 @@ class _Experiment:
     module: str  # rsmooth.experiments.MODULE: Config, Config.quick() and run(config, out, key)
     title: str  # names the run in the printed summary
     summary: Callable[[dict], dict]  # metrics -> the lines printed after the run
+    # float64 (contact solves and DDP need it); rendering runs in float32, which halves its
+    # time on CPU and is what GPUs are fast at (measured: `python -m benchmarks render`)
+    x64: bool = True
 
 
 def _run(
@@ -69,7 +73,10 @@ def _run(
     replacing fields of its Config, and prints its summary; returns its metrics."""
     module = importlib.import_module(f"rsmooth.experiments.{experiment.module}")
     start = time.perf_counter()
-    out, key = _prepare(experiment.name, out if root is None else root / experiment.name, seed)
+    # `rsmooth demo` runs several experiments in one process: it keeps float64 throughout
+    # rather than switching the precision under arrays that already exist.
+    x64 = experiment.x64 or root is not None
+    out, key = _prepare(experiment.name, out if root is None else root / experiment.name, seed, x64)
     config = module.Config.quick() if quick else module.Config()
     changes = {name: value for name, value in overrides.items() if value is not None}
     if changes:
@@ -120,14 +127,14 @@ def _render_pose_summary(metrics: dict) -> dict:
     }
 
 
-_RENDER_POSE = _Experiment("render-pose", "render_pose", "render pose", _render_pose_summary)
+_RENDER_POSE = _Experiment("render-pose", "render_pose", "render pose", _render_pose_summary, x64=False)
 
 _RENDER_RECONSTRUCT = _Experiment("render-reconstruct", "render_reconstruct", "render reconstruct", lambda metrics: {
     f"{method}: 3D IoU / Chamfer ({', '.join(metrics['targets'])})": ", ".join(
         f"{metrics[method][t]['iou_3d']:.2f} / {metrics[method][t]['chamfer']:.4f}" for t in metrics["targets"]
     )
     for method in metrics["methods"]
-})
+}, x64=False)
 
 
 def _control_summary(columns: str, row: Callable[[dict], str]) -> Callable[[dict], dict]:

@@ -19,3 +19,11 @@ def getkey():
         return jax.random.fold_in(base, next(counter))
 
     return _getkey
+
+
+@pytest.fixture(autouse=True)
+def _double_precision_after_each_test():
+    """A test that runs a float32 CLI command in-process (`rsmooth render ...` turns x64
+    off) must not change the precision of the tests after it in the same worker."""
+    yield
+    jax.config.update("jax_enable_x64", True)

@@ -146,11 +146,18 @@ def problems(config: Config, key, init_error_deg: float):
     translation offsets."""
     k_true, k_axis, k_trans = jax.random.split(key, 3)
     n = config.problems
-    r_true = jax.vmap(render.random_rotation)(jax.random.split(k_true, n))
-    axis = jax.random.normal(k_axis, (n, 3))
+    # Drawn in float32 whatever the precision, then cast: a seed poses the same problems in
+    # float32 (the CLI) and float64 runs.
+    dtype = jnp.zeros(()).dtype
+
+    def normal(k, shape):
+        return jax.random.normal(k, shape, jnp.float32).astype(dtype)
+
+    r_true = jax.vmap(lambda k: render.quaternion_to_matrix(normal(k, (4,))))(jax.random.split(k_true, n))
+    axis = normal(k_axis, (n, 3))
     axis = axis / jnp.linalg.norm(axis, axis=1, keepdims=True)
     r_init = render.axis_angle_to_matrix(np.deg2rad(init_error_deg) * axis) @ r_true
-    offset = jax.random.normal(k_trans, (n, 3))
+    offset = normal(k_trans, (n, 3))
     offset = config.init_translation * offset / jnp.linalg.norm(offset, axis=1, keepdims=True)
     if not config.optimize_translation:
         offset = jnp.zeros_like(offset)
