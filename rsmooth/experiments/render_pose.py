@@ -147,7 +147,8 @@ def problems(config: Config, key, init_error_deg: float):
     k_true, k_axis, k_trans = jax.random.split(key, 3)
     n = config.problems
     # Drawn in float32 whatever the precision, then cast: a seed poses the same problems in
-    # float32 (the CLI) and float64 runs.
+    # float32 (the CLI) and float64 runs. (Not render.random_rotation(k, float32): its matrix
+    # would be orthonormal only to float32 accuracy in a float64 run.)
     dtype = jnp.zeros(()).dtype
 
     def normal(k, shape):
