@@ -116,6 +116,8 @@ class _VelocityUpdate(NamedTuple):
     delassus: Array  # G = J M^-1 Jᵀ
     free_velocity: Array  # g: the NCP's free contact velocity (hard contact)
     mu: Array  # friction coefficient per contact
+    kinematics: _dynamics._Kinematics  # at q
+    inertias: spatial.SpatialInertia  # world-frame body inertias at q
 
     def public(self) -> tuple[Array, Array, Array, NCPInfo, Array]:
         return self.v_next, self.impulse, self.distance, self.ncp, self.clipped
@@ -447,7 +449,9 @@ class RigidBodySystem(eqx.Module):
             zero = jnp.zeros((), distance.dtype)
             ncp = NCPInfo(jnp.zeros((), jnp.int32), zero, zero, zero, jnp.ones((), bool), zero)
         v_next = v_free + minv_jt @ impulse
-        return _VelocityUpdate(v_next, impulse, distance, ncp, clipped, factor, jacobian, minv_jt, delassus, free_velocity, mu)
+        return _VelocityUpdate(
+            v_next, impulse, distance, ncp, clipped, factor, jacobian, minv_jt, delassus, free_velocity, mu, kinematics, inertias
+        )
 
     def _compliant_impulse(self, distance: Array, free_velocity: Array, delassus: Array, h: Array) -> Array:
         """Impulses ``h f(phi, c+)`` of a compliant law, linearly implicit in the velocity.
@@ -556,14 +560,19 @@ def _step_residuals(update: _VelocityUpdate):
     """The step's equations at the solution ``(v+, lambda)`` of ``update``, as a function of
     the parameters ``(system, q, v, u)``: ``(E, c, distance, mu)`` (see the JVP rule above).
 
-    ``residuals(system, q, v, u, geometry=None)``: ``geometry`` is what depends on ``q`` only
-    (:func:`_step_geometry`); pass the primal one to differentiate with respect to ``v`` or
-    ``u`` without tracing the kinematics again."""
+    ``residuals(system, q, v, u, geometry=None)``: ``geometry`` is what depends on ``q`` only,
+    ``(kinematics, inertias, distance, J)``; pass the primal one (``update``'s) to differentiate
+    with respect to ``v`` or ``u`` without tracing the kinematics again."""
     v_next, impulse = lax.stop_gradient(update.v_next), lax.stop_gradient(update.impulse)
 
     def residuals(system: RigidBodySystem, q: Array, v: Array, u: Array, geometry=None):
         model, h = system.model, system.time_step
-        kinematics, inertias, distance, jacobian = _step_geometry(system, q) if geometry is None else geometry
+        if geometry is None:
+            kinematics = _dynamics._kinematics(model, q)
+            inertias = _dynamics._world_inertias(model, kinematics)
+            distance, _, jacobian = system.contacts(q, kinematics)
+        else:
+            kinematics, inertias, distance, jacobian = geometry
         acceleration = (v_next - v) / h
         inverse_dynamics = (
             _dynamics._rnea(model, kinematics, inertias, v, acceleration, model.gravity)
@@ -578,14 +587,6 @@ def _step_residuals(update: _VelocityUpdate):
         return momentum, velocity, distance, system.contact_friction()
 
     return residuals
-
-
-def _step_geometry(system: RigidBodySystem, q: Array):
-    """What the step's equations need of ``q`` alone: ``(kinematics, inertias, distance, J)``."""
-    kinematics = _dynamics._kinematics(system.model, q)
-    inertias = _dynamics._world_inertias(system.model, kinematics)
-    distance, _, jacobian = system.contacts(q, kinematics)
-    return kinematics, inertias, distance, jacobian
 
 
 def _velocity_update_tangent(
@@ -616,9 +617,9 @@ def _step_and_jacobians(system: RigidBodySystem, q: Array, v: Array, u: Array) -
     update = system._velocity_update(q, v, u, None)
     residuals = _step_residuals(update)
     by_q = jax.jacfwd(lambda q_: residuals(system, q_, v, u)[:2])(q)
-    # v and u do not enter the kinematics: their passes reuse the primal geometry, so the
-    # traced graph (and the compile time of every solver built on it) holds it once.
-    geometry = _step_geometry(system, q)
+    # v and u do not enter the kinematics: their passes reuse the update's primal geometry,
+    # so the traced graph (and the compile time of every solver built on it) holds it once.
+    geometry = (update.kinematics, update.inertias, update.distance, update.jacobian)
     by_v = jax.jacfwd(lambda v_: residuals(system, q, v_, u, geometry)[:2])(v)
     by_u = jax.jacfwd(lambda u_: residuals(system, q, v, u_, geometry)[:2])(u)
     momentum_dot, velocity_dot = (jnp.concatenate(parts, axis=1) for parts in zip(by_q, by_v, by_u))
