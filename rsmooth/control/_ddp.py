@@ -382,6 +382,11 @@ class DDP(eqx.Module):
     def _next_noise(self, state: DDPState, stop, accepted, cost_new) -> Array:
         return state.noise
 
+    def _programs(self) -> tuple[DDP, DDP]:
+        """The solvers whose jitted steps :func:`solve` runs: ``(smoothed, exact)``, for the
+        iterations with noise > 0 and = 0. DDP has no noise: itself, twice."""
+        return self, self
+
     # -- the solver ------------------------------------------------------------------------
 
     def init(self, problem: ShootingProblem, us: Array, key: Array | None = None) -> DDPState:
@@ -636,6 +641,7 @@ def solve(
         us = problem.check_controls(us_init)
     # `throw` does not change the program: one compilation serves both values.
     compiled_solver = dataclasses.replace(solver, throw=True)
+    smoothed_program, exact_program = compiled_solver._programs()
     state = _jitted_init(compiled_solver, problem, us, key)
     if not np.isfinite(float(state.cost)):
         raise ValueError("the cost of the initial rollout (x0, us_init) is not finite")
@@ -648,7 +654,15 @@ def solve(
     try:
         while not bool(solver.terminate(state)):
             start = time.perf_counter()
-            state = jax.block_until_ready(_jitted_step(compiled_solver, problem, state))
+            if exact_program is smoothed_program or float(state.noise) > 0:
+                state = _jitted_step(smoothed_program, problem, state)
+            else:
+                # R-DDP's eps = 0 iterations are DDP's: they run DDP's program (compiled
+                # once, and shared with a DDP solve of the same problem), without the key.
+                key = state.key
+                state = _jitted_step(exact_program, problem, dataclasses.replace(state, key=None))
+                state = dataclasses.replace(state, key=key)
+            state = jax.block_until_ready(state)
             times.append(time.perf_counter() - start)
             if callbacks:
                 info = {

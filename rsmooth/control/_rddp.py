@@ -62,6 +62,7 @@ References:
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable, ClassVar
 
 import equinox as eqx
@@ -244,32 +245,40 @@ class RDDP(DDP):
         return jnp.asarray(self.eps, dtype)
 
     def _dynamics_jacobians(self, problem, state: DDPState):
-        xs, us = state.trajectory.xs, state.trajectory.us
-        key = jax.random.fold_in(state.key, state.iteration)
         positive = state.noise > 0
-        # The estimators check that sigma > 0 at run time: hand them 1 in the eps = 0 branch,
-        # which lax.cond does not run.
-        sigma = jnp.where(positive, state.noise, 1.0)
+        return lax.cond(
+            positive,
+            lambda _: self._smoothed_jacobians(problem, state),
+            lambda _: dynamics_jacobians(problem, state.trajectory.xs, state.trajectory.us, self.node_batch_size),
+            None,
+        )
 
-        def smoothed(_):
-            return smoothed_dynamics_jacobians(
-                problem,
-                key,
-                xs,
-                us,
-                eps=sigma,
-                num_samples=self.num_samples,
-                estimator=self.estimator,
-                noise=self.noise,
-                state_noise_scale=self.state_noise_scale,
-                control_noise_scale=self.control_noise_scale,
-                batch_size=self.node_batch_size,
-            )
+    def _smoothed_jacobians(self, problem, state: DDPState):
+        key = jax.random.fold_in(state.key, state.iteration)
+        # The estimators check that sigma > 0 at run time: hand them 1 where eps = 0 (the
+        # branch of lax.cond that does not run).
+        sigma = jnp.where(state.noise > 0, state.noise, 1.0)
+        return smoothed_dynamics_jacobians(
+            problem,
+            key,
+            state.trajectory.xs,
+            state.trajectory.us,
+            eps=sigma,
+            num_samples=self.num_samples,
+            estimator=self.estimator,
+            noise=self.noise,
+            state_noise_scale=self.state_noise_scale,
+            control_noise_scale=self.control_noise_scale,
+            batch_size=self.node_batch_size,
+        )
 
-        def exact(_):
-            return dynamics_jacobians(problem, xs, us, self.node_batch_size)
-
-        return lax.cond(positive, smoothed, exact, None)
+    def _programs(self) -> tuple[DDP, DDP]:
+        # The eps > 0 program holds the smoothed Jacobians only; the eps = 0 iterations run
+        # the DDP with the same options (see `solve`): two smaller compilations instead of one
+        # program holding both branches under lax.cond (~2x DDP's compile time).
+        options = {field.name: getattr(self, field.name) for field in dataclasses.fields(DDP)}
+        smoothed = _SmoothedPhase(**{field.name: getattr(self, field.name) for field in dataclasses.fields(self)})
+        return smoothed, DDP(**options)
 
     def _next_noise(self, state: DDPState, stop, accepted, cost_new) -> Array:
         eps = state.noise
@@ -283,6 +292,15 @@ class RDDP(DDP):
         cap = self.max_iterations // 2 if self.max_smoothed_iterations is None else self.max_smoothed_iterations
         to_zero = (reduced < self.eps_min) | (state.iteration + 1 >= cap)
         return jnp.where(to_zero, 0.0, reduced).astype(eps.dtype)
+
+
+class _SmoothedPhase(RDDP):
+    """R-DDP's step for the iterations with eps > 0 only: :func:`solve` runs those with
+    eps = 0 by DDP's step (R-DDP's `step` itself chooses by lax.cond, and stays valid at any
+    eps)."""
+
+    def _dynamics_jacobians(self, problem, state: DDPState):
+        return self._smoothed_jacobians(problem, state)
 
 
 def rddp(

@@ -36,7 +36,8 @@ def test_without_noise_rddp_is_ddp_iterate_for_iterate(getkey):
     reference = control.ddp(problem)
     solution = control.rddp(problem, getkey(), solver=control.RDDP(eps=0.0))
     assert solution.iterations == reference.iterations and solution.converged
-    # The same program runs (lax.cond picks the exact Jacobians): equal to the last bit.
+    # The same program runs (`solve` runs R-DDP's eps = 0 iterations by DDP's step): equal to
+    # the last bit.
     for name in ("cost", "step_size", "regularization", "expected_improvement"):
         np.testing.assert_array_equal(solution.stats[name], reference.stats[name])
     np.testing.assert_array_equal(solution.us, reference.us)
@@ -67,6 +68,17 @@ def test_cube_lift_ddp_stays_put_and_rddp_lifts_it():
     # Reproducible bit for bit from the key.
     again = control.rddp(problem, key, solver=CUBE_SOLVER)
     np.testing.assert_array_equal(again.us, solution.us)
+    # `rddp` runs the eps > 0 iterations by a program without the exact Jacobians and the
+    # eps = 0 ones by DDP's: the same iterates as R-DDP's own step (which picks by lax.cond),
+    # up to rounding (the programs differ, so do XLA's fusions).
+    solver = CUBE_SOLVER
+    state = solver.init(problem, jnp.zeros((problem.horizon, problem.nu)), key)
+    step = jax.jit(solver.step)
+    while not bool(solver.terminate(state)):
+        state = step(problem, state)
+    assert int(state.iteration) == solution.iterations
+    np.testing.assert_allclose(state.trajectory.us, solution.us, rtol=1e-12, atol=1e-20)
+    np.testing.assert_array_equal(state.history["noise"][: solution.iterations + 1], noise)
 
 
 def test_alpha_order_geometric_schedule_ends_at_the_lqr_solution(getkey):
