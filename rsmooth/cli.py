@@ -26,7 +26,7 @@ sim_app = typer.Typer(help="Simulation with hard frictional contact.", no_args_i
 app.add_typer(sim_app, name="sim")
 render_app = typer.Typer(help="Differentiable perturbed rendering tasks.", no_args_is_help=True)
 app.add_typer(render_app, name="render")
-control_app = typer.Typer(help="Optimal control through contact: DDP and randomized DDP.", no_args_is_help=True)
+control_app = typer.Typer(help="Optimal control through contact: DDP, randomized DDP, and policy gradients (first, zeroth, alpha order).", no_args_is_help=True)
 app.add_typer(control_app, name="control")
 
 DEFAULT_ROOT = Path("rsmooth-out")
@@ -155,6 +155,11 @@ _SOLO_LIFT = _Experiment("solo-lift", "control_solo_lift", "control solo-lift", 
 _PUSHER = _Experiment("pusher", "control_pusher", "control pusher", _control_summary(
     "position error (mm), yaw error (deg), iterations",
     lambda metrics: f"{1000 * metrics['position_error']:.1f}, {metrics['yaw_error_deg']:.1f}, {metrics['iterations']}"))
+
+_POLICY = _Experiment("policy", "control_policy", "control policy", _control_summary(
+    "final cost mean +- std (m), final angle (deg), mean alpha, median gradient variance",
+    lambda metrics: f"{metrics['final_cost_mean']:.3f} +- {metrics['final_cost_std']:.3f}, "
+    f"{metrics['final_angle_deg_mean']:.1f}, {metrics['mean_alpha']:.2f}, {metrics['gradient_variance_median']:.2g}"))
 
 
 def _doc(summary: str, experiment: _Experiment) -> str:
@@ -315,6 +320,26 @@ def control_pusher_command(
 ):
     _check_method(method)
     _run(_PUSHER, out, seed, quick, method=method, seeds=seeds, target_x=target_x, target_y=target_y, target_yaw=target_yaw)
+
+
+@control_app.command("policy", help=_doc(
+    "Throw a ball over a wall of finite height as far as possible, by Adam on first-, zeroth- and "
+    "alpha-order estimates of the smoothed policy gradient (Suh et al., ICML 2022): the first-order "
+    "estimate misses the jump at the wall's top and the ball ends at the wall; zeroth and alpha "
+    "order clear it.", _POLICY))
+def control_policy_command(
+    out: Optional[Path] = OutOption,
+    seed: int = SeedOption,
+    quick: bool = QuickOption,
+    method: str = typer.Option("all", "--method", help="first, zeroth, alpha, or all."),
+    seeds: Optional[int] = typer.Option(
+        None, "--seeds", min=1, help="Runs per method, keys fold_in(seed, i) (default 10, quick 4)."),
+    samples: Optional[int] = typer.Option(
+        None, "--samples", min=4, help="Rollouts per gradient estimate (default 64)."),
+):
+    if method not in ("first", "zeroth", "alpha", "all"):
+        raise typer.BadParameter(f"--method must be first, zeroth, alpha or all, got {method!r}")
+    _run(_POLICY, out, seed, quick, method=method, seeds=seeds, num_samples=samples)
 
 
 @app.command(help=(

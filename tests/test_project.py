@@ -33,7 +33,7 @@ def test_cli_help_lists_the_experiments():
     assert reconstruct.exit_code == 0 and "iou_3d" in reconstruct.output
     control = CliRunner().invoke(app, ["control", "--help"])
     assert control.exit_code == 0
-    for name in ("cube-lift", "solo-lift", "pusher"):
+    for name in ("cube-lift", "solo-lift", "pusher", "policy"):
         assert name in control.output
 
 

@@ -9,15 +9,41 @@
 Both return a :class:`Solution`: a :class:`Trajectory` (states, controls, feedback gains),
 a :class:`RESULTS` item, statistics (cost, noise, step-size histories, timings) and the final
 :class:`DDPState`.
+
+Policy optimization (Suh, Simchowitz, Zhang, Tedrake, ICML 2022):
+
+* policies ``u = pi(theta, x, t)``: :class:`OpenLoop` (``u_t = theta_t``),
+  :class:`LinearFeedback` (``u = K x + k``, time-invariant or per node), or any callable;
+* :func:`rollout` (closed loop, one `lax.scan`) and :func:`policy_cost` (``V(theta)``, the
+  total cost of the rollout of a :class:`ShootingProblem`);
+* :func:`policy_gradient`: the gradient of the smoothed ``E_w V(theta + sigma w)`` by the
+  first-, zeroth- or alpha-order estimator of :mod:`rsmooth.estimators`;
+* :func:`optimize_policy` (configured by :class:`PolicyGradient`): Adam on those estimates,
+  sigma owned by a :mod:`rsmooth.schedules` schedule; returns a :class:`PolicySolution` with
+  the parameter, cost, sigma, alpha and gradient-variance histories.
 """
 
 from rsmooth.control._ddp import DDP, RESULTS, DDPState, Solution, Trajectory, box_qp, ddp
+from rsmooth.control._policy import (
+    LinearFeedback,
+    OpenLoop,
+    PolicyGradient,
+    PolicySolution,
+    optimize_policy,
+    policy_cost,
+    policy_gradient,
+    rollout,
+)
 from rsmooth.control._problem import ShootingProblem
 from rsmooth.control._rddp import RDDP, rddp, smoothed_dynamics_jacobians
 
 __all__ = [
     "DDP",
     "DDPState",
+    "LinearFeedback",
+    "OpenLoop",
+    "PolicyGradient",
+    "PolicySolution",
     "RDDP",
     "RESULTS",
     "ShootingProblem",
@@ -25,6 +51,10 @@ __all__ = [
     "Trajectory",
     "box_qp",
     "ddp",
+    "optimize_policy",
+    "policy_cost",
+    "policy_gradient",
     "rddp",
+    "rollout",
     "smoothed_dynamics_jacobians",
 ]
