@@ -304,7 +304,9 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     with tqdm(total=len(config.methods) * config.steps, desc="render-reconstruct", disable=not progress) as bar:
         for m_index, method in enumerate(config.methods):
             _, init, step = make_solver(config, method, template, cams)
-            state = init(zeros)
+            # Laid out over the devices as `step` returns it: its first call compiles the same
+            # program as the later ones (not one for single-device inputs, then another).
+            state = parallel.shard_leading(init(zeros))
             run_key = jax.random.fold_in(k_run, m_index)
             losses, elapsed = [], []
             for t in range(config.steps):
