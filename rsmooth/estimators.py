@@ -195,15 +195,18 @@ def _zeroth_order_flat(flat: _Flat, key, sigma, num_samples, noise, baseline, an
 
 
 def value_and_jacobian(f_flat: Callable[[Array], Array], v: Array) -> tuple[Array, Array]:
-    """f(v) (m,) and its Jacobian (m, d), by reverse mode when m <= d, forward mode otherwise."""
+    """f(v) (m,) and its Jacobian (m, d), by reverse mode when m < d, forward mode otherwise.
+
+    Forward mode is a vmap of JVPs over the basis of the input (the primal computed once);
+    where ``m = d`` (a scalar function of a scalar, say) it is the cheaper of the two to
+    compile and run: no transposed program and no stored residuals."""
     out = jax.eval_shape(f_flat, v)
     m, d = out.shape[0], v.shape[0]
-    if m <= d:
+    if m < d:
         y, pullback = jax.vjp(f_flat, v)
         (jacobian,) = jax.vmap(pullback)(jnp.eye(m, dtype=y.dtype))
     else:
-        y, pushforward = jax.linearize(f_flat, v)
-        jacobian = jax.vmap(pushforward, out_axes=1)(jnp.eye(d, dtype=v.dtype))
+        y, jacobian = jax.vmap(lambda e: jax.jvp(f_flat, (v,), (e,)), out_axes=(None, 1))(jnp.eye(d, dtype=v.dtype))
     return y, jacobian
 
 

@@ -242,8 +242,10 @@ class TestBadInput:
         with pytest.raises(Exception, match="f returned a non-finite value"):
             jax.block_until_ready(fn(jnp.array([0.01])))
         with pytest.raises(ValueError, match="gradient of f is not finite"):
-            # The classic NaN gradient: the untaken branch of a where is differentiated.
-            rsmooth.first_order(lambda x: jnp.sum(jnp.where(x > 0, jnp.sqrt(x), 0.0)), getkey(), -jnp.ones(1), sigma=0.1, num_samples=2)
+            # The classic NaN gradient: reverse mode (one output, two inputs) differentiates the
+            # untaken branch of a where. (Forward mode, used where there are no more inputs than
+            # outputs, selects the taken branch's tangent: no NaN.)
+            rsmooth.first_order(lambda x: jnp.sum(jnp.where(x > 0, jnp.sqrt(x), 0.0)), getkey(), -jnp.ones(2), sigma=0.1, num_samples=2)
 
     def test_f_output_and_key(self, getkey):
         with pytest.raises(TypeError, match="single array"):

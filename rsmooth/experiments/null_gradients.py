@@ -64,7 +64,8 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
 
     forces = jnp.linspace(*config.force_grid)
     bar = tqdm(total=1 + 2 * len(config.sigmas), desc="null-gradients", disable=not progress)
-    heights, gradients = jax.jit(jax.vmap(jax.value_and_grad(final_height)))(forces)
+    # Forward mode (one input, one output): no transposed rollout to compile.
+    heights, gradients = jax.jit(jax.vmap(lambda f: jax.jvp(final_height, (f,), (jnp.ones_like(f),))))(forces)
     bar.update()
     below = np.asarray(forces) < weight - 1e-9
     above = np.asarray(forces) > weight + 1e-9
