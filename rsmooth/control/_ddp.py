@@ -642,7 +642,13 @@ def solve(
     # `throw` does not change the program: one compilation serves both values.
     compiled_solver = dataclasses.replace(solver, throw=True)
     smoothed_program, exact_program = compiled_solver._programs()
-    state = _jitted_init(compiled_solver, problem, us, key)
+    # The initial rollout is the same for every solver with the same DDP options: DDP's
+    # program computes it (compiled once per problem), then the noise and key are set.
+    state = _jitted_init(exact_program, problem, us, None)
+    if smoothed_program is not exact_program:
+        noise = compiled_solver._initial_noise(state.cost.dtype)
+        history = {**state.history, "noise": state.history["noise"].at[0].set(noise)}
+        state = dataclasses.replace(state, noise=noise, key=key, history=history)
     if not np.isfinite(float(state.cost)):
         raise ValueError("the cost of the initial rollout (x0, us_init) is not finite")
     bar = None
