@@ -333,9 +333,7 @@ class RigidBodySystem(eqx.Module):
         radii = self.sphere_radii[:, None]
         distance = centres @ self.plane_normals.T - self.plane_offsets[None, :] - radii  # (S, P)
         points = centres[:, None, :] - radii[:, :, None] * self.plane_normals[None]  # (S, P, 3)
-        moves = _dynamics._tree(model).support[joints][:, :, None]  # (S, nv, 1)
-        columns = jnp.where(moves, kinematics.motion_subspace[None], 0.0)[:, None]  # (S, 1, nv, 6)
-        point_jacobians = columns[..., :3] - jnp.cross(points[:, :, None, :], columns[..., 3:])  # (S, P, nv, 3)
+        point_jacobians = _point_velocity_columns(model, kinematics, joints[:, None], points)  # (S, P, nv, 3)
         rotations = contact_frame(self.plane_normals)  # (P, 3, 3)
         # R_p^T J_p, unrolled over the 3-axis (a batched 3x3 dot is slow on CPU: _spatial)
         jacobians = sum(rotations[None, :, j, :, None] * point_jacobians[:, :, None, :, j] for j in range(3))  # (S, P, 3, nv)
@@ -658,16 +656,26 @@ def _block_diagonal(blocks: Array) -> Array:
     return jnp.einsum("ij,iab->iajb", eye, blocks).reshape(n * b, n * b)
 
 
-def _support_columns(model: Model, kinematics, joint: int) -> Array:
-    """World-frame motion subspace columns of the dofs that move body ``joint``, ``(nv, 6)``."""
-    moves = _dynamics._tree(model).support[joint][:, None]
-    return jnp.where(moves, kinematics.motion_subspace, 0.0)
+def _support_columns(model: Model, kinematics, joints) -> Array:
+    """World-frame motion subspace columns of the dofs that move body ``joints`` (an int, or a
+    static integer array of any shape ``B``), ``B + (nv, 6)``: zero for the other dofs."""
+    moves = _dynamics._tree(model).support[joints][..., None]  # B + (nv, 1)
+    subspace = kinematics.motion_subspace
+    return jnp.where(moves, subspace.reshape((1,) * (moves.ndim - 2) + subspace.shape), 0.0)
+
+
+def _point_velocity_columns(model: Model, kinematics, joints, points: Array) -> Array:
+    """``(..., nv, 3)``: row ``k`` is the world velocity of the material point of body
+    ``joints`` at world position ``points`` ``(..., 3)`` per unit velocity of dof ``k``;
+    ``joints`` (static) broadcasts against the leading axes of ``points`` (all contacts of a
+    step in one batched expression: see `contacts`)."""
+    columns = _support_columns(model, kinematics, joints)
+    return columns[..., :3] - jnp.cross(points[..., None, :], columns[..., 3:])
 
 
 def _point_jacobian(model: Model, kinematics, joint: int, point: Array) -> Array:
     """Jacobian ``(3, nv)`` of the world velocity of the body-``joint`` point at world ``point``."""
-    columns = _support_columns(model, kinematics, joint)
-    return (columns[:, :3] - jnp.cross(point, columns[:, 3:])).T
+    return _point_velocity_columns(model, kinematics, joint, point).T
 
 
 def _angular_jacobian(model: Model, kinematics, joint: int) -> Array:
