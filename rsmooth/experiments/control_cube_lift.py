@@ -67,19 +67,22 @@ class Config:
         return _control.rddp_solver(self, self.force_noise, state_noise)
 
 
+def _running(x, u, params):
+    return 1e-6 * jnp.sum(u**2)
+
+
+def _terminal(x, params):
+    return 100.0 * (x[2] - params["target"]) ** 2 + x[9] ** 2
+
+
 def build_problem(config: Config):
-    """The system, the shooting problem and the target height (absolute, m)."""
+    """The system, the shooting problem and the target height (absolute, m). The target is a
+    traced cost parameter: problems for other heights share the compiled solver steps."""
     system = sim.cube(wrench_components=(2,))
     x0 = sim.cube_rest_state(system)
     target = float(x0[2]) + config.height
-
-    def running(x, u):
-        return 1e-6 * jnp.sum(u**2)
-
-    def terminal(x):
-        return 100.0 * (x[2] - target) ** 2 + x[9] ** 2
-
-    problem = control.ShootingProblem(system, running, terminal, x0, config.horizon)
+    params = {"target": jnp.asarray(target, x0.dtype)}
+    problem = control.ShootingProblem(system, _running, _terminal, x0, config.horizon, params=params)
     return system, problem, target
 
 

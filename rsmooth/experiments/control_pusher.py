@@ -141,24 +141,29 @@ def build_problem(config: Config):
     system = sim.pusher()
     x0 = sim.pusher_start_state(system, finger_gap=config.finger_gap, finger_y=config.finger_y)
     target = config.target()
-    position = jnp.array(target[:2])
-    half_cos, half_sin = float(np.cos(target[2] / 2)), float(np.sin(target[2] / 2))
-
-    def running(x, u):
-        return CONTROL_WEIGHT * u
-
-    def terminal(x):
-        # For a rotation about z, q = (0, 0, sin(yaw/2), cos(yaw/2)) and
-        # q_z cos(yaw_t/2) - q_w sin(yaw_t/2) = sin((yaw - yaw_t)/2): smooth, no angle wrap.
-        yaw = 2.0 * (x[5] * half_cos - x[6] * half_sin)
-        return jnp.concatenate([
-            POSITION_WEIGHT * (x[:2] - position),
-            YAW_WEIGHT * yaw[None],
-            VELOCITY_WEIGHT * x[9:15],
-        ])
-
-    problem = control.ShootingProblem(system, running, terminal, x0, config.horizon, residuals=True)
+    # The target is a traced cost parameter: other targets share the compiled solver steps.
+    params = {
+        "position": jnp.asarray(target[:2], x0.dtype),
+        "half_yaw": jnp.asarray([np.cos(target[2] / 2), np.sin(target[2] / 2)], x0.dtype),
+    }
+    problem = control.ShootingProblem(system, _running, _terminal, x0, config.horizon, residuals=True, params=params)
     return system, problem, target
+
+
+def _running(x, u, params):
+    return CONTROL_WEIGHT * u
+
+
+def _terminal(x, params):
+    # For a rotation about z, q = (0, 0, sin(yaw/2), cos(yaw/2)) and
+    # q_z cos(yaw_t/2) - q_w sin(yaw_t/2) = sin((yaw - yaw_t)/2): smooth, no angle wrap.
+    half_cos, half_sin = params["half_yaw"][0], params["half_yaw"][1]
+    yaw = 2.0 * (x[5] * half_cos - x[6] * half_sin)
+    return jnp.concatenate([
+        POSITION_WEIGHT * (x[:2] - params["position"]),
+        YAW_WEIGHT * yaw[None],
+        VELOCITY_WEIGHT * x[9:15],
+    ])
 
 
 def trajectory_metrics(xs, us, target, config: Config) -> dict:

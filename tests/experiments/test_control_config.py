@@ -1,5 +1,6 @@
 """What the control experiments' Configs share: validation and the solvers they build."""
 
+import jax
 import pytest
 
 from rsmooth import control
@@ -32,3 +33,17 @@ def test_make_solvers_gives_one_solver_per_method(module):
 def test_configs_reject_what_every_control_experiment_rejects(module, changes, match):
     with pytest.raises(ValueError, match=match):
         module.Config(**changes)
+
+
+@pytest.mark.parametrize("module, changes", [(control_cube_lift, {"height": 0.2}), (control_pusher, {"target_x": 0.05, "target_yaw": -10.0})])
+def test_another_target_changes_only_traced_parameters(module, changes):
+    """The targets are cost parameters (arrays), not constants of the cost functions: a problem
+    for another target has the same static part, so it reuses the compiled solver steps."""
+    import equinox as eqx
+    import numpy as np
+
+    (_, first, _), (_, second, _) = module.build_problem(module.Config()), module.build_problem(module.Config(**changes))
+    arrays_first, static_first = eqx.partition(first, eqx.is_array)
+    arrays_second, static_second = eqx.partition(second, eqx.is_array)
+    assert static_first == static_second
+    assert not all(np.array_equal(a, b) for a, b in zip(*(jax.tree.leaves(p.params) for p in (arrays_first, arrays_second))))
