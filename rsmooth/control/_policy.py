@@ -71,7 +71,7 @@ from jax.typing import ArrayLike
 from rsmooth import _checks
 from rsmooth import estimators as _estimators
 from rsmooth import schedules as _schedules
-from rsmooth.control._problem import ShootingProblem
+from rsmooth.control._problem import ShootingProblem, check_initial_state
 from rsmooth.noise import Gaussian, Noise
 
 __all__ = [
@@ -239,12 +239,7 @@ def rollout(dynamics, policy: Callable, theta, x0: ArrayLike, horizon: int) -> t
     """
     horizon = _check_size(horizon, "horizon")
     nx, nu = int(dynamics.nx), int(dynamics.nu)
-    if np.shape(x0) != (nx,):
-        raise ValueError(f"x0 must have shape (nx,) = ({nx},), got {np.shape(x0)}")
-    x0 = jnp.asarray(x0)
-    if not jnp.issubdtype(x0.dtype, jnp.floating):
-        x0 = x0.astype(float)
-    x0 = _checks.check_finite(x0, "x0 must be finite (it contains NaN or inf)")
+    x0 = check_initial_state(x0, nx)
     theta = check_parameters(policy, theta)
     _check_policy_output(policy, theta, x0, nu)
     return _rollout(dynamics, policy, theta, x0, horizon)

@@ -35,6 +35,17 @@ def _bound(value, nu: int, name: str):
     return jnp.asarray(array)
 
 
+def check_initial_state(x0: ArrayLike, nx: int) -> Array:
+    """``x0`` as a floating array of shape ``(nx,)``, checked finite (now when concrete, at run
+    time under `jit` or `vmap`). Raises ``ValueError`` naming ``x0``."""
+    if np.shape(x0) != (nx,):
+        raise ValueError(f"x0 must have shape (nx,) = ({nx},), got {np.shape(x0)}")
+    x0 = jnp.asarray(x0)
+    if not jnp.issubdtype(x0.dtype, jnp.floating):
+        x0 = x0.astype(float)
+    return _checks.check_finite(x0, "x0 must be finite (it contains NaN or inf)")
+
+
 class ShootingProblem(eqx.Module):
     """An optimal control problem over a finite horizon (single shooting).
 
@@ -124,13 +135,7 @@ class ShootingProblem(eqx.Module):
         nx, nu = int(dynamics.nx), int(dynamics.nu)
         if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)) or horizon < 1:
             raise ValueError(f"horizon must be an int >= 1, got {horizon!r}")
-        if np.shape(x0) != (nx,):
-            raise ValueError(f"x0 must have shape (nx,) = ({nx},), got {np.shape(x0)}")
-        x0 = jnp.asarray(x0)
-        if not jnp.issubdtype(x0.dtype, jnp.floating):
-            x0 = x0.astype(float)
-        # Checked now when concrete, at run time under jit or vmap.
-        x0 = _checks.check_finite(x0, "x0 must be finite (it contains NaN or inf)")
+        x0 = check_initial_state(x0, nx)
         lower = _bound(control_lower, nu, "control_lower")
         upper = _bound(control_upper, nu, "control_upper")
         if lower is not None and upper is not None and np.any(np.asarray(lower) > np.asarray(upper)):
