@@ -272,13 +272,17 @@ class RDDP(DDP):
             batch_size=self.node_batch_size,
         )
 
+    def as_ddp(self) -> DDP:
+        """The :class:`~rsmooth.control.DDP` with this solver's DDP options: what R-DDP runs
+        once eps = 0 (and the plain-DDP baseline of a comparison)."""
+        return DDP(**{field.name: getattr(self, field.name) for field in dataclasses.fields(DDP)})
+
     def _programs(self) -> tuple[DDP, DDP]:
         # The eps > 0 program holds the smoothed Jacobians only; the eps = 0 iterations run
         # the DDP with the same options (see `solve`): two smaller compilations instead of one
         # program holding both branches under lax.cond (~2x DDP's compile time).
-        options = {field.name: getattr(self, field.name) for field in dataclasses.fields(DDP)}
         smoothed = _SmoothedPhase(**{field.name: getattr(self, field.name) for field in dataclasses.fields(self)})
-        return smoothed, DDP(**options)
+        return smoothed, self.as_ddp()
 
     def _next_noise(self, state: DDPState, stop, accepted, cost_new) -> Array:
         eps = state.noise

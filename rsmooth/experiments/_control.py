@@ -35,9 +35,8 @@ def method_names(method: str, geometric_decays: tuple[float, ...]) -> tuple[str,
 def make_solver(name: str, rddp: control.RDDP) -> control.DDP:
     """The solver of a method: ``rddp`` configures the smoothing (and the DDP options, which
     every method shares)."""
-    ddp_options = {field.name: getattr(rddp, field.name) for field in dataclasses.fields(control.DDP)}
     if name == "ddp":
-        return control.DDP(**ddp_options)
+        return rddp.as_ddp()
     if name == "rddp":
         return dataclasses.replace(rddp, schedule="adaptive")
     if name.startswith("rddp-geometric-"):

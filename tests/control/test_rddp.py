@@ -43,6 +43,9 @@ def test_without_noise_rddp_is_ddp_iterate_for_iterate(getkey):
     np.testing.assert_array_equal(solution.us, reference.us)
     np.testing.assert_array_equal(solution.gains, reference.gains)
     assert np.all(np.asarray(solution.stats["noise"]) == 0.0)
+    # The DDP R-DDP runs at eps = 0 has its DDP options, and only those.
+    assert control.RDDP(eps=0.3, num_samples=4, max_iterations=7, reg_init=1e-4).as_ddp() == control.DDP(max_iterations=7, reg_init=1e-4)
+    assert type(control.RDDP().as_ddp()) is control.DDP
 
 
 def test_cube_lift_ddp_stays_put_and_rddp_lifts_it():
