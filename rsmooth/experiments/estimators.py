@@ -78,17 +78,25 @@ def functions(config: Config) -> dict[str, tuple[Callable, Callable]]:
     }
 
 
-def _estimate_many(estimator, f, key, xs, sigma, num_samples, num_trials):
-    """Grads and alphas of num_trials independent estimates at each x: arrays (len(xs), trials)."""
-    keys = jax.random.split(key, (xs.shape[0], num_trials))
+def _estimate_table(estimator, fs, key, points, sigma, num_samples, num_trials):
+    """Grads and alphas of num_trials independent estimates for every function of `fs` at each
+    of `points`: arrays (len(fs), len(points), num_trials). One compiled program for all the
+    functions (a `lax.switch` on the function's index, batched): the experiment compiles one
+    program per estimator and sample count rather than one per function as well."""
+    keys = jax.random.split(key, (len(fs), points.shape[0], num_trials))
+    index = jnp.arange(len(fs))
 
     @jax.jit
-    def run(keys, xs):
-        one = lambda k, x: estimator(f, k, x, sigma=sigma, num_samples=num_samples)  # noqa: E731
-        est = jax.vmap(jax.vmap(one, in_axes=(0, None)))(keys, xs)
+    def run(keys, points):
+        def one(k, x, i):
+            f = lambda y: jax.lax.switch(i, fs, y)  # noqa: E731
+            return estimator(f, k, x, sigma=sigma, num_samples=num_samples)
+
+        per_trial = jax.vmap(one, in_axes=(0, None, None))
+        est = jax.vmap(jax.vmap(per_trial, in_axes=(0, 0, None)), in_axes=(0, None, 0))(keys, points, index)
         return est.grad, est.stats.get("alpha", jnp.full(est.grad.shape, jnp.nan))
 
-    return run(keys, xs)
+    return run(keys, points)
 
 
 ESTIMATORS = {"zeroth": rsmooth.zeroth_order, "first": rsmooth.first_order, "alpha": rsmooth.alpha_order}
@@ -100,12 +108,25 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     xs = jnp.linspace(*config.x_grid)
     x0 = jnp.array([config.x0])
     metrics: dict = {"sigma": config.sigma, "x0": config.x0, "num_samples": list(config.num_samples_grid)}
+    names = list(fns)
+    fs = [fns[name][0] for name in names]
+    # Every estimate first: one program per estimator and sample count; at num_samples_curve
+    # the x grid and x0 together (x0 last), at the other counts x0 alone.
+    counts = sorted(set(config.num_samples_grid) | {config.num_samples_curve})
+    estimates = {}  # (estimator, M) -> grads, alphas as (function, point, trial) arrays
+    bar = tqdm(total=len(ESTIMATORS) * len(counts), desc="estimators", disable=not progress)
+    for est_name, estimator in ESTIMATORS.items():
+        for m in counts:
+            key, sub = jax.random.split(key)
+            points = jnp.concatenate([xs, x0]) if m == config.num_samples_curve else x0
+            grads, alphas = _estimate_table(estimator, fs, sub, points, config.sigma, m, config.num_trials)
+            estimates[est_name, m] = np.asarray(grads), np.asarray(alphas)
+            bar.update()
+    bar.close()
+
     fig, axes = viz.plt.subplots(len(fns), 4, figsize=(17, 3.4 * len(fns)))
     colors = {"zeroth": "tab:blue", "first": "tab:orange", "alpha": "tab:green"}
-    steps = len(fns) * len(ESTIMATORS) * (1 + len(config.num_samples_grid))
-    bar = tqdm(total=steps, desc="estimators", disable=not progress)
     for row, (name, (f, true_grad)) in enumerate(fns.items()):
-        key, sub = jax.random.split(key)
         truth_curve = np.asarray(true_grad(xs))
         truth_x0 = float(np.asarray(true_grad(x0))[0])
         ax_value, ax_grad, ax_error, ax_alpha = axes[row]
@@ -116,29 +137,25 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         ax_value.legend(fontsize=8)
         ax_grad.plot(xs, truth_curve, color="k", lw=2, label=r"true $f_\sigma'$")
         metrics[name] = {}
-        for est_name, estimator in ESTIMATORS.items():
-            sub, k_curve, k_conv = jax.random.split(sub, 3)
-            grads, alphas = _estimate_many(estimator, f, k_curve, xs, config.sigma, config.num_samples_curve, config.num_trials)
-            bar.update()
-            mean, std = np.asarray(grads.mean(1)), np.asarray(grads.std(1))
+        for est_name in ESTIMATORS:
+            all_grads, all_alphas = estimates[est_name, config.num_samples_curve]
+            grads, alphas = all_grads[row, :-1], all_alphas[row, :-1]
+            mean, std = grads.mean(1), grads.std(1)
             ax_grad.plot(xs, mean, color=colors[est_name], label=f"{est_name} (M={config.num_samples_curve})")
             ax_grad.fill_between(xs, mean - std, mean + std, color=colors[est_name], alpha=0.2)
             if name == "heaviside" and est_name == "first":
-                metrics["heaviside_first_order_grad_max_abs"] = float(jnp.max(jnp.abs(grads)))
+                metrics["heaviside_first_order_grad_max_abs"] = float(np.max(np.abs(grads)))
             if name == "heaviside":
                 metrics[f"heaviside_{est_name}_max_abs_error"] = float(np.max(np.abs(mean - truth_curve)))
             if est_name == "alpha":
-                ax_alpha.plot(xs, np.asarray(alphas.mean(1)), color=colors["alpha"], label=f"M={config.num_samples_curve}")
+                ax_alpha.plot(xs, alphas.mean(1), color=colors["alpha"], label=f"M={config.num_samples_curve}")
             rmse, bias, spread, alpha_mean = [], [], [], []
             for m in config.num_samples_grid:
-                k_conv, k_m = jax.random.split(k_conv)
-                g, a = _estimate_many(estimator, f, k_m, x0, config.sigma, m, config.num_trials)
-                g = np.asarray(g[0])
+                g, a = (table[row, -1] for table in estimates[est_name, m])
                 rmse.append(float(np.sqrt(np.mean((g - truth_x0) ** 2))))
                 bias.append(float(np.mean(g) - truth_x0))
                 spread.append(float(np.std(g)))
-                alpha_mean.append(float(np.mean(np.asarray(a))))
-                bar.update()
+                alpha_mean.append(float(np.mean(a)))
             metrics[name][est_name] = {"rmse": rmse, "bias": bias, "std": spread}
             if est_name == "alpha":
                 metrics[name]["alpha_mean"] = alpha_mean
@@ -154,7 +171,6 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         ax_alpha.set_ylim(-0.05, 1.05)
         ax_alpha.set_title("alpha chosen by the alpha-order estimator")
         ax_alpha.set_xlabel("x")
-    bar.close()
     fig.tight_layout()
     viz.save_figure(fig, out / "estimators.png")
     viz.write_metrics(out / "metrics.json", metrics)
