@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -26,8 +27,16 @@ def _solo():
     return sim.solo12()
 
 
+@eqx.filter_jit
 def _rollout(system, x0, us):
-    return jax.jit(lambda a, b: system.rollout(a, b))(x0, us)
+    """The system is an argument (its arrays traced): systems that differ only in array fields
+    share one compiled rollout."""
+    return system.rollout(x0, us)
+
+
+@eqx.filter_jit
+def _energies(system, xs):
+    return jax.vmap(lambda x: sim.energy(system, x))(xs)
 
 
 def test_resting_cube_stays_at_rest():
@@ -56,7 +65,7 @@ def test_dropped_cube_comes_to_rest_without_gaining_energy():
     axis = jnp.array([0.3, 0.1, 0.0, 1.0])
     x0 = rest.at[2].set(0.4).at[3:7].set(axis / jnp.linalg.norm(axis)).at[7:10].set(jnp.array([0.5, 0.0, 0.0]))
     xs, infos = _rollout(cube, x0, jnp.zeros((150, 6)))
-    energies = jax.jit(jax.vmap(lambda x: sim.energy(cube, x)))(xs)
+    energies = _energies(cube, xs)
     # Inelastic contact and friction only dissipate (and semi-implicit Euler loses m g^2 h^2 / 2
     # per step of free fall). The only gain allowed is the Baumgarte push-out of the
     # penetration left by integrating rotating corners over a step: m g x (under 1 um).
@@ -89,14 +98,19 @@ def test_small_upward_force_has_exactly_zero_gradient():
         xs, _ = cube.rollout(x0, us)
         return xs[-1, 2]
 
-    grad = jax.jit(jax.grad(final_height))
+    # Forward mode: the height and its derivative from one program (reverse mode through a
+    # rollout is the pusher's null-gradient test below).
+    height_and_slope = jax.jit(lambda force: jax.jvp(final_height, (force,), (jnp.ones_like(force),)))
     for force in (0.0, 2.0, 5.0, 9.0):
-        assert abs(float(grad(force))) < 1e-12
+        height, slope = height_and_slope(force)
+        assert abs(float(slope)) < 1e-12
+        np.testing.assert_allclose(height, 0.1, rtol=1e-8)
     # Above m g the cube flies: z(T) = z0 + h^2 (F/m - g) T (T + 1) / 2, semi-implicit Euler.
     force, steps, h = 15.0, 5, 0.01
     expected = h**2 * steps * (steps + 1) / 2
-    np.testing.assert_allclose(grad(force), expected, rtol=1e-8)
-    np.testing.assert_allclose(final_height(force), 0.1 + expected * (force - GRAVITY), rtol=1e-8)
+    height, slope = height_and_slope(force)
+    np.testing.assert_allclose(slope, expected, rtol=1e-8)
+    np.testing.assert_allclose(height, 0.1 + expected * (force - GRAVITY), rtol=1e-8)
 
 
 def _central_differences(fun, x, eps=1e-6):
@@ -207,8 +221,6 @@ def test_solo12_under_random_open_loop_torques_stays_finite():
     the fall stays finite and the contact solves converge; without them (the bare URDF) a
     lifted lower leg spins up until semi-implicit Euler creates energy: the step is then
     flagged as diverged, and the rollout held, before any value turns non-finite."""
-    import equinox as eqx
-
     solo = _solo()
     bare = sim.solo12(armature=0.0, joint_damping=0.0, model=solo.model)
     x0 = sim.solo12_standing_state(solo)
@@ -247,7 +259,7 @@ def test_joint_damping_is_implicit_and_dissipates():
     def energies(system):
         xs, infos = _rollout(system, x0, us)
         assert not bool(jnp.any(infos.diverged))
-        return xs, jax.jit(jax.vmap(lambda x: sim.energy(system, x)))(xs)
+        return xs, _energies(system, xs)
 
     _, e_undamped = energies(undamped)
     _, e_damped = energies(free)
@@ -405,8 +417,6 @@ def test_implicit_step_derivative_equals_the_autodiff_reference(case, tolerance)
     """The default derivative (implicit function theorem on momentum balance + NCP) equals
     autodiff through CRBA, Cholesky and the Delassus matrix, for the next state and the
     impulses (unique ones), with respect to state and input; so does step_and_jacobians."""
-    import dataclasses
-
     system, x, u = case()
     reference = dataclasses.replace(system, derivative="autodiff")
     assert system.derivative == "implicit"
@@ -414,18 +424,18 @@ def test_implicit_step_derivative_equals_the_autodiff_reference(case, tolerance)
     def jacobians(s):
         def outputs(a, b):
             x_next, info = s.step_with_info(a, b)
-            return x_next, info.impulse
+            return (x_next, info.impulse), x_next
 
-        return jax.jit(jax.jacfwd(outputs, argnums=(0, 1)))(x, u)
+        return jax.jit(jax.jacfwd(outputs, argnums=(0, 1), has_aux=True))(x, u)
 
-    (ours_x, ours_impulse), (theirs_x, theirs_impulse) = jacobians(system), jacobians(reference)
+    ((ours_x, ours_impulse), stepped), ((theirs_x, theirs_impulse), _) = jacobians(system), jacobians(reference)
     for ours, theirs in zip(ours_x, theirs_x):  # d x_next / d x, d x_next / d u
         scale = float(jnp.max(jnp.abs(theirs)))
         assert scale > 0
         np.testing.assert_allclose(ours, theirs, rtol=0, atol=tolerance * scale)
     # step_and_jacobians: the same Jacobians with separate tangent passes over q, v and u
     x_next, fx, fu = jax.jit(lambda a, b: system.step_and_jacobians(a, b))(x, u)
-    np.testing.assert_allclose(x_next, system.step(x, u), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(x_next, stepped, rtol=1e-12, atol=1e-12)
     for ours, theirs in zip((fx, fu), theirs_x):
         np.testing.assert_allclose(ours, theirs, rtol=0, atol=tolerance * float(jnp.max(jnp.abs(theirs))))
     for ours, theirs in zip(ours_impulse, theirs_impulse):
@@ -435,10 +445,6 @@ def test_implicit_step_derivative_equals_the_autodiff_reference(case, tolerance)
 def test_implicit_step_derivative_with_respect_to_system_parameters():
     """Derivatives with respect to the friction coefficient and the time step (fields of the
     system) also go through the implicit rule and equal the autodiff reference."""
-    import dataclasses
-
-    import equinox as eqx
-
     system, x, u = _sliding_ball()
     reference = dataclasses.replace(system, derivative="autodiff")
 
