@@ -106,8 +106,9 @@ def _draw(ax, xs, us, name: str, t: int, rest: float, target: float, side: float
     ax.set_ylabel("height above rest (m)")
 
 
-def run(config: Config, out: Path, key, progress: bool = True) -> dict:
+def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     """Solves with each method and seed; writes metrics.json, cube_lift.png, cube_lift.gif."""
+    out = Path(out)
     start = time.perf_counter()
     system, problem, target = build_problem(config)
     rest = float(problem.x0[2])

@@ -166,8 +166,9 @@ def trajectory_metrics(system, xs, foot: str, config: Config) -> dict:
     }
 
 
-def run(config: Config, out: Path, key, progress: bool = True) -> dict:
+def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     """Solves with each method and seed; writes metrics.json, solo_lift.png, solo_lift.gif."""
+    out = Path(out)
     start = time.perf_counter()
     system, problem, u0 = build_problem(config)
     solvers = _control.make_solvers(config)

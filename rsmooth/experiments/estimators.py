@@ -102,8 +102,9 @@ def _estimate_table(estimator, fs, key, points, sigma, num_samples, num_trials):
 ESTIMATORS = {"zeroth": rsmooth.zeroth_order, "first": rsmooth.first_order, "alpha": rsmooth.alpha_order}
 
 
-def run(config: Config, out: Path, key, progress: bool = True) -> dict:
+def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     """Runs the experiment, writes metrics.json and estimators.png under `out`, returns metrics."""
+    out = Path(out)
     fns = functions(config)
     xs = jnp.linspace(*config.x_grid)
     x0 = jnp.array([config.x0])

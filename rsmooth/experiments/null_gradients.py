@@ -48,8 +48,9 @@ class Config:
         return cls(force_grid=(0.0, 20.0, 11), num_samples=32, num_trials=4)
 
 
-def run(config: Config, out: Path, key, progress: bool = True) -> dict:
+def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     """Runs the experiment, writes metrics.json and null_gradients.png under `out`."""
+    out = Path(out)
     cube = sim.cube()
     x0 = sim.cube_rest_state(cube)
     mass = float(cube.model.body_mass[1])

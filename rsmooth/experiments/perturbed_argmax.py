@@ -130,8 +130,9 @@ def _ranking_part(config: Config, key, bar) -> dict:
     return {"losses": losses, "curve": curve, "initial": initial, "final": final, "exact": exact, "cosine": cosine}
 
 
-def run(config: Config, out: Path, key, progress: bool = True) -> dict:
+def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     """Runs both parts, writes metrics.json and two PNG figures under `out`, returns metrics."""
+    out = Path(out)
     k_soft, k_rank = jax.random.split(key)
     total = len(config.sigmas) * len(config.num_samples_grid) + config.rank_steps
     with tqdm(total=total, desc="perturbed-argmax", disable=not progress) as bar:

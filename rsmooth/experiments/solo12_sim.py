@@ -100,8 +100,9 @@ def stick_figure(system, x, title: str) -> np.ndarray:
     return image
 
 
-def run(config: Config, out: Path, key, progress: bool = True) -> dict:
+def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     """Simulates, writes metrics.json, solo12.png and solo12.gif under `out`."""
+    out = Path(out)
     start = time.perf_counter()
     system = sim.solo12(body_contacts=config.body_contacts)
     x0 = sim.solo12_standing_state(system)

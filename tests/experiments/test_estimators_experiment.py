@@ -10,7 +10,7 @@ from rsmooth.experiments import estimators
 
 def test_estimators_experiment_small(tmp_path):
     config = dataclasses.replace(estimators.Config.quick(), x_grid=(-1.0, 1.0, 9), num_samples_grid=(16, 256), num_trials=24)
-    metrics = estimators.run(config, tmp_path, jax.random.key(0), progress=False)
+    metrics = estimators.run(config, str(tmp_path), jax.random.key(0), progress=False)  # a str works as well as a Path
     assert metrics["heaviside_first_order_grad_max_abs"] == 0.0
     peak = 1 / (config.sigma * np.sqrt(2 * np.pi))
     assert metrics["heaviside_first_max_abs_error"] > 0.9 * peak

@@ -10,7 +10,7 @@ from rsmooth.experiments import null_gradients
 
 def test_null_gradients_small(tmp_path, getkey):
     config = null_gradients.Config(steps=5, force_grid=(0.0, 16.0, 5), sigmas=(3.0,), num_samples=16, num_trials=4)
-    metrics = null_gradients.run(config, tmp_path, getkey(), progress=False)
+    metrics = null_gradients.run(config, str(tmp_path), getkey(), progress=False)  # a str works as well as a Path
     # Hard contact: exactly no signal below the weight, the free-flight slope above it.
     assert metrics["exact_gradient_max_abs_below_weight"] < 1e-15
     assert metrics["exact_gradient_above_weight_rel_error"] < 1e-9

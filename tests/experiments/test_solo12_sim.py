@@ -6,7 +6,7 @@ from rsmooth.experiments import solo12_sim
 
 
 def test_solo12_standing_and_random(tmp_path, getkey):
-    standing = solo12_sim.run(solo12_sim.Config(steps=30, frames=3), tmp_path / "standing", getkey(), progress=False)
+    standing = solo12_sim.run(solo12_sim.Config(steps=30, frames=3), str(tmp_path / "standing"), getkey(), progress=False)
     assert standing["base_drift"] < 1e-6 and standing["max_foot_slip"] < 1e-6
     assert standing["base_height_drift"] <= standing["base_drift"]
     assert standing["ncp_converged_fraction"] == 1.0
