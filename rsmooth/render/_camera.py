@@ -112,7 +112,10 @@ class Camera(eqx.Module):
         translation: (3,) world-to-camera translation t: a world point p is at R p + t in the
             camera frame.
         fov: vertical field of view in degrees.
-        near: near plane distance (> 0); faces with a vertex nearer than it are not drawn.
+        near: near plane distance (> 0). A face with a vertex nearer than it is not drawn at
+            all (`Fragments.near_culled` counts those in view) unless the renderer clips it
+            (``Renderer(clip_near=True)``, ``rasterize(clip_near=True)``): then its part in
+            front of the plane is drawn.
         far: far plane distance (> near); faces with every vertex beyond it are not drawn.
         image_size: (height, width) in pixels (static: it fixes array shapes).
     """
@@ -169,7 +172,8 @@ class Camera(eqx.Module):
         """World points (N, 3) -> pixel coordinates (N, 2) and depths z (N,).
 
         Points at or behind the camera (z <= 0) get finite but meaningless pixel coordinates;
-        the rasterizer discards faces with a vertex nearer than `near`.
+        the rasterizer culls faces with a vertex nearer than `near`, or with `clip_near`
+        clips them at the near plane, so that it never uses them.
         """
         p = self.to_camera(points)
         z = p[:, 2]
