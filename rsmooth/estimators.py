@@ -166,15 +166,21 @@ def _mean_and_variance(a: Array, w: Array):
 
 
 def _zeroth_order_flat(flat: _Flat, key, sigma, num_samples, noise, baseline, antithetic) -> _FlatEstimate:
-    dim = flat.x.shape[0]
     z, points = perturbed_points(noise, key, flat.x, sigma, num_samples, antithetic)
     values = jax.vmap(flat.f)(points)
     values = _checks.check_finite(values, _NONFINITE_F)
+    reference = flat.f(flat.x) if baseline else jnp.zeros_like(values[0])
+    return _zeroth_order_terms(z, values, reference, sigma, noise, antithetic)
+
+
+def _zeroth_order_terms(z, values, reference, sigma, noise, antithetic) -> _FlatEstimate:
+    """The zeroth-order estimate from the noise ``z`` (M, d), the values ``f(x + sigma z)``
+    (M, m) and the baseline ``reference`` (m,) (zeros for none)."""
+    num_samples, dim = z.shape
     score = noise.score(z)
     weights = -score / sigma
     # d/dsigma of log[mu((y - x)/sigma) / sigma^d] = -(z . score(z) + d) / sigma.
     sigma_weights = -(jnp.sum(z * score, axis=-1) + dim) / sigma
-    reference = flat.f(flat.x) if baseline else jnp.zeros_like(values[0])
     centred = values - reference[None, :]
     if antithetic:
         # A pair (z, -z) is one independent unit; for a symmetric law the score is odd, so
@@ -222,6 +228,13 @@ def _first_order_flat(flat: _Flat, key, sigma, num_samples, noise, antithetic, j
         values, jacobians = jax.vmap(given)(points)
     values = _checks.check_finite(values, _NONFINITE_F)
     jacobians = _checks.check_finite(jacobians, _NONFINITE_GRAD)
+    return _first_order_terms(z, values, jacobians, antithetic)
+
+
+def _first_order_terms(z, values, jacobians, antithetic) -> _FlatEstimate:
+    """The first-order estimate from the noise ``z`` (M, d), the values ``f(x + sigma z)``
+    (M, m) and their Jacobians (M, m, d)."""
+    num_samples = z.shape[0]
     units = jacobians
     if antithetic:
         half = num_samples // 2
@@ -238,7 +251,7 @@ def _first_order_flat(flat: _Flat, key, sigma, num_samples, noise, antithetic, j
         # d/dsigma f(x + sigma z) = grad f(x + sigma z) . z
         sigma_grad=jnp.mean(jnp.einsum("imd,id->im", jacobians, z), axis=0),
         variance=variance,
-        max_score_norm=jnp.zeros((), flat.x.dtype),
+        max_score_norm=jnp.zeros((), z.dtype),
     )
 
 
@@ -252,6 +265,13 @@ def _alpha_order_flat(flat: _Flat, key, sigma, num_samples, noise, baseline, ant
         )
     zeroth = _zeroth_order_flat(flat, key_zeroth, sigma, n_zeroth, noise, baseline, antithetic)
     first = _first_order_flat(flat, key_first, sigma, n_first, noise, antithetic)
+    return _alpha_blend(zeroth, first, n_zeroth, n_first, antithetic, gamma, lipschitz, delta)
+
+
+def _alpha_blend(zeroth: _FlatEstimate, first: _FlatEstimate, n_zeroth, n_first, antithetic, gamma, lipschitz, delta):
+    """The alpha-order blend of independent zeroth- and first-order estimates (of ``n_zeroth``
+    and ``n_first`` samples): the estimate and the extra stats."""
+    num_samples = n_zeroth + n_first
     var_zeroth = jnp.sum(zeroth.variance)
     var_first = jnp.sum(first.variance)
     total = var_zeroth + var_first
@@ -307,6 +327,46 @@ def _alpha_order_flat(flat: _Flat, key, sigma, num_samples, noise, baseline, ant
         "variance_zeroth": var_zeroth,
     }
     return estimate, extra
+
+
+SHARED_SAMPLE_ESTIMATORS = ("first", "zeroth", "alpha")
+
+
+def _shared_sample_estimate(index, z, values, jacobians, reference, sigma, noise, gamma, lipschitz, delta):
+    """The first- (``index`` 0), zeroth- (1) or alpha-order (2) estimate from one set of
+    samples: the noise ``z`` (M, d) (independent draws, no antithetic pairs), the values
+    ``f(x + sigma z)`` (M, m), their Jacobians (M, m, d) and the baseline ``reference`` (m,).
+
+    ``index`` may be traced: the three estimators then share one evaluation of ``f`` and its
+    Jacobian at the points, and one compiled program serves all three (a comparison of the
+    estimators compiles the costly part once). First and zeroth order use all M samples;
+    alpha order the first half for its zeroth-order estimate and the second half for its
+    first-order one (independent halves, as :func:`alpha_order`). Returns the estimate and
+    alpha (1 for first order, 0 for zeroth order)."""
+    num_samples = z.shape[0]
+    half = num_samples // 2
+    one = jnp.ones((), z.dtype)
+
+    def first():
+        return _first_order_terms(z, values, jacobians, False), one
+
+    def zeroth():
+        return _zeroth_order_terms(z, values, reference, sigma, noise, False), 0.0 * one
+
+    def alpha():
+        estimate, extra = _alpha_blend(
+            _zeroth_order_terms(z[:half], values[:half], reference, sigma, noise, False),
+            _first_order_terms(z[half:], values[half:], jacobians[half:], False),
+            half,
+            num_samples - half,
+            False,
+            gamma,
+            lipschitz,
+            delta,
+        )
+        return estimate, extra["alpha"].astype(z.dtype)
+
+    return jax.lax.switch(index, (first, zeroth, alpha))
 
 
 def _package(flat: _Flat, estimate: _FlatEstimate, extra_stats=None) -> Estimate:

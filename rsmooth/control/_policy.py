@@ -57,6 +57,7 @@ References:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from typing import Callable
 
@@ -66,6 +67,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from jax import Array, lax
+from jax.flatten_util import ravel_pytree
 from jax.typing import ArrayLike
 
 from rsmooth import _checks
@@ -362,6 +364,14 @@ class PolicyGradient(eqx.Module):
         baseline: the zeroth-order baseline ``V(theta)`` (``"zeroth"`` and ``"alpha"``).
         delta: the confidence level ``1 - delta`` of the alpha-order trust region.
         gamma: the alpha-order trust-region radius (``None``: the estimator's scale-free rule).
+        shared_samples: evaluate :math:`V` and its gradient at the same ``num_samples``
+            points whatever the estimator, which is then chosen at run time: solvers that
+            differ only in ``estimator`` share one compiled step (a comparison of the three
+            compiles the costly rollout gradient once instead of three times, at the price of
+            a gradient per sample for ``"zeroth"`` too). First and zeroth order use all the
+            samples; alpha order gives the first half to its zeroth-order estimate and the
+            second half to its first-order one. Needs an even ``num_samples >= 4``, a noise
+            law with a score, and no ``antithetic``.
     """
 
     estimator: str = eqx.field(static=True, default="alpha")
@@ -375,9 +385,17 @@ class PolicyGradient(eqx.Module):
     baseline: bool = eqx.field(static=True, default=True)
     delta: float = eqx.field(static=True, default=0.05)
     gamma: float | None = eqx.field(static=True, default=None)
+    shared_samples: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         _check_estimator(self.estimator, self.num_samples)
+        if self.shared_samples:
+            if self.antithetic:
+                raise ValueError("shared_samples draws independent samples: it does not take antithetic=True")
+            if self.num_samples < 4 or self.num_samples % 2:
+                raise ValueError(f"shared_samples needs an even num_samples >= 4, got {self.num_samples}")
+            if not self.noise.has_score:
+                raise ValueError(f"shared_samples needs a noise law with a score; {type(self.noise).__name__} has none")
         _checks.check_positive_scalar(self.sigma, "sigma")
         _checks.check_positive_scalar(self.learning_rate, "learning_rate")
         _checks.check_num_samples(self.iterations, "iterations", minimum=0)
@@ -426,11 +444,43 @@ def _jitted_step(solver: PolicyGradient, problem, policy, theta, opt_state, sche
         problem, policy, key, theta, sigma, solver.num_samples, solver.estimator, solver.noise, solver.options()
     )
     cost = _policy_cost(problem, policy, theta)
+    alpha = {"first": 1.0, "zeroth": 0.0}.get(solver.estimator)
+    alpha = estimate.stats["alpha"] if alpha is None else jnp.asarray(alpha, sigma.dtype)
+    return _update(solver, theta, opt_state, schedule_state, estimate, cost, alpha)
+
+
+def _shared_sample_estimate(problem, policy, key, theta, sigma, solver: PolicyGradient, index):
+    """The estimate of ``ESTIMATORS[index]`` (traced) from shared samples, and the true cost."""
+    flat_theta, unravel = ravel_pytree(theta)
+    sigma = sigma.astype(flat_theta.dtype)
+    z, points = _estimators.perturbed_points(solver.noise, key, flat_theta, sigma, solver.num_samples, False)
+    # V and its gradient at theta (the baseline and the true cost) and at the perturbed points,
+    # in one batch: the gradient at theta is not needed, but one batch is one rollout program.
+    values, grads = jax.vmap(jax.value_and_grad(lambda v: _policy_cost(problem, policy, unravel(v))))(
+        jnp.concatenate([flat_theta[None], points])
+    )
+    values = _checks.check_finite(values, _estimators._NONFINITE_F)
+    grads = _checks.check_finite(grads, _estimators._NONFINITE_GRAD)
+    reference = values[:1] if solver.baseline else jnp.zeros_like(values[:1])
+    flat_estimate, alpha = _estimators._shared_sample_estimate(
+        index, z, values[1:, None], grads[1:, None, :], reference, sigma, solver.noise, solver.gamma, None, solver.delta
+    )
+    flat = _estimators._Flat(flat_theta, None, unravel, ())
+    return _estimators._package(flat, flat_estimate, {"alpha": alpha}), values[0]
+
+
+@eqx.filter_jit
+def _jitted_shared_step(solver: PolicyGradient, problem, policy, theta, opt_state, schedule_state, key, index):
+    estimate, cost = _shared_sample_estimate(problem, policy, key, theta, schedule_state.sigma, solver, index)
+    return _update(solver, theta, opt_state, schedule_state, estimate, cost, estimate.stats["alpha"])
+
+
+def _update(solver: PolicyGradient, theta, opt_state, schedule_state, estimate, cost, alpha):
+    """Adam's step on the estimate, the schedule's update and the iteration's record."""
+    sigma = schedule_state.sigma
     updates, opt_state = optax.adam(solver.learning_rate).update(estimate.grad, opt_state, theta)
     theta_next = optax.apply_updates(theta, updates)
     schedule_state = solver.schedule.update(schedule_state, estimate.sigma_grad)
-    alpha = {"first": 1.0, "zeroth": 0.0}.get(solver.estimator)
-    alpha = estimate.stats["alpha"] if alpha is None else jnp.asarray(alpha, sigma.dtype)
     grad_norm = jnp.sqrt(sum(jnp.sum(g**2) for g in jax.tree.leaves(estimate.grad)))
     record = {
         "cost": cost,
@@ -465,7 +515,8 @@ def optimize_policy(
     :func:`policy_gradient` at the current ``sigma`` (owned by ``solver.schedule``), takes an
     Adam step, and updates the schedule. The step is jitted once per (solver, problem,
     policy) structure: define the cost functions and a plain-function policy once, not anew
-    for every call, so that later calls reuse it.
+    for every call, so that later calls reuse it. With ``solver.shared_samples``, solvers that
+    differ only in their ``estimator`` or ``iterations`` share it.
 
     Args:
         problem: the :class:`~rsmooth.control.ShootingProblem`.
@@ -500,6 +551,10 @@ def optimize_policy(
 
         bar = tqdm(total=solver.iterations, desc="policy gradient", leave=False)
     thetas, records, times = [theta], [], []
+    estimator_index = jnp.asarray(ESTIMATORS.index(solver.estimator), jnp.int32)
+    # What the shared step's program does not depend on (the estimator, a traced index; the
+    # number of iterations) is set to one value, so that such solvers share the compiled step.
+    shared_solver = functools.partial(dataclasses.replace, estimator=ESTIMATORS[0], iterations=0)
     try:
         for k in range(solver.iterations):
             start = time.perf_counter()
@@ -507,9 +562,14 @@ def optimize_policy(
             num_samples = int(schedule_state.num_samples)
             if num_samples != solver.num_samples:  # Adaptive's sample growth
                 step_solver = dataclasses.replace(solver, num_samples=num_samples)
-            theta, opt_state, schedule_state, record = jax.block_until_ready(
-                _jitted_step(step_solver, problem, policy, theta, opt_state, schedule_state, jax.random.fold_in(key, k))
-            )
+            step_key = jax.random.fold_in(key, k)
+            if solver.shared_samples:
+                # The estimator is a traced index: every estimator runs the same program.
+                step = _jitted_shared_step(shared_solver(step_solver), problem, policy, theta, opt_state,
+                                           schedule_state, step_key, estimator_index)
+            else:
+                step = _jitted_step(step_solver, problem, policy, theta, opt_state, schedule_state, step_key)
+            theta, opt_state, schedule_state, record = jax.block_until_ready(step)
             times.append(time.perf_counter() - start)
             thetas.append(theta)
             records.append(record)

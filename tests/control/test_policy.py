@@ -4,6 +4,8 @@ Problems, policies and solvers are built once at module level: the jitted step o
 `optimize_policy` and the estimators compile once per structure, and the tests share them.
 """
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -161,6 +163,51 @@ def test_optimize_policy_decreases_a_smooth_cost_and_records_its_histories(getke
     again = control.optimize_policy(LINEAR, OPEN_LOOP, jax.random.key(0), OPEN_LOOP.init(), solver=solver)
     twice = control.optimize_policy(LINEAR, OPEN_LOOP, jax.random.key(0), OPEN_LOOP.init(), solver=solver)
     np.testing.assert_array_equal(again.stats["theta"], twice.stats["theta"])
+
+
+TRACES = []
+
+
+class CountingOpenLoop(control.OpenLoop):
+    """OpenLoop that counts its traces: a call of a compiled program does not trace it again."""
+
+    def __call__(self, theta, x, t):
+        TRACES.append(t)
+        return theta[t]
+
+
+def test_shared_samples_serve_the_three_estimators_with_one_compiled_step(getkey):
+    key = getkey()
+    policy = CountingOpenLoop(horizon=HORIZON, nu=1)
+    solvers = {
+        name: control.PolicyGradient(estimator=name, sigma=0.1, num_samples=8, learning_rate=0.1, iterations=4,
+                                     shared_samples=True)
+        for name in ("first", "zeroth", "alpha")
+    }
+    shared = {"first": control.optimize_policy(LINEAR, policy, key, THETA_LINEAR, solver=solvers["first"])}
+    traced = len(TRACES)
+    for name in ("zeroth", "alpha"):
+        shared[name] = control.optimize_policy(LINEAR, policy, key, THETA_LINEAR, solver=solvers[name])
+    control.optimize_policy(LINEAR, policy, key, THETA_LINEAR, solver=dataclasses.replace(solvers["alpha"], iterations=2))
+    assert len(TRACES) == traced  # the other estimators, and another length, ran the same program
+    # First and zeroth order on shared samples are the separate estimators on the same samples
+    # (iteration k draws them from fold_in(key, k) in both).
+    for name in ("first", "zeroth"):
+        separate = control.optimize_policy(
+            LINEAR, OPEN_LOOP, key, THETA_LINEAR, solver=dataclasses.replace(solvers[name], shared_samples=False)
+        )
+        np.testing.assert_allclose(shared[name].stats["theta"], separate.stats["theta"], rtol=1e-12, atol=1e-14)
+        for stat in ("cost", "smoothed_cost", "variance", "grad_norm", "alpha"):
+            np.testing.assert_allclose(shared[name].stats[stat], separate.stats[stat], rtol=1e-10, atol=1e-14)
+    assert np.all(shared["first"].stats["alpha"] == 1.0) and np.all(shared["zeroth"].stats["alpha"] == 0.0)
+    # Alpha order blends the halves: on this quadratic, mostly first order.
+    alpha = shared["alpha"].stats["alpha"]
+    assert np.all((alpha >= 0.0) & (alpha <= 1.0)) and np.median(alpha) > 0.9
+    assert shared["alpha"].stats["cost"][-1] < shared["alpha"].stats["cost"][0]
+    with pytest.raises(ValueError, match="antithetic"):
+        control.PolicyGradient(estimator="first", num_samples=8, antithetic=True, shared_samples=True)
+    with pytest.raises(ValueError, match="num_samples"):
+        control.PolicyGradient(estimator="first", num_samples=5, shared_samples=True)
 
 
 def test_bad_inputs_raise_errors_naming_the_argument(getkey):
