@@ -161,9 +161,18 @@ _POLICY = _Experiment("policy", "control_policy", "control policy", _control_sum
     lambda metrics: f"{metrics['final_cost_mean']:.3f} +- {metrics['final_cost_std']:.3f}, "
     f"{metrics['final_angle_deg_mean']:.1f}, {metrics['mean_alpha']:.2f}, {metrics['gradient_variance_median']:.2g}"))
 
+_POLICY_PUSHER = _Experiment("policy-pusher", "control_policy_pusher", "control policy --task pusher", _control_summary(
+    "runs that pushed the box, final cost mean +- std, position error (mm), mean alpha, median gradient variance",
+    lambda metrics: f"{100 * metrics['push_rate']:.0f} %, {metrics['final_cost_mean']:.3f} +- {metrics['final_cost_std']:.3f}, "
+    f"{1000 * metrics['position_error_mean']:.1f}, {metrics['mean_alpha']:.2f}, {metrics['gradient_variance_median']:.2g}"))
 
-def _doc(summary: str, experiment: _Experiment) -> str:
-    return summary + "\n\n" + importlib.import_module(f"rsmooth.experiments.{experiment.module}").METRICS_DOC
+POLICY_TASKS = {"throw": _POLICY, "pusher": _POLICY_PUSHER}
+
+
+def _doc(summary: str, *experiments: _Experiment) -> str:
+    return "\n\n".join([summary] + [
+        importlib.import_module(f"rsmooth.experiments.{experiment.module}").METRICS_DOC for experiment in experiments
+    ])
 
 
 @experiment_app.command("estimators", help=_doc(
@@ -323,23 +332,37 @@ def control_pusher_command(
 
 
 @control_app.command("policy", help=_doc(
-    "Throw a ball over a wall of finite height as far as possible, by Adam on first-, zeroth- and "
-    "alpha-order estimates of the smoothed policy gradient (Suh et al., ICML 2022): the first-order "
-    "estimate misses the jump at the wall's top and the ball ends at the wall; zeroth and alpha "
-    "order clear it.", _POLICY))
+    "Policy optimization by Adam on first-, zeroth- and alpha-order estimates of the smoothed policy "
+    "gradient (Suh et al., ICML 2022). --task throw (default): throw a ball over a wall of finite "
+    "height as far as possible; the first-order estimate misses the jump at the wall's top and the "
+    "ball ends at the wall, zeroth and alpha order clear it. --task pusher: open-loop finger forces "
+    "push the simulator's box (hard frictional contact) to a target from zero force, the finger 5 cm "
+    "behind it; the exact gradient of the box's pose is zero and no sample touches the box: first and "
+    "alpha order mostly leave the box where it is, zeroth order's variance makes Adam's steps explore "
+    "until it pushes (output in ./rsmooth-out/policy-pusher).",
+    _POLICY, _POLICY_PUSHER))
 def control_policy_command(
     out: Optional[Path] = OutOption,
     seed: int = SeedOption,
     quick: bool = QuickOption,
+    task: str = typer.Option("throw", "--task", help="throw (a ball over a wall) or pusher (rsmooth.sim.pusher)."),
     method: str = typer.Option("all", "--method", help="first, zeroth, alpha, or all."),
     seeds: Optional[int] = typer.Option(
-        None, "--seeds", min=1, help="Runs per method, keys fold_in(seed, i) (default 10, quick 4)."),
+        None, "--seeds", min=1, help="Runs per method, keys fold_in(seed, i) (throw: default 10, quick 4; pusher: 8, quick 3)."),
     samples: Optional[int] = typer.Option(
-        None, "--samples", min=4, help="Rollouts per gradient estimate (default 64)."),
+        None, "--samples", min=4, help="Rollouts per gradient estimate (throw: default 64; pusher: 16, even)."),
+    sigma: Optional[float] = typer.Option(
+        None, "--sigma", help="Initial noise on the policy parameters (throw: rad, default 0.1; pusher: N, default 0.2)."),
 ):
+    if task not in POLICY_TASKS:
+        raise typer.BadParameter(f"--task must be throw or pusher, got {task!r}")
     if method not in ("first", "zeroth", "alpha", "all"):
         raise typer.BadParameter(f"--method must be first, zeroth, alpha or all, got {method!r}")
-    _run(_POLICY, out, seed, quick, method=method, seeds=seeds, num_samples=samples)
+    if sigma is not None and not sigma > 0:
+        raise typer.BadParameter(f"--sigma must be positive, got {sigma}")
+    if task == "pusher" and samples is not None and samples % 2:
+        raise typer.BadParameter(f"--samples must be even with --task pusher, got {samples}")
+    _run(POLICY_TASKS[task], out, seed, quick, method=method, seeds=seeds, num_samples=samples, sigma=sigma)
 
 
 @app.command(help=(

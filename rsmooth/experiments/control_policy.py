@@ -190,17 +190,22 @@ def _run_summary(solution: control.PolicySolution, config: Config) -> dict:
     }
 
 
-def _aggregate(runs: list[dict], solutions: list[control.PolicySolution], run_time: float) -> dict:
+def aggregate(runs: list[dict], solutions: list[control.PolicySolution], run_time: float, means: tuple[str, ...]) -> dict:
+    """A method's metrics over its seeds: final cost, success rate, the mean and std of the
+    per-seed quantities ``means`` (keys ``NAME_mean``, ``NAME_std``), alpha, the gradient
+    variance, the run time and the runs (``per_seed``)."""
     costs = np.array([run["final_cost"] for run in runs])
-    angles = np.array([run["final_angle_deg"] for run in runs])
     variances = np.concatenate([s.stats["variance"] for s in solutions])
     alphas = np.concatenate([s.stats["alpha"] for s in solutions])
+    spread = {}
+    for name in means:
+        values = np.array([run[name] for run in runs])
+        spread[f"{name}_mean"], spread[f"{name}_std"] = float(values.mean()), float(values.std())
     return {
         "final_cost_mean": float(costs.mean()),
         "final_cost_std": float(costs.std()),
         "success_rate": float(np.mean([run["success"] for run in runs])),
-        "final_angle_deg_mean": float(angles.mean()),
-        "final_angle_deg_std": float(angles.std()),
+        **spread,
         "mean_alpha": float(alphas.mean()) if alphas.size else float("nan"),
         "gradient_variance": float(variances.mean()) if variances.size else float("nan"),
         "gradient_variance_median": float(np.median(variances)) if variances.size else float("nan"),
@@ -209,7 +214,11 @@ def _aggregate(runs: list[dict], solutions: list[control.PolicySolution], run_ti
     }
 
 
-def _plot_histories(histories: dict[str, list[control.PolicySolution]], config: Config, path: Path) -> None:
+def plot_histories(
+    histories: dict[str, list[control.PolicySolution]], path: Path, cost_label: str, reference: tuple[float, str] | None = None
+) -> None:
+    """Per method, the true cost (mean +- std over seeds), alpha and the gradient variance
+    against the iteration; ``reference``: a ``(cost, label)`` line on the cost axes."""
     fig, axes = viz.plt.subplots(1, 3, figsize=(15, 3.8))
     for index, (name, solutions) in enumerate(histories.items()):
         color = f"C{index}"
@@ -218,14 +227,15 @@ def _plot_histories(histories: dict[str, list[control.PolicySolution]], config: 
         steps = np.arange(costs.shape[1])
         axes[0].plot(steps, mean, color=color, label=f"{name} (mean of {len(solutions)} seeds)")
         axes[0].fill_between(steps, mean - std, mean + std, color=color, alpha=0.2)
-        if config.iterations:
+        if costs.shape[1] > 1:  # some iterations
             alphas = np.stack([s.stats["alpha"] for s in solutions]).mean(axis=0)
             axes[1].plot(np.arange(alphas.size), alphas, color=color, label=name)
             variances = np.stack([s.stats["variance"] for s in solutions])
             axes[2].semilogy(np.arange(variances.shape[1]), np.median(variances, axis=0), color=color, label=name)
-    axes[0].axhline(-config.wall_distance, color="k", ls=":", lw=1, label="at the wall")
+    if reference is not None:
+        axes[0].axhline(reference[0], color="k", ls=":", lw=1, label=reference[1])
     axes[0].set_xlabel("iteration")
-    axes[0].set_ylabel("true cost -x_T (m)")
+    axes[0].set_ylabel(cost_label)
     axes[0].set_title("cost (mean +- std over seeds)")
     axes[1].set_xlabel("iteration")
     axes[1].set_ylabel("alpha (weight of first order)")
@@ -238,6 +248,50 @@ def _plot_histories(histories: dict[str, list[control.PolicySolution]], config: 
         ax.legend(fontsize=8)
     fig.tight_layout()
     viz.save_figure(fig, path)
+
+
+def run_methods(
+    problem: control.ShootingProblem,
+    policy,
+    theta0,
+    solvers: dict[str, control.PolicyGradient],
+    seeds: int,
+    key,
+    summarize,
+    means: tuple[str, ...],
+    description: str,
+    progress: bool = True,
+) -> tuple[dict, dict]:
+    """Runs every method (a name and its solver) from ``theta0`` for ``seeds`` keys
+    (``fold_in(key, i)``), with one progress bar.
+
+    ``summarize(solution, run_time)`` gives a run's metrics (with ``final_cost`` and
+    ``success``). Returns ``(metrics, histories)``: per method, :func:`aggregate` of its runs
+    (``means`` averaged), and its solutions."""
+    metrics, histories = {}, {}
+    bar = tqdm(total=len(solvers) * seeds, desc=description, disable=not progress)
+    try:
+        for name, solver in solvers.items():
+            runs, solutions = [], []
+            method_start = time.perf_counter()
+            for i in range(seeds):
+                bar.set_description(f"{description}: {name}, seed {i}")
+
+                def callback(info):
+                    bar.set_postfix(it=info["iteration"], cost=f"{info['cost']:.3f}", sigma=f"{info['sigma']:.3g}",
+                                    alpha=f"{info['alpha']:.2f}")
+
+                start = time.perf_counter()
+                solution = control.optimize_policy(problem, policy, jax.random.fold_in(key, i), theta0, solver=solver,
+                                                   callback=callback)
+                solutions.append(solution)
+                runs.append(summarize(solution, time.perf_counter() - start))
+                bar.update()
+            metrics[name] = aggregate(runs, solutions, time.perf_counter() - method_start, means)
+            histories[name] = solutions
+    finally:
+        bar.close()
+    return metrics, histories
 
 
 def _plot_landscape(grid, values, config: Config, sigma_final: float, finals: dict[str, list[float]], path: Path) -> None:
@@ -288,35 +342,17 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "iterations": config.iterations,
         "learning_rate": config.learning_rate,
     }
-    histories = {}
-    bar = tqdm(total=len(names) * config.seeds, desc="control policy", disable=not progress)
-    try:
-        for name in names:
-            solver = config.solver(name)
-            runs, solutions = [], []
-            method_start = time.perf_counter()
-            for i in range(config.seeds):
-                bar.set_description(f"control policy: {name}, seed {i}")
-
-                def callback(info):
-                    bar.set_postfix(it=info["iteration"], cost=f"{info['cost']:.3f}", sigma=f"{info['sigma']:.3g}",
-                                    alpha=f"{info['alpha']:.2f}")
-
-                solution = control.optimize_policy(problem, policy, jax.random.fold_in(key, i), theta0, solver=solver,
-                                                   callback=callback)
-                solutions.append(solution)
-                runs.append(_run_summary(solution, config))
-                bar.update()
-            metrics[name] = _aggregate(runs, solutions, time.perf_counter() - method_start)
-            histories[name] = solutions
-    finally:
-        bar.close()
+    per_method, histories = run_methods(
+        problem, policy, theta0, {name: config.solver(name) for name in names}, config.seeds, key,
+        lambda solution, run_time: _run_summary(solution, config), ("final_angle_deg",), "control policy", progress,
+    )
+    metrics.update(per_method)
     first = histories[names[0]][0]
     metrics["initial_cost"] = float(first.stats["cost"][0])
     sigma_final = float(first.stats["sigma"][-1]) if config.iterations else config.sigma
     metrics["sigma_final"] = sigma_final
 
-    _plot_histories(histories, config, out / "policy_cost.png")
+    plot_histories(histories, out / "policy_cost.png", "true cost -x_T (m)", (-config.wall_distance, "at the wall"))
     finals = {name: [run["final_angle_deg"] for run in metrics[name]["per_seed"]] for name in names}
     _plot_landscape(grid, values, config, sigma_final, finals, out / "policy_landscape.png")
     if len(names) == 1:

@@ -138,54 +138,68 @@ def build_problem(config: Config):
         >>> [round(v, 4) for v in target]
         [0.1, 0.0, 0.2618]
     """
-    system = sim.pusher()
-    x0 = sim.pusher_start_state(system, finger_gap=config.finger_gap, finger_y=config.finger_y)
     target = config.target()
+    system, problem = make_problem(target, config.horizon, finger_gap=config.finger_gap, finger_y=config.finger_y)
+    return system, problem, target
+
+
+def make_problem(target, horizon: int, *, finger_gap: float, finger_y: float = 0.0, at_rest: bool = True):
+    """The system and the shooting problem (the costs of the module docstring) of pushing the
+    box from the origin to the pose ``target = (x, y, yaw)`` (m, radians) in ``horizon`` steps,
+    the finger starting ``finger_gap`` behind the box, ``finger_y`` off its centre line;
+    without ``at_rest``, the terminal cost leaves out the box's velocities."""
+    system = sim.pusher()
+    x0 = sim.pusher_start_state(system, finger_gap=finger_gap, finger_y=finger_y)
     # The target is a traced cost parameter: other targets share the compiled solver steps.
     params = {
         "position": jnp.asarray(target[:2], x0.dtype),
         "half_yaw": jnp.asarray([np.cos(target[2] / 2), np.sin(target[2] / 2)], x0.dtype),
     }
-    problem = control.ShootingProblem(system, _running, _terminal, x0, config.horizon, residuals=True, params=params)
-    return system, problem, target
+    terminal = _terminal if at_rest else _terminal_pose
+    problem = control.ShootingProblem(system, _running, terminal, x0, horizon, residuals=True, params=params)
+    return system, problem
 
 
 def _running(x, u, params):
     return CONTROL_WEIGHT * u
 
 
-def _terminal(x, params):
+def _terminal_pose(x, params):
     # For a rotation about z, q = (0, 0, sin(yaw/2), cos(yaw/2)) and
     # q_z cos(yaw_t/2) - q_w sin(yaw_t/2) = sin((yaw - yaw_t)/2): smooth, no angle wrap.
     half_cos, half_sin = params["half_yaw"][0], params["half_yaw"][1]
     yaw = 2.0 * (x[5] * half_cos - x[6] * half_sin)
-    return jnp.concatenate([
-        POSITION_WEIGHT * (x[:2] - params["position"]),
-        YAW_WEIGHT * yaw[None],
-        VELOCITY_WEIGHT * x[9:15],
-    ])
+    return jnp.concatenate([POSITION_WEIGHT * (x[:2] - params["position"]), YAW_WEIGHT * yaw[None]])
+
+
+def _terminal(x, params):
+    return jnp.concatenate([_terminal_pose(x, params), VELOCITY_WEIGHT * x[9:15]])
+
+
+def pose_metrics(xs, us, target) -> dict:
+    """The box's final pose against the target, its displacement and the largest force of a
+    trajectory (see ``METRICS_DOC``)."""
+    pose = box_pose(xs)
+    final = pose[-1]
+    return {
+        "position_error": float(np.hypot(*(final[:2] - np.asarray(target[:2])))),
+        "yaw_error_deg": float(np.degrees(abs(np.angle(np.exp(1j * (final[2] - target[2])))))),
+        "final_box": [float(final[0]), float(final[1]), float(np.degrees(final[2]))],
+        "final_speed": float(np.linalg.norm(np.asarray(xs[-1, 9:12]))),
+        "box_displacement": float(np.hypot(*(pose[-1, :2] - pose[0, :2]))),
+        "max_force": float(np.max(np.abs(np.asarray(us)))),
+    }
 
 
 def trajectory_metrics(xs, us, target, config: Config) -> dict:
     """The task's metrics of a trajectory (see ``METRICS_DOC``)."""
-    pose = box_pose(xs)
-    final = pose[-1]
-    position_error = float(np.hypot(*(final[:2] - np.asarray(target[:2]))))
-    yaw_error = float(np.degrees(abs(np.angle(np.exp(1j * (final[2] - target[2]))))))
-    speed = float(np.linalg.norm(np.asarray(xs[-1, 9:12])))
-    return {
-        "position_error": position_error,
-        "yaw_error_deg": yaw_error,
-        "final_box": [float(final[0]), float(final[1]), float(np.degrees(final[2]))],
-        "final_speed": speed,
-        "box_displacement": float(np.hypot(*(pose[-1, :2] - pose[0, :2]))),
-        "max_force": float(np.max(np.abs(np.asarray(us)))),
-        "success": bool(
-            position_error < config.position_tolerance
-            and yaw_error < config.yaw_tolerance
-            and speed < config.speed_tolerance
-        ),
-    }
+    metrics = pose_metrics(xs, us, target)
+    metrics["success"] = bool(
+        metrics["position_error"] < config.position_tolerance
+        and metrics["yaw_error_deg"] < config.yaw_tolerance
+        and metrics["final_speed"] < config.speed_tolerance
+    )
+    return metrics
 
 
 def _box_outline(pose, side: float) -> np.ndarray:
