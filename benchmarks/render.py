@@ -20,7 +20,10 @@ from rsmooth import render
 SIZE = 128
 # (subdivisions, tile_size, faces_per_tile): denser meshes need smaller tiles (see rasterize).
 MESHES = ((3, 8, 64), (5, 4, 128))
-VARIANTS = (("hard", 1), ("soft", 1), ("perturbed", 1), ("perturbed", 8), ("perturbed", 32))
+# (mode, samples, clip_near): near-plane clipping is opt-in (Renderer(clip_near=True)); its
+# row prices it on a mesh that does not cross the near plane (the worst case: all cost, no use).
+VARIANTS = (("hard", 1, False), ("hard", 1, True), ("soft", 1, False), ("perturbed", 1, False), ("perturbed", 8, False),
+            ("perturbed", 32, False))
 MAX_REPEATS = 10
 
 
@@ -71,18 +74,20 @@ def main(repeats: int = 5) -> list[dict]:
     rows = []
     for subdivisions, tile_size, faces_per_tile in MESHES:
         mesh = render.position_colors(render.icosphere(subdivisions))
-        overflow = int(render.rasterize(mesh, camera, margin=3.0, sigma=1.0, gamma=0.01, tile_size=tile_size, faces_per_tile=faces_per_tile).tile_overflow)
+        fragments = render.rasterize(mesh, camera, margin=3.0, sigma=1.0, gamma=0.01, tile_size=tile_size, faces_per_tile=faces_per_tile)
+        overflow, near_culled = int(fragments.tile_overflow), int(fragments.near_culled)
         print(f"icosphere({subdivisions}): {mesh.num_faces} faces, tiles {tile_size} px, faces_per_tile {faces_per_tile} "
-              f"({overflow} tiles had more candidate faces than that; the farthest, back faces here, were dropped)")
-        header = (f"{'renderer':>14} | {'forward':>11} | {'fwd+bwd':>11} | {'fwd / hard fwd':>14} | {'fwd+bwd / hard fwd':>18} "
+              f"({overflow} tiles had more candidate faces than that; the farthest, back faces here, were dropped; "
+              f"{near_culled} faces crossing the near plane culled without clipping)")
+        header = (f"{'renderer':>16} | {'forward':>11} | {'fwd+bwd':>11} | {'fwd / hard fwd':>14} | {'fwd+bwd / hard fwd':>18} "
                   f"| {'peak MB fwd':>11} | {'peak MB fwd+bwd':>15}")
         print(header)
         print("-" * len(header))
         hard_forward = None
-        for mode, samples in VARIANTS:
+        for mode, samples, clip_near in VARIANTS:
             renderer = render.Renderer(
                 mode=mode, sigma=1.0, gamma=0.01, num_samples=samples, faces_per_pixel=8,
-                faces_per_tile=faces_per_tile, tile_size=tile_size,
+                faces_per_tile=faces_per_tile, tile_size=tile_size, clip_near=clip_near,
             )
             forward, backward = _functions(mesh, camera, renderer)
             t_forward = median_time(forward, key, t0, repeats=repeats)
@@ -90,9 +95,10 @@ def main(repeats: int = 5) -> list[dict]:
             m_forward, m_backward = _peak_mb(forward, key, t0), _peak_mb(backward, key, t0)
             hard_forward = hard_forward or t_forward
             name = mode if mode != "perturbed" else f"perturbed M={samples}"
-            print(f"{name:>14} | {fmt(t_forward):>11} | {fmt(t_backward):>11} | {t_forward / hard_forward:>14.2f} | {t_backward / hard_forward:>18.2f} "
+            name += ", clip near" if clip_near else ""
+            print(f"{name:>16} | {fmt(t_forward):>11} | {fmt(t_backward):>11} | {t_forward / hard_forward:>14.2f} | {t_backward / hard_forward:>18.2f} "
                   f"| {m_forward:>11.1f} | {m_backward:>15.1f}")
-            rows.append({"faces": mesh.num_faces, "mode": mode, "num_samples": samples, "forward": t_forward, "forward_backward": t_backward,
+            rows.append({"faces": mesh.num_faces, "mode": mode, "num_samples": samples, "clip_near": clip_near, "forward": t_forward, "forward_backward": t_backward,
                          "peak_mb_forward": m_forward, "peak_mb_forward_backward": m_backward})
         ratio = next(r["forward_backward"] for r in rows if r["faces"] == mesh.num_faces and r["num_samples"] == 8) / hard_forward
         print(f"perturbed (M=8) forward+backward / hard forward: {ratio:.2f}\n")
