@@ -9,6 +9,13 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
 
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``slow`` (30 s to 2 min each, mostly compilation) run first: pytest-xdist
+    hands tests out in this order, so a slow one started last cannot keep one worker busy
+    while the other has nothing left to do. The order of the others is unchanged."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+
+
 @pytest.fixture
 def getkey():
     """Returns a function that gives a fresh, deterministic PRNG key at each call."""

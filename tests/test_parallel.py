@@ -88,6 +88,7 @@ _RECONSTRUCT = textwrap.dedent(
 )
 
 
+@pytest.mark.slow
 def test_reconstruction_problems_spread_over_two_devices_give_the_same_results(tmp_path):
     """`rsmooth render reconstruct` batches its targets with rsmooth.parallel: on two devices
     each runs one target, and the results are those of one device."""

@@ -9,6 +9,7 @@ from rsmooth.cli import app
 from rsmooth.experiments import control_cube_lift
 
 
+@pytest.mark.slow
 def test_ddp_stays_at_rest_and_rddp_reaches_the_target(tmp_path, getkey):
     config = control_cube_lift.Config(seeds=1, geometric_decays=(), max_iterations=30)
     metrics = control_cube_lift.run(config, tmp_path, getkey(), progress=False)

@@ -15,6 +15,7 @@ PER_METHOD = (
 )
 
 
+@pytest.mark.slow
 def test_first_order_hits_the_wall_and_alpha_order_clears_it(tmp_path, getkey):
     config = control_policy.Config.quick(seeds=2)
     metrics = control_policy.run(config, tmp_path, getkey(), progress=False)

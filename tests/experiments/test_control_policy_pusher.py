@@ -34,6 +34,7 @@ PER_METHOD = (
 )
 
 
+@pytest.mark.slow
 def test_first_and_alpha_order_leave_the_box_and_zeroth_order_pushes_it(tmp_path):
     metrics = control_policy_pusher.run(CONFIG, tmp_path, KEY, progress=False)
     written = json.loads((tmp_path / "metrics.json").read_text())

@@ -11,6 +11,7 @@ from rsmooth.cli import app
 from rsmooth.experiments import control_pusher
 
 
+@pytest.mark.slow
 def test_ddp_leaves_the_box_and_rddp_pushes_it_to_the_target(tmp_path, getkey):
     config = control_pusher.Config(seeds=1, geometric_decays=(), num_samples=8, max_iterations=8)
     metrics = control_pusher.run(config, tmp_path, getkey(), progress=False)

@@ -10,6 +10,7 @@ from rsmooth.cli import app
 from rsmooth.experiments import control_solo_lift
 
 
+@pytest.mark.slow
 def test_ddp_keeps_four_feet_down_and_rddp_lifts_the_foot(tmp_path, getkey):
     config = control_solo_lift.Config(foot="HR", seeds=1, geometric_decays=(), max_iterations=30)
     metrics = control_solo_lift.run(config, tmp_path, getkey(), progress=False)

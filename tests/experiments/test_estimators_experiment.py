@@ -4,10 +4,12 @@ import dataclasses
 
 import jax
 import numpy as np
+import pytest
 
 from rsmooth.experiments import estimators
 
 
+@pytest.mark.slow
 def test_estimators_experiment_small(tmp_path):
     config = dataclasses.replace(estimators.Config.quick(), x_grid=(-1.0, 1.0, 9), num_samples_grid=(16, 256), num_trials=24)
     metrics = estimators.run(config, str(tmp_path), jax.random.key(0), progress=False)  # a str works as well as a Path

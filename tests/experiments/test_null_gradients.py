@@ -3,11 +3,13 @@
 import json
 
 import numpy as np
+import pytest
 from jax.scipy.stats import norm
 
 from rsmooth.experiments import null_gradients
 
 
+@pytest.mark.slow
 def test_null_gradients_small(tmp_path, getkey):
     config = null_gradients.Config(steps=5, force_grid=(0.0, 16.0, 5), sigmas=(3.0,), num_samples=16, num_trials=4)
     metrics = null_gradients.run(config, str(tmp_path), getkey(), progress=False)  # a str works as well as a Path

@@ -10,6 +10,7 @@ import pytest
 from rsmooth.experiments import render_pose
 
 
+@pytest.mark.slow
 def test_perturbed_renderer_solves_a_cube_from_20_degrees(tmp_path):
     # The quick profile's defaults (48 px, 60 Adam steps, back faces culled on the closed cube),
     # two problems.
@@ -28,6 +29,7 @@ def test_perturbed_renderer_solves_a_cube_from_20_degrees(tmp_path):
     assert not list(tmp_path.glob(".*"))
 
 
+@pytest.mark.slow
 def test_problems_run_in_batches(tmp_path):
     # 3 problems, 2 at a time: every problem gets its result, and the first batch's are those of
     # a run of exactly its 2 problems (same targets, same keys).

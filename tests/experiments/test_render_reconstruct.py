@@ -16,6 +16,7 @@ TINY = dict(
 )
 
 
+@pytest.mark.slow
 def test_perturbed_reconstruction_of_a_cube_improves_and_hard_does_not_move(tmp_path):
     config = dataclasses.replace(render_reconstruct.Config.quick(), **TINY)
     metrics = render_reconstruct.run(config, tmp_path, jax.random.key(0), progress=False)

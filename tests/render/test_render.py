@@ -185,6 +185,7 @@ def test_backface_culling_keeps_the_hard_image_of_closed_meshes(name, mesh, getk
         np.testing.assert_allclose(np.asarray(a.rgb), np.asarray(b.rgb), atol=1e-12)
 
 
+@pytest.mark.slow
 def test_backface_culling_drops_a_square_seen_from_behind(getkey):
     front = square(side_for_pixels(10.0))
     back = render.Mesh(front.vertices, front.faces[:, ::-1], front.colors)

@@ -361,6 +361,7 @@ def test_bad_input_is_named():
         jax.jit(lambda a: cube.step(a, jnp.zeros(6)))(rest.at[0].set(jnp.nan)).block_until_ready()
 
 
+@pytest.mark.slow
 def test_pusher_pushes_the_box_and_has_null_gradients_before_contact():
     pusher = sim.pusher()
     assert (pusher.nx, pusher.nu) == (17, 2)
@@ -413,6 +414,7 @@ def _solo_stepping():
 @pytest.mark.parametrize(
     "case, tolerance", [(_sliding_ball, 1e-9), (_solo_stepping, 1e-9)]
 )
+@pytest.mark.slow
 def test_implicit_step_derivative_equals_the_autodiff_reference(case, tolerance):
     """The default derivative (implicit function theorem on momentum balance + NCP) equals
     autodiff through CRBA, Cholesky and the Delassus matrix, for the next state and the
