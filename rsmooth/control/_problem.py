@@ -53,7 +53,10 @@ class ShootingProblem(eqx.Module):
         dynamics: any pytree with ``step(x, u) -> x_next`` (pure JAX) and int attributes
             ``nx`` and ``nu``; optionally ``step_and_jacobians(x, u) -> (x_next, f_x, f_u)``,
             which the solvers then use instead of autodiff of ``step`` (the simulator's
-            :meth:`~rsmooth.sim.RigidBodySystem.step_and_jacobians`).
+            :meth:`~rsmooth.sim.RigidBodySystem.step_and_jacobians`); optionally
+            ``project_state(x) -> x``, which R-DDP applies to every perturbed state before
+            stepping from it (:meth:`~rsmooth.sim.RigidBodySystem.project_state`: unit
+            quaternions).
         running_cost: ``l(x, u) -> scalar``, differentiable twice by JAX (its gradient and
             Hessian come from autodiff); ``l(x, u, t)`` with ``time_varying=True``.
         terminal_cost: ``l_T(x) -> scalar``, differentiable twice by JAX.

@@ -119,7 +119,8 @@ def smoothed_dynamics_jacobians(
 
     Estimates :math:`\partial f_\varepsilon / \partial x` and
     :math:`\partial f_\varepsilon / \partial u` at :math:`(x_t, u_t)`, ``t < T``, for
-    :math:`f_\varepsilon(x, u) = \mathbb{E}\, f(x + \varepsilon s_x z, u + \varepsilon s_u w)`:
+    :math:`f_\varepsilon(x, u) = \mathbb{E}\, f(P(x + \varepsilon s_x z), u + \varepsilon s_u w)`,
+    with :math:`P` the dynamics' ``project_state`` if it has one (the identity otherwise):
     the estimator runs on :math:`h(y) = f(s \odot y)` at :math:`y = (x, u) / s` with noise
     ``eps`` and its Jacobian is divided by :math:`s` column by column.
 
@@ -150,9 +151,15 @@ def smoothed_dynamics_jacobians(
         "alpha": _estimators.alpha_order,
     }[estimator]
 
+    # A perturbed state may leave the state's manifold (a free flyer's unit quaternion): the
+    # dynamics' project_state, when it has one, brings it back before the step, so that the
+    # smoothed function is f(project(x + noise), u + noise) for every estimator.
+    project = getattr(problem.dynamics, "project_state", None)
+
     def h(y):
         y = scale * y
-        return problem.dynamics.step(y[:nx], y[nx:])
+        x = y[:nx] if project is None else project(y[:nx])
+        return problem.dynamics.step(x, y[nx:])
 
     options = {}
     step_and_jacobians = getattr(problem.dynamics, "step_and_jacobians", None)
@@ -160,7 +167,13 @@ def smoothed_dynamics_jacobians(
 
         def value_and_jacobian(y):  # the dynamics' own Jacobians, in the scaled variable y
             y = scale * y
-            x_next, fx, fu = step_and_jacobians(y[:nx], y[nx:])
+            x = y[:nx]
+            if project is not None:
+                x = project(x)
+                projection = jax.jacfwd(project)(y[:nx])
+            x_next, fx, fu = step_and_jacobians(x, y[nx:])
+            if project is not None:
+                fx = fx @ projection
             return x_next, jnp.concatenate([fx, fu], axis=1) * scale[None, :]
 
         options["value_and_jacobian"] = value_and_jacobian

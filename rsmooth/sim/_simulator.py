@@ -274,6 +274,31 @@ class RigidBodySystem(eqx.Module):
         v = jnp.zeros(q.shape[:-1] + (self.model.nv,), q.dtype) if v is None else jnp.asarray(v)
         return jnp.concatenate([q, v], axis=-1)
 
+    def project_state(self, x: ArrayLike) -> Array:
+        """The state with every free flyer's quaternion scaled to unit norm (the rest as is).
+
+        States live on ``R^3 x S^3 x R^(nq - 7) x R^nv``, while noise and DDP's steps are
+        added in ``R^nx``: :func:`rsmooth.control.rddp` steps from ``project_state`` of each
+        perturbed state, so that noise on a quaternion's four coordinates is noise on the
+        orientation (its radial part does nothing). ``step`` itself does not normalize its
+        input (it gives Pinocchio's placements for any input, unit or not).
+
+        Example:
+            >>> import rsmooth.sim as sim
+            >>> system = sim.cube()
+            >>> x = sim.cube_rest_state(system).at[3:7].multiply(2.0)  # a quaternion of norm 2
+            >>> float(jnp.linalg.norm(system.project_state(x)[3:7]))
+            1.0
+        """
+        x = jnp.asarray(x)
+        tree = _dynamics._tree(self.model)
+        for joint in tree.free_flyer:
+            start = int(self.model.idx_q[joint]) + 3
+            quaternion = x[..., start : start + 4]
+            norm = jnp.sqrt(spatial.sum_last(quaternion * quaternion))[..., None]
+            x = x.at[..., start : start + 4].set(quaternion / norm)
+        return x
+
     # -- stages -------------------------------------------------------------------------
 
     def _check(self, x: ArrayLike, u: ArrayLike) -> tuple[Array, Array]:

@@ -159,3 +159,49 @@ def test_solvers_use_the_dynamics_own_jacobians(getkey):
             np.testing.assert_allclose(ours, theirs, rtol=1e-12, atol=1e-14)
         for ours, theirs in zip(results[2.0][which], reference[which]):
             np.testing.assert_allclose(ours, 2.0 * theirs, rtol=1e-12, atol=1e-14)
+
+
+def test_perturbed_states_are_projected_back_by_the_dynamics_project_state(getkey):
+    """Noise added in R^nx may leave the state's manifold (a unit quaternion): R-DDP steps from
+    ``dynamics.project_state`` of every perturbed state, for every estimator."""
+    import equinox as eqx
+
+    class Doubling(eqx.Module):
+        """x_next = 2 x + u on R^2 (u broadcast): as a step that does not normalize its input."""
+
+        nx: int = eqx.field(static=True, default=2)
+        nu: int = eqx.field(static=True, default=1)
+
+        def step(self, x, u):
+            return 2.0 * x + u
+
+    class OnTheCircle(Doubling):
+        def project_state(self, x):
+            return x / jnp.linalg.norm(x)
+
+    x = jnp.array([0.6, 0.8])
+    xs, us = jnp.stack([x, x]), jnp.zeros((1, 1))
+    key = getkey()
+
+    def problem(dynamics):
+        return control.ShootingProblem(dynamics, lambda x, u: jnp.sum(u**2), lambda x: jnp.sum(x**2), x, 1)
+
+    def jacobian(dynamics, estimator, eps, num_samples):
+        fx, _ = control.smoothed_dynamics_jacobians(problem(dynamics), key, xs, us, eps=eps, num_samples=num_samples,
+                                                     estimator=estimator)
+        return np.asarray(fx[0])
+
+    # Tiny noise: the first-order estimate is the step's Jacobian through the projection,
+    # 2 (I - x x^T) at a unit x (the radial direction does nothing), not 2 I.
+    tangent = 2.0 * (np.eye(2) - np.outer(x, x))
+    np.testing.assert_allclose(jacobian(OnTheCircle(), "first", 1e-7, 4), tangent, atol=1e-5)
+    np.testing.assert_allclose(jacobian(Doubling(), "first", 1e-7, 4), 2.0 * np.eye(2), atol=1e-12)
+    # Large noise: zeroth and first order estimate the Jacobian of the same smoothed function
+    # (the noise's radial part averages out of both); 5 standard errors of the zeroth-order
+    # estimate (about 0.02 per entry at M = 20000).
+    first = jacobian(OnTheCircle(), "first", 0.3, 20000)
+    zeroth = jacobian(OnTheCircle(), "zeroth", 0.3, 20000)
+    np.testing.assert_allclose(zeroth, first, atol=0.1)
+    # Along x, the projected step barely changes (the smoothed direction changes with |x| only
+    # through the relative noise); without the projection it doubles.
+    assert abs(x @ first @ x) < 0.3 and x @ jacobian(Doubling(), "zeroth", 0.3, 20000) @ x > 1.8
