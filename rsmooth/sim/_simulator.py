@@ -464,7 +464,17 @@ class RigidBodySystem(eqx.Module):
             delassus = jacobian @ minv_jt
             delassus = 0.5 * (delassus + delassus.T)
             free_velocity = corrected_free_velocity(jacobian @ v_free, distance, h, baumgarte=self.baumgarte)
-            impulse, ncp = solve_ncp(delassus, free_velocity, mu, solver=self.solver, warm_start=warm_start)
+            # From a finite but absurd state (a simulation that has already diverged: positions
+            # of 1e8 m, velocities of 1e11 rad/s) the mass matrix loses definiteness to rounding
+            # and the contact problem is not finite. That is the step's divergence, which it
+            # reports (a non-finite next state, info.diverged), not a bad input of the NCP
+            # solver's (whose check would abort a whole batched rollout or solver iteration).
+            broken = ~(jnp.all(jnp.isfinite(delassus)) & jnp.all(jnp.isfinite(free_velocity)))
+            impulse, ncp = solve_ncp(
+                jnp.where(broken, jnp.eye(delassus.shape[0], dtype=delassus.dtype), delassus),
+                jnp.where(broken, 0.0, free_velocity), mu, solver=self.solver, warm_start=warm_start,
+            )
+            impulse = jnp.where(broken, jnp.nan, impulse)
         else:
             delassus = jacobian @ minv_jt
             free_velocity = jacobian @ v_free

@@ -337,6 +337,20 @@ def test_step_vmaps_over_states_and_inputs(getkey):
         np.testing.assert_allclose(batched[i], step(xs[i], us[i]), atol=1e-12)
 
 
+def test_a_step_from_an_already_diverged_state_reports_it_instead_of_raising():
+    """A finite but absurd state (what a diverged simulation reaches: 1e8 m, 1e11 rad/s; found
+    in a DDP line-search trial under saturated feedback) makes the mass matrix indefinite by
+    rounding and the contact problem non-finite: the step reports a diverged, non-finite next
+    state (a rollout holds, a DDP trial is rejected) rather than aborting on the NCP solver's
+    input check, which is for bad inputs."""
+    solo = _solo()
+    x = sim.solo12_standing_state(solo).at[:3].set(jnp.array([-1.0e8, 1.4e8, 3.2e8])).at[7:].set(1e9).at[19:].set(1e11)
+    x_next, info = eqx.filter_jit(lambda system, x, u: system.step_with_info(x, u))(solo, x, jnp.full(12, 2.7))
+    assert bool(info.diverged) and not bool(jnp.all(jnp.isfinite(x_next)))
+    with pytest.raises(ValueError, match="G contains NaN"):  # the solver's own check stands
+        sim.solve_ncp(jnp.full((3, 3), jnp.nan), jnp.zeros(3), jnp.ones(1))
+
+
 def test_bad_input_is_named():
     cube = _cube()
     rest = sim.cube_rest_state(cube)
