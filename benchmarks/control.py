@@ -5,7 +5,8 @@ The task is the Solo-12 lift-foot problem of ``rsmooth control solo-lift``
 frictional contact, torques within +-2.7 N m, residual costs), for horizons T = 50 and 100.
 Ours: Box-DDP (:func:`rsmooth.control.ddp`) and R-DDP (:func:`rsmooth.control.rddp`, first-order
 estimator, the experiment's noise scales, M = 8 and 32 samples per node, every timed iteration
-smoothed). R-DDP starts from the standing torques (the experiment's initial guess); DDP starts
+smoothed; and at the largest M the zeroth-order estimator, which needs the sampled steps but not
+their Jacobians). R-DDP starts from the standing torques (the experiment's initial guess); DDP starts
 from the controls of the first R-DDP solve (M = 8: the foot partly lifted), since from the
 standing torques its first iteration sees a zero derivative of the foot height and it stops.
 (Random perturbations of the standing torques make the robot collapse within the horizon, and
@@ -449,6 +450,17 @@ def main(
             start = time.perf_counter()
             results["ours"][(f"rddp{M}", T)] = time_ours("rddp", solver, problem, us_init, key, repeats, breakdown)
             print(f"  (R-DDP M = {M}, T = {T} timed in {time.perf_counter() - start:.0f} s)", flush=True)
+            if M == max(samples):
+                # Zeroth order needs the sampled steps only, not their Jacobians: the batching
+                # question of the goal at its cheapest (it does not lift the foot: the
+                # experiment's estimator is first order; see control_solo_lift).
+                start = time.perf_counter()
+                zeroth = dataclasses.replace(solver, estimator="zeroth")
+                try:
+                    results["ours"][(f"rddp{M}zeroth", T)] = time_ours("rddp", zeroth, problem, us_init, key, repeats, breakdown)
+                    print(f"  (R-DDP zeroth order M = {M}, T = {T} timed in {time.perf_counter() - start:.0f} s)", flush=True)
+                except Exception as error:  # reported, the rest still runs
+                    results["notes"].append(f"R-DDP zeroth order M = {M}, T = {T} failed: {str(error).splitlines()[-1]!r}"[:300])
             if M == samples[0]:
                 # DDP from where this R-DDP stopped (the foot partly lifted): from the standing
                 # torques its first iteration sees a zero derivative and it stops.
@@ -466,6 +478,7 @@ def main(
 def report(results: dict, horizons, samples, breakdown: bool) -> None:
     ours, croc = results["ours"], results["crocoddyl"]
     rows = [("ddp", "ours: DDP (Box-DDP)")] + [(f"rddp{M}", f"ours: R-DDP M = {M}") for M in samples]
+    rows += [(f"rddp{max(samples)}zeroth", f"ours: R-DDP M = {max(samples)}, zeroth order")]
     if croc:
         rows += [("fddp", "Crocoddyl SolverFDDP"), ("boxfddp", "Crocoddyl SolverBoxFDDP")]
     print("\nper iteration (median; ours: compiled iterations of one solve, Crocoddyl: all iterations of the solves)")
@@ -491,6 +504,8 @@ def report(results: dict, horizons, samples, breakdown: bool) -> None:
         for M in samples:
             goal = "<= 4" if M == max(samples) else ""
             lines.append((f"R-DDP M = {M} / our DDP, T = {T}", get(ours, f"rddp{M}", T) / get(ours, "ddp", T), goal))
+        M = max(samples)
+        lines.append((f"R-DDP M = {M}, zeroth order / our DDP, T = {T}", get(ours, f"rddp{M}zeroth", T) / get(ours, "ddp", T), "<= 4"))
     if len(horizons) > 1:
         a, b = horizons[0], horizons[-1]
         for name, label in rows:
