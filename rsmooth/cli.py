@@ -231,9 +231,19 @@ def render_pose_command(
     init_error: Optional[list[float]] = typer.Option(
         None, "--init-error", help="Initial rotation error in degrees (repeatable; default 20, 50, 80)."),
     problems: Optional[int] = typer.Option(None, "--problems", min=1, help="Problems per initial error (default 100, quick 4)."),
+    method: Optional[list[str]] = typer.Option(
+        None, "--method", help="perturbed-gaussian, perturbed-cauchy, soft or hard (repeatable; default all four)."),
+    steps: Optional[int] = typer.Option(None, "--steps", min=1, help="Adam steps per problem (default 100, quick 60)."),
 ):
+    from rsmooth.experiments.render_pose import METHODS
+
+    unknown = [m for m in method or () if m not in METHODS]
+    if unknown:
+        raise typer.BadParameter(f"--method must be one of {', '.join(METHODS)}, got {', '.join(unknown)}")
     init_errors_deg = tuple(float(e) for e in init_error) if init_error else None
-    _run(_RENDER_POSE, out, seed, quick, mesh=mesh, init_errors_deg=init_errors_deg, problems=problems)
+    methods = tuple(dict.fromkeys(method)) if method else None  # in the given order, once each
+    _run(_RENDER_POSE, out, seed, quick, mesh=mesh, init_errors_deg=init_errors_deg, problems=problems, methods=methods,
+         steps=steps)
 
 
 @render_app.command("reconstruct", help=_doc(

@@ -5,6 +5,7 @@ import sys
 import types
 
 import pytest
+from typer.testing import CliRunner
 
 from rsmooth import cli
 
@@ -74,3 +75,18 @@ def test_solo_lift_all_feet_runs_each_foot_into_its_folder(monkeypatch, tmp_path
     assert "HR: rddp 50 %" in result.output and "FL: rddp 100 %" in result.output
     bad = CliRunner().invoke(cli.app, ["control", "solo-lift", "--foot", "every", "--out", str(tmp_path)])
     assert bad.exit_code != 0 and "--foot" in bad.output
+
+
+def test_render_pose_method_and_steps_reach_the_config(monkeypatch, tmp_path):
+    calls = []
+    monkeypatch.setattr(cli, "_run", lambda experiment, out, seed, quick, **overrides: calls.append((experiment.module, overrides)))
+    result = CliRunner().invoke(cli.app, ["render", "pose", "--method", "soft", "--method", "perturbed-gaussian",
+                                          "--method", "soft", "--steps", "250", "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    module, overrides = calls[-1]
+    assert module == "render_pose"
+    assert overrides["methods"] == ("soft", "perturbed-gaussian") and overrides["steps"] == 250
+    CliRunner().invoke(cli.app, ["render", "pose", "--out", str(tmp_path)])
+    assert calls[-1][1]["methods"] is None and calls[-1][1]["steps"] is None  # the Config's defaults
+    bad = CliRunner().invoke(cli.app, ["render", "pose", "--method", "blurry", "--out", str(tmp_path)])
+    assert bad.exit_code != 0 and "--method" in bad.output and len(calls) == 2
