@@ -464,6 +464,11 @@ class DDP(eqx.Module):
     def _forward_pass(self, problem: ShootingProblem, trajectory: Trajectory, k, K, alpha):
         """Rollout of the TRUE dynamics under the updated affine policy."""
 
+        # A dynamics with step_with_info (the simulator) also flags a step that left its valid
+        # range while still finite (info.diverged: e.g. more than max_motion_per_step): such
+        # a trial is rejected too, not only one that reaches a non-finite state.
+        step_with_info = getattr(problem.dynamics, "step_with_info", None)
+
         def node(carry, inputs):
             x, cost = carry
             x_bar, u_bar, k_t, K_t, t = inputs
@@ -473,8 +478,12 @@ class DDP(eqx.Module):
             bad_control = ~jnp.all(jnp.isfinite(u))
             u = jnp.where(bad_control, u_bar, u)
             cost = cost + problem.running(x, u, t)
-            x_next = problem.dynamics.step(x, u)
-            diverged = bad_control | ~jnp.all(jnp.isfinite(x_next)) | ~jnp.isfinite(cost)
+            if step_with_info is None:
+                x_next, flagged = problem.dynamics.step(x, u), jnp.zeros((), bool)
+            else:
+                x_next, info = step_with_info(x, u)
+                flagged = info.diverged
+            diverged = bad_control | flagged | ~jnp.all(jnp.isfinite(x_next)) | ~jnp.isfinite(cost)
             x_next = jnp.where(diverged, x, x_next)
             cost = jnp.where(diverged, jnp.inf, cost)
             return (x_next, cost), (x_next, u)

@@ -56,7 +56,9 @@ class ShootingProblem(eqx.Module):
             :meth:`~rsmooth.sim.RigidBodySystem.step_and_jacobians`); optionally
             ``project_state(x) -> x``, which R-DDP applies to every perturbed state before
             stepping from it (:meth:`~rsmooth.sim.RigidBodySystem.project_state`: unit
-            quaternions).
+            quaternions); optionally ``step_with_info(x, u) -> (x_next, info)`` with a boolean
+            ``info.diverged``, with which DDP's line search rejects a trial at its first
+            flagged step, finite or not (the simulator's ``max_motion_per_step``).
         running_cost: ``l(x, u) -> scalar``, differentiable twice by JAX (its gradient and
             Hessian come from autodiff); ``l(x, u, t)`` with ``time_varying=True``.
         terminal_cost: ``l_T(x) -> scalar``, differentiable twice by JAX.

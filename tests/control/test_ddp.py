@@ -1,5 +1,7 @@
 """DDP / Box-DDP against a Riccati recursion in NumPy, on a pendulum, and with box limits."""
 
+import types
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -243,6 +245,31 @@ def test_diverging_trial_steps_are_rejected_without_feeding_nan_to_the_dynamics(
     costs = np.asarray(solution.stats["cost"])
     assert np.all(np.isfinite(costs)) and np.all(np.diff(costs) <= 0.0) and costs[-1] < costs[0]
     assert float(jnp.max(solution.xs)) <= 5.0
+
+
+class FlaggedWall(Wall):
+    """The same steps, finite everywhere below 5, with ``step_with_info`` flagging those that end
+    beyond ``x = 3`` as diverged (as the simulator flags a step beyond ``max_motion_per_step``)."""
+
+    def step(self, x, u):
+        return x + u
+
+    def step_with_info(self, x, u):
+        x_next = self.step(x, u)
+        return x_next, types.SimpleNamespace(diverged=jnp.any(x_next > 3.0))
+
+
+def test_trials_through_a_flagged_step_are_rejected_though_finite():
+    problem = control.ShootingProblem(FlaggedWall(), lambda x, u: 0.0 * jnp.sum(u), lambda x: jnp.sum((x - 8.0) ** 2), jnp.zeros(1), 2)
+    solution = control.ddp(problem, solver=control.DDP(max_iterations=5, throw=False))
+    costs = np.asarray(solution.stats["cost"])
+    assert np.all(np.isfinite(costs)) and np.all(np.diff(costs) <= 0.0) and costs[-1] < costs[0]
+    # The full step (x -> 8) is finite but flagged: rejected, the iterates stay at or below 3.
+    assert float(jnp.max(solution.xs)) <= 3.0 and float(solution.stats["step_size"][1]) < 1.0
+    # Without step_with_info the same dynamics take the full step.
+    plain = control.ddp(eqx.tree_at(lambda p: p.dynamics, problem, Linear(jnp.ones((1, 1)), jnp.ones((1, 1)), 1, 1)),
+                        solver=control.DDP(max_iterations=5, throw=False))
+    assert float(jnp.max(plain.xs)) > 7.9
 
 
 def test_residual_costs_use_gauss_newton_hessians_and_reach_the_same_optima(pendulum, pendulum_solution):
