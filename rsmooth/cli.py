@@ -269,9 +269,18 @@ SeedsOption = typer.Option(
 )
 
 
-def _check_method(method: str) -> None:
+EstimatorOption = typer.Option(
+    None, "--estimator", help="R-DDP's estimate of the smoothed dynamics' Jacobians: first (default), zeroth or alpha order.")
+RddpSamplesOption = typer.Option(None, "--samples", min=1, help="R-DDP's samples per node (default: the experiment's).")
+
+
+def _check_method(method: str, estimator: Optional[str] = None, samples: Optional[int] = None) -> None:
     if method not in ("ddp", "rddp", "all"):
         raise typer.BadParameter(f"--method must be ddp, rddp or all, got {method!r}")
+    if estimator is not None and estimator not in ("first", "zeroth", "alpha"):
+        raise typer.BadParameter(f"--estimator must be first, zeroth or alpha, got {estimator!r}")
+    if estimator == "alpha" and samples is not None and samples < 4:
+        raise typer.BadParameter(f"--samples must be >= 4 with --estimator alpha (half to each estimate), got {samples}")
 
 
 @control_app.command("cube-lift", help=_doc(
@@ -284,9 +293,11 @@ def control_cube_lift_command(
     method: str = MethodOption,
     seeds: Optional[int] = SeedsOption,
     height: Optional[float] = typer.Option(None, "--height", min=0.0, help="Target height above rest, m (default 0.1)."),
+    estimator: Optional[str] = EstimatorOption,
+    samples: Optional[int] = RddpSamplesOption,
 ):
-    _check_method(method)
-    _run(_CUBE_LIFT, out, seed, quick, method=method, seeds=seeds, height=height)
+    _check_method(method, estimator, samples)
+    _run(_CUBE_LIFT, out, seed, quick, method=method, seeds=seeds, height=height, estimator=estimator, num_samples=samples)
 
 
 @control_app.command("solo-lift", help=_doc(
@@ -302,21 +313,23 @@ def control_solo_lift_command(
     height: Optional[float] = typer.Option(None, "--height", help="Target height of the foot above its start, m (default 0.05)."),
     method: str = MethodOption,
     seeds: Optional[int] = SeedsOption,
+    estimator: Optional[str] = EstimatorOption,
+    samples: Optional[int] = RddpSamplesOption,
 ):
-    _check_method(method)
+    _check_method(method, estimator, samples)
     feet = ("FL", "FR", "HL", "HR")
+    options = dict(height=height, method=method, seeds=seeds, estimator=estimator, num_samples=samples)
     if foot not in feet + ("all",):
         raise typer.BadParameter(f"--foot must be FL, FR, HL, HR or all, got {foot!r}")
     if height is not None and not 0 < height <= 0.15:
         raise typer.BadParameter(f"--height must be in (0, 0.15] m, got {height}")
     if foot != "all":
-        _run(_SOLO_LIFT, out, seed, quick, title=f"control solo-lift {foot}", foot=foot, height=height, method=method, seeds=seeds)
+        _run(_SOLO_LIFT, out, seed, quick, title=f"control solo-lift {foot}", foot=foot, **options)
         return
     root = Path(out) if out is not None else DEFAULT_ROOT / _SOLO_LIFT.name
     rates = {}
     for name in feet:  # the foot is a traced cost parameter: one compilation for all four
-        metrics = _run(_SOLO_LIFT, root / name, seed, quick, title=f"control solo-lift {name}", foot=name, height=height,
-                       method=method, seeds=seeds)
+        metrics = _run(_SOLO_LIFT, root / name, seed, quick, title=f"control solo-lift {name}", foot=name, **options)
         rates[name] = {m: metrics[m]["success_rate"] for m in metrics["methods"]}
     typer.echo("success rate per foot: " + "; ".join(
         f"{name}: " + ", ".join(f"{m} {100 * r:.0f} %" for m, r in rate.items()) for name, rate in rates.items()))
@@ -336,9 +349,12 @@ def control_pusher_command(
     target_y: Optional[float] = typer.Option(None, "--target-y", help="Target box centre y, m (default 0)."),
     target_yaw: Optional[float] = typer.Option(
         None, "--target-yaw", min=-89.0, max=89.0, help="Target yaw, degrees counter-clockwise (default 15)."),
+    estimator: Optional[str] = EstimatorOption,
+    samples: Optional[int] = RddpSamplesOption,
 ):
-    _check_method(method)
-    _run(_PUSHER, out, seed, quick, method=method, seeds=seeds, target_x=target_x, target_y=target_y, target_yaw=target_yaw)
+    _check_method(method, estimator, samples)
+    _run(_PUSHER, out, seed, quick, method=method, seeds=seeds, target_x=target_x, target_y=target_y, target_yaw=target_yaw,
+         estimator=estimator, num_samples=samples)
 
 
 @control_app.command("policy", help=_doc(

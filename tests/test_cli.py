@@ -90,3 +90,20 @@ def test_render_pose_method_and_steps_reach_the_config(monkeypatch, tmp_path):
     assert calls[-1][1]["methods"] is None and calls[-1][1]["steps"] is None  # the Config's defaults
     bad = CliRunner().invoke(cli.app, ["render", "pose", "--method", "blurry", "--out", str(tmp_path)])
     assert bad.exit_code != 0 and "--method" in bad.output and len(calls) == 2
+
+
+def test_control_estimator_and_samples_reach_the_configs(monkeypatch, tmp_path):
+    calls = []
+    monkeypatch.setattr(cli, "_run", lambda experiment, out, seed, quick, title=None, **overrides: calls.append(
+        (experiment.module, overrides)) or {})
+    for task in ("cube-lift", "pusher", "solo-lift"):
+        result = CliRunner().invoke(cli.app, ["control", task, "--estimator", "alpha", "--samples", "16", "--out", str(tmp_path)])
+        assert result.exit_code == 0, result.output
+        assert calls[-1][1]["estimator"] == "alpha" and calls[-1][1]["num_samples"] == 16, (task, calls[-1])
+        CliRunner().invoke(cli.app, ["control", task, "--out", str(tmp_path)])
+        assert calls[-1][1]["estimator"] is None and calls[-1][1]["num_samples"] is None  # the Config's defaults
+    count = len(calls)
+    for bad in (["--estimator", "second"], ["--estimator", "alpha", "--samples", "2"]):
+        result = CliRunner().invoke(cli.app, ["control", "solo-lift", *bad, "--out", str(tmp_path)])
+        assert result.exit_code != 0 and bad[-2] in result.output
+    assert len(calls) == count
