@@ -34,6 +34,7 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
+from rsmooth._unrolled import log_sigmoid
 from rsmooth.noise import Gaussian, Gumbel, Noise
 from rsmooth.smooth import smooth
 
@@ -92,8 +93,8 @@ def soft_aggregate(
     del background_depth
     distance, depth = jnp.asarray(distance), jnp.asarray(depth)
     scaled = _scaled(distance, sigma)
-    uncovered = jnp.exp(jnp.sum(jax.nn.log_sigmoid(-scaled), axis=-1, keepdims=True))
-    faces = jax.nn.softmax(jax.nn.log_sigmoid(scaled) + depth / gamma, axis=-1)
+    uncovered = jnp.exp(jnp.sum(log_sigmoid(-scaled), axis=-1, keepdims=True))
+    faces = jax.nn.softmax(log_sigmoid(scaled) + depth / gamma, axis=-1)
     return jnp.concatenate([(1.0 - uncovered) * faces, uncovered], axis=-1)
 
 

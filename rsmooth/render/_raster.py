@@ -39,6 +39,7 @@ about doubled the hard forward pass's time and its compilation time.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -48,7 +49,7 @@ import numpy as np
 from jax import Array, lax
 from jax.typing import ArrayLike
 
-from rsmooth._unrolled import min_last
+from rsmooth._unrolled import log_sigmoid
 from rsmooth.noise import Gaussian, Noise
 from rsmooth.smooth import smooth_elementwise
 
@@ -759,13 +760,21 @@ def rasterize(
         lines, plane, near_line = _clipped_forms(clipped, camera, s, dv)
     else:
         lines, plane = _face_forms(s, dv)
-    a, b, c = (lines[..., i][tile_faces][:, :, None, None] for i in range(3))  # (ty, tx, 1, 1, Kt, 3)
     offsets = jnp.arange(ts, dtype=dtype) + 0.5
-    x = (jnp.arange(tx, dtype=dtype)[:, None] * ts + offsets[None, :])[None, :, None, :, None, None]
-    y = (jnp.arange(ty, dtype=dtype)[:, None] * ts + offsets[None, :])[:, None, :, None, None, None]
-    dist = min_last(a * x + b * y + c)  # (ty, tx, ts, ts, Kt)
-    p = plane[tile_faces][:, :, None, None]  # (ty, tx, 1, 1, Kt, 3)
-    depth = p[..., 0] * x[..., 0] + p[..., 1] * y[..., 0] + p[..., 2]
+    x = (jnp.arange(tx, dtype=dtype)[:, None] * ts + offsets[None, :])[None, :, None, :, None]  # (1, tx, 1, ts, 1)
+    y = (jnp.arange(ty, dtype=dtype)[:, None] * ts + offsets[None, :])[:, None, :, None, None]  # (ty, 1, ts, 1, 1)
+    # one (ty, tx, ts, ts, Kt) array per edge line, each coefficient gathered on its own: a
+    # trailing axis of 3 (edges or coefficients) in these per-pixel arrays read strided in
+    # XLA's CPU loops (the depth clipping below took 3.7 ms that way, 0.4 ms this way, on a
+    # 12-face cube at 128 x 128)
+    def gathered(form):  # (F,) -> (ty, tx, 1, 1, Kt)
+        return form[tile_faces][:, :, None, None, :]
+
+    dist = functools.reduce(
+        jnp.minimum,
+        (gathered(lines[:, e, 0]) * x + gathered(lines[:, e, 1]) * y + gathered(lines[:, e, 2]) for e in range(3)),
+    )  # (ty, tx, ts, ts, Kt)
+    depth = gathered(plane[:, 0]) * x + gathered(plane[:, 1]) * y + gathered(plane[:, 2])
     edge_distance = dist
     if clip_near:
         # Covered: inside the edge lines and in front of the near line. Only the face's own
@@ -794,7 +803,7 @@ def rasterize(
         # with a 9-px margin, at all of them with 18 px.) Where no face covers the pixel,
         # front is -inf and the gap term is 0.
         front = jnp.max(jnp.where(ok & (dist >= 0), depth, -jnp.inf), axis=-1, keepdims=True)
-        weight = jax.nn.log_sigmoid(dist / sigma) + jnp.minimum(depth - front, 0.0) / gamma
+        weight = log_sigmoid(dist / sigma) + jnp.minimum(depth - front, 0.0) / gamma
         pixel_key = jnp.where(ok & (edge_distance > -margin), weight, -jnp.inf)
     pixel_values, slot = lax.top_k(pixel_key, k_pixel)  # (ty, tx, ts, ts, K)
     faces_tile = jnp.broadcast_to(tile_faces[:, :, None, None, :], slot.shape[:4] + (k_tile,))

@@ -181,11 +181,20 @@ class Renderer(eqx.Module):
         k = fragments.face_index.shape[-1]
 
         diffuse, specular = shade_faces(mesh, camera, self.light)
-        albedo = mesh.albedo()[mesh.faces]  # (F, 3, 3)
-        # sums over the 3 vertices and the K faces of a pixel unrolled (rsmooth._unrolled)
-        color = sum_last(jnp.swapaxes(fragments.barycentric[..., None] * albedo[fragments.face_index], -1, -2))
+        face = fragments.face_index
+        albedo = mesh.albedo()[mesh.faces][face]  # (H, W, K, 3 vertices, 3 channels)
+        shade, highlight = diffuse[face], specular[face]  # (H, W, K), (H, W, K, 3)
         light_color = jnp.asarray(self.light.color, dtype)
-        color = color * diffuse[fragments.face_index][..., None] * light_color[None, None, None, :] + specular[fragments.face_index]
+        bary = [fragments.barycentric[..., v] for v in range(3)]
+        # Per channel, with the sums over the 3 vertices and the K faces of a pixel written out:
+        # no short reduction forward, and no broadcast of a per-pixel factor over the channels,
+        # whose transpose in reverse mode is one (jaxlib 0.10's CPU reductions over short axes
+        # are slow: rsmooth._unrolled; these took a third of a pose step)
+        color = [
+            (bary[0] * albedo[..., 0, c] + bary[1] * albedo[..., 1, c] + bary[2] * albedo[..., 2, c])
+            * shade * light_color[c] + highlight[..., c]
+            for c in range(3)
+        ]  # 3 x (H, W, K)
 
         distance = jnp.where(fragments.present, fragments.distance, -_NEVER)
         depth = jnp.where(fragments.present, fragments.depth, 0.0)
@@ -206,7 +215,7 @@ class Renderer(eqx.Module):
             weights = jax.vmap(pixel)(keys, distance.reshape(-1, k), depth.reshape(-1, k))
             weights = weights.reshape(height, width, k + 1)
         background = jnp.asarray(self.background, dtype)
-        rgb = sum_last(jnp.swapaxes(weights[..., :k, None] * color, -1, -2)) + weights[..., k:] * background[None, None, :]
+        rgb = jnp.stack([sum_last(weights[..., :k] * color[c]) + weights[..., k] * background[c] for c in range(3)], axis=-1)
         return Image(rgb=rgb, alpha=1.0 - weights[..., k])
 
     def fragments(
