@@ -21,6 +21,13 @@ forward pass on the true dynamics accepts it when the true cost decreases.
 A run succeeds when the lifted foot ends within ``tolerance`` of the target height, the other
 feet never rise more than ``max_other_height`` above the floor and slip less than
 ``max_other_slip``.
+
+Measured with the defaults (5 seeds per foot, 5 cm, ``--foot all --seed 14``, 2026-11-24):
+DDP 0 % on every foot (one iteration, the foot does not move); first-order R-DDP 100 % on
+every foot with the adaptive schedule and with the geometric 0.5 decay (foot at 41-48 mm, the
+other feet up < 0.4 mm, slipping < 0.7 mm, base tilt 2.2 deg; 23 iterations, median);
+alpha-order R-DDP 100 % on FL, FR and HL, 60 % on HR (40 % geometric: runs that stall at
+32 mm or never leave the floor).
 """
 
 from __future__ import annotations
