@@ -234,6 +234,9 @@ def render_pose_command(
     method: Optional[list[str]] = typer.Option(
         None, "--method", help="perturbed-gaussian, perturbed-cauchy, soft or hard (repeatable; default all four)."),
     steps: Optional[int] = typer.Option(None, "--steps", min=1, help="Adam steps per problem (default 100, quick 60)."),
+    keep_best: Optional[bool] = typer.Option(
+        None, "--keep-best/--last", help="Report each problem's iterate whose hard render is closest to the target "
+        "(default) or the last iterate."),
 ):
     from rsmooth.experiments.render_pose import METHODS
 
@@ -243,7 +246,7 @@ def render_pose_command(
     init_errors_deg = tuple(float(e) for e in init_error) if init_error else None
     methods = tuple(dict.fromkeys(method)) if method else None  # in the given order, once each
     _run(_RENDER_POSE, out, seed, quick, mesh=mesh, init_errors_deg=init_errors_deg, problems=problems, methods=methods,
-         steps=steps)
+         steps=steps, keep_best=keep_best)
 
 
 @render_app.command("reconstruct", help=_doc(

@@ -87,9 +87,12 @@ def test_render_pose_method_and_steps_reach_the_config(monkeypatch, tmp_path):
     assert module == "render_pose"
     assert overrides["methods"] == ("soft", "perturbed-gaussian") and overrides["steps"] == 250
     CliRunner().invoke(cli.app, ["render", "pose", "--out", str(tmp_path)])
-    assert calls[-1][1]["methods"] is None and calls[-1][1]["steps"] is None  # the Config's defaults
+    # the Config's defaults
+    assert calls[-1][1]["methods"] is None and calls[-1][1]["steps"] is None and calls[-1][1]["keep_best"] is None
+    CliRunner().invoke(cli.app, ["render", "pose", "--last", "--out", str(tmp_path)])
+    assert calls[-1][1]["keep_best"] is False
     bad = CliRunner().invoke(cli.app, ["render", "pose", "--method", "blurry", "--out", str(tmp_path)])
-    assert bad.exit_code != 0 and "--method" in bad.output and len(calls) == 2
+    assert bad.exit_code != 0 and "--method" in bad.output and len(calls) == 3
 
 
 def test_control_estimator_and_samples_reach_the_configs(monkeypatch, tmp_path):

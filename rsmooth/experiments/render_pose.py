@@ -21,6 +21,12 @@ memory), spread over the devices when there are several
 position, so that symmetric shapes (cube, sphere) have a unique pose. The rotation is
 parametrized as R = exp([delta]) R_init with delta in R^3 starting at 0; the translation, when
 optimized, starts off by `init_translation` in a random direction.
+
+Each problem reports the iterate whose hard-rendered image is closest to the target
+(`keep_best`, one hard render per step, ~3 % of a perturbed step on the cube), not the last one: at the
+noise floor Adam keeps moving. Measured on an unseen mesh (example-robot-data's panda link4
+collision mesh, 8 problems, seed 31, perturbed Gaussian): solved 100 / 50 % from 20 / 50 deg
+either way, mean error 4.1 -> 1.4 deg and 27.0 -> 17.5 deg (`last_*` keys: the last iterate).
 """
 
 from __future__ import annotations
@@ -40,13 +46,16 @@ from rsmooth import noise, parallel, render, schedules, viz
 METRICS_DOC = """metrics.json keys: for each method (perturbed-gaussian, perturbed-cauchy, soft, hard),
 a dict keyed by the initial rotation error in degrees (as a string) holding solved_pct (percent of
 problems whose final rotation error is below success_deg), mean_error_deg and std_error_deg (final
-rotation error over problems), median_error_deg, final_errors_deg (per problem), final_sigma (mean
+rotation error over problems), median_error_deg, final_errors_deg (per problem; "final" is the
+iterate whose hard-rendered image was closest to the target when keep_best, the last one
+otherwise), last_solved_pct and last_mean_error_deg (the last iterate's), final_sigma (mean
 final noise scale factor), mean_translation_error (distance of the final translation to the true
 one, 0 unless optimize_translation), seconds_per_step (wall time of one batched Adam step of
 batch_size problems, first steps excluded; null when there is none) and seconds_per_problem_step
 (the same per problem); also methods, init_errors_deg, success_deg, problems, batch_size, steps, image_size, mesh, num_faces, faces_per_pixel and
 cull_backfaces (whether faces seen from behind were dropped: by default when the mesh is closed) and
-interior_edges (whether coverage was smoothed across every triangle edge, as in the paper)."""
+interior_edges (whether coverage was smoothed across every triangle edge, as in the paper) and
+keep_best."""
 
 METHODS = ("perturbed-gaussian", "perturbed-cauchy", "soft", "hard")
 
@@ -89,6 +98,10 @@ class Config:
     camera_distance: float = 4.0
     fov: float = 40.0
     success_deg: float = 10.0
+    # report each problem's iterate whose hard-rendered image is closest to the target (mean
+    # squared RGB error, one hard render per step), not the last one: the target image is the
+    # optimizer's own data, and at the noise floor Adam may walk away from a solved pose
+    keep_best: bool = True
     gif_every: int = 2
 
     @classmethod
@@ -166,8 +179,13 @@ def problems(config: Config, key, init_error_deg: float):
 
 
 def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Camera):
-    """init(r_init, offset) -> state; step(state, key, target, r_init) -> (state, loss, pose)."""
+    """init(offset) -> state; step(state, key, target, r_init) -> (state, loss, rotation).
+
+    The state is (params, optimizer state, noise schedule state, best) with best = (params,
+    hard-image loss) of the iterate closest to the target so far (with
+    ``keep_best=False`` it stays at the initial params, loss inf)."""
     renderer = make_renderer(config, method, mesh)
+    hard = make_renderer(config, "hard", mesh)
     optimizer = optax.adam(optax.cosine_decay_schedule(config.learning_rate, config.steps, alpha=config.final_learning_rate))
     adaptive = method != "hard"
     schedule = (
@@ -188,19 +206,29 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
         )
         return jnp.mean((image.rgb - target) ** 2)
 
+    def hard_loss(params, target, r_init):
+        rotation, translation = pose(params, r_init)
+        image = hard(None, render.transform_mesh(mesh, rotation, translation), cam)
+        return jnp.mean((image.rgb - target) ** 2)
+
     def init(offset):
         params = {"delta": jnp.zeros(3), "translation": offset}
-        return params, optimizer.init(params), schedule.init(1.0)
+        best = (params, jnp.asarray(jnp.inf, offset.dtype))
+        return params, optimizer.init(params), schedule.init(1.0), best
 
     def step(state, key, target, r_init):
-        params, opt_state, sched = state
+        params, opt_state, sched, best = state
         loss, (grad, scale_grad) = jax.value_and_grad(loss_fn, argnums=(0, 1))(params, sched.sigma, key, target, r_init)
         if not config.optimize_translation:
             grad = {"delta": grad["delta"], "translation": jnp.zeros_like(grad["translation"])}
         updates, opt_state = optimizer.update(grad, opt_state, params)
         params = optax.apply_updates(params, updates)
         sched = schedule.update(sched, scale_grad) if adaptive else schedule.update(sched)
-        return (params, opt_state, sched), loss, pose(params, r_init)[0]
+        if config.keep_best:
+            current = hard_loss(params, target, r_init)
+            better = current < best[1]
+            best = (jax.tree.map(lambda new, old: jnp.where(better, new, old), params, best[0]), jnp.minimum(current, best[1]))
+        return (params, opt_state, sched, best), loss, pose(params, r_init)[0]
 
     # independent problems: one share per device when there are several (rsmooth.parallel)
     return renderer, jax.vmap(init), jax.jit(parallel.vmap_samples(step))
@@ -269,11 +297,17 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
                             gif_frames.append(np.concatenate([target0, current], axis=1))
                         bar.update()
                     errors.append(np.stack(chunk_errors))
+                    if config.keep_best:
+                        best_params = state[3][0]
+                        rotation = jax.vmap(lambda d, r: render.axis_angle_to_matrix(d) @ r)(best_params["delta"], r_init[chunk])
+                        translations.append(best_params["translation"])
+                    else:
+                        translations.append(state[0]["translation"])
                     rotations.append(rotation)
-                    translations.append(state[0]["translation"])
                     sigmas.append(np.asarray(state[2].sigma))
                 curves[(method, err)] = np.concatenate(errors, axis=1)
-                final = curves[(method, err)][-1]
+                last = curves[(method, err)][-1]
+                final = _degrees(jnp.concatenate(rotations), r_true)
                 translation = jnp.concatenate(translations)
                 finals[(method, err)] = (jnp.concatenate(rotations), translation)
                 results[method][f"{err:g}"] = {
@@ -282,6 +316,8 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
                     "std_error_deg": float(np.std(final)),
                     "median_error_deg": float(np.median(final)),
                     "final_errors_deg": final.tolist(),
+                    "last_solved_pct": float(100.0 * np.mean(last < config.success_deg)),
+                    "last_mean_error_deg": float(np.mean(last)),
                     "final_sigma": float(np.mean(np.concatenate(sigmas))),
                     "mean_translation_error": float(np.mean(np.linalg.norm(np.asarray(translation), axis=-1))),
                     "seconds_per_step": float(np.median(elapsed)) if elapsed else None,
@@ -305,6 +341,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "faces_per_pixel": config.faces_per_pixel,
         "cull_backfaces": target_renderer.cull_backfaces,
         "interior_edges": config.interior_edges,
+        "keep_best": config.keep_best,
         "gif": f"optimization.gif: {gif_method}, initial error {gif_error:g} deg, problem 0 (target | current)",
     }
     viz.write_metrics(out / "metrics.json", metrics)

@@ -50,3 +50,27 @@ def test_bad_config_is_rejected(tmp_path, change):
     config = dataclasses.replace(render_pose.Config.quick(), **change)
     with pytest.raises(ValueError, match=next(iter(change)) if "methods" not in change else "blurry"):
         render_pose.run(config, tmp_path, jax.random.key(0), progress=False)
+
+
+def test_keep_best_holds_the_iterate_whose_hard_render_is_closest_to_the_target():
+    from rsmooth import render
+
+    config = dataclasses.replace(render_pose.Config.quick(), image_size=24, problems=2, learning_rate=0.2)
+    mesh = render_pose.load(config.mesh)
+    cam = render_pose.camera(config)
+    _, init, step = render_pose.make_solver(config, "perturbed-gaussian", mesh, cam)
+    r_true, r_init, offset = render_pose.problems(config, jax.random.key(5), 40.0)
+    hard = render_pose.make_renderer(config, "hard", mesh)
+    render_hard = jax.jit(jax.vmap(lambda r: hard(None, render.transform_mesh(mesh, r), cam).rgb))
+    targets = render_hard(r_true)
+    state = init(offset)
+    losses, deltas = [], []
+    for t in range(6):
+        state, _, rotation = step(state, jax.random.split(jax.random.key(t), 2), targets, r_init)
+        losses.append(np.mean((np.asarray(render_hard(rotation)) - np.asarray(targets)) ** 2, axis=(1, 2, 3)))
+        deltas.append(np.asarray(state[0]["delta"]))
+    losses, deltas = np.stack(losses), np.stack(deltas)
+    best = np.argmin(losses, axis=0)
+    assert not np.all(best == 5)  # the selection is exercised: not merely the last iterate
+    np.testing.assert_allclose(state[3][1], losses[best, [0, 1]], rtol=1e-5)
+    np.testing.assert_allclose(state[3][0]["delta"], deltas[best, [0, 1]], rtol=1e-6)
