@@ -33,9 +33,10 @@ def test_perturbed_renderer_solves_a_cube_from_20_degrees(tmp_path):
 def test_problems_run_in_batches(tmp_path):
     # 3 problems, 2 at a time: every problem gets its result, and the first batch's are those of
     # a run of exactly its 2 problems (same targets, same keys).
+    # (keep_best off: its hard render would double the step's compilation; the other tests cover it)
     small = dataclasses.replace(
         render_pose.Config.quick(), image_size=24, steps=3, methods=("perturbed-gaussian",), init_errors_deg=(30.0,),
-        gif_every=1,
+        gif_every=1, keep_best=False,
     )
     batched = render_pose.run(dataclasses.replace(small, problems=3, batch_size=2), tmp_path / "a", jax.random.key(3), progress=False)
     result = batched["perturbed-gaussian"]["30"]
