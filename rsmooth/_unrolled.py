@@ -64,4 +64,4 @@ def _log_sigmoid_jvp(primals, tangents):
     (values,), (tangent,) = primals, tangents
     e = jnp.exp(-jnp.abs(values))
     slope = jnp.where(values >= 0, e, 1.0) / (1.0 + e)  # sigmoid(-x), without overflow
-    return log_sigmoid(values), slope * tangent
+    return jnp.minimum(values, 0.0) - jnp.log(1.0 + e), slope * tangent

@@ -196,7 +196,7 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
     )
 
     def pose(params, r_init):
-        return render.axis_angle_to_matrix(params["delta"]) @ r_init, params["translation"]
+        return _rotation(params["delta"], r_init), params["translation"]
 
     def loss_fn(params, scale, key, target, r_init):
         rotation, translation = pose(params, r_init)
@@ -232,6 +232,11 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
 
     # independent problems: one share per device when there are several (rsmooth.parallel)
     return renderer, jax.vmap(init), jax.jit(parallel.vmap_samples(step))
+
+
+def _rotation(delta, r_init):
+    """The pose's rotation: exp([delta]) r_init."""
+    return render.axis_angle_to_matrix(delta) @ r_init
 
 
 def _degrees(r1, r2):
@@ -299,7 +304,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
                     errors.append(np.stack(chunk_errors))
                     if config.keep_best:
                         best_params = state[3][0]
-                        rotation = jax.vmap(lambda d, r: render.axis_angle_to_matrix(d) @ r)(best_params["delta"], r_init[chunk])
+                        rotation = jax.vmap(_rotation)(best_params["delta"], r_init[chunk])
                         translations.append(best_params["translation"])
                     else:
                         translations.append(state[0]["translation"])
