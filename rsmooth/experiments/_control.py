@@ -61,12 +61,11 @@ def check_config(config) -> None:
         raise ValueError(f"seeds must be >= 1, got {config.seeds}")
 
 
-def free_body_state_noise(position: float, rest: tuple[float, ...], orientation: float | None = None) -> tuple[float, ...]:
+def free_body_state_noise(position: float, rest: tuple[float, ...]) -> tuple[float, ...]:
     """Noise scales of a state that starts with a free body's position (3) and unit quaternion
-    (4), then ``rest``; the quaternion's four coordinates get ``orientation`` (default: the
-    position's value). R-DDP projects each perturbed quaternion back to unit norm
-    (``RigidBodySystem.project_state``), so this is noise on the orientation, about
-    ``2 orientation`` radians per axis.
+    (4), then ``rest``; the quaternion's four coordinates get the position's noise. R-DDP
+    projects each perturbed quaternion back to unit norm (``RigidBodySystem.project_state``),
+    so this is noise on the orientation, about ``2 position`` radians per axis.
 
     Until session 13 the quaternion's noise was 1e-6 (perturbed quaternions were not projected
     then). That starved the zeroth- and alpha-order estimators: the score-function column of a
@@ -79,8 +78,7 @@ def free_body_state_noise(position: float, rest: tuple[float, ...], orientation:
         >>> free_body_state_noise(0.01, (0.1,) * 2)
         (0.01, 0.01, 0.01, 0.01, 0.01, 0.01, 0.01, 0.1, 0.1)
     """
-    orientation = position if orientation is None else orientation
-    return (position,) * 3 + (orientation,) * 4 + tuple(rest)
+    return (position,) * 7 + tuple(rest)
 
 
 def rddp_solver(config, control_noise_scale: float, state_noise_scale: tuple[float, ...]) -> control.RDDP:
