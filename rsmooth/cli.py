@@ -237,6 +237,9 @@ def render_pose_command(
     keep_best: Optional[bool] = typer.Option(
         None, "--keep-best/--last", help="Report each problem's iterate whose hard render is closest to the target "
         "(default) or the last iterate."),
+    pose_noise: Optional[float] = typer.Option(
+        None, "--pose-noise", min=0.0, help="Randomized smoothing of the loss over rotations: std of the rotation "
+        "perturbation in degrees at the start, shrunk with the renderer's noise (0: off; default: the experiment's)."),
 ):
     from rsmooth.experiments.render_pose import METHODS
 
@@ -246,7 +249,7 @@ def render_pose_command(
     init_errors_deg = tuple(float(e) for e in init_error) if init_error else None
     methods = tuple(dict.fromkeys(method)) if method else None  # in the given order, once each
     _run(_RENDER_POSE, out, seed, quick, mesh=mesh, init_errors_deg=init_errors_deg, problems=problems, methods=methods,
-         steps=steps, keep_best=keep_best)
+         steps=steps, keep_best=keep_best, pose_noise_deg=pose_noise)
 
 
 @render_app.command("reconstruct", help=_doc(

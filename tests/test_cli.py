@@ -90,9 +90,13 @@ def test_render_pose_method_and_steps_reach_the_config(monkeypatch, tmp_path):
     # the Config's defaults
     assert calls[-1][1]["methods"] is None and calls[-1][1]["steps"] is None and calls[-1][1]["keep_best"] is None
     CliRunner().invoke(cli.app, ["render", "pose", "--last", "--out", str(tmp_path)])
-    assert calls[-1][1]["keep_best"] is False
+    assert calls[-1][1]["keep_best"] is False and calls[-1][1]["pose_noise_deg"] is None
+    CliRunner().invoke(cli.app, ["render", "pose", "--pose-noise", "0", "--out", str(tmp_path)])
+    assert calls[-1][1]["pose_noise_deg"] == 0.0
     bad = CliRunner().invoke(cli.app, ["render", "pose", "--method", "blurry", "--out", str(tmp_path)])
-    assert bad.exit_code != 0 and "--method" in bad.output and len(calls) == 3
+    assert bad.exit_code != 0 and "--method" in bad.output and len(calls) == 4
+    negative = CliRunner().invoke(cli.app, ["render", "pose", "--pose-noise", "-1", "--out", str(tmp_path)])
+    assert negative.exit_code != 0 and "--pose-noise" in negative.output and len(calls) == 4
 
 
 def test_control_estimator_and_samples_reach_the_configs(monkeypatch, tmp_path):

@@ -4,9 +4,11 @@ import dataclasses
 import json
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from rsmooth import render
 from rsmooth.experiments import render_pose
 
 
@@ -38,15 +40,22 @@ def test_problems_run_in_batches(tmp_path):
         render_pose.Config.quick(), image_size=24, steps=3, methods=("perturbed-gaussian",), init_errors_deg=(30.0,),
         gif_every=1, keep_best=False,
     )
+    render_pose._SOLVERS.clear()
     batched = render_pose.run(dataclasses.replace(small, problems=3, batch_size=2), tmp_path / "a", jax.random.key(3), progress=False)
     result = batched["perturbed-gaussian"]["30"]
     assert len(result["final_errors_deg"]) == 3 and batched["batch_size"] == 2
     assert result["seconds_per_step"] > 0
     alone = render_pose.run(dataclasses.replace(small, problems=2, batch_size=2), tmp_path / "b", jax.random.key(3), progress=False)
     np.testing.assert_allclose(result["final_errors_deg"][:2], alone["perturbed-gaussian"]["30"]["final_errors_deg"], atol=1e-4)
+    # the short last batch was padded to 2 (one compiled step), and the second run, which poses
+    # other problems with the same step, reused it
+    assert len(render_pose._SOLVERS) == 1
+    assert next(iter(render_pose._SOLVERS.values()))[1]._cache_size() == 1
 
 
-@pytest.mark.parametrize("change", [{"methods": ("blurry",)}, {"batch_size": 0}, {"problems": 0}])
+@pytest.mark.parametrize(
+    "change", [{"methods": ("blurry",)}, {"batch_size": 0}, {"problems": 0}, {"pose_noise_deg": -1.0}, {"pose_noise_deg": float("nan")}]
+)
 def test_bad_config_is_rejected(tmp_path, change):
     config = dataclasses.replace(render_pose.Config.quick(), **change)
     with pytest.raises(ValueError, match=next(iter(change)) if "methods" not in change else "blurry"):
@@ -54,7 +63,6 @@ def test_bad_config_is_rejected(tmp_path, change):
 
 
 def test_keep_best_holds_the_iterate_whose_hard_render_is_closest_to_the_target():
-    from rsmooth import render
 
     config = dataclasses.replace(render_pose.Config.quick(), image_size=24, problems=2, learning_rate=0.2)
     mesh = render_pose.load(config.mesh)
@@ -75,3 +83,30 @@ def test_keep_best_holds_the_iterate_whose_hard_render_is_closest_to_the_target(
     assert not np.all(best == 5)  # the selection is exercised: not merely the last iterate
     np.testing.assert_allclose(state[3][1], losses[best, [0, 1]], rtol=1e-5)
     np.testing.assert_allclose(state[3][0]["delta"], deltas[best, [0, 1]], rtol=1e-6)
+
+
+def test_pose_noise_is_the_only_randomness_of_a_deterministic_renderer():
+    # The soft renderer draws nothing: the pose smoothing is the step's only randomness, so two
+    # keys give different steps at the start and the same step once the noise has faded out
+    # (at the last step). The hard renderer stays unsmoothed whatever pose_noise_deg says.
+    config = dataclasses.replace(render_pose.Config.quick(), image_size=16, problems=1, keep_best=False, pose_noise_deg=40.0)
+    mesh = render_pose.load(config.mesh)
+    cam = render_pose.camera(config)
+    r_true, r_init, offset = render_pose.problems(config, jax.random.key(2), 30.0)
+    hard = render_pose.make_renderer(config, "hard", mesh)
+    target = hard(None, render.transform_mesh(mesh, r_true[0]), cam).rgb[None]
+
+    solvers = {method: render_pose.make_solver(config, method, mesh, cam)[1:] for method in ("soft", "hard")}
+
+    def deltas(method, t):
+        init, step = solvers[method]
+        state = init(offset)
+        state = (*state[:4], jnp.full_like(state[4], t))
+        return [np.asarray(step(state, jax.random.key(k)[None], target, r_init)[0][0]["delta"]) for k in (0, 1)]
+
+    first = deltas("soft", 0)
+    assert np.all(np.abs(first[0]) > 0) and not np.allclose(first[0], first[1])
+    last = deltas("soft", config.steps)
+    np.testing.assert_array_equal(last[0], last[1])
+    unsmoothed = deltas("hard", 0)
+    np.testing.assert_array_equal(unsmoothed[0], unsmoothed[1])
