@@ -344,16 +344,16 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
                     # a short last chunk is padded to the batch size by repeating its last
                     # problem (the copies are dropped), so that every chunk runs one compiled step
                     size = chunk.stop - chunk.start
-                    padded = np.minimum(np.arange(chunk.start, chunk.start + batch), chunk.stop - 1)
+                    padding = np.minimum(np.arange(batch), size - 1)  # indices into the chunk
+                    padded = chunk.start + padding
                     state = init(offset[padded])
+                    chunk_targets, chunk_r_init = targets[padded], r_init[padded]
                     chunk_key = jax.random.fold_in(run_key, c_index)
                     chunk_errors = [_degrees(r_init[chunk], r_true[chunk])]
                     for t in range(config.steps):
-                        keys = jax.random.split(jax.random.fold_in(chunk_key, t), size)
-                        if size < batch:
-                            keys = jnp.concatenate([keys, jnp.repeat(keys[-1:], batch - size, axis=0)])
+                        keys = jax.random.split(jax.random.fold_in(chunk_key, t), size)[padding]
                         start = time.perf_counter()
-                        state, loss, rotation = step(state, keys, targets[padded], r_init[padded])
+                        state, loss, rotation = step(state, keys, chunk_targets, chunk_r_init)
                         jax.block_until_ready(rotation)
                         # timed: full batches after their first step (which may compile)
                         if t > 0 and size == batch:
