@@ -1,9 +1,19 @@
 """Shared test configuration: double precision, strict rank promotion, seeded keys."""
 
 import itertools
+import os
 
-import jax
-import pytest
+# Compile fast rather than run fast: most of the suite's time is XLA compiling small programs,
+# and LLVM's optimizations are a third of that. At level 0 (instead of XLA's default 2) the suite
+# ran in 14.8 min instead of 16.0 on 2 cores, back to back (the run-bound control tests 10-25 %
+# slower, the compile-bound ones up to 1.6x faster); the programs' HLO and so their results are
+# the same, up to rounding. Set here, before JAX starts its backend, and inherited by the
+# tests' subprocesses; a level already in XLA_FLAGS is kept.
+if "--xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_backend_optimization_level=0".strip()
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")

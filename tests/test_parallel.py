@@ -71,8 +71,13 @@ _TWO_DEVICES = textwrap.dedent(
 )
 
 
+def _flags(flag: str) -> str:
+    """XLA_FLAGS for a subprocess: the suite's own (tests/conftest.py) and ``flag``."""
+    return f"{os.environ.get('XLA_FLAGS', '')} {flag}".strip()
+
+
 def test_two_devices_share_the_batch_and_agree():
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
+    env = dict(os.environ, XLA_FLAGS=_flags("--xla_force_host_platform_device_count=2"), JAX_PLATFORMS="cpu")
     result = subprocess.run(
         [sys.executable, "-c", _TWO_DEVICES], env=env, capture_output=True, text=True, timeout=300
     )
@@ -105,7 +110,7 @@ def test_pose_problems_spread_over_two_devices_give_the_same_results(tmp_path):
 
     outputs = []
     for count in (1, 2):
-        env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={count}", JAX_PLATFORMS="cpu")
+        env = dict(os.environ, XLA_FLAGS=_flags(f"--xla_force_host_platform_device_count={count}"), JAX_PLATFORMS="cpu")
         result = subprocess.run(
             [sys.executable, "-c", _POSE, str(tmp_path / str(count))], env=env, capture_output=True, text=True,
             timeout=600,
