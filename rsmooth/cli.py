@@ -240,6 +240,9 @@ def render_pose_command(
     pose_noise: Optional[float] = typer.Option(
         None, "--pose-noise", min=0.0, help="Randomized smoothing of the loss over rotations: std of the rotation "
         "perturbation in degrees at the start, shrunk with the renderer's noise (0: off; default: the experiment's)."),
+    pose_noise_until: Optional[float] = typer.Option(
+        None, "--pose-noise-until", min=0.0, max=1.0, help="Fraction of the steps at which the pose noise has faded "
+        "linearly to 0 (default 1: the last step); the steps after it descend the image-smoothed loss alone."),
 ):
     from rsmooth.experiments.render_pose import METHODS
 
@@ -249,7 +252,7 @@ def render_pose_command(
     init_errors_deg = tuple(float(e) for e in init_error) if init_error else None
     methods = tuple(dict.fromkeys(method)) if method else None  # in the given order, once each
     _run(_RENDER_POSE, out, seed, quick, mesh=mesh, init_errors_deg=init_errors_deg, problems=problems, methods=methods,
-         steps=steps, keep_best=keep_best, pose_noise_deg=pose_noise)
+         steps=steps, keep_best=keep_best, pose_noise_deg=pose_noise, pose_noise_until=pose_noise_until)
 
 
 @render_app.command("reconstruct", help=_doc(

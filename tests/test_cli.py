@@ -91,12 +91,14 @@ def test_render_pose_method_and_steps_reach_the_config(monkeypatch, tmp_path):
     assert calls[-1][1]["methods"] is None and calls[-1][1]["steps"] is None and calls[-1][1]["keep_best"] is None
     CliRunner().invoke(cli.app, ["render", "pose", "--last", "--out", str(tmp_path)])
     assert calls[-1][1]["keep_best"] is False and calls[-1][1]["pose_noise_deg"] is None
-    CliRunner().invoke(cli.app, ["render", "pose", "--pose-noise", "0", "--out", str(tmp_path)])
-    assert calls[-1][1]["pose_noise_deg"] == 0.0
+    CliRunner().invoke(cli.app, ["render", "pose", "--pose-noise", "0", "--pose-noise-until", "0.75", "--out", str(tmp_path)])
+    assert calls[-1][1]["pose_noise_deg"] == 0.0 and calls[-1][1]["pose_noise_until"] == 0.75
     bad = CliRunner().invoke(cli.app, ["render", "pose", "--method", "blurry", "--out", str(tmp_path)])
     assert bad.exit_code != 0 and "--method" in bad.output and len(calls) == 4
     negative = CliRunner().invoke(cli.app, ["render", "pose", "--pose-noise", "-1", "--out", str(tmp_path)])
     assert negative.exit_code != 0 and "--pose-noise" in negative.output and len(calls) == 4
+    beyond = CliRunner().invoke(cli.app, ["render", "pose", "--pose-noise-until", "1.5", "--out", str(tmp_path)])
+    assert beyond.exit_code != 0 and "--pose-noise-until" in beyond.output and len(calls) == 4
 
 
 def test_control_estimator_and_samples_reach_the_configs(monkeypatch, tmp_path):

@@ -68,7 +68,8 @@ batch_size problems, first steps excluded; null when there is none) and seconds_
 problems per chunk actually run: at most the config's, so that chunks are of equal size), steps, image_size, mesh, num_faces, faces_per_pixel and
 cull_backfaces (whether faces seen from behind were dropped: by default when the mesh is closed) and
 interior_edges (whether coverage was smoothed across every triangle edge, as in the paper),
-keep_best and pose_noise_deg (the initial rotation noise of the pose smoothing, 0 when off)."""
+keep_best, pose_noise_deg (the initial rotation noise of the pose smoothing, 0 when off) and
+pose_noise_until (the fraction of the steps at which that noise has faded to 0)."""
 
 METHODS = ("perturbed-gaussian", "perturbed-cauchy", "soft", "hard")
 
@@ -126,6 +127,9 @@ class Config:
     # (without the fade: 90.6 / 87.5 / 46.9; 40 without the fade: 50 deg 78.1, 80 deg 50.0;
     # 10: 50 deg 75.0); the paper: 93 / 84 / 67 (perturbed), 84 / 75 / 55 (SoftRas)
     pose_noise_deg: float = 25.0
+    # the fraction of the steps at whose end the pose noise has faded to 0 (1: the last step);
+    # the steps after it descend the image-smoothed loss alone
+    pose_noise_until: float = 1.0
     gif_every: int = 2
 
     @classmethod
@@ -219,15 +223,17 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
         if adaptive else schedules.Constant()
     )
 
+    fade_steps = max(1, round(config.pose_noise_until * config.steps))  # the pose noise is 0 from this step
+
     def pose(params, r_init):
         return _rotation(params["delta"], r_init), params["translation"]
 
     def loss_fn(params, scale, key, target, r_init, t):
         if config.pose_noise_deg > 0.0 and adaptive:  # the hard renderer stays unsmoothed
             key, k_pose = jax.random.split(key)
-            # linear decay to exactly 0 at the last step (not 1 - t / steps: XLA turns the division
-            # into a product by a rounded 1 / steps, and the end would be -5e-8, not 0)
-            fade = jnp.maximum(config.steps - t, 0).astype(params["delta"].dtype) / config.steps
+            # linear decay to exactly 0 at step fade_steps (not 1 - t / fade_steps: XLA turns the
+            # division into a product by a rounded reciprocal, and the end would be -5e-8, not 0)
+            fade = jnp.maximum(fade_steps - t, 0).astype(params["delta"].dtype) / fade_steps
             eps = np.deg2rad(config.pose_noise_deg) * jax.lax.stop_gradient(scale) * fade
             params = {**params, "delta": params["delta"] + eps * jax.random.normal(k_pose, (3,), params["delta"].dtype)}
         rotation, translation = pose(params, r_init)
@@ -308,6 +314,8 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
             raise ValueError(f"unknown method {method!r}; choose from {METHODS}")
     if not (np.isfinite(config.pose_noise_deg) and config.pose_noise_deg >= 0.0):
         raise ValueError(f"pose_noise_deg must be a finite number >= 0 (degrees), got {config.pose_noise_deg!r}")
+    if not (np.isfinite(config.pose_noise_until) and 0.0 < config.pose_noise_until <= 1.0):
+        raise ValueError(f"pose_noise_until must be in (0, 1] (a fraction of the steps), got {config.pose_noise_until!r}")
     mesh = load(config.mesh)
     cam = camera(config)
     target_renderer = make_renderer(config, "hard", mesh)
@@ -412,6 +420,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "interior_edges": config.interior_edges,
         "keep_best": config.keep_best,
         "pose_noise_deg": config.pose_noise_deg,
+        "pose_noise_until": config.pose_noise_until,
         "gif": f"optimization.gif: {gif_method}, initial error {gif_error:g} deg, problem 0 (target | current)",
     }
     viz.write_metrics(out / "metrics.json", metrics)

@@ -54,7 +54,11 @@ def test_problems_run_in_batches(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "change", [{"methods": ("blurry",)}, {"batch_size": 0}, {"problems": 0}, {"pose_noise_deg": -1.0}, {"pose_noise_deg": float("nan")}]
+    "change",
+    [
+        {"methods": ("blurry",)}, {"batch_size": 0}, {"problems": 0}, {"pose_noise_deg": -1.0},
+        {"pose_noise_deg": float("nan")}, {"pose_noise_until": 0.0}, {"pose_noise_until": 1.5},
+    ],
 )
 def test_bad_config_is_rejected(tmp_path, change):
     config = dataclasses.replace(render_pose.Config.quick(), **change)
@@ -87,9 +91,13 @@ def test_keep_best_holds_the_iterate_whose_hard_render_is_closest_to_the_target(
 
 def test_pose_noise_is_the_only_randomness_of_a_deterministic_renderer():
     # The soft renderer draws nothing: the pose smoothing is the step's only randomness, so two
-    # keys give different steps at the start and the same step once the noise has faded out
-    # (at the last step). The hard renderer stays unsmoothed whatever pose_noise_deg says.
-    config = dataclasses.replace(render_pose.Config.quick(), image_size=16, problems=1, keep_best=False, pose_noise_deg=40.0)
+    # keys give different steps until the noise has faded out (at pose_noise_until x steps)
+    # and the same step from there on. The hard renderer stays unsmoothed whatever
+    # pose_noise_deg says.
+    config = dataclasses.replace(
+        render_pose.Config.quick(), image_size=16, problems=1, keep_best=False, pose_noise_deg=40.0, pose_noise_until=0.5
+    )
+    fade_steps = config.steps // 2
     mesh = render_pose.load(config.mesh)
     cam = render_pose.camera(config)
     r_true, r_init, offset = render_pose.problems(config, jax.random.key(2), 30.0)
@@ -106,7 +114,10 @@ def test_pose_noise_is_the_only_randomness_of_a_deterministic_renderer():
 
     first = deltas("soft", 0)
     assert np.all(np.abs(first[0]) > 0) and not np.allclose(first[0], first[1])
-    last = deltas("soft", config.steps)
-    np.testing.assert_array_equal(last[0], last[1])
+    almost = deltas("soft", fade_steps - 1)  # the last smoothed step: a 1 / fade_steps of the noise
+    assert not np.array_equal(almost[0], almost[1])
+    for t in (fade_steps, config.steps):
+        faded = deltas("soft", t)
+        np.testing.assert_array_equal(faded[0], faded[1])
     unsmoothed = deltas("hard", 0)
     np.testing.assert_array_equal(unsmoothed[0], unsmoothed[1])
