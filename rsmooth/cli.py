@@ -233,7 +233,7 @@ def render_pose_command(
     problems: Optional[int] = typer.Option(None, "--problems", min=1, help="Problems per initial error (default 100, quick 4)."),
     method: Optional[list[str]] = typer.Option(
         None, "--method", help="perturbed-gaussian, perturbed-cauchy, soft or hard (repeatable; default all four)."),
-    steps: Optional[int] = typer.Option(None, "--steps", min=1, help="Adam steps per problem (default 100, quick 60)."),
+    steps: Optional[int] = typer.Option(None, "--steps", min=1, help="Adam steps per problem (default 200, quick 60)."),
     keep_best: Optional[bool] = typer.Option(
         None, "--keep-best/--last", help="Report each problem's iterate whose hard render is closest to the target "
         "(default) or the last iterate."),
