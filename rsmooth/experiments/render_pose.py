@@ -25,8 +25,9 @@ optimized, starts off by `init_translation` in a random direction.
 The smoothed renderers also smooth the loss over rotations (`pose_noise_deg`): each step takes
 its gradient at a randomly rotated pose (delta + eps z, z ~ N(0, I_3)), eps shrinking with the
 renderer's noise scale and linearly to 0 at the last step (or at `pose_noise_until` x steps),
-so the run ends on the unsmoothed loss (as R-DDP does). Image-space smoothing alone leaves a rotated cube in the basin of a pose
-with the same silhouette; smoothing over poses lets it out (rates measured: `Config.pose_noise_deg`).
+so the run ends on the unsmoothed loss (as R-DDP does). Image-space smoothing alone leaves a
+rotated cube in the basin of a pose with the same silhouette; smoothing over poses lets it out
+(rates measured: `Config.pose_noise_deg`).
 The default command with 100 steps on the cube (32 problems per angle, seed 7, Gaussian and
 soft): Gaussian solves 100 / 90.6 / 43.8 % from 20 / 50 / 80 deg (without pose smoothing: 97 /
 50 / 22), soft 100 / 87.5 / 43.8. With 200 steps (the default since: the pose noise and the
