@@ -56,7 +56,7 @@ import numpy as np
 from jax.typing import ArrayLike
 
 from rsmooth import _checks
-from rsmooth.sim import _dynamics
+from rsmooth.sim import _derivatives, _dynamics
 from rsmooth.sim import _spatial as spatial
 from rsmooth.sim._contact import (
     LogBarrier,
@@ -346,15 +346,7 @@ class RigidBodySystem(eqx.Module):
         # All spheres at once (one batched expression per quantity, not one per sphere: the
         # traced graph, and the compile time of every solver built on the step, would grow
         # with the number of spheres). The sphere -> joint map is static.
-        sphere_frames = np.asarray(self.sphere_frames)
-        joints = np.asarray(model.frame_parents)[sphere_frames]
-        rotation, translation = _dynamics._compose(
-            kinematics.rotation[joints],
-            kinematics.translation[joints],
-            model.frame_placement_rotation[sphere_frames],
-            model.frame_placement_translation[sphere_frames],
-        )
-        centres = translation + jax.vmap(spatial.rotate)(rotation, self.sphere_offsets)  # (S, 3)
+        centres, joints = self._sphere_centres(kinematics)  # (S, 3)
         radii = self.sphere_radii[:, None]
         distance = centres @ self.plane_normals.T - self.plane_offsets[None, :] - radii  # (S, P)
         points = centres[:, None, :] - radii[:, :, None] * self.plane_normals[None]  # (S, P, 3)
@@ -372,6 +364,34 @@ class RigidBodySystem(eqx.Module):
             jacobians.append(jacobian[None])
         distance = jnp.concatenate(distances)
         return distance, jnp.concatenate(frames), jnp.concatenate(jacobians).reshape(-1, model.nv)
+
+    def _sphere_centres(self, kinematics) -> tuple[Array, np.ndarray]:
+        """World centres of the spheres ``(S, 3)`` and the (static) joint carrying each."""
+        model = self.model
+        sphere_frames = np.asarray(self.sphere_frames)
+        joints = np.asarray(model.frame_parents)[sphere_frames]
+        rotation, translation = _dynamics._compose(
+            kinematics.rotation[joints],
+            kinematics.translation[joints],
+            model.frame_placement_rotation[sphere_frames],
+            model.frame_placement_translation[sphere_frames],
+        )
+        return translation + jax.vmap(spatial.rotate)(rotation, self.sphere_offsets), joints
+
+    def _sphere_geometry(self, kinematics) -> tuple[Array, Array, np.ndarray, Array]:
+        """Per sphere-half-space contact (the order of :meth:`contacts`, box contacts
+        excluded): sphere centre ``(n, 3)``, contact point ``(n, 3)``, joint ``(n,)`` (static)
+        and contact frame ``(n, 3, 3)``."""
+        centres, joints = self._sphere_centres(kinematics)
+        num_spheres, num_planes = centres.shape[0], self.plane_normals.shape[0]
+        points = centres[:, None, :] - self.sphere_radii[:, None, None] * self.plane_normals[None]
+        frames = jnp.broadcast_to(contact_frame(self.plane_normals), (num_spheres, num_planes, 3, 3))
+        return (
+            jnp.broadcast_to(centres[:, None, :], points.shape).reshape(-1, 3),
+            points.reshape(-1, 3),
+            np.repeat(joints, num_planes),
+            frames.reshape(-1, 3, 3),
+        )
 
     def _sphere_box_contact(self, kinematics, sphere: int) -> tuple[Array, Array, Array]:
         """Signed distance, contact frame and relative contact Jacobian of a sphere against
@@ -515,9 +535,17 @@ class RigidBodySystem(eqx.Module):
 
         Equal to ``step`` and ``jax.jacfwd(step, argnums=(0, 1))``, computed faster with hard
         contact and ``derivative="implicit"``: one solve, then separate forward-mode passes
-        over ``q``, ``v`` and ``u`` (a single ``jacfwd`` pushes all ``nx + nu`` directions
-        through the kinematics, though only the ``nq`` of ``q`` move it). The optimizers of
-        :mod:`rsmooth.control` use this method when a dynamics has it.
+        over ``v`` and ``u`` (a single ``jacfwd`` pushes all ``nx + nu`` directions
+        through the kinematics, though only the ``nq`` of ``q`` move it). The derivative of
+        the step's equations with respect to ``q`` is in closed form (world-frame analytic
+        RNEA and contact derivatives, :mod:`rsmooth.sim._derivatives`) for joint-torque
+        systems with sphere-half-space contacts (Solo-12), plus one forward-mode tangent per
+        free flyer along its quaternion's radial direction; other systems push the ``nq``
+        tangents through the kinematics. The closed form assumes unit quaternions (every
+        state the step returns, and :meth:`project_state`'s): for a quaternion of norm
+        ``1 + e`` the bodies are not rigid and the configuration columns differ from
+        ``jacfwd`` by ``O(e)``. The optimizers of :mod:`rsmooth.control` use this method when
+        a dynamics has it.
         """
         x, u = self._check(x, u)
         if not (isinstance(self.contact, str) and self.derivative == "implicit"):
@@ -649,7 +677,12 @@ def _step_and_jacobians(system: RigidBodySystem, q: Array, v: Array, u: Array) -
     model, h = system.model, system.time_step
     update = system._velocity_update(q, v, u, None)
     residuals = _step_residuals(update)
-    by_q = jax.jacfwd(lambda q_: residuals(system, q_, v, u)[:2])(q)
+    if _derivatives.supported(system):
+        # closed form over the configuration tangent, plus one forward-mode tangent per free
+        # flyer along its quaternion's radial direction
+        by_q = _derivatives.configuration_jacobian(system, update, residuals, q, v, u)
+    else:
+        by_q = jax.jacfwd(lambda q_: residuals(system, q_, v, u)[:2])(q)
     # v and u do not enter the kinematics: their passes reuse the update's primal geometry,
     # so the traced graph (and the compile time of every solver built on it) holds it once.
     geometry = (update.kinematics, update.inertias, update.distance, update.jacobian)
