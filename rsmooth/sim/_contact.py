@@ -417,11 +417,25 @@ def implicit_impulse_tangent(
     # contacts on a rank-deficient G whose impulses are not unique) eps = 1e-12 bounds the
     # gain by about 3 / (2 sqrt(eps)) instead of returning inf or NaN.
     factor = jax.scipy.linalg.cho_factor(jacobian.T @ jacobian + regularization * identity)
+    solve = many_column_solver(factor, rhs)
     impulse_dot = jnp.zeros_like(rhs)
     for _ in range(3):
         residual = -rhs - jacobian @ impulse_dot
-        impulse_dot = impulse_dot + jax.scipy.linalg.cho_solve(factor, jacobian.T @ residual)
+        impulse_dot = impulse_dot + solve(jacobian.T @ residual)
     return impulse_dot
+
+
+def many_column_solver(factor, rhs: Array):
+    """``b -> A^-1 b`` for a Cholesky ``factor`` of ``A`` (n x n) and right-hand sides shaped
+    like ``rhs``. With more than ``n`` columns (the Jacobian columns of a step), ``A^-1`` is
+    formed once (n columns of triangular solves) and applied by matrix products: XLA's batched
+    triangular solve on CPU costs per column, and under ``vmap`` it was the largest part of the
+    implicit derivative's algebra. Otherwise (a JVP's vector) it solves directly."""
+    n = factor[0].shape[0]
+    if rhs.ndim == 2 and rhs.shape[1] > n:
+        inverse = jax.scipy.linalg.cho_solve(factor, jnp.eye(n, dtype=factor[0].dtype))
+        return lambda b: inverse @ b
+    return lambda b: jax.scipy.linalg.cho_solve(factor, b)
 
 
 class NCPSolver(eqx.Module):

@@ -106,17 +106,18 @@ def _subtree_sum(subtree: np.ndarray, inertia: spatial.SpatialInertia) -> spatia
     return spatial.SpatialInertia(total[:, 0], total[:, 1:4], total[:, 4:].reshape(-1, 3, 3))
 
 
-def configuration_jacobian(system, update, residuals, q: Array, v: Array, u: Array) -> list[Array]:
-    """``[dE/dq (nv, nq), dc/dq (3 n, nq)]`` in the raw coordinates of ``q``: the closed form
-    over the tangent, composed with ``d delta / dq``, plus the forward-mode response along each
-    free flyer's quaternion radial direction (``residuals``: ``_simulator._step_residuals``)."""
-    by_delta = tangent_jacobian(system, update, v)
+def configuration_jacobian(system, update, residuals, q: Array, v: Array, u: Array) -> tuple[list[Array], list[Array]]:
+    """``([dE/dq (nv, nq), dc/dq (3 n, nq)], [dE/dv, dc/dv])``, ``q`` in raw coordinates: the
+    closed form over the tangent, composed with ``d delta / dq``, plus the forward-mode response
+    along each free flyer's quaternion radial direction (``residuals``:
+    ``_simulator._step_residuals``); and the closed-form velocity derivative."""
+    *by_delta, by_v = tangent_jacobian(system, update, v)
     to_tangent, radial, coefficients = tangent_map(system.model, q)
     by_q = [part @ to_tangent for part in by_delta]
     for direction, coefficient in zip(radial, coefficients):
         along = jax.jvp(lambda q_: residuals(system, q_, v, u)[:2], (q,), (direction,))[1]
         by_q = [part + jnp.outer(a, coefficient) for part, a in zip(by_q, along)]
-    return by_q
+    return by_q, [by_v, jnp.zeros((by_delta[1].shape[0], v.shape[0]), v.dtype)]
 
 
 def tangent_map(model, q: Array) -> tuple[Array, Array, Array]:
@@ -145,8 +146,9 @@ def tangent_map(model, q: Array) -> tuple[Array, Array, Array]:
     return D, jnp.stack(radial), jnp.stack(coefficients)
 
 
-def tangent_jacobian(system, update, v: Array) -> tuple[Array, Array]:
-    """``(dE/d delta (nv, nv), dc/d delta (3 n, nv))`` at the step's solution (module docstring)."""
+def tangent_jacobian(system, update, v: Array) -> tuple[Array, Array, Array]:
+    """``(dE/d delta (nv, nv), dc/d delta (3 n, nv), dE/dv (nv, nv))`` at the step's solution
+    (module docstring; ``c`` does not depend on ``v``)."""
     model, h = system.model, system.time_step
     tree = _dynamics._tree(model)
     kinematics, inertias = update.kinematics, update.inertias
@@ -195,6 +197,14 @@ def tangent_jacobian(system, update, v: Array) -> tuple[Array, Array]:
     # j strictly above k's joint: S_j . w_k
     w = _apply(owner_composite, Z) + mixed(Y) - _cross_mf(Y, momenta_c[owner]) + _cross_mf(S, forces_c[owner])
     d_inverse_dynamics = jnp.where(below, a @ Z.T + b @ Y.T, 0.0) + jnp.where(above, S @ w.T, 0.0)
+    # velocity derivative at fixed acceleration (Carpentier and Mansard's d tau / d v, world
+    # frame): dV_i / dv_k = S_k, dA_i / dv_k = S_k x (V_i - P_k) + V_k x S_k (V_k: the velocity of
+    # k's joint) for the bodies i below k's joint, so that the subtree sum of dF_i / dv_k is
+    # -K S_k + I^c W_k + S_k x* h^c with W_k = (V_k + P_k) x S_k; then as above with the deeper
+    # joint: a_j . W_k - b_j . S_k (j on or below k), S_j . w'_k (j above k)
+    W = _cross_mm(V[owner] + P, S)
+    w_v = -mixed(S) + _apply(owner_composite, W) + _cross_mf(S, momenta_c[owner])
+    d_inverse_dynamics_v = jnp.where(below, a @ W.T - b @ S.T, 0.0) + jnp.where(above, S @ w_v.T, 0.0)
 
     # ----- contacts
     centres, points, joints, rotations = system._sphere_geometry(kinematics)  # (n, 3) x2, (n,), (n, 3, 3)
@@ -219,7 +229,10 @@ def tangent_jacobian(system, update, v: Array) -> tuple[Array, Array]:
     d_distance = jnp.einsum("ci,cki->ck", rotations[:, :, 2], u)  # (n, nv): normal . u
     correction = jax.jacfwd(lambda d: _corrected(system, jnp.zeros(3 * n, d.dtype), d))(update.distance)  # (3 n, n)
     d_velocity = d_contact_velocity.reshape(3 * n, model.nv) + correction @ d_distance
-    return h * d_inverse_dynamics - d_contact_forces, d_velocity
+    # dE/dv at fixed (v+, lambda): h (dRNEA/dv - M / h) - armature = h dRNEA/dv - (W - h D),
+    # with W = M + armature + h D the update's matrix and the acceleration a = (v+ - v) / h
+    by_v = h * d_inverse_dynamics_v - (update.mass - jnp.diag(h * system.damping()))
+    return h * d_inverse_dynamics - d_contact_forces, d_velocity, by_v
 
 
 def _corrected(system, free_velocity, distance):

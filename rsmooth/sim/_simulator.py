@@ -67,6 +67,7 @@ from rsmooth.sim._contact import (
     corrected_free_velocity,
     fixed_point_step_sizes,
     implicit_impulse_tangent,
+    many_column_solver,
     natural_map_of_velocity,
     solve_ncp,
 )
@@ -118,6 +119,7 @@ class _VelocityUpdate(NamedTuple):
     mu: Array  # friction coefficient per contact
     kinematics: _dynamics._Kinematics  # at q
     inertias: spatial.SpatialInertia  # world-frame body inertias at q
+    mass: Array  # W = M + diag(armature + h damping), the matrix of mass_factor
 
     def public(self) -> tuple[Array, Array, Array, NCPInfo, Array]:
         return self.v_next, self.impulse, self.distance, self.ncp, self.clipped
@@ -503,7 +505,8 @@ class RigidBodySystem(eqx.Module):
             ncp = NCPInfo(jnp.zeros((), jnp.int32), zero, zero, zero, jnp.ones((), bool), zero)
         v_next = v_free + minv_jt @ impulse
         return _VelocityUpdate(
-            v_next, impulse, distance, ncp, clipped, factor, jacobian, minv_jt, delassus, free_velocity, mu, kinematics, inertias
+            v_next, impulse, distance, ncp, clipped, factor, jacobian, minv_jt, delassus, free_velocity, mu, kinematics, inertias,
+            mass,
         )
 
     def _compliant_impulse(self, distance: Array, free_velocity: Array, delassus: Array, h: Array) -> Array:
@@ -655,7 +658,7 @@ def _velocity_update_tangent(
 ) -> tuple[Array, Array]:
     """``(dv+, dlambda)`` from the change of the step's equations at fixed ``(v+, lambda)``."""
     impulse = lax.stop_gradient(update.impulse)
-    free_motion_dot = -jax.scipy.linalg.cho_solve(update.mass_factor, momentum_dot)  # dv+ at fixed lambda
+    free_motion_dot = -many_column_solver(update.mass_factor, momentum_dot)(momentum_dot)  # dv+ at fixed lambda
     velocity_dot = velocity_dot + update.jacobian @ free_motion_dot
     G, g, mu = update.delassus, update.free_velocity, update.mu
     step_sizes = fixed_point_step_sizes(G, mu.shape[0])
@@ -673,20 +676,21 @@ def _velocity_update_tangent(
 
 def _step_and_jacobians(system: RigidBodySystem, q: Array, v: Array, u: Array) -> tuple[Array, Array, Array]:
     """``(x_next, f_x, f_u)`` of a hard-contact step by the implicit rule, with separate
-    tangent passes for ``q``, ``v`` and ``u`` (only ``q`` goes through the kinematics)."""
+    derivatives of the step's equations with respect to ``q``, ``v`` and ``u`` (closed forms
+    for ``q`` and ``v`` where :mod:`._derivatives` supports the system)."""
     model, h = system.model, system.time_step
     update = system._velocity_update(q, v, u, None)
     residuals = _step_residuals(update)
-    if _derivatives.supported(system):
-        # closed form over the configuration tangent, plus one forward-mode tangent per free
-        # flyer along its quaternion's radial direction
-        by_q = _derivatives.configuration_jacobian(system, update, residuals, q, v, u)
-    else:
-        by_q = jax.jacfwd(lambda q_: residuals(system, q_, v, u)[:2])(q)
     # v and u do not enter the kinematics: their passes reuse the update's primal geometry,
     # so the traced graph (and the compile time of every solver built on it) holds it once.
     geometry = (update.kinematics, update.inertias, update.distance, update.jacobian)
-    by_v = jax.jacfwd(lambda v_: residuals(system, q, v_, u, geometry)[:2])(v)
+    if _derivatives.supported(system):
+        # closed forms over the configuration tangent and the velocity, plus one forward-mode
+        # tangent per free flyer along its quaternion's radial direction
+        by_q, by_v = _derivatives.configuration_jacobian(system, update, residuals, q, v, u)
+    else:
+        by_q = jax.jacfwd(lambda q_: residuals(system, q_, v, u)[:2])(q)
+        by_v = jax.jacfwd(lambda v_: residuals(system, q, v_, u, geometry)[:2])(v)
     by_u = jax.jacfwd(lambda u_: residuals(system, q, v, u_, geometry)[:2])(u)
     momentum_dot, velocity_dot = (jnp.concatenate(parts, axis=1) for parts in zip(by_q, by_v, by_u))
     columns = momentum_dot.shape[1]
