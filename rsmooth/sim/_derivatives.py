@@ -37,6 +37,10 @@ The sums of ``g_i`` over a subtree need only subtree sums of ``I_i``, ``I_i [V_i
 ``[V_i x*] I_i`` and ``I_i V_i`` (composite quantities, one masked sum each), so the whole
 ``(nv, nv)`` derivative is a few small dense products instead of ``nq`` tangent passes.
 
+The velocity derivative (at fixed ``v+``: ``a = (v+ - v) / h`` moves with ``v``) follows the
+same pattern: ``dV_i / dv_k = S_k`` and ``dA_i / dv_k = S_k x (V_i - P) + V_K x S_k`` for the
+bodies below ``K``; the momentum equation's is ``h dRNEA/dv - M - armature``.
+
 The contact terms: a sphere's centre is a material point of its body, its contact point
 ``p = centre - r n`` moves with the centre (``u_k = S_k`` evaluated at the centre), and the
 velocity column of dof ``j`` at ``p`` changes by ``(X x S_j)`` at ``p`` (``j`` on or below
