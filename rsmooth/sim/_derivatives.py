@@ -68,33 +68,15 @@ from rsmooth.sim import _spatial as spatial
 Array = jax.Array
 
 
-def _cross_mm(motion: Array, other: Array) -> Array:
-    """``m x m'`` of twists ``(..., 6)``, broadcasting."""
-    lin, ang, other_lin, other_ang = motion[..., :3], motion[..., 3:], other[..., :3], other[..., 3:]
-    return jnp.concatenate([jnp.cross(ang, other_lin) + jnp.cross(lin, other_ang), jnp.cross(ang, other_ang)], axis=-1)
-
-
-def _cross_mf(motion: Array, force: Array) -> Array:
-    """``m x* f`` of a twist and a wrench ``(..., 6)``, broadcasting."""
-    lin, ang, f_lin, f_ang = motion[..., :3], motion[..., 3:], force[..., :3], force[..., 3:]
-    return jnp.concatenate([jnp.cross(ang, f_lin), jnp.cross(ang, f_ang) + jnp.cross(lin, f_lin)], axis=-1)
+# the spatial algebra broadcasts over leading axes (pairs of bodies and dofs here)
+_cross_mm = spatial.motion_cross_motion
+_cross_mf = spatial.motion_cross_force
+_apply = spatial.inertia_apply
 
 
 def supported(system) -> bool:
     """Whether :func:`configuration_jacobian` handles ``system`` (else use forward mode)."""
     return system.actuation == "joints" and not system.box_spheres
-
-
-def _apply(inertia: spatial.SpatialInertia, motion: Array) -> Array:
-    """``I m`` (``spatial.inertia_apply``), broadcasting inertias ``(...)`` and twists ``(..., 6)``."""
-    lin, ang = motion[..., :3], motion[..., 3:]
-    rot = inertia.rotational_inertia
-    rotated = sum(rot[..., :, b] * ang[..., None, b] for b in range(3))
-    return jnp.concatenate(
-        [inertia.mass[..., None] * lin - jnp.cross(inertia.first_moment, ang),
-         rotated + jnp.cross(inertia.first_moment, lin)],
-        axis=-1,
-    )
 
 
 def _take(inertia: spatial.SpatialInertia, index) -> spatial.SpatialInertia:

@@ -537,14 +537,14 @@ class RigidBodySystem(eqx.Module):
         """``(x_next, f_x, f_u)``: one step and its Jacobians ``(nx, nx)``, ``(nx, nu)``.
 
         Equal to ``step`` and ``jax.jacfwd(step, argnums=(0, 1))``, computed faster with hard
-        contact and ``derivative="implicit"``: one solve, then separate forward-mode passes
-        over ``v`` and ``u`` (a single ``jacfwd`` pushes all ``nx + nu`` directions
-        through the kinematics, though only the ``nq`` of ``q`` move it). The derivative of
-        the step's equations with respect to ``q`` is in closed form (world-frame analytic
-        RNEA and contact derivatives, :mod:`rsmooth.sim._derivatives`) for joint-torque
-        systems with sphere-half-space contacts (Solo-12), plus one forward-mode tangent per
-        free flyer along its quaternion's radial direction; other systems push the ``nq``
-        tangents through the kinematics. The closed form assumes unit quaternions (every
+        contact and ``derivative="implicit"``: one solve, then separate derivatives of the
+        step's equations with respect to ``q``, ``v`` and ``u`` (a single ``jacfwd`` pushes all
+        ``nx + nu`` directions through the kinematics, though only the ``nq`` of ``q`` move it).
+        For joint-torque systems with sphere-half-space contacts (Solo-12) those with respect
+        to ``q`` and ``v`` are in closed form (world-frame analytic RNEA and contact
+        derivatives, :mod:`rsmooth.sim._derivatives`), plus one forward-mode tangent per free
+        flyer along its quaternion's radial direction; other systems use forward mode (the
+        ``v`` and ``u`` passes reuse the primal kinematics). The closed form assumes unit quaternions (every
         state the step returns, and :meth:`project_state`'s): for a quaternion of norm
         ``1 + e`` the bodies are not rigid and the configuration columns differ from
         ``jacfwd`` by ``O(e)``. The optimizers of :mod:`rsmooth.control` use this method when

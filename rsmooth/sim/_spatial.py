@@ -9,7 +9,8 @@ Conventions follow Pinocchio so that results can be compared number for number:
 - Quaternions are stored ``[x, y, z, w]`` (Eigen's coefficient order, as in Pinocchio's
   configuration vectors).
 
-Functions act on single vectors and matrices; batch them with ``jax.vmap``. Products of
+Functions act on single vectors and matrices; batch them with ``jax.vmap`` (``rotate``, the
+spatial cross products and ``inertia_apply`` also broadcast over leading axes). Products of
 3x3 matrices and 3-vectors are written as sums of elementwise products (:func:`rotate`,
 :func:`matmul3`): XLA fuses these into one loop, whereas it lowers a batched 3x3 ``dot``
 under ``vmap``/``jacfwd`` to thousands of tiny matrix products (about 10x slower on CPU).
@@ -66,7 +67,11 @@ def rotate(rotation: jax.Array, vector: jax.Array) -> jax.Array:
     Returns:
         Shape ``(3,)``.
     """
-    return rotation[:, 0] * vector[0] + rotation[:, 1] * vector[1] + rotation[:, 2] * vector[2]
+    return (
+        rotation[..., :, 0] * vector[..., 0, None]
+        + rotation[..., :, 1] * vector[..., 1, None]
+        + rotation[..., :, 2] * vector[..., 2, None]
+    )
 
 
 def rotate_inverse(rotation: jax.Array, vector: jax.Array) -> jax.Array:
@@ -492,13 +497,14 @@ def motion_cross_motion(motion: jax.Array, other: jax.Array) -> jax.Array:
     Returns:
         Twist ``[w x v' + v x w', w x w']``, shape ``(6,)``.
     """
-    linear, angular = motion[:3], motion[3:]
-    other_linear, other_angular = other[:3], other[3:]
+    linear, angular = motion[..., :3], motion[..., 3:]
+    other_linear, other_angular = other[..., :3], other[..., 3:]
     return jnp.concatenate(
         [
             jnp.cross(angular, other_linear) + jnp.cross(linear, other_angular),
             jnp.cross(angular, other_angular),
-        ]
+        ],
+        axis=-1,
     )
 
 
@@ -512,13 +518,14 @@ def motion_cross_force(motion: jax.Array, force: jax.Array) -> jax.Array:
     Returns:
         Wrench ``[w x f, w x n + v x f]``, shape ``(6,)``.
     """
-    linear, angular = motion[:3], motion[3:]
-    force_linear, torque = force[:3], force[3:]
+    linear, angular = motion[..., :3], motion[..., 3:]
+    force_linear, torque = force[..., :3], force[..., 3:]
     return jnp.concatenate(
         [
             jnp.cross(angular, force_linear),
             jnp.cross(angular, torque) + jnp.cross(linear, force_linear),
-        ]
+        ],
+        axis=-1,
     )
 
 
@@ -573,13 +580,14 @@ def inertia_apply(inertia: SpatialInertia, motion: jax.Array) -> jax.Array:
     Returns:
         Wrench ``[m v - h x w, I_O w + h x v]``, shape ``(6,)``.
     """
-    linear, angular = motion[:3], motion[3:]
+    linear, angular = motion[..., :3], motion[..., 3:]
     h = inertia.first_moment
     return jnp.concatenate(
         [
-            inertia.mass * linear - jnp.cross(h, angular),
+            jnp.asarray(inertia.mass)[..., None] * linear - jnp.cross(h, angular),
             rotate(inertia.rotational_inertia, angular) + jnp.cross(h, linear),
-        ]
+        ],
+        axis=-1,
     )
 
 
