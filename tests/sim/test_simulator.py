@@ -209,6 +209,9 @@ def test_solo12_stands_still_under_gravity_compensation():
     feet = sim.solo12_foot_positions(solo, xs[-1])
     np.testing.assert_allclose(feet, sim.solo12_foot_positions(solo, x0), atol=1e-6)
     assert bool(jnp.all(infos.ncp.converged))
+    # Standing, the sticking guess (first step) and then the previous impulse solve every
+    # contact problem without an ADMM iteration.
+    assert bool(jnp.all(infos.ncp.iterations == 0))
     assert not bool(jnp.any(infos.torque_clipped))
     # Without torques it collapses.
     xs, _ = _rollout(solo, x0, jnp.zeros((30, 12)))
