@@ -297,8 +297,8 @@ class NCPInfo(eqx.Module):
     """Diagnostics of an NCP solve (no derivatives flow through them).
 
     Attributes:
-        iterations: ADMM iterations used (0 if the warm start or the sticking guess already satisfied the
-            tolerance).
+        iterations: ADMM iterations used (0 if the warm start or the sticking guess already
+            satisfied the tolerance).
         primal_feasibility, dual_feasibility, complementarity: the residuals of
             :func:`ncp_residuals` at the returned impulse.
         converged: all three residuals ``<= tolerance``.
@@ -497,10 +497,11 @@ class NCPSolver(eqx.Module):
             stick and leaves the others without impulse, ``P_K(-G_AA^{-1} g_A)`` on that active
             set (one Cholesky factorization): where it solves the NCP to the tolerance (a robot
             standing, or walking on sticking feet), the solve ends there, without ADMM or its
-            eigendecomposition. Otherwise ADMM starts from the warm start (or zero), exactly as
-            without it. :func:`rsmooth.sim.solo12` turns it on; it is off by default because
-            where ``G`` is singular (a box on four coplanar corners) the sticking impulses are
-            not unique and the guess picks one of them.
+            eigendecomposition. Otherwise ADMM starts from the warm start or, without one,
+            from the guess (on perturbed Solo-12 states, a third fewer iterations for the
+            slowest member of a batch than from zero). :func:`rsmooth.sim.solo12` turns it on;
+            it is off by default because where ``G`` is singular (a box on four coplanar
+            corners) the impulses are not unique and the start decides which one is found.
 
     References:
         J. Carpentier, Q. Le Lidec, L. Montaut, "From compliant to rigid contact simulation:
@@ -542,10 +543,11 @@ class NCPSolver(eqx.Module):
             )
 
     def start(self, G: Array, g: Array, mu: Array, warm_start: Array | None) -> tuple[Array, NCPInfo]:
-        """A first impulse and its diagnostics (``converged``: it already solves the problem;
-        ``iterations`` and ``rho`` are 0): ``P_K(warm_start)`` or zero, or, with
-        ``sticking_guess``, the sticking guess where that one solves the problem and the
-        former does not."""
+        """The impulse ADMM starts from and its diagnostics (``converged``: it already solves
+        the problem and ADMM need not run; ``iterations`` and ``rho`` are 0). Without
+        ``sticking_guess``: ``P_K(warm_start)``, or zero. With it: the sticking guess without a
+        warm start; with one, the guess where it solves the problem and the warm start does
+        not, else the warm start."""
         n = mu.shape[0]
 
         def candidate(z):
@@ -554,10 +556,10 @@ class NCPSolver(eqx.Module):
             converged = self._within_tolerance(primal, dual, complementarity)
             return z, NCPInfo(jnp.zeros((), jnp.int32), primal, dual, complementarity, converged, jnp.zeros((), G.dtype))
 
-        if warm_start is None:
-            first = candidate(jnp.zeros_like(g))
-        else:
+        if warm_start is not None:
             first = candidate(project_to_friction_cone(warm_start.reshape(n, 3), mu).reshape(-1))
+        elif not self.sticking_guess:
+            first = candidate(jnp.zeros_like(g))
         if not self.sticking_guess:
             return first
         # Contacts whose free normal velocity closes stick (c_i = 0), the others carry no
@@ -574,12 +576,15 @@ class NCPSolver(eqx.Module):
         sticking = -jax.scipy.linalg.cho_solve(factor, rhs)
         sticking = sticking - jax.scipy.linalg.cho_solve(factor, reduced @ sticking + rhs)
         guess = candidate(project_to_friction_cone(sticking.reshape(n, 3), mu).reshape(-1))
+        if warm_start is None:
+            return guess
         use_guess = guess[1].converged & ~first[1].converged
         return jax.tree.map(lambda a, b: jnp.where(use_guess, a, b), guess, first)
 
     def init(self, G: Array, g: Array, mu: Array, warm_start: Array | None) -> NCPState:
         """Initial iterate: ``z = P_K(warm_start)`` (or 0) and the matching ``y = -c~(z)``,
-        so an exact warm start is a fixed point of :meth:`step`."""
+        so an exact warm start is a fixed point of :meth:`step` (:func:`solve_ncp` passes
+        :meth:`start`'s impulse)."""
         n = mu.shape[0]
         eigenvalues, eigenvectors = jnp.linalg.eigh(G)
         largest = jnp.maximum(eigenvalues[-1], jnp.finfo(G.dtype).tiny ** 0.5)
@@ -786,7 +791,7 @@ def solve_ncp(
         # The barrier ties the problem to the loop's carry: without it XLA hoists the
         # loop-invariant eigendecomposition out of the loop, which then runs every time.
         G_, g_, mu_, _ = lax.optimization_barrier((G_solve, g_solve, mu_solve, carry))
-        state = solver.init(G_, g_, mu_, warm_start)
+        state = solver.init(G_, g_, mu_, start[0])
         state = lax.while_loop(lambda s: ~solver.terminate(s), lambda s: solver.step(G_, g_, mu_, s), state)
         return jnp.ones((), bool), solver.postprocess(state)
 

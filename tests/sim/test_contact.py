@@ -428,8 +428,8 @@ def test_implicit_derivatives_match_finite_differences(getkey, modes):
 
 def test_sticking_guess_solves_sticking_problems_without_admm(getkey):
     """Where the contacts with closing free velocity stick and the others separate, the
-    guess is the solution (0 iterations); elsewhere ADMM runs from zero exactly as without
-    the guess, also inside a batch that mixes both."""
+    guess is the solution (0 iterations); elsewhere ADMM runs from the guess to the same
+    solution as from zero, also inside a batch that mixes both."""
     while True:  # a separated contact whose free normal velocity opens (g_N > 0)
         G, g, mu, expected = mixed_mode_problem(getkey(), ("stick", "separate", "stick"))
         if g[5] > 0:
@@ -446,9 +446,9 @@ def test_sticking_guess_solves_sticking_problems_without_admm(getkey):
     assert int(guessed_info.iterations[0]) == 0 and int(plain_info.iterations[0]) > 0
     assert float(guessed_info.rho[0]) == 0.0
     np.testing.assert_allclose(guessed[0], expected, atol=1e-12)
+    assert int(guessed_info.iterations[1]) > 0
     np.testing.assert_allclose(guessed[1], expected_slide, atol=1e-10)
-    assert int(guessed_info.iterations[1]) == int(plain_info.iterations[1])
-    np.testing.assert_allclose(guessed[1], plain[1], rtol=0, atol=1e-14)
+    np.testing.assert_allclose(plain[1], expected_slide, atol=1e-10)
     # The implicit derivative is that of the solution, however it was found.
     solution = lambda solver: jax.jacfwd(lambda g_: solve_ncp(G, g_, mu, solver=solver)[0])(g)
     np.testing.assert_allclose(solution(NCPSolver(sticking_guess=True)), solution(TIGHT), atol=1e-9)
