@@ -64,6 +64,7 @@ import numpy as np
 
 from rsmooth.sim import _dynamics
 from rsmooth.sim import _spatial as spatial
+from rsmooth.sim._contact import corrected_free_velocity
 
 Array = jax.Array
 
@@ -197,11 +198,11 @@ def tangent_jacobian(system, update, v: Array) -> tuple[Array, Array, Array]:
     n = centres.shape[0]
     supports = tree.support[joints][..., None]  # (n, nv, 1): the dof moves the contact's body
     # u[c, k]: velocity of the sphere centre per unit delta_k
-    u = jnp.where(supports, S[None, :, :3] + jnp.cross(S[None, :, 3:], centres[:, None, :]), 0.0)  # (n, nv, 3)
+    u = _dynamics._point_velocity_columns(model, kinematics, joints, centres)  # (n, nv, 3)
     forces = jnp.einsum("cia,ca->ci", rotations, impulse.reshape(n, 3))  # world forces R lambda
     wrenches = jnp.concatenate([forces, jnp.cross(points, forces)], axis=-1)  # about the origin
     # d(J^T lambda)[j, k] = sum_c w_c . (S_k x S_j) (j on or below k) + (f_c x omega_j) . u[c, k]
-    moved_columns = jnp.where(supports, S[None], 0.0)
+    moved_columns = _dynamics._support_columns(model, kinematics, joints)  # (n, nv, 6)
     first = jnp.einsum("cja,cka->jk", jnp.where(supports, _cross_mf(S[None], wrenches[:, None]), 0.0), moved_columns)
     second = jnp.einsum("cja,cka->jk", jnp.where(supports, jnp.cross(forces[:, None], S[None, :, 3:]), 0.0), u)
     d_contact_forces = jnp.where(below, first, 0.0) + second
@@ -222,6 +223,4 @@ def tangent_jacobian(system, update, v: Array) -> tuple[Array, Array, Array]:
 
 
 def _corrected(system, free_velocity, distance):
-    from rsmooth.sim._contact import corrected_free_velocity
-
     return corrected_free_velocity(free_velocity, distance, system.time_step, baumgarte=system.baumgarte)

@@ -133,6 +133,23 @@ def _tree(model: Model) -> _Tree:
     return _tree_structure(model.joint_types, model.parents, model.idx_q, model.idx_v)
 
 
+def _support_columns(model: Model, kinematics, joints) -> jax.Array:
+    """World-frame motion subspace columns of the dofs that move body ``joints`` (an int, or a
+    static integer array of any shape ``B``), ``B + (nv, 6)``: zero for the other dofs."""
+    moves = _tree(model).support[joints][..., None]  # B + (nv, 1)
+    subspace = kinematics.motion_subspace
+    return jnp.where(moves, subspace.reshape((1,) * (moves.ndim - 2) + subspace.shape), 0.0)
+
+
+def _point_velocity_columns(model: Model, kinematics, joints, points: jax.Array) -> jax.Array:
+    """``(..., nv, 3)``: row ``k`` is the world velocity of the material point of body
+    ``joints`` at world position ``points`` ``(..., 3)`` per unit velocity of dof ``k``;
+    ``joints`` (static) broadcasts against the leading axes of ``points`` (all contacts of a
+    step in one batched expression: see ``RigidBodySystem.contacts``)."""
+    columns = _support_columns(model, kinematics, joints)
+    return columns[..., :3] - jnp.cross(points[..., None, :], columns[..., 3:])
+
+
 def _take(values: jax.Array, indices: np.ndarray) -> jax.Array:
     """``values[indices]`` for static indices, as a slice when they are a contiguous range."""
     if len(indices) and np.array_equal(indices, np.arange(indices[0], indices[0] + len(indices))):

@@ -347,18 +347,16 @@ class RigidBodySystem(eqx.Module):
             kinematics = _dynamics._kinematics(model, q)
         # All spheres at once (one batched expression per quantity, not one per sphere: the
         # traced graph, and the compile time of every solver built on the step, would grow
-        # with the number of spheres). The sphere -> joint map is static.
-        centres, joints = self._sphere_centres(kinematics)  # (S, 3)
-        radii = self.sphere_radii[:, None]
-        distance = centres @ self.plane_normals.T - self.plane_offsets[None, :] - radii  # (S, P)
-        points = centres[:, None, :] - radii[:, :, None] * self.plane_normals[None]  # (S, P, 3)
-        point_jacobians = _point_velocity_columns(model, kinematics, joints[:, None], points)  # (S, P, nv, 3)
-        rotations = contact_frame(self.plane_normals)  # (P, 3, 3)
-        # R_p^T J_p, unrolled over the 3-axis (a batched 3x3 dot is slow on CPU: _spatial)
-        jacobians = sum(rotations[None, :, j, :, None] * point_jacobians[:, :, None, :, j] for j in range(3))  # (S, P, 3, nv)
-        distances = [distance.reshape(-1)]
-        frames = [jnp.broadcast_to(rotations, (len(self.sphere_frames),) + rotations.shape).reshape(-1, 3, 3)]
-        jacobians = [jacobians.reshape(-1, 3, model.nv)]
+        # with the number of spheres). The contact -> joint map is static.
+        centres, points, joints, rotations = self._sphere_geometry(kinematics)  # (n, 3) x2, (n,), (n, 3, 3)
+        num_spheres, num_planes = len(self.sphere_frames), self.plane_normals.shape[0]
+        normals = jnp.tile(self.plane_normals, (num_spheres, 1))
+        offsets = jnp.tile(self.plane_offsets, num_spheres)
+        distance = spatial.sum_last(centres * normals) - offsets - jnp.repeat(self.sphere_radii, num_planes)
+        point_jacobians = _dynamics._point_velocity_columns(model, kinematics, joints, points)  # (n, nv, 3)
+        # R^T J_p, unrolled over the 3-axis (a batched 3x3 dot is slow on CPU: _spatial)
+        jacobians = sum(rotations[:, j, :, None] * point_jacobians[:, None, :, j] for j in range(3))  # (n, 3, nv)
+        distances, frames, jacobians = [distance], [rotations], [jacobians]
         for sphere in self.box_spheres:
             distance, rotation, jacobian = self._sphere_box_contact(kinematics, sphere)
             distances.append(distance[None])
@@ -728,31 +726,14 @@ def _block_diagonal(blocks: Array) -> Array:
     return jnp.einsum("ij,iab->iajb", eye, blocks).reshape(n * b, n * b)
 
 
-def _support_columns(model: Model, kinematics, joints) -> Array:
-    """World-frame motion subspace columns of the dofs that move body ``joints`` (an int, or a
-    static integer array of any shape ``B``), ``B + (nv, 6)``: zero for the other dofs."""
-    moves = _dynamics._tree(model).support[joints][..., None]  # B + (nv, 1)
-    subspace = kinematics.motion_subspace
-    return jnp.where(moves, subspace.reshape((1,) * (moves.ndim - 2) + subspace.shape), 0.0)
-
-
-def _point_velocity_columns(model: Model, kinematics, joints, points: Array) -> Array:
-    """``(..., nv, 3)``: row ``k`` is the world velocity of the material point of body
-    ``joints`` at world position ``points`` ``(..., 3)`` per unit velocity of dof ``k``;
-    ``joints`` (static) broadcasts against the leading axes of ``points`` (all contacts of a
-    step in one batched expression: see `contacts`)."""
-    columns = _support_columns(model, kinematics, joints)
-    return columns[..., :3] - jnp.cross(points[..., None, :], columns[..., 3:])
-
-
 def _point_jacobian(model: Model, kinematics, joint: int, point: Array) -> Array:
     """Jacobian ``(3, nv)`` of the world velocity of the body-``joint`` point at world ``point``."""
-    return _point_velocity_columns(model, kinematics, joint, point).T
+    return _dynamics._point_velocity_columns(model, kinematics, joint, point).T
 
 
 def _angular_jacobian(model: Model, kinematics, joint: int) -> Array:
     """Jacobian ``(3, nv)`` of body ``joint``'s angular velocity in world axes."""
-    return _support_columns(model, kinematics, joint)[:, 3:].T
+    return _dynamics._support_columns(model, kinematics, joint)[:, 3:].T
 
 
 def energy(system: RigidBodySystem, x: ArrayLike) -> Array:
