@@ -67,10 +67,12 @@ QUICK_HORIZONS = (10,)
 QUICK_SAMPLES = (4,)
 QUICK_ITERATIONS = 3
 FOOT = "FL"
-# DDP.node_batch_size: on one CPU core, batching nodes (vmap) compiled and ran (no hang) but was
-# no faster: T = 50, DDP 91 ms (1), 85 ms (10), 148 ms (all); R-DDP M = 8 760 ms (1), 790 ms (4),
-# 1.37 s (all), and compiled in twice the time with 4.
-DDP_NODE_BATCH = 1
+# DDP.node_batch_size and RDDP.sample_node_batch_size, the solvers' defaults. Session 18 (sticking guess, closed-form step
+# derivatives), one core, T = 50: DDP's node Jacobians 2.3 ms all nodes at once against 4.1 ms one
+# at a time; R-DDP M = 32 236 ms per iteration all at once against 129 ms (M samples per node are
+# already a batch). Earlier (jacfwd through the contact solver) batching nodes was no faster: DDP
+# 91 ms (1), 85 ms (10), 148 ms (all); R-DDP M = 8 760 ms (1), 790 ms (4), 1.37 s (all).
+DDP_NODE_BATCH = None
 RDDP_NODE_BATCH = 1
 # Crocoddyl releases and the Pinocchio each was built against (a different one segfaults or
 # gives wrong dynamics: FIELD-NOTES).
@@ -445,7 +447,8 @@ def main(
                 max_iterations=iterations,
                 max_smoothed_iterations=iterations,
                 throw=False,
-                node_batch_size=rddp_node_batch,
+                node_batch_size=ddp_node_batch,
+                sample_node_batch_size=rddp_node_batch,
             )
             start = time.perf_counter()
             results["ours"][(f"rddp{M}", T)] = time_ours("rddp", solver, problem, us_init, key, repeats, breakdown)
@@ -566,7 +569,7 @@ if __name__ == "__main__":
     parser.add_argument("--iterations", type=int)
     batch = lambda s: s if s == "default" else None if s == "none" else int(s)  # noqa: E731
     parser.add_argument("--ddp-node-batch", type=batch, default="default", help="DDP.node_batch_size for DDP (int or none)")
-    parser.add_argument("--rddp-node-batch", type=batch, default="default", help="DDP.node_batch_size for R-DDP (int or none)")
+    parser.add_argument("--rddp-node-batch", type=batch, default="default", help="RDDP.sample_node_batch_size (int or none)")
     parser.add_argument("--all-cpus", action="store_true", help="do not pin the process to one CPU")
     parser.add_argument("--no-breakdown", action="store_true")
     args = parser.parse_args()

@@ -34,6 +34,9 @@ def test_linear_quadratic_is_solved_by_riccati_in_one_iteration():
     np.testing.assert_allclose(solution.us, us, rtol=1e-7, atol=1e-9)
     np.testing.assert_allclose(solution.xs, xs, rtol=1e-7, atol=1e-9)
     np.testing.assert_allclose(solution.gains, gains, rtol=1e-7, atol=1e-9)
+    # The node Jacobians in batches of 2 nodes (`lax.map`) instead of all at once: the same.
+    batched = control.ddp(problem, solver=control.DDP(reg_init=0.0, node_batch_size=2))
+    np.testing.assert_allclose(batched.us, solution.us, rtol=1e-12, atol=1e-14)
     # A time-varying running cost: weights w_t on the state cost.
     weights = np.linspace(0.0, 3.0, problem.horizon)
     varying = control.ShootingProblem(

@@ -21,7 +21,7 @@ def test_smoothed_jacobians_of_linear_dynamics(getkey):
     )
     options = dict(eps=0.3, state_noise_scale=(2.0, 1.0, 1.5), control_noise_scale=0.5)
     # The mean of sampled Jacobians of a linear map is exact, whatever the noise scales (here
-    # with all nodes at once; the solvers default to one node at a time).
+    # with all nodes at once; R-DDP defaults to one node at a time).
     fx, fu = jacobians(problem, getkey(), xs, us, num_samples=3, estimator="first", batch_size=None, **options)
     np.testing.assert_allclose(fx, np.broadcast_to(A, fx.shape), rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(fu, np.broadcast_to(B, fu.shape), rtol=1e-12, atol=1e-12)
@@ -111,6 +111,8 @@ def test_bad_input_raises_named_errors():
         control.RDDP(control_noise_scale=-1.0)
     with pytest.raises(ValueError, match="approximation"):
         control.RDDP(approximation="full")
+    with pytest.raises(ValueError, match="sample_node_batch_size"):
+        control.RDDP(sample_node_batch_size=0)
     problem = cube_lift()
     with pytest.raises(TypeError, match="key"):
         control.rddp(problem, 0)
