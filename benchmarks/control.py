@@ -67,10 +67,11 @@ QUICK_HORIZONS = (10,)
 QUICK_SAMPLES = (4,)
 QUICK_ITERATIONS = 3
 FOOT = "FL"
-# DDP.node_batch_size and RDDP.sample_node_batch_size, the solvers' defaults. Session 18 (sticking guess, closed-form step
-# derivatives), one core, T = 50: DDP's node Jacobians 2.3 ms all nodes at once against 4.1 ms one
-# at a time; R-DDP M = 32 236 ms per iteration all at once against 129 ms (M samples per node are
-# already a batch). Earlier (jacfwd through the contact solver) batching nodes was no faster: DDP
+# DDP.node_batch_size and RDDP.sample_node_batch_size, the solvers' defaults. Session 18 (sticking
+# guess, closed-form step derivatives), one core, T = 50: DDP's node Jacobians 2.2-2.6 ms all nodes
+# at once against 4.4-4.6 ms one at a time where every contact sticks, 4.2 against 4.1 ms on this
+# benchmark's first DDP state; R-DDP M = 32 236 ms per iteration all at once against 129 ms (M
+# samples per node are already a batch). Earlier (jacfwd through the contact solver) batching nodes was no faster: DDP
 # 91 ms (1), 85 ms (10), 148 ms (all); R-DDP M = 8 760 ms (1), 790 ms (4), 1.37 s (all).
 DDP_NODE_BATCH = None
 RDDP_NODE_BATCH = 1

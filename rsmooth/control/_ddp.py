@@ -321,9 +321,11 @@ class DDP(eqx.Module):
         box_qp_iterations: iteration cap of the box QP (Box-DDP).
         node_batch_size: the Jacobians of the dynamics are computed this many nodes at a
             time (`lax.map` over batches, `vmap` within one); ``None`` (the default): all
-            nodes at once. On Solo-12 (T = 50, one CPU core) all nodes at once took 2.3 ms
-            against 4.1 ms one node at a time (R-DDP's sampled Jacobians have their own
-            ``sample_node_batch_size``).
+            nodes at once. On Solo-12 (T = 50, one CPU core) all nodes at once took 2.2-2.6
+            ms against 4.4-4.6 ms one node at a time on trajectories whose contacts stick, and
+            the same (4.1-4.2 ms) where some nodes' contact solves run ADMM (the batch waits
+            for the slowest). R-DDP's sampled Jacobians have their own
+            ``sample_node_batch_size``.
         throw: raise a ``RuntimeError`` with the result's message when the solve does not
             succeed (otherwise inspect ``solution.result``).
     """
