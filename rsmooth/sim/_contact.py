@@ -556,12 +556,12 @@ class NCPSolver(eqx.Module):
             converged = self._within_tolerance(primal, dual, complementarity)
             return z, NCPInfo(jnp.zeros((), jnp.int32), primal, dual, complementarity, converged, jnp.zeros((), G.dtype))
 
-        if warm_start is not None:
-            first = candidate(project_to_friction_cone(warm_start.reshape(n, 3), mu).reshape(-1))
-        elif not self.sticking_guess:
-            first = candidate(jnp.zeros_like(g))
+        if warm_start is None:
+            given = jnp.zeros_like(g)
+        else:
+            given = project_to_friction_cone(warm_start.reshape(n, 3), mu).reshape(-1)
         if not self.sticking_guess:
-            return first
+            return candidate(given)
         # Contacts whose free normal velocity closes stick (c_i = 0), the others carry no
         # impulse: solve G_AA lambda_A = -g_A on that active set A (rows and columns of the
         # others replaced by the identity). A diagonal shift of 1e-12 of G's scale keeps the
@@ -578,8 +578,9 @@ class NCPSolver(eqx.Module):
         guess = candidate(project_to_friction_cone(sticking.reshape(n, 3), mu).reshape(-1))
         if warm_start is None:
             return guess
-        use_guess = guess[1].converged & ~first[1].converged
-        return jax.tree.map(lambda a, b: jnp.where(use_guess, a, b), guess, first)
+        warm = candidate(given)
+        use_guess = guess[1].converged & ~warm[1].converged
+        return jax.tree.map(lambda a, b: jnp.where(use_guess, a, b), guess, warm)
 
     def init(self, G: Array, g: Array, mu: Array, warm_start: Array | None) -> NCPState:
         """Initial iterate: ``z = P_K(warm_start)`` (or 0) and the matching ``y = -c~(z)``,
@@ -787,20 +788,21 @@ def solve_ncp(
     if warm_start is not None:
         warm_start = lax.stop_gradient(warm_start)
 
-    def admm(carry):
-        # The barrier ties the problem to the loop's carry: without it XLA hoists the
-        # loop-invariant eigendecomposition out of the loop, which then runs every time.
-        G_, g_, mu_, _ = lax.optimization_barrier((G_solve, g_solve, mu_solve, carry))
-        state = solver.init(G_, g_, mu_, start[0])
-        state = lax.while_loop(lambda s: ~solver.terminate(s), lambda s: solver.step(G_, g_, mu_, s), state)
-        return jnp.ones((), bool), solver.postprocess(state)
-
     # ADMM (and the eigendecomposition of G its init computes) runs only if the starting
     # impulse does not already solve the problem. A while_loop rather than a cond: under vmap
     # a cond with a batched predicate computes both branches, while this loop's body runs
     # only if some member of the batch needs it.
-    start = solver.start(G_solve, g_solve, mu_solve, warm_start)
-    _, (impulse, info) = lax.while_loop(lambda c: ~c[0], admm, (start[1].converged, start))
+    start, start_info = solver.start(G_solve, g_solve, mu_solve, warm_start)
+
+    def admm(carry):
+        # The barrier ties the problem to the loop's carry: without it XLA hoists the
+        # loop-invariant eigendecomposition out of the loop, which then runs every time.
+        G_, g_, mu_, _ = lax.optimization_barrier((G_solve, g_solve, mu_solve, carry))
+        state = solver.init(G_, g_, mu_, start)
+        state = lax.while_loop(lambda s: ~solver.terminate(s), lambda s: solver.step(G_, g_, mu_, s), state)
+        return jnp.ones((), bool), solver.postprocess(state)
+
+    _, (impulse, info) = lax.while_loop(lambda c: ~c[0], admm, (start_info.converged, (start, start_info)))
     if solver.throw:
         impulse = eqx.error_if(
             impulse, ~info.converged, "NCP solver did not converge within max_iterations."
