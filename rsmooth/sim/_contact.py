@@ -297,8 +297,8 @@ class NCPInfo(eqx.Module):
     """Diagnostics of an NCP solve (no derivatives flow through them).
 
     Attributes:
-        iterations: ADMM iterations used (0 if the warm start or the sticking guess already
-            satisfied the tolerance).
+        iterations: ADMM iterations used (0 if the warm start, the sticking guess or the
+            polish already satisfied the tolerance).
         primal_feasibility, dual_feasibility, complementarity: the residuals of
             :func:`ncp_residuals` at the returned impulse.
         converged: all three residuals ``<= tolerance``.
@@ -439,6 +439,124 @@ def many_column_solver(factor, rhs: Array):
     return lambda b: jax.scipy.linalg.cho_solve(factor, b)
 
 
+# Contact modes of the active-set Newton polish (NCPSolver.polish).
+_SEPARATED, _STICKING, _SLIDING = 0, 1, 2
+
+
+def _mode_equations(x: Array, direction: Array, mode: Array, G: Array, g: Array, mu: Array) -> tuple[Array, Array, Array]:
+    """The impulse, the equations and their Jacobian of the polish at its unknowns ``x``
+    ``(n, 3)`` and sliding directions ``direction`` ``(n, 2)`` (unit vectors): ``(impulse
+    (3 n,), residual (3 n,), jacobian (3 n, 3 n))``.
+
+    Per contact mode, unknowns and equations (``c = G lambda + g`` per contact ``[c_T, c_N]``):
+
+    - separated: ``lambda = 0``; unknowns ``x``, equations ``x = 0``;
+    - sticking: ``lambda = x``; equations ``c = 0``;
+    - sliding: ``lambda = (mu x_0 d, x_0)`` on the cone's boundary with ``d`` the direction,
+      whose angle is the unknown ``x_1`` (the Jacobian's column is the derivative along
+      ``d_perp``; ``x_1`` itself is not read: :func:`_polish` turns ``d`` by each step), slip
+      speed ``x_2``; equations ``c_N = 0``, ``d_perp . c_T = 0``,
+      ``d . c_T + x_2 = 0`` (the slip ``c_T = -x_2 d`` opposes the friction impulse), in this
+      order so that the diagonal is ``G_NN``, ``mu x_0 d_perpᵀ G_TT d_perp + x_2`` and 1;
+      without friction (``mu = 0``) ``c_N = 0``, ``x_1 = x_2 = 0``.
+
+    The Jacobian is in closed form: ``c`` depends on ``x`` through ``G D``, ``D`` the
+    block-diagonal derivative of the impulse, and each contact's equations are a rotation
+    ``R`` of its ``c`` plus terms of its own unknowns."""
+    n = mu.shape[0]
+    dtype = G.dtype
+    # The direction as a unit vector rather than an angle: cos and sin inside the fused loops
+    # of the Jacobian were recomputed per element (1.6 against 1.2 us per problem under vmap).
+    cos, sin = direction[:, 0], direction[:, 1]
+    zero, one = jnp.zeros_like(cos), jnp.ones_like(cos)
+    separated, sticking = (mode == _SEPARATED)[:, None, None], (mode == _STICKING)[:, None, None]
+    friction = (mu > 0)[:, None, None]
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=dtype), (n, 3, 3))
+
+    def blocks(*rows):  # (n, 3, 3) from three rows of three (n,) entries
+        return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=1)
+
+    sliding_impulse = jnp.stack([mu * x[:, 0] * cos, mu * x[:, 0] * sin, x[:, 0]], axis=-1)
+    impulse = jnp.where(separated[:, :, 0], 0.0, jnp.where(sticking[:, :, 0], x, sliding_impulse))
+    c = (sum_last(G * impulse.reshape(1, -1)) + g).reshape(n, 3)
+    # d impulse / d x, and R (equations = R c + own terms).
+    D = jnp.where(separated, 0.0, jnp.where(sticking, eye, blocks(
+        (mu * cos, -mu * x[:, 0] * sin, zero), (mu * sin, mu * x[:, 0] * cos, zero), (one, zero, zero)
+    )))
+    sliding_R = jnp.where(
+        friction,
+        blocks((zero, zero, one), (-sin, cos, zero), (cos, sin, zero)),
+        blocks((zero, zero, one), (zero,) * 3, (zero,) * 3),
+    )
+    R = jnp.where(separated, 0.0, jnp.where(sticking, eye, sliding_R))
+    tangential_along, tangential_across = cos * c[:, 0] + sin * c[:, 1], -sin * c[:, 0] + cos * c[:, 1]
+    sliding_own = jnp.where(
+        friction,
+        blocks((zero,) * 3, (zero, -tangential_along, zero), (zero, tangential_across, one)),  # dR/dx_1 c, and x_2
+        blocks((zero,) * 3, (zero, one, zero), (zero, zero, one)),
+    )
+    own = jnp.where(separated, eye, jnp.where(sticking, 0.0, sliding_own))
+    sliding_values = jnp.where(
+        friction[:, :, 0], jnp.stack([zero, zero, x[:, 2]], axis=-1), jnp.stack([zero, x[:, 1], x[:, 2]], axis=-1)
+    )
+    own_values = jnp.where(separated[:, :, 0], x, jnp.where(sticking[:, :, 0], 0.0, sliding_values))
+    # Products over the short axes written out (rsmooth._unrolled: einsum's small batched
+    # dot products are several times slower under vmap on CPU).
+    residual = sum(R[:, :, b] * c[:, None, b] for b in range(3)) + own_values
+    G4 = G.reshape(n, 3, n, 3)  # (contact i, row a, contact j, column b)
+    GD = sum(G4[:, :, :, b, None] * D[None, None, :, b, :] for b in range(3))  # (n, 3, n, 3)
+    RGD = sum(R[:, :, b, None, None] * GD[:, None, b] for b in range(3))
+    jacobian = RGD + jnp.eye(n, dtype=dtype)[:, None, :, None] * own[:, :, None, :]
+    return impulse.reshape(-1), residual.reshape(-1), jacobian.reshape(3 * n, 3 * n)
+
+
+def _solve_unpivoted(A: Array, b: Array) -> Array:
+    """``A^{-1} b`` by Gauss-Jordan elimination without pivoting, one row per iteration of a
+    ``fori_loop``. For the polish's small systems (12 x 12 for four contacts) under ``vmap``
+    on CPU, ``jnp.linalg.solve`` (LAPACK's LU per matrix, then a loop turning its pivots
+    into a permutation) cost more than the rest of a Newton step; unrolled, XLA fused the
+    elimination steps into loops that recomputed the earlier ones. A zero pivot gives a
+    non-finite result, which the polish rejects like any other failure."""
+    n = A.shape[-1]
+    eye = jnp.eye(n, dtype=A.dtype)
+
+    def eliminate(k, augmented):
+        row = lax.dynamic_index_in_dim(augmented, k, axis=0, keepdims=False)
+        row = row / row[k]
+        column = lax.dynamic_index_in_dim(augmented, k, axis=1, keepdims=False)
+        column = column - lax.dynamic_index_in_dim(eye, k, axis=1, keepdims=False)
+        return augmented - column[:, None] * row[None, :]
+
+    return lax.fori_loop(0, n, eliminate, jnp.concatenate([A, b[:, None]], axis=1))[:, n]
+
+
+def _polish(G: Array, g: Array, mu: Array, impulse: Array, steps: int) -> Array:
+    """Active-set Newton polish: the contact modes read from ``impulse`` (in the cone: zero
+    normal impulse separated, on the cone's boundary sliding, inside sticking), then
+    ``steps`` Newton iterations on the modes' equations (:func:`_mode_equations`). The result
+    (possibly not finite, or the solution of wrong modes) must be checked by
+    :func:`ncp_residuals`."""
+    n = mu.shape[0]
+    z = impulse.reshape(n, 3)
+    c = (G @ impulse + g).reshape(n, 3)
+    separated = z[:, 2] <= 0
+    sliding = ~separated & (_safe_norm(z[:, :2]) >= mu * z[:, 2] * (1.0 - 1e-6))
+    mode = jnp.where(separated, _SEPARATED, jnp.where(sliding, _SLIDING, _STICKING))
+    slide_start = jnp.stack([z[:, 2], jnp.zeros_like(z[:, 2]), _safe_norm(c[:, :2])], axis=-1)
+    x = jnp.where(sliding[:, None], slide_start, z)
+    tangential = _safe_norm(z[:, :2])
+    unit = z[:, :2] / jnp.where(tangential > 0, tangential, 1.0)[:, None]
+    direction = jnp.where((tangential > 0)[:, None], unit, jnp.array([[1.0, 0.0]], G.dtype))
+    for _ in range(steps):  # a few steps, unrolled: Newton converges quadratically here
+        _, residual, jacobian = _mode_equations(x, direction, mode, G, g, mu)
+        step = _solve_unpivoted(jacobian, residual).reshape(n, 3)
+        x = x - step
+        # Turn the direction by the angle step (a retraction onto the unit circle).
+        turned = direction - step[:, 1:2] * jnp.stack([-direction[:, 1], direction[:, 0]], axis=-1)
+        direction = turned / _safe_norm(turned)[:, None]
+    return _mode_equations(x, direction, mode, G, g, mu)[0]
+
+
 class NCPSolver(eqx.Module):
     """ADMM for the frictional contact NCP with the De Saxcé correction.
 
@@ -502,6 +620,24 @@ class NCPSolver(eqx.Module):
             slowest member of a batch than from zero). :func:`rsmooth.sim.solo12` turns it on;
             it is off by default because where ``G`` is singular (a box on four coplanar
             corners) the impulses are not unique and the start decides which one is found.
+        polish: active-set Newton polish (in the spirit of OSQP's solution polishing, here
+            with the nonlinear sliding modes), tried after the start and before ADMM: read
+            each contact's mode (separated, sticking, sliding) from the start impulse, solve
+            that mode's equations (``lambda = 0``; ``c = 0``; ``c_N = 0`` with the impulse on
+            the cone's boundary opposite the slip) by ``polish_steps`` Newton iterations, and
+            keep the result where it satisfies the tolerance (the same residual test as
+            ADMM's, so a polished impulse is a solution). Where it does not, the next round
+            takes one step of the natural map from the polished impulse (which corrects the
+            modes it assumed) and polishes again, up to ``polish_rounds`` rounds; ADMM runs
+            only where all of them fail. On R-DDP samples of a standing Solo-12 (eps = 1,
+            78 % of the problems with a sliding foot) the first round solved 97 % of the
+            problems and the second all of them; the batched solve took 12 against 27 us per
+            problem with ADMM (whose batches of 32 ran 88 iterations on average for their
+            slowest member). :func:`rsmooth.sim.solo12` turns it on; off by default for the
+            same reason as ``sticking_guess`` (a singular ``G``: the start decides the
+            solution found).
+        polish_rounds: rounds of the polish before ADMM (``polish`` only).
+        polish_steps: Newton iterations of a round.
 
     References:
         J. Carpentier, Q. Le Lidec, L. Montaut, "From compliant to rigid contact simulation:
@@ -525,8 +661,15 @@ class NCPSolver(eqx.Module):
     implicit_regularization: float = eqx.field(static=True, default=1e-12)
     throw: bool = eqx.field(static=True, default=False)
     sticking_guess: bool = eqx.field(static=True, default=False)
+    polish: bool = eqx.field(static=True, default=False)
+    polish_rounds: int = eqx.field(static=True, default=3)
+    polish_steps: int = eqx.field(static=True, default=4)
 
     def __check_init__(self):
+        for name in ("polish_rounds", "polish_steps"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an int >= 1, got {value!r}.")
         if not (isinstance(self.max_iterations, int) and self.max_iterations >= 1):
             raise ValueError(f"max_iterations must be an int >= 1, got {self.max_iterations}.")
         if not self.tolerance > 0:
@@ -669,6 +812,15 @@ class NCPSolver(eqx.Module):
         # A NaN residual compares False, so it never counts as converged.
         return (primal <= self.tolerance) & (dual <= self.tolerance) & (complementarity <= self.tolerance)
 
+    def polished(self, G: Array, g: Array, mu: Array, impulse: Array) -> tuple[Array, Array, Array, Array, Array]:
+        """The polish (:func:`_polish`) of ``impulse``, or ``impulse`` where it is not finite,
+        its residuals and whether they satisfy the tolerance: ``(candidate, primal, dual,
+        complementarity, solved)``."""
+        candidate = _polish(G, g, mu, impulse, self.polish_steps)
+        candidate = jnp.where(jnp.all(jnp.isfinite(candidate)), candidate, impulse)
+        primal, dual, complementarity = ncp_residuals(G, g, mu, candidate)
+        return candidate, primal, dual, complementarity, self._within_tolerance(primal, dual, complementarity)
+
     def _residuals_within_tolerance(self, state: NCPState) -> Array:
         return self._within_tolerance(state.primal_feasibility, state.dual_feasibility, state.complementarity)
 
@@ -793,6 +945,30 @@ def solve_ncp(
     # a cond with a batched predicate computes both branches, while this loop's body runs
     # only if some member of the batch needs it.
     start, start_info = solver.start(G_solve, g_solve, mu_solve, warm_start)
+
+    if solver.polish:
+        # Rounds of the polish, in a loop that (under vmap) runs while some member is not
+        # solved: the first polishes the start, each later one first takes a projected
+        # fixed-point step lambda - F(lambda) = P_K(lambda - r c~) (F the natural map) from the
+        # last polished impulse, which corrects the modes the failed polish assumed.
+        step_sizes = fixed_point_step_sizes(G_solve, mu_solve.shape[0])
+
+        def polish_round(carry):
+            round_, _, (impulse, info), last = carry
+            moved = last - _natural_map(last, G_solve, g_solve, mu_solve, step_sizes)
+            candidate, primal, dual, complementarity, solved = solver.polished(
+                G_solve, g_solve, mu_solve, jnp.where(round_ == 0, impulse, moved)
+            )
+            solved = solved & ~info.converged
+            result = NCPInfo(info.iterations, primal, dual, complementarity, solved, info.rho)
+            info = jax.tree.map(lambda a, b: jnp.where(solved, a, b), result, info)
+            return round_ + 1, info.converged, (jnp.where(solved, candidate, impulse), info), candidate
+
+        _, _, (start, start_info), _ = lax.while_loop(
+            lambda c: ~c[1] & (c[0] < solver.polish_rounds),
+            polish_round,
+            (jnp.zeros((), jnp.int32), start_info.converged, (start, start_info), start),
+        )
 
     def admm(carry):
         # The barrier ties the problem to the loop's carry: without it XLA hoists the

@@ -333,7 +333,7 @@ def solo12(
     friction: float = 0.7,
     time_step: float = 0.01,
     contact: ContactLaw | str = "hard",
-    solver: NCPSolver = NCPSolver(rho_update_power=0.05, sticking_guess=True),
+    solver: NCPSolver = NCPSolver(rho_update_power=0.05, sticking_guess=True, polish=True),
     baumgarte: float = 0.2,
     torque_limit: float = SOLO12_TORQUE_LIMIT,
     model: Model | None = None,
@@ -360,7 +360,9 @@ def solo12(
             penalty update (``rho_update_power=0.05``, see :class:`NCPSolver`), which halves
             the solver's iterations on the perturbed states of R-DDP, and the sticking guess
             (``sticking_guess=True``), which solves the steps where the feet on the floor
-            stick without ADMM (2.4x faster batched steps standing).
+            stick without ADMM (2.4x faster batched steps standing), and the active-set
+            Newton polish (``polish=True``), which solves those where feet slide or lift
+            without ADMM too.
         baumgarte: penetration correction rate (hard contact).
         torque_limit: joint torque bound (N m).
         model: an already loaded Solo-12 model (default: loaded from the URDF).

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from rsmooth.sim import _contact
 from rsmooth.sim._contact import (
     LogBarrier,
     NCPSolver,
@@ -452,6 +453,63 @@ def test_sticking_guess_solves_sticking_problems_without_admm(getkey):
     # The implicit derivative is that of the solution, however it was found.
     solution = lambda solver: jax.jacfwd(lambda g_: solve_ncp(G, g_, mu, solver=solver)[0])(g)
     np.testing.assert_allclose(solution(NCPSolver(sticking_guess=True)), solution(TIGHT), atol=1e-9)
+
+
+POLISHED = NCPSolver(tolerance=1e-12, max_iterations=20000, sticking_guess=True, polish=True)
+_solve_polished_batch = jax.jit(jax.vmap(lambda G, g, mu: solve_ncp(G, g, mu, solver=POLISHED)))
+
+
+def test_polish_equations_have_the_closed_form_jacobian(getkey):
+    """The polish's Newton Jacobian (closed form) equals forward-mode autodiff of its
+    equations, for every mode and without friction, with the direction as an angle."""
+    G, g, mu = problem_batch(getkey, 4, 1)
+    G, g, mu = G[0], g[0], mu[0].at[1].set(0.0)  # contact 1 frictionless
+    generator = numpy_generator(getkey())
+
+    def equations(x, mode):
+        direction = jnp.stack([jnp.cos(x[:, 1]), jnp.sin(x[:, 1])], axis=-1)
+        return _contact._mode_equations(x, direction, mode, G, g, mu)
+
+    for _ in range(4):
+        mode = jnp.asarray(generator.integers(0, 3, size=4))
+        x = jnp.asarray(generator.normal(size=(4, 3)))
+        autodiff = jax.jacfwd(lambda x_: equations(x_, mode)[1])(x).reshape(12, 12)
+        np.testing.assert_allclose(equations(x, mode)[2], autodiff, atol=1e-12)
+
+
+def test_polish_solves_without_admm(getkey):
+    """The active-set Newton polish: constructed stick/slide/separate problems are solved to
+    their known solution without an ADMM iteration; random problems of 2 and 4 contacts get
+    valid solutions (independent check), most without ADMM, equal to ADMM's where the
+    solution is unique for sure (the constructed ones; Coulomb friction need not have a
+    unique solution even for one contact with an anisotropic G)."""
+    patterns = [("stick", "slide", "separate"), ("slide", "slide"), ("slide", "stick", "slide", "separate")]
+    for modes in patterns:
+        G, g, mu, expected = mixed_mode_problem(getkey(), modes)
+        impulse, info = solve_ncp(G, g, mu, solver=POLISHED)
+        assert bool(info.converged) and int(info.iterations) == 0
+        np.testing.assert_allclose(impulse, expected, atol=1e-10)
+    for n in (2, 4):
+        G, g, mu = problem_batch(getkey, n, BATCH)
+        impulse, info = _solve_polished_batch(G, g, mu)
+        assert bool(jnp.all(info.converged))
+        assert int(jnp.sum(info.iterations == 0)) >= BATCH - 1
+        for i in range(BATCH):
+            check_ncp_numpy(G[i], g[i], mu[i], impulse[i], atol=1e-10)
+    with pytest.raises(ValueError, match="polish_rounds"):
+        NCPSolver(polish_rounds=0)
+    with pytest.raises(ValueError, match="polish_steps"):
+        NCPSolver(polish_steps=1.5)
+
+
+def test_polish_falls_back_to_admm(getkey):
+    """Where the polish fails (here one Newton step, one round: not enough to reach the
+    tolerance where a contact slides), ADMM runs from the start as without the polish."""
+    G, g, mu, expected = mixed_mode_problem(getkey(), ("stick", "slide", "separate"))
+    weak = NCPSolver(tolerance=1e-12, max_iterations=20000, sticking_guess=True, polish=True, polish_rounds=1, polish_steps=1)
+    impulse, info = solve_ncp(G, g, mu, solver=weak)
+    assert bool(info.converged) and int(info.iterations) > 0
+    np.testing.assert_allclose(impulse, expected, atol=1e-10)
 
 
 # ----------------------------------------------------------------------------- jit, vmap, warm start

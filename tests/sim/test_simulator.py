@@ -218,6 +218,28 @@ def test_solo12_stands_still_under_gravity_compensation():
     assert float(xs[-1, 2]) < float(x0[2]) - 0.02
 
 
+def test_solo12_polish_solves_perturbed_steps_without_admm():
+    """On states and torques perturbed as R-DDP samples them (feet sliding, lifting, pressing),
+    Solo-12's default solver (sticking guess and Newton polish) needs no ADMM iteration and
+    gives the next states of plain ADMM (the impulses are unique there: four feet, 18 dofs)."""
+    solo = _solo()
+    plain = dataclasses.replace(solo, solver=dataclasses.replace(solo.solver, polish=False))
+    x0 = sim.solo12_standing_state(solo)
+    key_x, key_u = jax.random.split(jax.random.key(5))
+    scale = jnp.concatenate([jnp.full(19, 1e-2), jnp.full(18, 1e-1)])
+    xs = jax.vmap(solo.project_state)(x0[None] + scale[None] * jax.random.normal(key_x, (16, solo.nx)))
+    us = sim.solo12_standing_torques(solo, x0)[None] + jax.random.normal(key_u, (16, solo.nu))
+    step = eqx.filter_jit(lambda system: jax.vmap(system.step_with_info)(xs, us))
+    (polished, info), (reference, reference_info) = step(solo), step(plain)
+    assert bool(jnp.all(info.ncp.converged)) and bool(jnp.all(reference_info.ncp.converged))
+    assert bool(jnp.all(info.ncp.iterations == 0)) and int(jnp.max(reference_info.ncp.iterations)) > 20
+    # ADMM stops at complementarity residuals of 1e-10 (N s x m/s): with the impulses of
+    # a sliding foot (~1e-2 N s) its contact velocities are known to ~1e-8 m/s only, while
+    # Newton ends at the rounding error.
+    assert float(jnp.max(info.ncp.complementarity)) < 1e-14 and float(jnp.max(info.ncp.dual_feasibility)) < 1e-14
+    np.testing.assert_allclose(polished, reference, rtol=0, atol=1e-7)
+
+
 def test_solo12_under_random_open_loop_torques_stays_finite():
     """Open-loop torques (standing torques plus uniform noise of +-0.3 N m, fresh every step)
     make Solo fall: a physical outcome. With the rotor inertia and the implicit joint damping
