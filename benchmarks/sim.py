@@ -5,10 +5,11 @@ Solo-12 from the example-robot-data URDF, free-flyer base, four sphere feet of r
 12 joint torques, time step 0.01 s, friction 0.7, float64, started at the same standing posture
 under the same gravity-compensating torques. Everything is timed in this one process (median of
 ``repeats`` calls after warm-up; JAX outputs blocked on). Our batched calls are also timed on a
-perturbed batch (5 steps under the standing torques plus noise), where the contact solver runs
-ADMM: at the standing states the sticking guess solves the contact problem at once; MuJoCo's
-step and transition derivative are timed on its own states after the same protocol (its warm
-starts included).
+perturbed batch (5 steps under the standing torques plus noise), where feet slide or lift: at the
+standing states the sticking guess solves the contact problem at once, on the perturbed ones the
+Newton polish (``NCPSolver.polish``) does, and the perturbed step is also timed with the polish
+off (ADMM from the sticking guess) for comparison; MuJoCo's step and transition derivative are
+timed on its own states after the same protocol (its warm starts included).
 
 Ratios (goals from the issue): our batched step per env / ``mj_step`` (<= 2);
 ``mjd_transitionFD`` / our full Jacobian w.r.t. (x, u) (>= 5); MJX step / our step.
@@ -186,7 +187,8 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0) ->
 
     # A second batch where the contact solver works: 5 steps under the standing torques plus
     # Gaussian noise of 0.5 N m (feet slide, lift or press harder); at the standing states the
-    # sticking guess solves the contact problem without ADMM iterations.
+    # sticking guess solves the contact problem without ADMM iterations, at the perturbed ones
+    # the Newton polish (and, with the polish off, ADMM: its iterations are counted too).
     noise = 0.5 * jax.random.normal(jax.random.key(0), (BATCH, system.nu))
     us_perturbed = us + noise
     xs_perturbed = xs
@@ -195,10 +197,18 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0) ->
     info_batch = jax.jit(jax.vmap(lambda x, u: system.step_with_info(x, u)[1].ncp.iterations))
     iterations = {name: np.asarray(info_batch(x, u)) for name, x, u in
                   (("standing", xs, us), ("perturbed", xs_perturbed, us_perturbed))}
+    unpolished = dataclasses.replace(system, solver=dataclasses.replace(system.solver, polish=False))
+    step_batch_unpolished = jax.jit(jax.vmap(lambda x, u: unpolished.step(x, u)))
+    iterations["perturbed, polish off,"] = np.asarray(
+        jax.jit(jax.vmap(lambda x, u: unpolished.step_with_info(x, u)[1].ncp.iterations))(xs_perturbed, us_perturbed)
+    )
 
     results["ours_step"] = median_time(step, x0, u0, repeats=repeats)
     results["ours_step_batch"] = median_time(step_batch, xs, us, repeats=repeats) / BATCH
     results["ours_step_batch_perturbed"] = median_time(step_batch, xs_perturbed, us_perturbed, repeats=repeats) / BATCH
+    results["ours_step_batch_perturbed_unpolished"] = (
+        median_time(step_batch_unpolished, xs_perturbed, us_perturbed, repeats=repeats) / BATCH
+    )
     results["ours_jac"] = median_time(jac1, x0, u0, repeats=repeats)
     # the reference derivative: autodiff through CRBA, Cholesky and the Delassus matrix
     reference = dataclasses.replace(system, derivative="autodiff")
@@ -352,6 +362,7 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0) ->
         ("ours: jit(step), batch 1", "ours_step"),
         (f"ours: jit(vmap(step)), batch {BATCH}, per env", "ours_step_batch"),
         (f"ours: jit(vmap(step)), batch {BATCH} perturbed, per env", "ours_step_batch_perturbed"),
+        (f"ours: jit(vmap(step)), batch {BATCH} perturbed, polish off, per env", "ours_step_batch_perturbed_unpolished"),
         ("ours: jacfwd(step) w.r.t. (x, u), batch 1", "ours_jac"),
         ("ours: jacfwd(step), derivative='autodiff' (reference), batch 1", "ours_jac_autodiff"),
         (f"ours: {jac_label}", "ours_jac_batch"),
@@ -378,6 +389,7 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0) ->
     ratios = [
         ("our step per env (vmap 64) / mj_step", ratio("ours_step_batch", "mj_step"), "<= 2"),
         ("  the same, perturbed states", ratio("ours_step_batch_perturbed", "mj_step_perturbed"), "<= 2"),
+        ("  the same, polish off", ratio("ours_step_batch_perturbed_unpolished", "mj_step_perturbed"), "<= 2"),
         ("our step (batch 1) / mj_step", ratio("ours_step", "mj_step"), ""),
         ("mjd_transitionFD / our Jacobian (batch 1)", ratio("mjd_transitionFD", "ours_jac"), ">= 5"),
         ("our autodiff-reference Jacobian / our implicit one", ratio("ours_jac_autodiff", "ours_jac"), ""),

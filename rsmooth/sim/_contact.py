@@ -946,39 +946,45 @@ def solve_ncp(
     # only if some member of the batch needs it.
     start, start_info = solver.start(G_solve, g_solve, mu_solve, warm_start)
 
-    if solver.polish:
+    # Each loop's body first passes the problem through an optimization barrier with the
+    # loop's carry: without it XLA hoists loop-invariant work (ADMM's eigendecomposition of G,
+    # parts of the polish) out of the loop, where it runs whether the loop does or not.
+    def polish(problem, start, start_info):
         # Rounds of the polish, in a loop that (under vmap) runs while some member is not
         # solved: the first polishes the start, each later one first takes a projected
         # fixed-point step lambda - F(lambda) = P_K(lambda - r c~) (F the natural map) from the
         # last polished impulse, which corrects the modes the failed polish assumed.
-        step_sizes = fixed_point_step_sizes(G_solve, mu_solve.shape[0])
-
         def polish_round(carry):
+            (G, g, mu), carry = lax.optimization_barrier((problem, carry))
             round_, _, (impulse, info), last = carry
-            moved = last - _natural_map(last, G_solve, g_solve, mu_solve, step_sizes)
-            candidate, primal, dual, complementarity, solved = solver.polished(
-                G_solve, g_solve, mu_solve, jnp.where(round_ == 0, impulse, moved)
-            )
+            moved = last - _natural_map(last, G, g, mu, fixed_point_step_sizes(G, mu.shape[0]))
+            candidate, primal, dual, complementarity, solved = solver.polished(G, g, mu, jnp.where(round_ == 0, impulse, moved))
             solved = solved & ~info.converged
             result = NCPInfo(info.iterations, primal, dual, complementarity, solved, info.rho)
             info = jax.tree.map(lambda a, b: jnp.where(solved, a, b), result, info)
             return round_ + 1, info.converged, (jnp.where(solved, candidate, impulse), info), candidate
 
-        _, _, (start, start_info), _ = lax.while_loop(
-            lambda c: ~c[1] & (c[0] < solver.polish_rounds),
-            polish_round,
-            (jnp.zeros((), jnp.int32), start_info.converged, (start, start_info), start),
-        )
+        init = (jnp.zeros((), jnp.int32), start_info.converged, (start, start_info), start)
+        return lax.while_loop(lambda c: ~c[1] & (c[0] < solver.polish_rounds), polish_round, init)[2]
 
-    def admm(carry):
-        # The barrier ties the problem to the loop's carry: without it XLA hoists the
-        # loop-invariant eigendecomposition out of the loop, which then runs every time.
-        G_, g_, mu_, _ = lax.optimization_barrier((G_solve, g_solve, mu_solve, carry))
-        state = solver.init(G_, g_, mu_, start)
-        state = lax.while_loop(lambda s: ~solver.terminate(s), lambda s: solver.step(G_, g_, mu_, s), state)
-        return jnp.ones((), bool), solver.postprocess(state)
+    def admm(problem, start, start_info):
+        def run(carry):
+            (G, g, mu), _ = lax.optimization_barrier((problem, carry))
+            state = solver.init(G, g, mu, start)
+            state = lax.while_loop(lambda s: ~solver.terminate(s), lambda s: solver.step(G, g, mu, s), state)
+            return jnp.ones((), bool), solver.postprocess(state)
 
-    _, (impulse, info) = lax.while_loop(lambda c: ~c[0], admm, (start_info.converged, (start, start_info)))
+        return lax.while_loop(lambda c: ~c[0], run, (start_info.converged, (start, start_info)))[1]
+
+    def solve_from_start(carry):
+        problem, (_, (impulse, info)) = lax.optimization_barrier(((G_solve, g_solve, mu_solve), carry))
+        if solver.polish:
+            impulse, info = polish(problem, impulse, info)
+        return jnp.ones((), bool), admm(problem, impulse, info)
+
+    # One loop around the rest, run 0 or 1 times: a solved start (a standing robot) costs no
+    # more than the loop's test.
+    _, (impulse, info) = lax.while_loop(lambda c: ~c[0], solve_from_start, (start_info.converged, (start, start_info)))
     if solver.throw:
         impulse = eqx.error_if(
             impulse, ~info.converged, "NCP solver did not converge within max_iterations."
