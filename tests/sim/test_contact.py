@@ -489,6 +489,11 @@ def test_polish_solves_without_admm(getkey):
         impulse, info = solve_ncp(G, g, mu, solver=POLISHED)
         assert bool(info.converged) and int(info.iterations) == 0
         np.testing.assert_allclose(impulse, expected, atol=1e-10)
+    # In float32 (tolerance 1e-5, as on a GPU) too, and Newton ends at float32's rounding.
+    single = NCPSolver(tolerance=1e-5, sticking_guess=True, polish=True)
+    impulse, info = solve_ncp(*(a.astype(jnp.float32) for a in (G, g, mu)), solver=single)
+    assert impulse.dtype == jnp.float32 and bool(info.converged) and int(info.iterations) == 0
+    np.testing.assert_allclose(impulse, expected, atol=1e-5)
     for n in (2, 4):
         G, g, mu = problem_batch(getkey, n, BATCH)
         impulse, info = _solve_polished_batch(G, g, mu)
