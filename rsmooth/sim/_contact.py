@@ -539,12 +539,12 @@ def _polish(G: Array, g: Array, mu: Array, impulse: Array, steps: int) -> Array:
     n = mu.shape[0]
     z = impulse.reshape(n, 3)
     c = (G @ impulse + g).reshape(n, 3)
+    tangential = _safe_norm(z[:, :2])
     separated = z[:, 2] <= 0
-    sliding = ~separated & (_safe_norm(z[:, :2]) >= mu * z[:, 2] * (1.0 - 1e-6))
+    sliding = ~separated & (tangential >= mu * z[:, 2] * (1.0 - 1e-6))
     mode = jnp.where(separated, _SEPARATED, jnp.where(sliding, _SLIDING, _STICKING))
     slide_start = jnp.stack([z[:, 2], jnp.zeros_like(z[:, 2]), _safe_norm(c[:, :2])], axis=-1)
     x = jnp.where(sliding[:, None], slide_start, z)
-    tangential = _safe_norm(z[:, :2])
     unit = z[:, :2] / jnp.where(tangential > 0, tangential, 1.0)[:, None]
     direction = jnp.where((tangential > 0)[:, None], unit, jnp.array([[1.0, 0.0]], G.dtype))
     for _ in range(steps):  # a few steps, unrolled: Newton converges quadratically here
