@@ -507,6 +507,30 @@ def test_polish_solves_without_admm(getkey):
         NCPSolver(polish_steps=1.5)
 
 
+def test_batched_solves_do_not_depend_on_the_chunks(getkey):
+    """Under vmap the problems that the start did not solve are solved in chunks
+    (NCPSolver.chunk_size): each member's impulse, ADMM iteration count and convergence flag
+    are those of solving it alone, whatever the chunk size, in a batch where some members need
+    only the polish, some ADMM after it (one Newton step per round is too few where a contact
+    slides) and some nothing (their start, a warm start at the solution, already solves)."""
+    G, g, mu = problem_batch(getkey, 3, BATCH)
+    exact = solve_tight_batch(G, g, mu)[0]
+    warm = jnp.where((jnp.arange(BATCH) % 3 == 0)[:, None], exact, 0.0)
+    weak = dict(tolerance=1e-11, max_iterations=20000, sticking_guess=True, polish=True, polish_steps=1)
+    single = jax.jit(lambda G, g, mu, w: solve_ncp(G, g, mu, solver=NCPSolver(**weak), warm_start=w))
+    singles = [single(G[i], g[i], mu[i], warm[i]) for i in range(BATCH)]
+    alone = jax.tree.map(lambda *parts: jnp.stack(parts), *singles)
+    assert 0 < int(jnp.sum(alone[1].iterations > 0)) < BATCH
+    for chunk in (1, 3, BATCH):
+        solver = NCPSolver(**weak, chunk_size=chunk)
+        impulse, info = jax.jit(jax.vmap(lambda G, g, mu, w: solve_ncp(G, g, mu, solver=solver, warm_start=w)))(G, g, mu, warm)
+        np.testing.assert_array_equal(info.converged, alone[1].converged)
+        np.testing.assert_array_equal(info.iterations, alone[1].iterations)
+        np.testing.assert_allclose(impulse, alone[0], atol=1e-12)
+    with pytest.raises(ValueError, match="chunk_size"):
+        NCPSolver(chunk_size=0)
+
+
 def test_polish_falls_back_to_admm(getkey):
     """Where the polish fails (here one Newton step, one round: not enough to reach the
     tolerance where a contact slides), ADMM runs from the start as without the polish."""
