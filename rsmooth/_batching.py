@@ -19,12 +19,13 @@ import jax.numpy as jnp
 from jax import lax
 from jax.custom_batching import custom_vmap
 
-__all__ = ["run_where_needed"]
+__all__ = ["once_if", "run_where_needed"]
 
 
-def _once_if(fn: Callable, needed, operand, state):
-    """``fn(operand, state)`` if ``needed`` else ``state``, for one member: a loop run 0 or 1
-    times. Its body passes the operand through an optimization barrier with the carry, or XLA
+def once_if(fn: Callable, needed, operand, state):
+    """``fn(operand, state)`` if ``needed`` else ``state``, for one problem: a loop run 0 or 1
+    times (under ``vmap``, as long as some member needs it: :func:`run_where_needed` runs it
+    only for those). Its body passes the operand through an optimization barrier with the carry, or XLA
     may hoist work that depends on the operand only out of the loop, where it runs whether the
     loop does or not."""
 
@@ -70,7 +71,7 @@ def run_where_needed(fn: Callable[[Any, Any], Any], needed, operand, state, *, c
 
     @custom_vmap
     def run(needed, operand, state):
-        return _once_if(fn, needed, operand, state)
+        return once_if(fn, needed, operand, state)
 
     @run.def_vmap
     def _rule(axis_size, in_batched, needed, operand, state):
@@ -82,7 +83,7 @@ def run_where_needed(fn: Callable[[Any, Any], Any], needed, operand, state, *, c
         operand = jax.tree.map(batched, operand, operand_batched)
         state = jax.tree.map(batched, state, state_batched)
         if axis_size <= chunk:
-            out = jax.vmap(lambda n, o, s: _once_if(fn, n, o, s))(needed, operand, state)
+            out = jax.vmap(lambda n, o, s: once_if(fn, n, o, s))(needed, operand, state)
             return out, jax.tree.map(lambda _: True, out)
         count = jnp.sum(needed, dtype=jnp.int32)
         num_chunks = -(-axis_size // chunk)

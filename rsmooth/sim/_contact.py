@@ -34,7 +34,7 @@ import numpy as np
 from jax import lax
 from jax.typing import ArrayLike
 
-from rsmooth._batching import run_where_needed
+from rsmooth._batching import once_if, run_where_needed
 from rsmooth._unrolled import sum_last
 
 Array = jax.Array
@@ -980,13 +980,13 @@ def solve_ncp(
         return lax.while_loop(lambda c: ~c[1] & (c[0] < solver.polish_rounds), polish_round, carry)
 
     def admm(problem, start, start_info):
-        def run(carry):
-            (G, g, mu), _ = lax.optimization_barrier((problem, carry))
-            state = solver.init(G, g, mu, start)
+        def run(problem, state):
+            G, g, mu = problem
+            state = solver.init(G, g, mu, state[0])
             state = lax.while_loop(lambda s: ~solver.terminate(s), lambda s: solver.step(G, g, mu, s), state)
-            return jnp.ones((), bool), solver.postprocess(state)
+            return solver.postprocess(state)
 
-        return lax.while_loop(lambda c: ~c[0], run, (start_info.converged, (start, start_info)))[1]
+        return once_if(run, ~start_info.converged, problem, (start, start_info))
 
     def finish(problem, carry):
         # the polish's rounds, then ADMM, for a problem the start did not solve
