@@ -100,7 +100,7 @@ def cube(
     friction: float = 0.5,
     time_step: float = 0.01,
     contact: ContactLaw | str = "hard",
-    solver: NCPSolver = NCPSolver(),
+    solver: NCPSolver = NCPSolver(sticking_guess=True, rank_deficient=True),
     baumgarte: float = 0.2,
     wrench_components: tuple[int, ...] = (0, 1, 2, 3, 4, 5),
 ) -> RigidBodySystem:
@@ -118,7 +118,9 @@ def cube(
         friction: Coulomb coefficient of the floor.
         time_step: ``h`` (s).
         contact: ``"hard"`` (NCP), ``"spring_damper"``, ``"log_barrier"`` or a law instance.
-        solver: NCP solver configuration (hard contact).
+        solver: NCP solver configuration (hard contact); by default the sticking guess by
+            the pseudo-inverse (``NCPSolver.rank_deficient``: four coplanar corners make the
+            Delassus matrix singular), then ADMM.
         baumgarte: penetration correction rate (hard contact).
         wrench_components: indices into ``[fx, fy, fz, tx, ty, tz]`` of the inputs.
 
@@ -261,7 +263,7 @@ def pusher(
     force_limit: float = 20.0,
     time_step: float = 0.01,
     contact: ContactLaw | str = "hard",
-    solver: NCPSolver = NCPSolver(),
+    solver: NCPSolver = NCPSolver(sticking_guess=True, rank_deficient=True),
     baumgarte: float = 0.2,
 ) -> RigidBodySystem:
     """A planar finger pushing a box on a floor, through sticking and sliding friction.
@@ -283,7 +285,9 @@ def pusher(
         force_limit: bound on each input force (N).
         time_step: ``h`` (s).
         contact: ``"hard"`` (NCP), ``"spring_damper"``, ``"log_barrier"`` or a law instance.
-        solver: NCP solver configuration (hard contact).
+        solver: NCP solver configuration (hard contact); by default the sticking guess by
+            the pseudo-inverse (``NCPSolver.rank_deficient``, for the box's four coplanar
+            corners), then ADMM.
         baumgarte: penetration correction rate (hard contact).
 
     Returns:

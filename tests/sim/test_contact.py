@@ -342,6 +342,12 @@ def test_box_on_four_corners_rank_deficient_delassus():
     guessed, guessed_info = solve_ncp(G, J @ free[0], mu, solver=NCPSolver(sticking_guess=True))
     assert bool(guessed_info.converged)
     np.testing.assert_allclose(free[0] + guessed @ J @ M_inv, 0.0, atol=1e-10)
+    # With rank_deficient the guess is the minimum-norm sticking impulse (the pseudo-inverse),
+    # which solves the problem without ADMM.
+    pseudo, pseudo_info = solve_ncp(G, J @ free[0], mu, solver=NCPSolver(sticking_guess=True, rank_deficient=True))
+    assert bool(pseudo_info.converged) and int(pseudo_info.iterations) == 0
+    np.testing.assert_allclose(pseudo, -np.linalg.pinv(G) @ (J @ free[0]), atol=1e-12)
+    np.testing.assert_allclose(free[0] + pseudo @ J @ M_inv, 0.0, atol=1e-12)
 
 
 # ----------------------------------------------------------------------------- derivatives

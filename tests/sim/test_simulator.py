@@ -42,16 +42,24 @@ def _energies(system, xs):
 def test_resting_cube_stays_at_rest():
     cube = _cube()
     x = sim.cube_rest_state(cube)
-    x_next, info = jax.jit(lambda a, b: cube.step_with_info(a, b))(x, jnp.zeros(6))
+    step = jax.jit(lambda a, b, solver: dataclasses.replace(cube, solver=solver).step_with_info(a, b))
+    x_next, info = step(x, jnp.zeros(6), cube.solver)
     assert bool(info.ncp.converged)
-    # At rest up to the solver's tolerance: its complementarity residual lambda . c <= tol,
-    # on the corners' normal impulses m g h / 4, allows contact velocities up to about
-    # 4 tol / (m g h) (4e-9 m/s here), and positions move by h times that.
-    velocity_bound = 4.0 * cube.solver.tolerance / (GRAVITY * 1.0 * 0.01)
+    # The sticking guess (by G's pseudo-inverse: four coplanar corners make G singular) solves
+    # it without ADMM, and the cube does not move, to rounding.
+    assert int(info.ncp.iterations) == 0
     q, v = cube.split(x)
     q_next, v_next = cube.split(x_next)
-    np.testing.assert_allclose(v_next, v, atol=velocity_bound)
-    np.testing.assert_allclose(q_next, q, atol=0.01 * velocity_bound)
+    np.testing.assert_allclose(v_next, v, atol=1e-14)
+    np.testing.assert_allclose(q_next, q, atol=1e-15)
+    # ADMM alone (no guess) leaves it at rest up to its tolerance: the complementarity residual
+    # lambda . c <= tol, on the corners' normal impulses m g h / 4, allows contact velocities up
+    # to about 4 tol / (m g h) (4e-9 m/s here), and positions move by h times that.
+    x_admm, info_admm = step(x, jnp.zeros(6), sim.NCPSolver())
+    assert bool(info_admm.ncp.converged) and int(info_admm.ncp.iterations) > 0
+    velocity_bound = 4.0 * cube.solver.tolerance / (GRAVITY * 1.0 * 0.01)
+    np.testing.assert_allclose(cube.split(x_admm)[1], v, atol=velocity_bound)
+    np.testing.assert_allclose(x_admm[:7], q, atol=0.01 * velocity_bound)
     # The four bottom corners carry the weight, the top ones nothing.
     normal = info.impulse.reshape(8, 3)[:, 2]
     bottom = np.asarray(cube.sphere_offsets[:, 2] < 0)
