@@ -618,9 +618,11 @@ class NCPSolver(eqx.Module):
             standing, or walking on sticking feet), the solve ends there, without ADMM or its
             eigendecomposition. Otherwise ADMM starts from the warm start or, without one,
             from the guess (on perturbed Solo-12 states, a third fewer iterations for the
-            slowest member of a batch than from zero). :func:`rsmooth.sim.solo12` turns it on;
-            it is off by default because where ``G`` is singular (a box on four coplanar
-            corners) the impulses are not unique and the start decides which one is found.
+            slowest member of a batch than from zero; with ``rank_deficient``, from zero).
+            :func:`rsmooth.sim.solo12` turns it on, and :func:`rsmooth.sim.cube` and
+            :func:`rsmooth.sim.pusher` with ``rank_deficient``; it is off by default because
+            where ``G`` is singular (a box on four coplanar corners) the impulses are not
+            unique and the start decides which one is found (see ``rank_deficient``).
         polish: active-set Newton polish (in the spirit of OSQP's solution polishing, here
             with the nonlinear sliding modes), tried after the start and before ADMM: read
             each contact's mode (separated, sticking, sliding) from the start impulse, solve
@@ -655,15 +657,18 @@ class NCPSolver(eqx.Module):
             guess's diagonal shift amplifies rounding in ``G``'s null space: on 32 problems of
             the cube under pushing forces it solved none, the pseudo-inverse the 16 where the
             cube sticks; a resting cube now stays exactly at rest (to 1e-14 m/s, against ADMM's
-            tolerance-level drift of ~1e-9 m/s). On
-            1,280 pusher problems (32 rollouts of 40 steps under random finger forces) it
-            solved 84 % without ADMM (the box sticking), where their velocities agree with
-            ADMM's to 7e-9; the solve took 99 against 282 us per problem, and 39 instead of
-            49 problems ended unconverged. :func:`rsmooth.sim.cube` and
-            :func:`rsmooth.sim.pusher` turn it on with ``sticking_guess``. The polish rarely
-            helps there (its Newton systems are singular in the sticking and the coplanar
-            sliding modes): on those pusher problems it solved 7 of the 199 left to ADMM and
-            made the solve slower.
+            tolerance-level drift of ~1e-9 m/s). Where the guess fails (a sliding box), ADMM
+            starts from the warm start or zero, not from the guess: from the guess it took
+            422 instead of 176 iterations on a cube sliding under a 5 N push, and converged
+            to other solutions (the impulses, and with sliding friction the velocities, are
+            not unique there). On 1,280 pusher problems (32 rollouts of 40 steps under random
+            finger forces) the guess solved 84 % without ADMM (the box sticking); velocities
+            agree with plain ADMM's to 7e-9 wherever both converge, 35 instead of 49 problems
+            ended unconverged, and over rollouts of the pusher under the same forces (whose
+            states differ from these once the box moves) no solve of 1,280 was left
+            unconverged (49 with plain ADMM). :func:`rsmooth.sim.cube` and
+            :func:`rsmooth.sim.pusher` turn it on with ``sticking_guess``. The polish does not
+            help there: it starts from the guess's failure, zero.
 
     References:
         J. Carpentier, Q. Le Lidec, L. Montaut, "From compliant to rigid contact simulation:
@@ -717,8 +722,9 @@ class NCPSolver(eqx.Module):
         """The impulse ADMM starts from and its diagnostics (``converged``: it already solves
         the problem and ADMM need not run; ``iterations`` and ``rho`` are 0). Without
         ``sticking_guess``: ``P_K(warm_start)``, or zero. With it: the sticking guess without a
-        warm start; with one, the guess where it solves the problem and the warm start does
-        not, else the warm start."""
+        warm start (with ``rank_deficient``, only where it solves the problem, else zero);
+        with one, the guess where it solves the problem and the warm start does not, else the
+        warm start."""
         n = mu.shape[0]
 
         def candidate(z):
@@ -756,8 +762,8 @@ class NCPSolver(eqx.Module):
             sticking = -jax.scipy.linalg.cho_solve(factor, rhs)
             sticking = sticking - jax.scipy.linalg.cho_solve(factor, reduced @ sticking + rhs)
         guess = candidate(project_to_friction_cone(sticking.reshape(n, 3), mu).reshape(-1))
-        if warm_start is None:
-            return guess
+        if warm_start is None and not self.rank_deficient:
+            return guess  # ADMM starts from it where it fails (see sticking_guess)
         warm = candidate(given)
         use_guess = guess[1].converged & ~warm[1].converged
         return jax.tree.map(lambda a, b: jnp.where(use_guess, a, b), guess, warm)
