@@ -348,6 +348,11 @@ def test_box_on_four_corners_rank_deficient_delassus():
     assert bool(pseudo_info.converged) and int(pseudo_info.iterations) == 0
     np.testing.assert_allclose(pseudo, -np.linalg.pinv(G) @ (J @ free[0]), atol=1e-12)
     np.testing.assert_allclose(free[0] + pseudo @ J @ M_inv, 0.0, atol=1e-12)
+    # Where it fails (sliding), ADMM starts from zero, as without the guess: the same solve.
+    slid, slid_info = solve_ncp(G, J @ free[1], mu, solver=NCPSolver(sticking_guess=True, rank_deficient=True))
+    plain, plain_info = solve_ncp(G, J @ free[1], mu, solver=NCPSolver())
+    assert int(slid_info.iterations) == int(plain_info.iterations) > 0
+    np.testing.assert_array_equal(slid, plain)
 
 
 # ----------------------------------------------------------------------------- derivatives

@@ -439,6 +439,30 @@ def test_pusher_gradients_match_finite_differences_while_pushing():
     assert float(jnp.abs(jac[9, 0])) > 1e-3  # the finger force moves the box
 
 
+def test_pusher_default_solver_steps_as_plain_admm_and_converges():
+    # The pusher's solver (the sticking guess by the pseudo-inverse, then ADMM from zero) on the
+    # states of rollouts under random finger forces (the box rests, is pushed, slides, stops):
+    # where both converge its next states are plain ADMM's (sliding on four coplanar corners
+    # has non-unique solutions, so this checks that it finds the same one), and it leaves no
+    # more solves unconverged.
+    pusher = sim.pusher()
+    plain = dataclasses.replace(pusher, solver=sim.NCPSolver())
+    batch, steps = 16, 30
+    forces = 5.0 * jax.random.normal(jax.random.key(0), (steps, batch, 2))
+    x0 = jnp.tile(sim.pusher_start_state(pusher), (batch, 1))
+    xs, _ = jax.jit(jax.vmap(pusher.rollout, in_axes=(0, 1)))(x0, forces)  # (batch, steps + 1, nx)
+    states, inputs = xs[:, :-1].reshape(-1, pusher.nx), jnp.swapaxes(forces, 0, 1).reshape(-1, 2)
+    step = eqx.filter_jit(jax.vmap(lambda system, x, u: system.step_with_info(x, u), in_axes=(None, 0, 0)))
+    x_guess, info_guess = step(pusher, states, inputs)
+    x_plain, info_plain = step(plain, states, inputs)
+    guessed = np.asarray(info_guess.ncp.iterations == 0)
+    assert guessed.mean() > 0.5  # the box sticks in most steps: no ADMM there
+    both = np.asarray(info_guess.ncp.converged & info_plain.ncp.converged)
+    assert both.mean() > 0.9
+    np.testing.assert_allclose(x_guess[both], x_plain[both], atol=1e-7)
+    assert int(jnp.sum(~info_guess.ncp.converged)) <= int(jnp.sum(~info_plain.ncp.converged))
+
+
 def _sliding_ball():
     system = sim.ball_wall(solver=sim.NCPSolver(tolerance=1e-13, max_iterations=2000))
     x = system.state(jnp.array([0.0, 0.0, 0.0499, 0.0, 0.0, 0.0, 1.0]), jnp.array([0.4, 0.1, 0.0, 0.0, 3.0, 1.0]))
