@@ -53,11 +53,51 @@ def test_problems_run_in_batches(tmp_path):
     assert next(iter(render_pose._SOLVERS.values()))[1]._cache_size() == 1
 
 
+@pytest.mark.slow
+def test_restarts_rerun_the_problems_whose_render_stays_far_from_the_target(tmp_path):
+    small = dataclasses.replace(
+        render_pose.Config.quick(), image_size=24, steps=3, methods=("perturbed-gaussian",), init_errors_deg=(60.0,),
+        problems=3, batch_size=2, keep_best=False,
+    )
+
+    def run(name, **change):
+        metrics = render_pose.run(dataclasses.replace(small, **change), tmp_path / name, jax.random.key(4), progress=False)
+        return metrics["perturbed-gaussian"]["60"]
+
+    once = run("once")
+    assert once["runs_per_problem"] == 1.0 and once["first_run_solved_pct"] == once["solved_pct"]
+    # the losses are the hard image's mean squared error to the target, of the reported pose and
+    # of the initial one
+    config = small
+    mesh, cam = render_pose.load(config.mesh), render_pose.camera(config)
+    hard = render_pose.make_renderer(config, "hard", mesh)
+    r_true, r_init, _ = render_pose.problems(config, jax.random.fold_in(jax.random.split(jax.random.key(4))[0], 0), 60.0)
+    for i in range(3):
+        target = hard(None, render.transform_mesh(mesh, r_true[i], jnp.zeros(3)), cam).rgb
+        start = hard(None, render.transform_mesh(mesh, r_init[i], jnp.zeros(3)), cam).rgb
+        np.testing.assert_allclose(once["initial_losses"][i], float(jnp.mean((start - target) ** 2)), rtol=1e-5)
+    assert all(0.0 <= final for final in once["final_losses"])
+
+    # no problem is far enough from its target: the first run is the result
+    kept = run("kept", restarts=2, restart_loss=1e9)
+    assert kept["runs_per_problem"] == 1.0 and kept["final_errors_deg"] == once["final_errors_deg"]
+    # every problem is (any loss is above a tiny fraction of the initial one): two more runs
+    # each, with fresh noise, and each reports its closest run
+    rerun = run("rerun", restarts=2, restart_loss=1e-12)
+    assert rerun["runs_per_problem"] == 3.0
+    assert rerun["first_run_solved_pct"] == once["solved_pct"]
+    first, best = np.array(once["final_losses"]), np.array(rerun["final_losses"])
+    assert np.all(best <= first) and np.any(best < first), (first, best)
+    changed = best < first
+    assert not np.allclose(np.array(rerun["final_errors_deg"])[changed], np.array(once["final_errors_deg"])[changed])
+
+
 @pytest.mark.parametrize(
     "change",
     [
         {"methods": ("blurry",)}, {"batch_size": 0}, {"problems": 0}, {"pose_noise_deg": -1.0},
         {"pose_noise_deg": float("nan")}, {"pose_noise_until": 0.0}, {"pose_noise_until": 1.5},
+        {"restarts": -1}, {"restarts": 1.5}, {"restart_loss": 0.0}, {"restart_loss": float("nan")},
     ],
 )
 def test_bad_config_is_rejected(tmp_path, change):
