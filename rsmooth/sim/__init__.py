@@ -40,7 +40,9 @@ from rsmooth.sim._model import (
     example_robot_data_root as example_robot_data_root,
     free_body as free_body,
     from_pinocchio as from_pinocchio,
+    load_model as load_model,
     load_urdf as load_urdf,
+    save_model as save_model,
     solo12_standing_configuration as solo12_standing_configuration,
     solo12_urdf_path as solo12_urdf_path,
 )

@@ -318,6 +318,103 @@ def load_urdf(path: str | pathlib.Path, *, floating_base: bool = True) -> Model:
     return from_pinocchio(pin_model)
 
 
+_MODEL_FORMAT = "rsmooth.sim.Model/1"
+
+
+def save_model(path: str | pathlib.Path, model: Model) -> pathlib.Path:
+    """Writes a model to a ``.npz`` file that :func:`load_model` reads without Pinocchio.
+
+    A model is built once where Pinocchio is installed (:func:`load_urdf`) and can then be used
+    where it is not (a GPU node, a minimal container): the file holds every array field in
+    float64 and the structural fields (names, types, parents, offsets) as JSON. The file is
+    written to a temporary name and renamed, so an interrupted call leaves no partial file.
+
+    Args:
+        path: the file to write (``.npz`` is appended by NumPy if missing: the returned path
+            is the one written).
+        model: the model.
+
+    Returns:
+        The path of the written file.
+    """
+    import json
+    import os
+    import tempfile
+
+    if not isinstance(model, Model):
+        raise TypeError(f"model must be an rsmooth.sim.Model, got {type(model).__name__}")
+    path = pathlib.Path(path)
+    if path.suffix != ".npz":
+        path = path.with_name(path.name + ".npz")
+    static_names, array_names = _model_fields()
+    static = {name: getattr(model, name) for name in static_names}
+    arrays = {name: np.asarray(getattr(model, name), dtype=np.float64) for name in array_names}
+    descriptor, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".npz")
+    try:
+        with os.fdopen(descriptor, "wb") as file:
+            np.savez(file, __format__=np.array(_MODEL_FORMAT), __static__=np.array(json.dumps(static)), **arrays)
+        os.replace(temporary, path)
+    except BaseException:
+        os.unlink(temporary)
+        raise
+    return path
+
+
+def load_model(path: str | pathlib.Path) -> Model:
+    """Reads a model written by :func:`save_model` (no Pinocchio needed).
+
+    Args:
+        path: the ``.npz`` file.
+
+    Returns:
+        The model, equal to the one saved (arrays bit for bit).
+
+    Raises:
+        FileNotFoundError: if the file does not exist.
+        ValueError: if the file is not a saved model, or its fields do not form a valid model.
+
+    Example:
+        >>> import tempfile, pathlib
+        >>> model = free_body(2.0, [1e-2, 2e-2, 3e-2])
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     loaded = load_model(save_model(pathlib.Path(folder) / "body.npz", model))
+        >>> loaded.frame_names == model.frame_names, float(loaded.body_mass[1])
+        (True, 2.0)
+    """
+    import json
+    import zipfile
+
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"model file not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            contents = {name: data[name] for name in data.files}
+    except (ValueError, OSError, zipfile.BadZipFile) as error:
+        raise ValueError(f"{path} is not a model file written by rsmooth.sim.save_model: {error}") from None
+    if str(contents.get("__format__", "")) != _MODEL_FORMAT:
+        raise ValueError(f"{path} is not a model file written by rsmooth.sim.save_model (no {_MODEL_FORMAT!r} marker)")
+    static = json.loads(str(contents["__static__"]))
+    static_names, array_names = _model_fields()
+    missing = [name for name in static_names if name not in static] + [name for name in array_names if name not in contents]
+    if missing:
+        raise ValueError(f"{path} lacks the model fields {missing}")
+    fields = {name: tuple(static[name]) if isinstance(static[name], list) else static[name] for name in static_names}
+    fields.update({name: _to_jax(contents[name]) for name in array_names})
+    return Model(**fields)
+
+
+def _model_fields() -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """Model's structural (static) and array field names, read off its dataclass fields."""
+    import dataclasses
+
+    fields = dataclasses.fields(Model)
+    return (
+        tuple(f.name for f in fields if f.metadata.get("static", False)),
+        tuple(f.name for f in fields if not f.metadata.get("static", False)),
+    )
+
+
 def example_robot_data_root() -> pathlib.Path:
     """The folder of the files shipped by the installed ``example-robot-data`` package
     (``robots/<name>_description/{robots,srdf,meshes}``), found without importing it.

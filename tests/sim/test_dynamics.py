@@ -4,6 +4,8 @@ Each jitted function is compiled once per model and evaluated on a batch of rand
 configurations with ``vmap``; the comparisons hold to 1e-8 relative to the quantity's scale.
 """
 
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -317,6 +319,40 @@ def test_synthetic_tree_matches_pinocchio():
 # --------------------------------------------------------------------------------------
 # Loading errors and boundary checks
 # --------------------------------------------------------------------------------------
+
+
+def test_saved_model_loads_without_pinocchio_and_matches_it(solo, tmp_path, monkeypatch):
+    model, pin_model = solo
+    path = sim.save_model(tmp_path / "solo12", model)
+    assert path == tmp_path / "solo12.npz" and path.is_file()
+    assert [p.name for p in tmp_path.iterdir()] == ["solo12.npz"]  # no temporary left
+    # Loading must not need Pinocchio: make importing it fail.
+    monkeypatch.setitem(sys.modules, "pinocchio", None)
+    loaded = sim.load_model(path)
+    for name in ("joint_names", "joint_types", "parents", "idx_q", "idx_v", "frame_names", "frame_parents", "nq", "nv"):
+        assert getattr(loaded, name) == getattr(model, name), name
+    for (where, original), restored in zip(jax.tree_util.tree_leaves_with_path(model), jax.tree_util.tree_leaves(loaded)):
+        np.testing.assert_array_equal(np.asarray(restored), np.asarray(original), err_msg=str(where))
+    compare_with_pinocchio(loaded, pin_model, random_states(pin_model, seed=3), FEET)
+
+
+def test_load_model_rejects_other_files(tmp_path):
+    with pytest.raises(FileNotFoundError, match="missing.npz"):
+        sim.load_model(tmp_path / "missing.npz")
+    (tmp_path / "text.npz").write_text("not a zip")
+    with pytest.raises(ValueError, match="text.npz is not a model file"):
+        sim.load_model(tmp_path / "text.npz")
+    np.savez(tmp_path / "arrays.npz", a=np.zeros(3))
+    with pytest.raises(ValueError, match="arrays.npz is not a model file"):
+        sim.load_model(tmp_path / "arrays.npz")
+    path = sim.save_model(tmp_path / "body.npz", sim.free_body(1.0, [1.0, 1.0, 1.0]))
+    with np.load(path) as data:
+        contents = {name: data[name] for name in data.files if name != "body_mass"}
+    np.savez(tmp_path / "partial.npz", **contents)
+    with pytest.raises(ValueError, match="lacks the model fields \\['body_mass'\\]"):
+        sim.load_model(tmp_path / "partial.npz")
+    with pytest.raises(TypeError, match="model must be an rsmooth.sim.Model"):
+        sim.save_model(tmp_path / "x.npz", {"nq": 7})
 
 
 def test_missing_urdf_raises_file_not_found(tmp_path):
