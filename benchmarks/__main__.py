@@ -1,8 +1,9 @@
-"""`python -m benchmarks NAME [--repeats N] [--quick]`."""
+"""`python -m benchmarks NAME [--repeats N] [--quick] [--solo12-model FILE]`."""
 
 import argparse
 import importlib
 import inspect
+import os
 
 NAMES = ("core", "render", "sim", "control")
 # A control iteration takes up to seconds: fewer repeats there.
@@ -14,7 +15,18 @@ def main():
     parser.add_argument("name", choices=NAMES)
     parser.add_argument("--repeats", type=int, default=None, help="timed calls per measurement (median); default 30, control 5")
     parser.add_argument("--quick", action="store_true", help="a reduced size (the benchmarks that have one: sim, control)")
+    parser.add_argument(
+        "--solo12-model", metavar="FILE",
+        help="sim, control: a Solo-12 model file written by rsmooth.sim.save_model, used instead of loading the URDF "
+        "through Pinocchio (for machines without it; the SRDF's standing posture is still read from example-robot-data's files)",
+    )
     args = parser.parse_args()
+    if args.solo12_model:
+        from benchmarks._timing import SOLO12_MODEL_VARIABLE
+
+        if not os.path.isfile(args.solo12_model):
+            parser.error(f"--solo12-model: no file {args.solo12_model}")
+        os.environ[SOLO12_MODEL_VARIABLE] = os.path.abspath(args.solo12_model)
     from rsmooth import _xla
 
     if args.name == "render":

@@ -10,6 +10,21 @@ import time
 import jax
 
 
+# A Solo-12 model file (rsmooth.sim.save_model) for machines without Pinocchio (a GPU node):
+# set by `python -m benchmarks --solo12-model FILE`, an environment variable so that the
+# benchmarks' child processes see it too.
+SOLO12_MODEL_VARIABLE = "RSMOOTH_BENCHMARK_SOLO12_MODEL"
+
+
+def solo12(**options):
+    """``rsmooth.sim.solo12(**options)``, its model read from the file that
+    ``--solo12-model`` names if any (else loaded from the URDF through Pinocchio)."""
+    from rsmooth import sim
+
+    path = os.environ.get(SOLO12_MODEL_VARIABLE)
+    return sim.solo12(model=sim.load_model(path) if path else None, **options)
+
+
 def machine() -> str:
     devices = jax.devices()
     cpu = platform.processor() or platform.machine()

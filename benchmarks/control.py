@@ -53,7 +53,7 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from benchmarks._timing import fmt, machine, median_time  # noqa: E402
+from benchmarks._timing import fmt, machine, median_time, solo12  # noqa: E402
 from rsmooth import control, sim  # noqa: E402
 from rsmooth.control import _ddp  # noqa: E402
 from rsmooth.experiments import control_solo_lift  # noqa: E402
@@ -400,7 +400,7 @@ def main(
     print(croc_note + "\n", flush=True)
 
     setup = time.perf_counter()
-    system = sim.solo12()
+    system = solo12()
     base_config = control_solo_lift.Config(foot=FOOT, horizon=max(horizons))
     results: dict = {"ours": {}, "crocoddyl": {}, "notes": []}
     key = jax.random.key(0)

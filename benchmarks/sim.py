@@ -33,7 +33,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from benchmarks._timing import fmt, machine, median_time  # noqa: E402
+from benchmarks._timing import fmt, machine, median_time, solo12  # noqa: E402
 from rsmooth import sim  # noqa: E402
 
 BATCH = 64
@@ -121,7 +121,7 @@ def _median_wall(fn, repeats: int, warmup: int = 2) -> float:
 def _probe_vmap_jacobian(batch: int, queue) -> None:  # runs in a child process
     try:
         jax.config.update("jax_enable_x64", True)
-        system = sim.solo12()
+        system = solo12()
         x0 = sim.solo12_standing_state(system)
         u0 = sim.solo12_standing_torques(system, x0)
         jac = jax.jacfwd(lambda x, u: system.step(x, u), argnums=(0, 1))
@@ -167,7 +167,7 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0) ->
     notes: list[str] = []
 
     # ----- ours
-    system = sim.solo12(friction=FRICTION, time_step=DT)
+    system = solo12(friction=FRICTION, time_step=DT)
     x0 = sim.solo12_standing_state(system)
     u0 = sim.solo12_standing_torques(system, x0)
     nq = system.model.nq

@@ -1,0 +1,58 @@
+#!/usr/bin/env bash
+# The GPU numbers of benchmarks/RESULTS.md, on a machine with JAX for CUDA but without
+# Pinocchio, MuJoCo or example-robot-data (the lent GPU machines: no package index there).
+#
+# Prepare on a machine that has them (from the repository's root):
+#   python - <<'EOF'
+#   import pathlib, shutil
+#   from rsmooth import sim
+#   sim.save_model(".gpu/solo12.npz", sim.load_urdf(sim.solo12_urdf_path()))
+#   source = sim.example_robot_data_root() / "robots/solo_description"
+#   target = pathlib.Path(".gpu/cmeel.prefix/share/example-robot-data/robots/solo_description")
+#   for name in ("robots/solo12.urdf", "srdf/solo.srdf"):  # the URDF's path, the SRDF's posture
+#       (target / name).parent.mkdir(parents=True, exist_ok=True)
+#       shutil.copy(source / name, target / name)
+#   EOF
+#   pip download --no-deps --only-binary=:all: --python-version 3.12 -d .gpu/whl trimesh  # the renderer's primitives
+# then run `bash benchmarks/gpu.sh` on the GPU machine with .gpu beside it. Each phase has
+# its own time limit, so that one that hangs or fails leaves the others' numbers; the logs go
+# to $OUT (default /tmp/rsmooth-gpu).
+set -u
+cd "$(dirname "$0")/.."
+OUT=${OUT:-/tmp/rsmooth-gpu}
+mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD:$PWD/.gpu:/tmp/rsmooth-site" RSMOOTH_BENCHMARK_SOLO12_MODEL="$PWD/.gpu/solo12.npz"
+PY=${PYTHON:-python3}
+PHASES=${PHASES:-"info render control tests core sim pose"}
+if compgen -G ".gpu/whl/*.whl" > /dev/null; then
+  $PY -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/rsmooth-site .gpu/whl/*.whl
+fi
+
+phase() {  # phase NAME LIMIT_SECONDS COMMAND...
+  local name=$1 limit=$2
+  shift 2
+  case " $PHASES " in *" $name "*) ;; *) return 0 ;; esac
+  echo "=== $name (limit ${limit} s): $*"
+  local start=$SECONDS
+  timeout -k 5 "$limit" "$@" > "$OUT/$name.log" 2>&1
+  local rc=$?
+  echo "=== $name: exit $rc after $((SECONDS - start)) s"
+  tail -n "${TAIL:-40}" "$OUT/$name.log"
+}
+
+phase info 30 bash -c "nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv; \
+  $PY -c 'import jax, jaxlib, equinox, optax; print(\"jax\", jax.__version__, \"equinox\", equinox.__version__, \"optax\", optax.__version__, jax.devices())'"
+phase render 150 $PY -m benchmarks render --repeats 10
+# R-DDP's samples of all nodes at once (--rddp-node-batch none: on the CPU one node at a time is faster)
+phase control 180 $PY -m benchmarks.control --all-cpus --horizons 50 --samples 32 --iterations 4 --no-breakdown --rddp-node-batch none
+# The smoothing core, the perturbed optimizers, the renderer and the contact solver on the GPU,
+# in float64 as the suite runs (tests that need Pinocchio, MuJoCo or trimesh are left out).
+# (8 workers: each must not take 75 % of the GPU's memory, JAX's default)
+phase tests 170 env XLA_PYTHON_CLIENT_PREALLOCATE=false $PY -m pytest -q -x -n 8 -p no:cacheprovider -p no:benchmark -o addopts="-ra --strict-markers" \
+  tests/test_estimators.py tests/test_smooth.py tests/test_perturbed.py tests/test_noise.py tests/test_schedules.py \
+  tests/render/test_raster.py tests/render/test_render.py tests/sim/test_contact.py
+phase core 40 $PY -m benchmarks core --repeats 30
+phase sim 110 $PY -m benchmarks.sim --quick --probe-timeout 30
+# The render-pose experiment's default 100 problems at 80 deg with two restarts (two minutes here)
+phase pose 220 $PY -m rsmooth.cli render pose --init-error 80 --problems 100 --seed 0 --restarts 2 \
+  --method perturbed-gaussian --method soft --out "$OUT/pose80"
