@@ -119,6 +119,11 @@ def _median_wall(fn, repeats: int, warmup: int = 2) -> float:
 
 
 def _probe_vmap_jacobian(batch: int, queue) -> None:  # runs in a child process
+    # On a GPU the parent holds 75 % of its memory (JAX's default): allocate on demand here
+    # (before this process's backend starts), or XLA reports an out-of-memory error first.
+    import os
+
+    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     try:
         jax.config.update("jax_enable_x64", True)
         system = solo12()
