@@ -335,3 +335,41 @@ def test_relative_stopping_test_ends_a_solve_that_the_absolute_one_does_not():
     assert last < 1e-5 * float(relative.stats["cost"][-2]) and last > 1e-9
     with pytest.raises(ValueError, match="th_stop_relative"):
         control.DDP(th_stop_relative=-1.0)
+
+
+def _backtracking_problem():
+    """x' = x + u, a pseudo-Huber terminal cost: far from the target its Hessian is tiny and the
+    full Newton step overshoots by ~60x, so the line search backtracks (to 2^-5, then 2^-3)."""
+    return control.ShootingProblem(
+        Linear(jnp.ones((1, 1)), jnp.ones((1, 1)), 1, 1),
+        lambda x, u: 1e-3 * jnp.sum(u**2),
+        lambda x: jnp.sum(jnp.sqrt(1.0 + (x - 8.0) ** 2)),
+        jnp.zeros(1),
+        2,
+    )
+
+
+@pytest.mark.parametrize("batch", [2, 3, 4, 10, 16])
+def test_batched_line_search_takes_the_steps_of_the_sequential_one(batch):
+    problem = _backtracking_problem()
+    sequential = control.ddp(problem, solver=control.DDP(max_iterations=30))
+    steps = np.asarray(sequential.stats["step_size"])[1:]
+    assert steps[0] == 2.0**-5 and steps[1] == 2.0**-3  # backtracked across and within groups
+    batched = control.ddp(problem, solver=control.DDP(max_iterations=30, line_search_batch=batch))
+    assert batched.iterations == sequential.iterations
+    for name in ("step_size", "cost", "regularization"):
+        np.testing.assert_allclose(batched.stats[name], sequential.stats[name], rtol=1e-12, err_msg=name)
+    np.testing.assert_allclose(batched.us, sequential.us, rtol=1e-12)
+    # With 5 step sizes none is accepted (2^-5 would be, and pads the last group for batches
+    # of 2, 3 and 4: it must not be taken), and the regularization grows after each failed search.
+    few = [control.ddp(problem, solver=control.DDP(max_iterations=3, num_step_sizes=5, line_search_batch=b, throw=False))
+           for b in (1, batch)]
+    for solution in few:
+        np.testing.assert_array_equal(np.asarray(solution.stats["step_size"])[1:], 0.0)
+        np.testing.assert_allclose(solution.stats["regularization"], [1e-9, 1e-8, 1e-7, 1e-6])
+        np.testing.assert_array_equal(solution.us, 0.0)
+
+
+def test_line_search_batch_is_checked():
+    with pytest.raises(ValueError, match="line_search_batch must be an int >= 1"):
+        control.DDP(line_search_batch=0)
