@@ -43,6 +43,20 @@ def check_num_samples(num_samples, name: str = "num_samples", minimum: int = 1) 
     return int(num_samples)
 
 
+def check_positive_number(value, name: str) -> float:
+    """A positive, finite Python or NumPy scalar (a static setting, checked on the host: no JAX
+    array is made, so that building a configuration at import time does not start a backend)."""
+    if isinstance(value, bool) or np.ndim(value) != 0 or is_traced(value):
+        raise ValueError(f"{name} must be a positive number, got {value!r}")
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a positive number, got {value!r}") from None
+    if not (np.isfinite(number) and number > 0):
+        raise ValueError(f"{name} must be positive and finite, got {number}")
+    return number
+
+
 def check_positive_scalar(value, name: str):
     """A positive, finite scalar; returns it as a JAX array (checked at run time if traced)."""
     if np.ndim(value) != 0:

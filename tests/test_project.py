@@ -55,3 +55,30 @@ def test_cli_perturbed_argmax_quick_writes_metrics_and_figures(tmp_path):
     assert metrics["ranking_test_spearman_final"] > 0.9 > metrics["ranking_test_spearman_initial"]
     assert (tmp_path / "softmax.png").stat().st_size > 0 and (tmp_path / "ranking.png").stat().st_size > 0
     assert not list(tmp_path.glob(".*"))  # no temporary file left behind
+
+
+def test_importing_rsmooth_starts_no_jax_backend():
+    # A library must leave JAX's start-up to its user: XLA_FLAGS (host device count, CPU
+    # flags), jax_platforms and the CPU affinity are read when the backend starts, so a module
+    # that makes a JAX array at import (a default argument that checks its value with jnp,
+    # as PolicyGradient() did) fixes them too early. Checked in a fresh interpreter.
+    import subprocess
+    import sys
+
+    script = (
+        "import importlib, pkgutil\n"
+        "from jax._src import xla_bridge\n"
+        "import rsmooth\n"
+        "names = [m.name for m in pkgutil.walk_packages(rsmooth.__path__, prefix='rsmooth.')]\n"
+        "started = []\n"
+        "for name in names:\n"
+        "    importlib.import_module(name)\n"
+        "    if xla_bridge._backends:\n"
+        "        started.append(name)\n"
+        "        break\n"
+        "print(len(names), started)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    count, started = result.stdout.strip().split(" ", 1)
+    assert int(count) >= 40 and started == "[]", result.stdout  # every module, experiments included

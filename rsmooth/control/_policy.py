@@ -396,8 +396,9 @@ class PolicyGradient(eqx.Module):
                 raise ValueError(f"shared_samples needs an even num_samples >= 4, got {self.num_samples}")
             if not self.noise.has_score:
                 raise ValueError(f"shared_samples needs a noise law with a score; {type(self.noise).__name__} has none")
-        _checks.check_positive_scalar(self.sigma, "sigma")
-        _checks.check_positive_scalar(self.learning_rate, "learning_rate")
+        # Host checks (static fields): a default PolicyGradient() is built at import time.
+        _checks.check_positive_number(self.sigma, "sigma")
+        _checks.check_positive_number(self.learning_rate, "learning_rate")
         _checks.check_num_samples(self.iterations, "iterations", minimum=0)
         if not isinstance(self.schedule, _schedules.Schedule):
             raise TypeError(f"schedule must be an rsmooth.schedules.Schedule, got {self.schedule!r}")
