@@ -107,16 +107,18 @@ def pin_to_one_cpu() -> str:
 # ours
 
 
-def _trials(step_sizes: np.ndarray, improvements: np.ndarray, num_step_sizes: int, th_stop: float) -> float:
-    """Mean number of forward-pass trials per iteration, from the accepted step sizes."""
+def _trials(step_sizes: np.ndarray, improvements: np.ndarray, num_step_sizes: int, th_stop: float, batch: int = 1) -> float:
+    """Mean number of forward-pass trials (rollouts) per iteration, from the accepted step sizes;
+    with `batch` step sizes rolled out at once (DDP.line_search_batch), whole batches."""
+    batch = min(batch, num_step_sizes)
     trials = []
     for alpha, improvement in zip(step_sizes, improvements):
         if not np.isfinite(improvement) or improvement < th_stop:
             trials.append(0)  # failed backward pass or convergence test: no line search
         elif alpha > 0:
-            trials.append(int(round(-np.log2(alpha))) + 1)
+            trials.append(-(-(int(round(-np.log2(alpha))) + 1) // batch) * batch)
         else:
-            trials.append(num_step_sizes)
+            trials.append(-(-num_step_sizes // batch) * batch)
     return float(np.mean(trials)) if trials else float("nan")
 
 
@@ -151,6 +153,7 @@ def time_ours(name: str, solver: control.DDP, problem, us_init, key, repeats: in
             np.asarray(solution.stats["expected_improvement"])[1:],
             solver.num_step_sizes,
             solver.th_stop,
+            solver.line_search_batch,
         ),
         "cost": (float(solution.stats["cost"][0]), float(solution.cost)),
         "us": solution.us,
@@ -175,7 +178,8 @@ def time_ours(name: str, solver: control.DDP, problem, us_init, key, repeats: in
     result["step"] = median_time(_ddp._jitted_step, compiled, problem, state, repeats=repeats, warmup=1)
     first = _ddp._jitted_step(compiled, problem, state)
     result["step_trials"] = _trials(
-        np.asarray([first.step_size]), np.asarray([first.expected_improvement]), solver.num_step_sizes, solver.th_stop
+        np.asarray([first.step_size]), np.asarray([first.expected_improvement]), solver.num_step_sizes, solver.th_stop,
+        solver.line_search_batch,
     )
     return result
 
@@ -378,6 +382,7 @@ def main(
     iterations: int | None = None,
     ddp_node_batch: int | None | str = "default",
     rddp_node_batch: int | None | str = "default",
+    line_search_batch: int = 1,
     all_cpus: bool = False,
     breakdown: bool = True,
 ) -> dict:
@@ -394,7 +399,8 @@ def main(
     parts = f"breakdown: median of {repeats} calls" if breakdown else "no breakdown"
     print(
         f"Solo-12 lift {FOOT} foot 5 cm, dt = 0.01 s, float64; T = {horizons}; R-DDP M = {samples}; "
-        f"{iterations} iterations per solve; node batch: DDP {ddp_node_batch}, R-DDP {rddp_node_batch}; {parts}"
+        f"{iterations} iterations per solve; node batch: DDP {ddp_node_batch}, R-DDP {rddp_node_batch}; "
+        f"line-search batch {line_search_batch}; {parts}"
     )
     croc, croc_note = crocoddyl_status()
     print(croc_note + "\n", flush=True)
@@ -450,6 +456,7 @@ def main(
                 throw=False,
                 node_batch_size=ddp_node_batch,
                 sample_node_batch_size=rddp_node_batch,
+                line_search_batch=line_search_batch,
             )
             start = time.perf_counter()
             results["ours"][(f"rddp{M}", T)] = time_ours("rddp", solver, problem, us_init, key, repeats, breakdown)
@@ -468,7 +475,9 @@ def main(
             if M == samples[0]:
                 # DDP from where this R-DDP stopped (the foot partly lifted): from the standing
                 # torques its first iteration sees a zero derivative and it stops.
-                ddp_solver = control.DDP(max_iterations=iterations, throw=False, node_batch_size=ddp_node_batch)
+                ddp_solver = control.DDP(
+                    max_iterations=iterations, throw=False, node_batch_size=ddp_node_batch, line_search_batch=line_search_batch
+                )
                 start = time.perf_counter()
                 ddp_init = results["ours"][(f"rddp{M}", T)]["us"]
                 results["ours"][("ddp", T)] = time_ours("ddp", ddp_solver, problem, ddp_init, None, repeats, breakdown)
@@ -571,6 +580,7 @@ if __name__ == "__main__":
     batch = lambda s: s if s == "default" else None if s == "none" else int(s)  # noqa: E731
     parser.add_argument("--ddp-node-batch", type=batch, default="default", help="DDP.node_batch_size for DDP (int or none)")
     parser.add_argument("--rddp-node-batch", type=batch, default="default", help="RDDP.sample_node_batch_size (int or none)")
+    parser.add_argument("--line-search-batch", type=int, default=1, help="DDP.line_search_batch (DDP and R-DDP)")
     parser.add_argument("--all-cpus", action="store_true", help="do not pin the process to one CPU")
     parser.add_argument("--no-breakdown", action="store_true")
     args = parser.parse_args()
@@ -582,6 +592,7 @@ if __name__ == "__main__":
         iterations=args.iterations,
         ddp_node_batch=args.ddp_node_batch,
         rddp_node_batch=args.rddp_node_batch,
+        line_search_batch=args.line_search_batch,
         all_cpus=args.all_cpus,
         breakdown=not args.no_breakdown,
     )

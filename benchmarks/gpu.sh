@@ -23,7 +23,7 @@ OUT=${OUT:-/tmp/rsmooth-gpu}
 mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD:$PWD/.gpu:/tmp/rsmooth-site" RSMOOTH_BENCHMARK_SOLO12_MODEL="$PWD/.gpu/solo12.npz"
 PY=${PYTHON:-python3}
-PHASES=${PHASES:-"info render control tests core sim pose"}
+PHASES=${PHASES:-"info render control control-batched tests core sim pose"}
 if compgen -G ".gpu/whl/*.whl" > /dev/null; then
   $PY -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/rsmooth-site .gpu/whl/*.whl
 fi
@@ -43,8 +43,12 @@ phase() {  # phase NAME LIMIT_SECONDS COMMAND...
 phase info 30 bash -c "nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv; \
   $PY -c 'import jax, jaxlib, equinox, optax; print(\"jax\", jax.__version__, \"equinox\", equinox.__version__, \"optax\", optax.__version__, jax.devices())'"
 phase render 150 $PY -m benchmarks render --repeats 10
-# R-DDP's samples of all nodes at once (--rddp-node-batch none: on the CPU one node at a time is faster)
+# R-DDP's samples of all nodes at once (--rddp-node-batch none: on the CPU one node at a time is
+# faster); then all ten line-search step sizes at once too (DDP.line_search_batch), not yet
+# measured on a GPU (session 22 ran the first command only)
 phase control 180 $PY -m benchmarks.control --all-cpus --horizons 50 --samples 32 --iterations 4 --no-breakdown --rddp-node-batch none
+phase control-batched 180 $PY -m benchmarks.control --all-cpus --horizons 50 --samples 32 --iterations 4 --no-breakdown \
+  --rddp-node-batch none --line-search-batch 10
 # The smoothing core, the perturbed optimizers, the renderer and the contact solver on the GPU,
 # in float64 as the suite runs (tests that need Pinocchio, MuJoCo or trimesh are left out).
 # (8 workers: each must not take 75 % of the GPU's memory, JAX's default)
