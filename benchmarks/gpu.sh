@@ -16,7 +16,9 @@
 #   pip download --no-deps --only-binary=:all: --python-version 3.12 -d .gpu/whl trimesh  # the renderer's primitives
 # then run `bash benchmarks/gpu.sh` on the GPU machine with .gpu beside it. Each phase has
 # its own time limit, so that one that hangs or fails leaves the others' numbers; the logs go
-# to $OUT (default /tmp/rsmooth-gpu).
+# to $OUT (default /tmp/rsmooth-gpu). The limits add up to 18 min: where one call may run 10,
+# choose with PHASES="render control ..." (on the H200 of session 22: render 2 min, control
+# 1.5, tests 1.7, core 0.3, sim 1.8, pose 2.1).
 set -u
 cd "$(dirname "$0")/.."
 OUT=${OUT:-/tmp/rsmooth-gpu}
