@@ -338,8 +338,8 @@ def save_model(path: str | pathlib.Path, model: Model) -> pathlib.Path:
         The path of the written file.
     """
     import json
-    import os
-    import tempfile
+
+    from rsmooth._files import atomic_path
 
     if not isinstance(model, Model):
         raise TypeError(f"model must be an rsmooth.sim.Model, got {type(model).__name__}")
@@ -349,14 +349,8 @@ def save_model(path: str | pathlib.Path, model: Model) -> pathlib.Path:
     static_names, array_names = _model_fields()
     static = {name: getattr(model, name) for name in static_names}
     arrays = {name: np.asarray(getattr(model, name), dtype=np.float64) for name in array_names}
-    descriptor, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".npz")
-    try:
-        with os.fdopen(descriptor, "wb") as file:
-            np.savez(file, __format__=np.array(_MODEL_FORMAT), __static__=np.array(json.dumps(static)), **arrays)
-        os.replace(temporary, path)
-    except BaseException:
-        os.unlink(temporary)
-        raise
+    with atomic_path(path) as temporary, open(temporary, "wb") as file:
+        np.savez(file, __format__=np.array(_MODEL_FORMAT), __static__=np.array(json.dumps(static)), **arrays)
     return path
 
 
