@@ -178,9 +178,10 @@ POLICY_TASKS = {"throw": _POLICY, "pusher": _POLICY_PUSHER}
 
 
 def _doc(summary: str, *experiments: _Experiment) -> str:
-    return "\n\n".join([summary] + [
-        importlib.import_module(f"rsmooth.experiments.{experiment.module}").METRICS_DOC for experiment in experiments
-    ])
+    # The METRICS_DOC strings are wrapped for the source; Typer keeps single newlines, which
+    # then wrap again at the terminal's width into ragged lines: one line per paragraph.
+    docs = [importlib.import_module(f"rsmooth.experiments.{experiment.module}").METRICS_DOC for experiment in experiments]
+    return "\n\n".join(" ".join(paragraph.split()) for doc in [summary, *docs] for paragraph in doc.split("\n\n"))
 
 
 @experiment_app.command("estimators", help=_doc(

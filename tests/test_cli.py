@@ -116,3 +116,11 @@ def test_control_estimator_and_samples_reach_the_configs(monkeypatch, tmp_path):
         result = CliRunner().invoke(cli.app, ["control", "solo-lift", *bad, "--out", str(tmp_path)])
         assert result.exit_code != 0 and bad[-2] in result.output
     assert len(calls) == count
+
+
+def test_command_help_keeps_paragraphs_and_reflows_their_lines(monkeypatch):
+    module = types.SimpleNamespace(METRICS_DOC="metrics.json keys: a (one\nthing), b\n  (another).\n\nSecond paragraph.")
+    monkeypatch.setitem(sys.modules, "rsmooth.experiments.fake", module)
+    doc = cli._doc("A summary\nover two lines.", cli._Experiment("fake-name", "fake", "fake title", None))
+    # Typer keeps single newlines, which the terminal would wrap again into ragged lines.
+    assert doc == "A summary over two lines.\n\nmetrics.json keys: a (one thing), b (another).\n\nSecond paragraph."
