@@ -28,6 +28,16 @@ every foot with the adaptive schedule and with the geometric 0.5 decay (foot at 
 other feet up < 0.4 mm, slipping < 0.7 mm, base tilt 2.2 deg; 23 iterations, median);
 alpha-order R-DDP 100 % on FL, FR and HL, 60 % on HR (40 % geometric: runs that stall at
 32 mm or never leave the floor).
+
+Zeroth-order R-DDP (``--estimator zeroth``) fails here: on FL, seed 0, with 32, 256 and 2,048
+samples per node, no forward pass is accepted (the cost stays at 2.5, the noise decays to 0 in
+11 iterations; 2026-11-26). Its Jacobian estimates are not the reason alone: at the first node,
+against first order with 2,048 samples, the relative (Frobenius) error of the state Jacobian
+is 2.0 / 0.70 / 0.25 / 0.10 with 32 / 256 / 2,048 / 16,384 zeroth-order samples, and 0.22
+with 32 first-order ones, which succeed. A first-order error is a mean of exact Jacobians:
+the integration's identity blocks are exact and only the contact terms vary; the
+score-function error, of size ``sqrt(d / M)`` over all ``d = 49`` inputs, lands on every entry,
+so the linearization couples coordinates that the physics does not.
 """
 
 from __future__ import annotations
