@@ -35,7 +35,7 @@ samples per node, no forward pass is accepted (the cost stays at 2.5, the noise 
 against first order with 2,048 samples, the relative (Frobenius) error of the state Jacobian
 is 2.0 / 0.70 / 0.25 / 0.10 with 32 / 256 / 2,048 / 16,384 zeroth-order samples, and 0.22
 with 32 first-order ones, which succeed. A first-order error is a mean of exact Jacobians:
-the integration's identity blocks are exact and only the contact terms vary; the
+the integration's identity blocks are exact in every sample, only the physical terms vary; the
 score-function error, of size ``sqrt(d / M)`` over all ``d = 49`` inputs, lands on every entry,
 so the linearization couples coordinates that the physics does not.
 """
