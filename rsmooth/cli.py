@@ -281,8 +281,23 @@ def render_reconstruct_command(
         None, "--mesh", help="Target (repeatable): cube, box, cylinder, torus, solo-upper-leg, solo-lower-leg, "
         "solo-hip, solo-foot, solo-base (example-robot-data), or a mesh file. Default: cube, torus, solo-upper-leg."),
     views: Optional[int] = typer.Option(None, "--views", min=1, help="Cameras around the target (default 8, quick 4)."),
+    method: Optional[list[str]] = typer.Option(
+        None, "--method", help="perturbed-gaussian, soft or hard (repeatable; default all three)."),
+    steps: Optional[int] = typer.Option(None, "--steps", min=1, help="Adam steps (default 200, quick 60)."),
+    samples: Optional[int] = typer.Option(
+        None, "--samples", min=1, help="Monte-Carlo samples per pixel of the perturbed renderer (default 8)."),
+    laplacian_weight: Optional[float] = typer.Option(
+        None, "--laplacian-weight", min=0.0, help="Weight of the Laplacian of the vertex offsets (default 30; thin "
+        "parts gain from more, sharp corners lose: see benchmarks/RESULTS.md)."),
 ):
-    _run(_RENDER_RECONSTRUCT, out, seed, quick, targets=tuple(mesh) if mesh else None, views=views)
+    from rsmooth.experiments.render_reconstruct import METHODS
+
+    unknown = [m for m in method or () if m not in METHODS]
+    if unknown:
+        raise typer.BadParameter(f"--method must be one of {', '.join(METHODS)}, got {', '.join(unknown)}")
+    methods = tuple(dict.fromkeys(method)) if method else None  # in the given order, once each
+    _run(_RENDER_RECONSTRUCT, out, seed, quick, targets=tuple(mesh) if mesh else None, views=views, methods=methods,
+         steps=steps, num_samples=samples, laplacian_weight=laplacian_weight)
 
 
 MethodOption = typer.Option(

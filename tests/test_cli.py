@@ -124,3 +124,21 @@ def test_command_help_keeps_paragraphs_and_reflows_their_lines(monkeypatch):
     doc = cli._doc("A summary\nover two lines.", cli._Experiment("fake-name", "fake", "fake title", None))
     # Typer keeps single newlines, which the terminal would wrap again into ragged lines.
     assert doc == "A summary over two lines.\n\nmetrics.json keys: a (one thing), b (another).\n\nSecond paragraph."
+
+
+def test_render_reconstruct_options_reach_the_config(monkeypatch, tmp_path):
+    calls = []
+    monkeypatch.setattr(cli, "_run", lambda experiment, out, seed, quick, **overrides: calls.append((experiment.module, overrides)))
+    result = CliRunner().invoke(cli.app, ["render", "reconstruct", "--method", "soft", "--method", "hard", "--steps", "50",
+                                          "--samples", "32", "--laplacian-weight", "120", "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    module, overrides = calls[-1]
+    assert module == "render_reconstruct"
+    assert overrides["methods"] == ("soft", "hard") and overrides["steps"] == 50
+    assert overrides["num_samples"] == 32 and overrides["laplacian_weight"] == 120.0
+    CliRunner().invoke(cli.app, ["render", "reconstruct", "--out", str(tmp_path)])
+    assert all(calls[-1][1][name] is None for name in ("methods", "steps", "num_samples", "laplacian_weight"))
+    bad = CliRunner().invoke(cli.app, ["render", "reconstruct", "--method", "blurry", "--out", str(tmp_path)])
+    assert bad.exit_code != 0 and "--method" in bad.output and len(calls) == 2
+    negative = CliRunner().invoke(cli.app, ["render", "reconstruct", "--laplacian-weight", "-1", "--out", str(tmp_path)])
+    assert negative.exit_code != 0 and "--laplacian-weight" in negative.output and len(calls) == 2

@@ -278,6 +278,10 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
             raise ValueError(f"unknown method {method!r}; choose from {METHODS}")
     if not config.targets:
         raise ValueError("targets must name at least one mesh")
+    for name in ("laplacian_weight", "flatten_weight", "rgb_weight"):
+        weight = getattr(config, name)
+        if not (np.isfinite(weight) and weight >= 0):
+            raise ValueError(f"{name} must be finite and >= 0, got {weight!r}")
     names = [_name(t) for t in config.targets]
     if len(set(names)) != len(names):
         raise ValueError(f"target names must be distinct, got {names}")

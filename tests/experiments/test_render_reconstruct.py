@@ -56,3 +56,8 @@ def test_unknown_targets_and_methods_are_rejected(tmp_path):
     config = dataclasses.replace(render_reconstruct.Config.quick(), methods=("blurry",))
     with pytest.raises(ValueError, match="blurry"):
         render_reconstruct.run(config, tmp_path, jax.random.key(0), progress=False)
+    for name, weight in (("laplacian_weight", -1.0), ("flatten_weight", float("nan"))):
+        config = dataclasses.replace(render_reconstruct.Config.quick(), **{name: weight})
+        with pytest.raises(ValueError, match=name):
+            render_reconstruct.run(config, tmp_path, jax.random.key(0), progress=False)
+    assert not any(tmp_path.iterdir())  # nothing written
