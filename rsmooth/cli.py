@@ -229,6 +229,14 @@ def sim_solo12(
          body_contacts=body_contacts, **gains)
 
 
+def _methods(method: Optional[list[str]], known: tuple[str, ...]) -> Optional[tuple[str, ...]]:
+    """The --method values, in the given order, once each (None: the experiment's default)."""
+    unknown = [m for m in method or () if m not in known]
+    if unknown:
+        raise typer.BadParameter(f"--method must be one of {', '.join(known)}, got {', '.join(unknown)}")
+    return tuple(dict.fromkeys(method)) if method else None
+
+
 @render_app.command("pose", help=_doc(
     "Recover a mesh's rotation from one RGB image with the perturbed renderer (Gaussian or Cauchy "
     "noise, adaptive noise decrease), a SoftRas-like one and the hard z-buffer.", _RENDER_POSE))
@@ -259,11 +267,8 @@ def render_pose_command(
 ):
     from rsmooth.experiments.render_pose import METHODS
 
-    unknown = [m for m in method or () if m not in METHODS]
-    if unknown:
-        raise typer.BadParameter(f"--method must be one of {', '.join(METHODS)}, got {', '.join(unknown)}")
+    methods = _methods(method, METHODS)
     init_errors_deg = tuple(float(e) for e in init_error) if init_error else None
-    methods = tuple(dict.fromkeys(method)) if method else None  # in the given order, once each
     _run(_RENDER_POSE, out, seed, quick, mesh=mesh, init_errors_deg=init_errors_deg, problems=problems, methods=methods,
          steps=steps, keep_best=keep_best, pose_noise_deg=pose_noise, pose_noise_until=pose_noise_until,
          restarts=restarts)
@@ -292,10 +297,7 @@ def render_reconstruct_command(
 ):
     from rsmooth.experiments.render_reconstruct import METHODS
 
-    unknown = [m for m in method or () if m not in METHODS]
-    if unknown:
-        raise typer.BadParameter(f"--method must be one of {', '.join(METHODS)}, got {', '.join(unknown)}")
-    methods = tuple(dict.fromkeys(method)) if method else None  # in the given order, once each
+    methods = _methods(method, METHODS)
     _run(_RENDER_RECONSTRUCT, out, seed, quick, targets=tuple(mesh) if mesh else None, views=views, methods=methods,
          steps=steps, num_samples=samples, laplacian_weight=laplacian_weight)
 
