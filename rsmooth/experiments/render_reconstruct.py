@@ -63,7 +63,7 @@ first_gradient_norm (norm of the silhouette loss' gradient with respect to the o
 first step: exactly 0 for hard) and seconds_per_step (wall time of one Adam step of the batch of
 all targets); 'initial', the same scores for the undeformed icosphere; also methods, targets,
 views, steps, image_size, subdivisions, num_vertices, num_faces, voxel_resolution,
-chamfer_points, target_faces."""
+chamfer_points, num_samples (perturbed), laplacian_weight, flatten_weight, target_faces."""
 
 METHODS = ("perturbed-gaussian", "soft", "hard")
 
@@ -367,6 +367,9 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "num_faces": int(template.faces.shape[0]),
         "voxel_resolution": config.voxel_resolution,
         "chamfer_points": config.chamfer_points,
+        "num_samples": config.num_samples,
+        "laplacian_weight": config.laplacian_weight,
+        "flatten_weight": config.flatten_weight,
         "target_faces": {name: int(mesh.faces.shape[0]) for name, mesh in zip(names, meshes)},
         "gif": f"optimization.gif: {gif_method}; per target: target | reconstruction (grey, between the views) | "
                "silhouette of view 0 (red: target, green: reconstruction, yellow: both)",

@@ -35,6 +35,7 @@ def test_perturbed_reconstruction_of_a_cube_improves_and_hard_does_not_move(tmp_
     keys = ("iou_3d", "chamfer", "silhouette_iou", "final_loss", "final_sigma", "first_gradient_norm", "seconds_per_step")
     assert set(keys) <= set(saved["perturbed-gaussian"]["cube"]) and set(keys) <= set(saved["hard"]["cube"])
     assert saved["targets"] == ["cube"] and saved["num_faces"] == 320
+    assert (saved["num_samples"], saved["laplacian_weight"]) == (config.num_samples, config.laplacian_weight)
     for name in ("losses.png", "silhouettes_cube.png", "reconstructions.png", "optimization.gif"):
         assert (tmp_path / name).stat().st_size > 0
     assert not list(tmp_path.glob(".*"))
