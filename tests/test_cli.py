@@ -81,14 +81,16 @@ def test_render_pose_method_and_steps_reach_the_config(monkeypatch, tmp_path):
     calls = []
     monkeypatch.setattr(cli, "_run", lambda experiment, out, seed, quick, **overrides: calls.append((experiment.module, overrides)))
     result = CliRunner().invoke(cli.app, ["render", "pose", "--method", "soft", "--method", "perturbed-gaussian",
-                                          "--method", "soft", "--steps", "250", "--out", str(tmp_path)])
+                                          "--method", "soft", "--steps", "250", "--samples", "16", "--out", str(tmp_path)])
     assert result.exit_code == 0, result.output
     module, overrides = calls[-1]
     assert module == "render_pose"
     assert overrides["methods"] == ("soft", "perturbed-gaussian") and overrides["steps"] == 250
+    assert overrides["num_samples"] == 16
     CliRunner().invoke(cli.app, ["render", "pose", "--out", str(tmp_path)])
     # the Config's defaults
     assert calls[-1][1]["methods"] is None and calls[-1][1]["steps"] is None and calls[-1][1]["keep_best"] is None
+    assert calls[-1][1]["num_samples"] is None
     CliRunner().invoke(cli.app, ["render", "pose", "--last", "--out", str(tmp_path)])
     assert calls[-1][1]["keep_best"] is False and calls[-1][1]["pose_noise_deg"] is None
     CliRunner().invoke(cli.app, ["render", "pose", "--pose-noise", "0", "--pose-noise-until", "0.75", "--out", str(tmp_path)])

@@ -89,7 +89,7 @@ final noise scale factor), mean_translation_error (distance of the final transla
 one, 0 unless optimize_translation), seconds_per_step (wall time of one batched Adam step of
 batch_size problems, first steps excluded; null when there is none) and seconds_per_problem_step
 (the same per problem); also methods, init_errors_deg, success_deg, problems, batch_size (the
-problems per chunk actually run: at most the config's, so that chunks are of equal size), steps, image_size, mesh, num_faces, faces_per_pixel and
+problems per chunk actually run: at most the config's, so that chunks are of equal size), steps, image_size, mesh, num_faces, faces_per_pixel, num_samples (of the perturbed renderers) and
 cull_backfaces (whether faces seen from behind were dropped: by default when the mesh is closed) and
 interior_edges (whether coverage was smoothed across every triangle edge, as in the paper),
 keep_best, pose_noise_deg (the initial rotation noise of the pose smoothing, 0 when off) and
@@ -515,6 +515,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "mesh": config.mesh,
         "num_faces": int(mesh.faces.shape[0]),
         "faces_per_pixel": config.faces_per_pixel,
+        "num_samples": config.num_samples,
         "cull_backfaces": target_renderer.cull_backfaces,
         "interior_edges": config.interior_edges,
         "keep_best": config.keep_best,
