@@ -117,6 +117,8 @@ class Config:
     # sigma 3 / 4.5 / 6, within the binomial noise (about 5 points); soft: 66
     sigma: float = 3.0
     gamma: float = 0.02  # depth temperature (normalized inverse depth)
+    # More samples do close it: 73 % (16) and 83 % (32) at 80 deg on the same problems, at 1.7x
+    # and 2.5x the step time; unmeasured at 20 and 50 deg (benchmarks/RESULTS.md)
     num_samples: int = 8
     # candidates per pixel: since the candidate-selection fix of session 9, 4 suffice for the
     # torus (8 problems, seed 11, seamless: the same % solved at 20/50 deg as with 8, a step
