@@ -54,7 +54,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from benchmarks._timing import fmt, machine, median_time, solo12  # noqa: E402
-from rsmooth import control, sim  # noqa: E402
+from rsmooth import _xla, control, sim  # noqa: E402
 from rsmooth.control import _ddp  # noqa: E402
 from rsmooth.experiments import control_solo_lift  # noqa: E402
 
@@ -73,8 +73,10 @@ FOOT = "FL"
 # benchmark's first DDP state; R-DDP M = 32 236 ms per iteration all at once against 129 ms (M
 # samples per node are already a batch). Earlier (jacfwd through the contact solver) batching nodes was no faster: DDP
 # 91 ms (1), 85 ms (10), 148 ms (all); R-DDP M = 8 760 ms (1), 790 ms (4), 1.37 s (all).
+# On a GPU (an H200, session 24) R-DDP M = 32 took 376 ms per iteration one node at a time and
+# 56 ms all at once (with all line-search step sizes at once too): RDDP's "auto" picks by backend.
 DDP_NODE_BATCH = None
-RDDP_NODE_BATCH = 1
+RDDP_NODE_BATCH = "auto"
 # Crocoddyl releases and the Pinocchio each was built against (a different one segfaults or
 # gives wrong dynamics: FIELD-NOTES).
 CROCODDYL_PINOCCHIO = {"3.2.1": "4.0.0"}
@@ -122,6 +124,13 @@ def _trials(step_sizes: np.ndarray, improvements: np.ndarray, num_step_sizes: in
     return float(np.mean(trials)) if trials else float("nan")
 
 
+def _auto(value, accelerator) -> str:
+    """A batch-size setting as printed: "auto" with what it means on this backend."""
+    if value != "auto":
+        return str(value)
+    return f"auto ({accelerator if _xla.on_accelerator() else 1} on {jax.default_backend()})"
+
+
 def _foot_height(problem, xs) -> float:
     """How far the lifted foot rose over the trajectory (m)."""
     lifted = control_solo_lift.FEET.index(FOOT)
@@ -153,7 +162,7 @@ def time_ours(name: str, solver: control.DDP, problem, us_init, key, repeats: in
             np.asarray(solution.stats["expected_improvement"])[1:],
             solver.num_step_sizes,
             solver.th_stop,
-            solver.line_search_batch,
+            solver._line_search_batch(),
         ),
         "cost": (float(solution.stats["cost"][0]), float(solution.cost)),
         "us": solution.us,
@@ -179,7 +188,7 @@ def time_ours(name: str, solver: control.DDP, problem, us_init, key, repeats: in
     first = _ddp._jitted_step(compiled, problem, state)
     result["step_trials"] = _trials(
         np.asarray([first.step_size]), np.asarray([first.expected_improvement]), solver.num_step_sizes, solver.th_stop,
-        solver.line_search_batch,
+        solver._line_search_batch(),
     )
     return result
 
@@ -382,7 +391,7 @@ def main(
     iterations: int | None = None,
     ddp_node_batch: int | None | str = "default",
     rddp_node_batch: int | None | str = "default",
-    line_search_batch: int = 1,
+    line_search_batch: int | str = "auto",
     all_cpus: bool = False,
     breakdown: bool = True,
 ) -> dict:
@@ -399,8 +408,8 @@ def main(
     parts = f"breakdown: median of {repeats} calls" if breakdown else "no breakdown"
     print(
         f"Solo-12 lift {FOOT} foot 5 cm, dt = 0.01 s, float64; T = {horizons}; R-DDP M = {samples}; "
-        f"{iterations} iterations per solve; node batch: DDP {ddp_node_batch}, R-DDP {rddp_node_batch}; "
-        f"line-search batch {line_search_batch}; {parts}"
+        f"{iterations} iterations per solve; node batch: DDP {ddp_node_batch}, R-DDP {_auto(rddp_node_batch, None)}; "
+        f"line-search batch {_auto(line_search_batch, 'all')}; {parts}"
     )
     croc, croc_note = crocoddyl_status()
     print(croc_note + "\n", flush=True)
@@ -577,10 +586,15 @@ if __name__ == "__main__":
     parser.add_argument("--horizons", type=int, nargs="+")
     parser.add_argument("--samples", type=int, nargs="+")
     parser.add_argument("--iterations", type=int)
-    batch = lambda s: s if s == "default" else None if s == "none" else int(s)  # noqa: E731
+    batch = lambda s: s if s in ("default", "auto") else None if s == "none" else int(s)  # noqa: E731
     parser.add_argument("--ddp-node-batch", type=batch, default="default", help="DDP.node_batch_size for DDP (int or none)")
-    parser.add_argument("--rddp-node-batch", type=batch, default="default", help="RDDP.sample_node_batch_size (int or none)")
-    parser.add_argument("--line-search-batch", type=int, default=1, help="DDP.line_search_batch (DDP and R-DDP)")
+    parser.add_argument(
+        "--rddp-node-batch", type=batch, default="default", help="RDDP.sample_node_batch_size (int, none or auto, the default)"
+    )
+    parser.add_argument(
+        "--line-search-batch", type=lambda s: s if s == "auto" else int(s), default="auto",
+        help="DDP.line_search_batch, DDP and R-DDP (int or auto, the default: 1 on the CPU, all step sizes on a GPU)",
+    )
     parser.add_argument("--all-cpus", action="store_true", help="do not pin the process to one CPU")
     parser.add_argument("--no-breakdown", action="store_true")
     args = parser.parse_args()

@@ -26,6 +26,7 @@ mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD:$PWD/.gpu:/tmp/rsmooth-site" RSMOOTH_BENCHMARK_SOLO12_MODEL="$PWD/.gpu/solo12.npz"
 PY=${PYTHON:-python3}
 PHASES=${PHASES:-"info render control control-batched tests core sim pose"}
+# other phases, by name only: pose-samples control-default
 if compgen -G ".gpu/whl/*.whl" > /dev/null; then
   $PY -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/rsmooth-site .gpu/whl/*.whl
 fi
@@ -49,6 +50,8 @@ phase render 150 $PY -m benchmarks render --repeats 10
 # faster); then all ten line-search step sizes at once too (DDP.line_search_batch), not yet
 # measured on a GPU (session 22 ran the first command only)
 phase control 180 $PY -m benchmarks.control --all-cpus --horizons 50 --samples 32 --iterations 4 --no-breakdown --rddp-node-batch none
+# the CPU-tuned defaults as they are (one node's samples at a time, one step size at a time)
+phase control-default 180 $PY -m benchmarks.control --all-cpus --horizons 50 --samples 32 --iterations 4 --no-breakdown
 phase control-batched 180 $PY -m benchmarks.control --all-cpus --horizons 50 --samples 32 --iterations 4 --no-breakdown \
   --rddp-node-batch none --line-search-batch 10
 # The smoothing core, the perturbed optimizers, the renderer and the contact solver on the GPU,
@@ -58,7 +61,11 @@ phase tests 170 env XLA_PYTHON_CLIENT_PREALLOCATE=false $PY -m pytest -q -x -n 8
   tests/test_estimators.py tests/test_smooth.py tests/test_perturbed.py tests/test_noise.py tests/test_schedules.py \
   tests/render/test_raster.py tests/render/test_render.py tests/sim/test_contact.py
 phase core 40 $PY -m benchmarks core --repeats 30
-phase sim 110 $PY -m benchmarks.sim --quick --probe-timeout 30
+# NCPSolver.chunk_size = 4 was tuned on the CPU: 16 and 64 (the whole batch) beside it
+phase sim 150 $PY -m benchmarks.sim --quick --probe-timeout 30 --chunk-sizes 16 64
 # The render-pose experiment's default 100 problems at 80 deg with two restarts (two minutes here)
 phase pose 220 $PY -m rsmooth.cli render pose --init-error 80 --problems 100 --seed 0 --restarts 2 \
   --method perturbed-gaussian --method soft --out "$OUT/pose80"
+# 16 samples per pixel (the default is 8) from 20 and 50 deg, the default-size table's problems
+phase pose-samples 240 $PY -m rsmooth.cli render pose --init-error 20 --init-error 50 --problems 100 --seed 0 \
+  --samples 16 --method perturbed-gaussian --method perturbed-cauchy --out "$OUT/pose-samples"

@@ -160,7 +160,7 @@ def probe_vmap_jacobian(batch: int, timeout: float) -> tuple[bool, str]:
 # ---------------------------------------------------------------------------------------------
 
 
-def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0) -> dict:
+def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0, chunk_sizes: tuple[int, ...] = ()) -> dict:
     if quick:
         repeats = min(repeats, 5)
     print(f"machine: {machine()}")
@@ -228,6 +228,24 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0) ->
     results["ours_step_jac_batch_perturbed"] = median_time(
         step_jac_batch, xs_perturbed, us_perturbed, repeats=max(9, repeats // 3)
     ) / BATCH
+    # NCPSolver.chunk_size ("auto": 4 on the CPU, the whole batch on a GPU) against fixed ones on the
+    # perturbed batch, in this run:
+    # the unsolved problems go through the polish and ADMM loops this many at a time
+    chunk_rows = []
+    for chunk in chunk_sizes:
+        chunked = dataclasses.replace(system, solver=dataclasses.replace(system.solver, chunk_size=chunk))
+        key_step, key_jac = f"ours_step_batch_perturbed_chunk{chunk}", f"ours_step_jac_batch_perturbed_chunk{chunk}"
+        results[key_step] = median_time(
+            jax.jit(jax.vmap(lambda x, u: chunked.step(x, u))), xs_perturbed, us_perturbed, repeats=repeats
+        ) / BATCH
+        results[key_jac] = median_time(
+            jax.jit(jax.vmap(lambda x, u: chunked.step_and_jacobians(x, u))), xs_perturbed, us_perturbed,
+            repeats=max(9, repeats // 3),
+        ) / BATCH
+        chunk_rows += [
+            (f"ours: jit(vmap(step)), batch {BATCH} perturbed, chunk_size {chunk}, per env", key_step),
+            (f"ours: vmap(step_and_jacobians), batch {BATCH} perturbed, chunk_size {chunk}, per env", key_jac),
+        ]
     print("  (ours: step, vmapped step and Jacobian timed; probing vmap(jacfwd) in a subprocess)", flush=True)
 
     ok, message = probe_vmap_jacobian(PROBE_BATCH, probe_timeout)
@@ -375,6 +393,7 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0) ->
         ("ours: step_and_jacobians (next state, d/dx, d/du), batch 1", "ours_step_jac"),
         (f"ours: vmap(step_and_jacobians), batch {BATCH}, per env", "ours_step_jac_batch"),
         (f"ours: vmap(step_and_jacobians), batch {BATCH} perturbed, per env", "ours_step_jac_batch_perturbed"),
+        *chunk_rows,
         ("MuJoCo: mj_step", "mj_step"),
         ("MuJoCo: mj_step, perturbed states", "mj_step_perturbed"),
         ("MuJoCo: mjd_transitionFD (forward, eps 1e-6)", "mjd_transitionFD"),
@@ -423,5 +442,10 @@ if __name__ == "__main__":
     parser.add_argument("--repeats", type=int, default=30)
     parser.add_argument("--quick", action="store_true", help="at most 5 repeats")
     parser.add_argument("--probe-timeout", type=float, default=90.0)
+    parser.add_argument(
+        "--chunk-sizes", type=int, nargs="+", default=[],
+        help="also time the perturbed batch with these NCPSolver.chunk_size values (default: only the solver's own, "
+        "'auto': 4 on the CPU, the whole batch on a GPU)",
+    )
     args = parser.parse_args()
-    main(repeats=args.repeats, quick=args.quick, probe_timeout=args.probe_timeout)
+    main(repeats=args.repeats, quick=args.quick, probe_timeout=args.probe_timeout, chunk_sizes=tuple(args.chunk_sizes))

@@ -36,7 +36,7 @@ def once_if(fn: Callable, needed, operand, state):
     return lax.while_loop(lambda carry: ~carry[0], body, (~needed, state))[1]
 
 
-def run_where_needed(fn: Callable[[Any, Any], Any], needed, operand, state, *, chunk: int = 8):
+def run_where_needed(fn: Callable[[Any, Any], Any], needed, operand, state, *, chunk: int | None = 8):
     """``fn(operand, state)`` where ``needed``, ``state`` elsewhere, computing ``fn`` only where
     needed, also under ``jax.vmap``.
 
@@ -53,7 +53,8 @@ def run_where_needed(fn: Callable[[Any, Any], Any], needed, operand, state, *, c
         needed: boolean scalar (per member).
         operand: pytree of arrays ``fn`` reads.
         state: pytree of arrays ``fn`` updates.
-        chunk: members per chunk under ``vmap``.
+        chunk: members per chunk under ``vmap``; ``None``: the whole batch at once (``fn`` runs
+            for every member, as long as one needs it).
 
     Returns:
         The new state.
@@ -66,8 +67,8 @@ def run_where_needed(fn: Callable[[Any, Any], Any], needed, operand, state, *, c
         >>> jax.vmap(f)(jnp.arange(6.0)).tolist()
         [0.0, 1.0, 2.0, 13.0, 14.0, 15.0]
     """
-    if not (isinstance(chunk, int) and chunk >= 1):
-        raise ValueError(f"chunk must be an int >= 1, got {chunk!r}")
+    if chunk is not None and not (isinstance(chunk, int) and not isinstance(chunk, bool) and chunk >= 1):
+        raise ValueError(f"chunk must be an int >= 1 or None, got {chunk!r}")
 
     @custom_vmap
     def run(needed, operand, state):
@@ -82,7 +83,7 @@ def run_where_needed(fn: Callable[[Any, Any], Any], needed, operand, state, *, c
         needed = batched(needed, needed_batched)
         operand = jax.tree.map(batched, operand, operand_batched)
         state = jax.tree.map(batched, state, state_batched)
-        if axis_size <= chunk:
+        if chunk is None or axis_size <= chunk:
             out = jax.vmap(lambda n, o, s: once_if(fn, n, o, s))(needed, operand, state)
             return out, jax.tree.map(lambda _: True, out)
         count = jnp.sum(needed, dtype=jnp.int32)

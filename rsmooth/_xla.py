@@ -14,12 +14,19 @@ point calls :func:`apply_cpu_defaults` for the ``rsmooth render`` commands only,
 creates its backend. Not for the simulator: its batched step Jacobian measured 1.2-1.9x slower
 with the flag (vmap 64: 273-406 us per env against 219-235 without, same day).
 ``RSMOOTH_XLA_DEFAULTS=0`` leaves ``XLA_FLAGS`` alone.
+
+:func:`on_accelerator` is what the solvers' ``"auto"`` batch sizes ask (``NCPSolver.chunk_size``,
+``DDP.line_search_batch``, ``RDDP.sample_node_batch_size``): on a CPU a batch costs its
+members' work, on a GPU it costs about one member's (kernel launches), so the best batch sizes
+differ by an order of magnitude (benchmarks/RESULTS.md, the GPU sections).
 """
 
 from __future__ import annotations
 
 import importlib.metadata
 import os
+
+import jax
 
 YNN_FLAG = "--xla_cpu_experimental_ynn_fusion_type"
 # jaxlib versions on which the flag exists and was measured to help (see the module docstring)
@@ -43,3 +50,12 @@ def apply_cpu_defaults(environ: dict | None = None) -> bool:
         return False
     environ["XLA_FLAGS"] = f"{flags} {YNN_FLAG}=".strip()
     return True
+
+
+def on_accelerator() -> bool:
+    """True when JAX's default backend is not the CPU (a GPU or TPU).
+
+    Asked when a solver is traced, not when it is built: building one must not start JAX's
+    backend (it reads ``XLA_FLAGS`` once, when it starts; see :func:`apply_cpu_defaults`).
+    """
+    return jax.default_backend() != "cpu"

@@ -78,3 +78,27 @@ def test_evaluates_only_the_needed_chunks():
 def test_rejects_a_bad_chunk():
     with pytest.raises(ValueError, match="chunk"):
         run_where_needed(_iterate, jnp.array(True), 1.0, (jnp.array(1.0), jnp.array(1.0)), chunk=0)
+
+
+def test_whole_batch_chunk(getkey):
+    """chunk=None (NCPSolver's choice on a GPU): the masked evaluation's results, the function
+    evaluated on the whole batch as soon as one member needs it, not at all when none does."""
+    seen = []
+
+    def recorded(a, state):
+        jax.debug.callback(lambda x: seen.append(np.asarray(x).size), a)
+        return _iterate(a, state)
+
+    run = jax.jit(jax.vmap(lambda n, a, s: run_where_needed(recorded, n, a, s, chunk=None)))
+    needed = jax.random.bernoulli(getkey(), 0.3, (9,)).at[0].set(True)
+    a = jax.random.normal(getkey(), (9,))
+    state = (jnp.arange(9, dtype=float) % 5, jax.random.normal(getkey(), (9,)))
+    for flags, evaluations in ((needed, 9), (jnp.zeros(9, bool), 0)):
+        seen.clear()
+        got = jax.block_until_ready(run(flags, a, state))
+        jax.effects_barrier()
+        assert sum(seen) == evaluations
+        for x, y in zip(got, jax.vmap(_masked)(flags, a, state)):
+            np.testing.assert_array_equal(x, y)
+    with pytest.raises(ValueError, match="chunk"):
+        run_where_needed(_iterate, jnp.array(True), 1.0, (jnp.array(1.0), jnp.array(1.0)), chunk=True)

@@ -68,7 +68,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Callable, ClassVar, NamedTuple
+from typing import Callable, ClassVar, Literal, NamedTuple
 
 import equinox as eqx
 import jax
@@ -76,6 +76,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array, lax
 
+from rsmooth import _xla
 from rsmooth.control._problem import ShootingProblem
 
 __all__ = ["RESULTS", "DDP", "DDPState", "Trajectory", "Solution", "ddp"]
@@ -320,14 +321,17 @@ class DDP(eqx.Module):
         num_step_sizes: the line search tries ``alpha = 2^0, ..., 2^-(num_step_sizes-1)``.
         line_search_batch: the line search rolls out this many step sizes at once (``vmap``),
             largest first, and takes the largest one accepted, as one at a time would (the
-            same step, up to the rounding of the batched rollouts); 1 (the default): one at a
-            time, as Crocoddyl. A batch pays where the search often backtracks (non-smooth
-            dynamics) and where a rollout is latency-bound (a GPU: ``num_step_sizes`` at once
-            cost about one trial). On one CPU core, Solo-12 lifting a foot (T = 50, from
-            R-DDP's controls; iterations taking 1 to 10 trials, same steps for all): 17.1 ms
-            per iteration one at a time, 14.8 two at a time, 14.4 all ten at once; but an
-            iteration that takes the full step costs ~9-11 ms alone and ~14 ms with all ten
-            (benchmarks/RESULTS.md).
+            same step, up to the rounding of the batched rollouts); 1: one at a time, as
+            Crocoddyl. ``"auto"`` (the default): 1 on the CPU, all ``num_step_sizes`` at once
+            on a GPU or TPU (decided when the solve is traced). A batch pays where the search
+            often backtracks (non-smooth dynamics) and where a rollout is latency-bound (a
+            GPU: ``num_step_sizes`` at once cost about one trial). On one CPU core, Solo-12
+            lifting a foot (T = 50, from R-DDP's controls; iterations taking 1 to 10 trials,
+            same steps for all): 17.1 ms per iteration one at a time, 14.8 two at a time, 14.4
+            all ten at once; but an iteration that takes the full step costs ~9-11 ms alone and
+            ~14 ms with all ten. On an H200 GPU, the same task (T = 50): R-DDP M = 32 (3.8
+            trials per iteration) 85 ms one at a time, 56 ms all at once; DDP (one trial) 37-39
+            against 45 ms (benchmarks/RESULTS.md).
         box_qp_iterations: iteration cap of the box QP (Box-DDP).
         node_batch_size: the Jacobians of the dynamics are computed this many nodes at a
             time (`lax.map` over batches, `vmap` within one); ``None`` (the default): all
@@ -352,7 +356,7 @@ class DDP(eqx.Module):
     th_stepdec: float = eqx.field(static=True, default=0.5)
     th_stepinc: float = eqx.field(static=True, default=0.01)
     num_step_sizes: int = eqx.field(static=True, default=10)
-    line_search_batch: int = eqx.field(static=True, default=1)
+    line_search_batch: int | Literal["auto"] = eqx.field(static=True, default="auto")
     box_qp_iterations: int = eqx.field(static=True, default=30)
     node_batch_size: int | None = eqx.field(static=True, default=None)
     throw: bool = eqx.field(static=True, default=True)
@@ -361,7 +365,9 @@ class DDP(eqx.Module):
     _needs_key: ClassVar[bool] = False
 
     def __check_init__(self):
-        names = ("max_iterations", "num_step_sizes", "line_search_batch", "box_qp_iterations")
+        names = ("max_iterations", "num_step_sizes", "box_qp_iterations")
+        if self.line_search_batch != "auto":
+            names += ("line_search_batch",)
         if self.node_batch_size is not None:
             names += ("node_batch_size",)
         for name in names:
@@ -384,6 +390,13 @@ class DDP(eqx.Module):
             raise ValueError(f"th_acceptstep must be in [0, 1), got {self.th_acceptstep}")
 
     # -- hooks overridden by R-DDP ---------------------------------------------------------
+
+    def _line_search_batch(self) -> int:
+        """Step sizes per batch of the line search, ``"auto"`` decided (when the solve is traced)."""
+        batch = self.line_search_batch
+        if batch == "auto":
+            batch = self.num_step_sizes if _xla.on_accelerator() else 1
+        return min(batch, self.num_step_sizes)
 
     def _initial_noise(self, dtype) -> Array:
         return jnp.zeros((), dtype)
@@ -537,7 +550,7 @@ class DDP(eqx.Module):
 
         # The step sizes in groups of `line_search_batch`, the last group padded with smaller
         # ones that are never accepted.
-        batch = min(self.line_search_batch, self.num_step_sizes)
+        batch = self._line_search_batch()
         groups = -(-self.num_step_sizes // batch)
         alphas = 2.0 ** -jnp.arange(groups * batch, dtype=dtype)
         trajectory = state.trajectory

@@ -63,7 +63,7 @@ References:
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable, ClassVar
+from typing import Callable, ClassVar, Literal
 
 import equinox as eqx
 import jax
@@ -71,7 +71,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array, lax
 
-from rsmooth import _checks
+from rsmooth import _checks, _xla
 from rsmooth import estimators as _estimators
 from rsmooth.control._ddp import DDP, DDPState, Solution, dynamics_jacobians, map_nodes, solve
 from rsmooth.control._problem import ShootingProblem
@@ -210,10 +210,14 @@ class RDDP(DDP):
             ``max_iterations // 2``), so that the plain-DDP phase always has iterations left.
         sample_node_batch_size: the smoothed Jacobians are estimated this many nodes at a
             time (``None``: all at once); ``node_batch_size`` applies to the exact Jacobians
-            of the eps = 0 iterations. 1 by default: the ``num_samples`` samples of a node are
-            already one batch, and batching the nodes too makes every contact solve wait for
-            the slowest of ``T x num_samples`` (Solo-12, T = 50, M = 32: 236 ms per iteration
-            with all nodes at once against 129 ms one node at a time).
+            of the eps = 0 iterations. ``"auto"`` (the default): 1 on the CPU, ``None`` on a
+            GPU or TPU (decided when the solve is traced). On one CPU core the ``num_samples``
+            samples of a node are already one batch, and batching the nodes too makes every
+            contact solve wait for the slowest of ``T x num_samples`` (Solo-12, T = 50, M =
+            32: 236 ms per iteration with all nodes at once against 129 ms one node at a
+            time); on a GPU one node at a time is ``T`` launches of a small batch (an H200,
+            the same task: 376 ms per iteration one node at a time, 56 ms all at once with
+            ``line_search_batch`` at its GPU value too, 85 ms with it at 1; benchmarks/RESULTS.md).
     """
 
     eps: float = eqx.field(static=True, default=1.0)
@@ -227,7 +231,7 @@ class RDDP(DDP):
     eps_min: float = eqx.field(static=True, default=1e-3)
     stall_threshold: float = eqx.field(static=True, default=1e-3)
     max_smoothed_iterations: int | None = eqx.field(static=True, default=None)
-    sample_node_batch_size: int | None = eqx.field(static=True, default=1)
+    sample_node_batch_size: int | None | Literal["auto"] = eqx.field(static=True, default="auto")
 
     _needs_key: ClassVar[bool] = True
 
@@ -255,7 +259,9 @@ class RDDP(DDP):
             raise ValueError(f"stall_threshold must be >= 0, got {self.stall_threshold}")
         if self.max_smoothed_iterations is not None:
             _checks.check_num_samples(self.max_smoothed_iterations, "max_smoothed_iterations", minimum=0)
-        if self.sample_node_batch_size is not None:
+        if isinstance(self.sample_node_batch_size, str) and self.sample_node_batch_size != "auto":
+            raise ValueError(f"sample_node_batch_size must be an int >= 1, None or 'auto', got {self.sample_node_batch_size!r}")
+        if self.sample_node_batch_size not in (None, "auto"):
             _checks.check_num_samples(self.sample_node_batch_size, "sample_node_batch_size", minimum=1)
         if self.approximation != "gauss_newton":
             raise ValueError(
@@ -291,8 +297,14 @@ class RDDP(DDP):
             noise=self.noise,
             state_noise_scale=self.state_noise_scale,
             control_noise_scale=self.control_noise_scale,
-            batch_size=self.sample_node_batch_size,
+            batch_size=self._sample_node_batch(),
         )
+
+    def _sample_node_batch(self) -> int | None:
+        """``sample_node_batch_size`` with ``"auto"`` decided (when the solve is traced)."""
+        if self.sample_node_batch_size != "auto":
+            return self.sample_node_batch_size
+        return None if _xla.on_accelerator() else 1
 
     def as_ddp(self) -> DDP:
         """The :class:`~rsmooth.control.DDP` with this solver's DDP options: what R-DDP runs

@@ -26,6 +26,7 @@ Conventions used throughout:
 from __future__ import annotations
 
 import functools
+from typing import Literal
 
 import equinox as eqx
 import jax
@@ -34,6 +35,7 @@ import numpy as np
 from jax import lax
 from jax.typing import ArrayLike
 
+from rsmooth import _xla
 from rsmooth._batching import once_if, run_where_needed
 from rsmooth._unrolled import sum_last
 
@@ -558,6 +560,10 @@ def _polish(G: Array, g: Array, mu: Array, impulse: Array, steps: int) -> Array:
     return _mode_equations(x, direction, mode, G, g, mu)[0]
 
 
+# NCPSolver.chunk_size = "auto" on the CPU (see the attribute's documentation)
+CPU_CHUNK_SIZE = 4
+
+
 class NCPSolver(eqx.Module):
     """ADMM for the frictional contact NCP with the De Saxcé correction.
 
@@ -646,9 +652,13 @@ class NCPSolver(eqx.Module):
             not as the whole batch: a batch pays for the members that need the work only, and
             each loop runs as long as the slowest problem of its chunk, not of the batch (one
             problem of 64 needing a second round of the polish, or ADMM, costs one chunk's
-            work). 4 was the fastest of 2, 4, 8, 16 on perturbed Solo-12 batches of 32 and 64
-            (perturbed batched step 24.7 -> 13.4 us per problem against the whole batch at
-            once, same run). Results do not depend on it.
+            work). ``"auto"`` (the default): 4 on the CPU, the whole batch (no chunks) on a GPU
+            or TPU, where a chunk costs about what the whole batch does. On one CPU core 4 was
+            the fastest of 2, 4, 8, 16 on perturbed Solo-12 batches of 32 and 64 (perturbed
+            batched step 24.7 -> 13.4 us per problem against the whole batch at once, same
+            run); on an H200 GPU, a perturbed batch of 64: 164 / 83 / 39 us per problem with
+            chunks of 4 / 16 / 64, the step and Jacobians 181 / 85 / 38 us (same run). An int
+            fixes it. Results do not depend on it.
         rank_deficient: the sticking guess solves its active set by the pseudo-inverse of
             ``G_AA`` (an eigendecomposition; eigenvalues below 1e-9 of the largest dropped),
             i.e. the minimum-norm sticking impulse, rather than by a Cholesky factorization.
@@ -696,14 +706,17 @@ class NCPSolver(eqx.Module):
     polish: bool = eqx.field(static=True, default=False)
     polish_rounds: int = eqx.field(static=True, default=3)
     polish_steps: int = eqx.field(static=True, default=4)
-    chunk_size: int = eqx.field(static=True, default=4)
+    chunk_size: int | Literal["auto"] = eqx.field(static=True, default="auto")
     rank_deficient: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
-        for name in ("polish_rounds", "polish_steps", "chunk_size"):
+        for name in ("polish_rounds", "polish_steps"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an int >= 1, got {value!r}.")
+        chunk = self.chunk_size
+        if chunk != "auto" and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
+            raise ValueError(f"chunk_size must be an int >= 1 or 'auto', got {chunk!r}.")
         if not (isinstance(self.max_iterations, int) and self.max_iterations >= 1):
             raise ValueError(f"max_iterations must be an int >= 1, got {self.max_iterations}.")
         if not self.tolerance > 0:
@@ -718,6 +731,13 @@ class NCPSolver(eqx.Module):
             raise ValueError(
                 f"implicit_regularization must be positive, got {self.implicit_regularization}."
             )
+
+    def _chunk(self) -> int | None:
+        """``chunk_size`` for :func:`rsmooth._batching.run_where_needed` (``None``: the whole
+        batch); ``"auto"`` is decided here, when the solve is traced."""
+        if self.chunk_size != "auto":
+            return self.chunk_size
+        return None if _xla.on_accelerator() else CPU_CHUNK_SIZE
 
     def start(self, G: Array, g: Array, mu: Array, warm_start: Array | None) -> tuple[Array, NCPInfo]:
         """The impulse ADMM starts from and its diagnostics (``converged``: it already solves
@@ -1035,7 +1055,7 @@ def solve_ncp(
     # that needs another round of the polish, or ADMM, does not make the whole batch run them,
     # and a batch whose start solved everything (a standing robot) skips it all.
     carry = (jnp.zeros((), jnp.int32), start_info.converged, (start, start_info), start)
-    carry = run_where_needed(finish, ~start_info.converged, problem, carry, chunk=solver.chunk_size)
+    carry = run_where_needed(finish, ~start_info.converged, problem, carry, chunk=solver._chunk())
     impulse, info = carry[2]
     if solver.throw:
         impulse = eqx.error_if(

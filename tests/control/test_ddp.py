@@ -373,3 +373,20 @@ def test_batched_line_search_takes_the_steps_of_the_sequential_one(batch):
 def test_line_search_batch_is_checked():
     with pytest.raises(ValueError, match="line_search_batch must be an int >= 1"):
         control.DDP(line_search_batch=0)
+    with pytest.raises(ValueError, match="line_search_batch must be an int >= 1"):
+        control.DDP(line_search_batch="all")
+
+
+def test_line_search_batch_auto_follows_the_backend(monkeypatch):
+    """line_search_batch="auto" (the default): one step size at a time on the CPU, all of them
+    at once on a GPU or TPU (the steps are the same: the test above)."""
+    from rsmooth import _xla
+
+    assert control.DDP().line_search_batch == "auto"
+    monkeypatch.setattr(_xla, "on_accelerator", lambda: False)
+    assert control.DDP()._line_search_batch() == 1
+    monkeypatch.setattr(_xla, "on_accelerator", lambda: True)
+    assert control.DDP()._line_search_batch() == 10
+    assert control.DDP(num_step_sizes=6)._line_search_batch() == 6
+    assert control.DDP(line_search_batch=3)._line_search_batch() == 3
+    assert control.DDP(line_search_batch=30)._line_search_batch() == 10

@@ -113,6 +113,8 @@ def test_bad_input_raises_named_errors():
         control.RDDP(approximation="full")
     with pytest.raises(ValueError, match="sample_node_batch_size"):
         control.RDDP(sample_node_batch_size=0)
+    with pytest.raises(ValueError, match="sample_node_batch_size"):
+        control.RDDP(sample_node_batch_size="all")
     problem = cube_lift()
     with pytest.raises(TypeError, match="key"):
         control.rddp(problem, 0)
@@ -207,3 +209,17 @@ def test_perturbed_states_are_projected_back_by_the_dynamics_project_state(getke
     # Along x, the projected step barely changes (the smoothed direction changes with |x| only
     # through the relative noise); without the projection it doubles.
     assert abs(x @ first @ x) < 0.3 and x @ jacobian(Doubling(), "zeroth", 0.3, 20000) @ x > 1.8
+
+
+def test_sample_node_batch_size_auto_follows_the_backend(monkeypatch):
+    """sample_node_batch_size="auto" (the default): one node's samples at a time on the CPU, all
+    nodes at once on a GPU or TPU; None and ints kept as they are."""
+    from rsmooth import _xla
+
+    assert control.RDDP().sample_node_batch_size == "auto"
+    monkeypatch.setattr(_xla, "on_accelerator", lambda: False)
+    assert control.RDDP()._sample_node_batch() == 1
+    assert control.RDDP(sample_node_batch_size=None)._sample_node_batch() is None
+    monkeypatch.setattr(_xla, "on_accelerator", lambda: True)
+    assert control.RDDP()._sample_node_batch() is None
+    assert control.RDDP(sample_node_batch_size=5)._sample_node_batch() == 5

@@ -540,6 +540,21 @@ def test_batched_solves_do_not_depend_on_the_chunks(getkey):
         np.testing.assert_allclose(impulse, alone[0], atol=1e-12)
     with pytest.raises(ValueError, match="chunk_size"):
         NCPSolver(chunk_size=0)
+    with pytest.raises(ValueError, match="'auto'"):
+        NCPSolver(chunk_size="all")
+
+
+def test_chunk_size_auto_follows_the_backend(monkeypatch):
+    """chunk_size="auto" (the default): 4 problems per chunk on the CPU, the whole batch (no
+    chunks) on a GPU or TPU; decided when the solve is traced, an int kept as it is."""
+    from rsmooth import _xla
+
+    assert NCPSolver().chunk_size == "auto"
+    monkeypatch.setattr(_xla, "on_accelerator", lambda: False)
+    assert NCPSolver()._chunk() == 4
+    monkeypatch.setattr(_xla, "on_accelerator", lambda: True)
+    assert NCPSolver()._chunk() is None
+    assert NCPSolver(chunk_size=8)._chunk() == 8
 
 
 def test_polish_falls_back_to_admm(getkey):
