@@ -252,8 +252,8 @@ def render_pose_command(
         None, "--method", help="perturbed-gaussian, perturbed-cauchy, soft or hard (repeatable; default all four)."),
     steps: Optional[int] = typer.Option(None, "--steps", min=1, help="Adam steps per problem (default 200, quick 60)."),
     samples: Optional[int] = typer.Option(
-        None, "--samples", min=1, help="Monte-Carlo samples per pixel of the perturbed renderers (default 8; 16 and 32 "
-        "solved 73 and 83 % from 80 deg against 59: see benchmarks/RESULTS.md)."),
+        None, "--samples", min=1, help="Monte-Carlo samples per pixel of the perturbed renderers (default 16, quick 8; 8 / "
+        "16 / 32 solved 59 / 73 / 83 % of the cubes from 80 deg: see benchmarks/RESULTS.md)."),
     keep_best: Optional[bool] = typer.Option(
         None, "--keep-best/--last", help="Report each problem's iterate whose hard render is closest to the target "
         "(default) or the last iterate."),

@@ -42,7 +42,10 @@ quarter about an axis: a pose whose silhouette matches). At 20 and 50 deg the pe
 renderers beat both of the paper's rows, at 80 deg they beat SoftRas's 55 but not the paper's
 perturbed 67 (binomial standard error about 5 points at 100 problems); which problems are
 solved varies between methods (at 80 deg 38 were solved by all three smoothed ones, 80 by at
-least one). So a failed run is largely the noise's luck, and `restarts` reruns, with fresh
+least one). These rates were measured with 8 samples per pixel; with 16 (the default since) the
+perturbed Gaussian renderer solves 97 / 91 / 73 % and beats the paper's rows and our soft
+renderer at 50 and 80 deg, perturbed Cauchy 100 / 89 % at 20 / 50 (benchmarks/RESULTS.md). So a
+failed run is largely the noise's luck, and `restarts` reruns, with fresh
 noise, the problems whose best hard render stays far from the target (a test on the image, not
 on the ground truth): with two restarts at 80 deg (100 problems, seed 0, one H200 GPU, two
 minutes for both methods) Gaussian solves 75 % (its first runs 57) and soft 80 % (67), at 1.76
@@ -117,9 +120,10 @@ class Config:
     # sigma 3 / 4.5 / 6, within the binomial noise (about 5 points); soft: 66
     sigma: float = 3.0
     gamma: float = 0.02  # depth temperature (normalized inverse depth)
-    # More samples do close it: 73 % (16) and 83 % (32) at 80 deg on the same problems, at 1.7x
-    # and 2.5x the step time; unmeasured at 20 and 50 deg (benchmarks/RESULTS.md)
-    num_samples: int = 8
+    # More samples do close it: 59 / 73 / 83 % at 80 deg with 8 / 16 / 32 samples on the same
+    # problems, at 1x / 1.7x / 2.5x the step time on the CPU; 16 also solve 97 / 91 % from 20 /
+    # 50 deg against 96 / 85 with 8 (benchmarks/RESULTS.md, session 24), hence the default
+    num_samples: int = 16
     # candidates per pixel: since the candidate-selection fix of session 9, 4 suffice for the
     # torus (8 problems, seed 11, seamless: the same % solved at 20/50 deg as with 8, a step
     # 1.3-1.6x faster) as for the culled cube (session 8: the same solve rates, a step 2x faster)

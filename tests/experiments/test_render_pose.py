@@ -26,7 +26,7 @@ def test_perturbed_renderer_solves_a_cube_from_20_degrees(tmp_path):
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["perturbed-gaussian"]["20"]["solved_pct"] == 100.0
     assert saved["cull_backfaces"] is True and saved["faces_per_pixel"] == render_pose.Config.faces_per_pixel
-    assert saved["num_samples"] == render_pose.Config.num_samples
+    assert saved["num_samples"] == config.num_samples == 8  # the quick profile's (the default: 16)
     for name in ("errors.png", "renders_20deg.png", "optimization.gif"):
         assert (tmp_path / name).stat().st_size > 0
     assert not list(tmp_path.glob(".*"))
