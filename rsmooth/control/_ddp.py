@@ -330,8 +330,8 @@ class DDP(eqx.Module):
             same steps for all): 17.1 ms per iteration one at a time, 14.8 two at a time, 14.4
             all ten at once; but an iteration that takes the full step costs ~9-11 ms alone and
             ~14 ms with all ten. On an H200 GPU, the same task (T = 50): R-DDP M = 32 (3.8
-            trials per iteration) 85 ms one at a time, 56 ms all at once; DDP (one trial) 37-39
-            against 45 ms (benchmarks/RESULTS.md).
+            trials per iteration) 85 ms one at a time, 50-56 ms all at once; DDP (one trial)
+            37-39 against 45-52 ms (benchmarks/RESULTS.md).
         box_qp_iterations: iteration cap of the box QP (Box-DDP).
         node_batch_size: the Jacobians of the dynamics are computed this many nodes at a
             time (`lax.map` over batches, `vmap` within one); ``None`` (the default): all

@@ -44,7 +44,7 @@ perturbed 67 (binomial standard error about 5 points at 100 problems); which pro
 solved varies between methods (at 80 deg 38 were solved by all three smoothed ones, 80 by at
 least one). These rates were measured with 8 samples per pixel; with 16 (the default since) the
 perturbed Gaussian renderer solves 97 / 91 / 73 % and beats the paper's rows and our soft
-renderer at 50 and 80 deg, perturbed Cauchy 100 / 89 % at 20 / 50 (benchmarks/RESULTS.md). So a
+renderer at 50 and 80 deg; perturbed Cauchy 100 / 89 / 57 % (no gain at 80 deg; benchmarks/RESULTS.md). So a
 failed run is largely the noise's luck, and `restarts` reruns, with fresh
 noise, the problems whose best hard render stays far from the target (a test on the image, not
 on the ground truth): with two restarts at 80 deg (100 problems, seed 0, one H200 GPU, two
