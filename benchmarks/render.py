@@ -49,7 +49,7 @@ def _functions(mesh, camera, renderer):
     return forward, backward
 
 
-def _pose_step_time(repeats: int, problems: int = 8, **changes) -> tuple[float, int]:
+def _pose_step_time(repeats: int, problems: int = 8, **changes) -> tuple[float, "render_pose.Config"]:
     import dataclasses
 
     from rsmooth.experiments import render_pose
@@ -62,7 +62,7 @@ def _pose_step_time(repeats: int, problems: int = 8, **changes) -> tuple[float, 
     target = jax.vmap(lambda r: render.Renderer(mode="hard")(None, render.transform_mesh(mesh, r), cam).rgb)(r_true)
     state = init(offset)
     keys = jax.random.split(jax.random.key(1), config.problems)
-    return median_time(step, state, keys, target, r_init, repeats=repeats), config.problems
+    return median_time(step, state, keys, target, r_init, repeats=repeats), config
 
 
 def main(repeats: int = 5) -> list[dict]:
@@ -104,16 +104,23 @@ def main(repeats: int = 5) -> list[dict]:
                          "peak_mb_forward": m_forward, "peak_mb_forward_backward": m_backward})
         ratio = next(r["forward_backward"] for r in rows if r["faces"] == mesh.num_faces and r["num_samples"] == 8) / hard_forward
         print(f"perturbed (M=8) forward+backward / hard forward: {ratio:.2f}\n")
-    for k, keep_best in ((8, True), (4, True), (4, False)):
-        t_one, _ = _pose_step_time(repeats, problems=1, faces_per_pixel=k, keep_best=keep_best)
-        best = "with" if keep_best else "without"
-        print(f"pose optimization, one problem (render-pose defaults: cube, back faces culled, perturbed-gaussian M=8; "
-              f"{k} faces per pixel; {best} keep_best's hard render): {fmt(t_one)} per Adam step (goal: under 50 ms per iteration)")
-        rows.append({"pose_step": t_one, "problems": 1, "faces_per_pixel": k, "keep_best": keep_best})
-    t_step, problems = _pose_step_time(repeats)
-    print(f"pose optimization (render-pose defaults: cube, {SIZE} x {SIZE}, perturbed-gaussian M=8, {problems} problems "
-          f"vmapped): {fmt(t_step)} per Adam step, {fmt(t_step / problems)} per problem")
-    rows.append({"pose_step": t_step, "problems": problems})
+    from rsmooth.experiments import render_pose
+
+    # the defaults (4 faces per pixel, keep_best on, 16 samples) and one change at a time
+    default = render_pose.Config()
+    variants = ({}, {"faces_per_pixel": 8}, {"keep_best": False}, {"num_samples": 8})
+    for changes in variants:
+        t_one, config = _pose_step_time(repeats, problems=1, **changes)
+        change = ", ".join(f"{name} = {value}" for name, value in changes.items()) or "the defaults"
+        print(f"pose optimization, one problem (render-pose: cube, back faces culled, perturbed-gaussian "
+              f"M = {config.num_samples}, {config.faces_per_pixel} faces per pixel, keep_best {config.keep_best}; "
+              f"{change}): {fmt(t_one)} per Adam step (goal: under 50 ms per iteration)")
+        rows.append({"pose_step": t_one, "problems": 1, "faces_per_pixel": config.faces_per_pixel,
+                     "keep_best": config.keep_best, "num_samples": config.num_samples})
+    t_step, config = _pose_step_time(repeats)
+    print(f"pose optimization (render-pose defaults: cube, {SIZE} x {SIZE}, perturbed-gaussian M = {default.num_samples}, "
+          f"{config.problems} problems vmapped): {fmt(t_step)} per Adam step, {fmt(t_step / config.problems)} per problem")
+    rows.append({"pose_step": t_step, "problems": config.problems, "num_samples": default.num_samples})
     return rows
 
 
