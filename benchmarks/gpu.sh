@@ -18,7 +18,8 @@
 # its own time limit, so that one that hangs or fails leaves the others' numbers; the logs go
 # to $OUT (default /tmp/rsmooth-gpu). The limits add up to 18 min: where one call may run 10,
 # choose with PHASES="render control ..." (on the H200 of session 22: render 2 min, control
-# 1.5, tests 1.7, core 0.3, sim 1.8, pose 2.1).
+# 1.5, tests 1.7, core 0.3, sim 1.8, pose 2.1; session 24: control-default 1.4, control-batched
+# 1.5, sim 2.4 with its chunk sizes, pose-samples 2). A fresh machine took ~30 s to start.
 set -u
 cd "$(dirname "$0")/.."
 OUT=${OUT:-/tmp/rsmooth-gpu}
