@@ -128,7 +128,7 @@ def _auto(value, accelerator) -> str:
     """A batch-size setting as printed: "auto" with what it means on this backend."""
     if value != "auto":
         return str(value)
-    return f"auto ({accelerator if _xla.on_accelerator() else 1} on {jax.default_backend()})"
+    return f"auto ({_xla.resolve_auto(value, cpu=1, accelerator=accelerator)} on {jax.default_backend()})"
 
 
 def _foot_height(problem, xs) -> float:

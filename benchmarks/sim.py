@@ -228,9 +228,9 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0, ch
     results["ours_step_jac_batch_perturbed"] = median_time(
         step_jac_batch, xs_perturbed, us_perturbed, repeats=max(9, repeats // 3)
     ) / BATCH
-    # NCPSolver.chunk_size ("auto": 4 on the CPU, the whole batch on a GPU) against fixed ones on the
-    # perturbed batch, in this run:
-    # the unsolved problems go through the polish and ADMM loops this many at a time
+    # The perturbed batch with other NCPSolver.chunk_size values than the solver's ("auto": 4 on the
+    # CPU, the whole batch on a GPU), in this run: the problems the start did not solve go through
+    # the polish and ADMM loops this many at a time
     chunk_rows = []
     for chunk in chunk_sizes:
         chunked = dataclasses.replace(system, solver=dataclasses.replace(system.solver, chunk_size=chunk))

@@ -59,3 +59,11 @@ def on_accelerator() -> bool:
     backend (it reads ``XLA_FLAGS`` once, when it starts; see :func:`apply_cpu_defaults`).
     """
     return jax.default_backend() != "cpu"
+
+
+def resolve_auto(value, *, cpu, accelerator):
+    """``value`` itself, or where it is ``"auto"``: ``accelerator`` on a GPU or TPU, ``cpu`` on
+    the CPU (:func:`on_accelerator`)."""
+    if value != "auto":
+        return value
+    return accelerator if on_accelerator() else cpu

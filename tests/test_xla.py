@@ -48,3 +48,12 @@ def test_installed_xla_accepts_what_is_added():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split()[-1] == "6.0"
+
+
+def test_resolve_auto_follows_the_backend(monkeypatch):
+    monkeypatch.setattr(_xla, "on_accelerator", lambda: False)
+    assert _xla.resolve_auto("auto", cpu=4, accelerator=None) == 4
+    monkeypatch.setattr(_xla, "on_accelerator", lambda: True)
+    assert _xla.resolve_auto("auto", cpu=4, accelerator=None) is None
+    assert _xla.resolve_auto(8, cpu=4, accelerator=None) == 8
+    assert _xla.resolve_auto(None, cpu=4, accelerator=16) is None

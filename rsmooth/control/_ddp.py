@@ -393,10 +393,7 @@ class DDP(eqx.Module):
 
     def _line_search_batch(self) -> int:
         """Step sizes per batch of the line search, ``"auto"`` decided (when the solve is traced)."""
-        batch = self.line_search_batch
-        if batch == "auto":
-            batch = self.num_step_sizes if _xla.on_accelerator() else 1
-        return min(batch, self.num_step_sizes)
+        return min(_xla.resolve_auto(self.line_search_batch, cpu=1, accelerator=self.num_step_sizes), self.num_step_sizes)
 
     def _initial_noise(self, dtype) -> Array:
         return jnp.zeros((), dtype)

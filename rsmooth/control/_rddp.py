@@ -302,9 +302,7 @@ class RDDP(DDP):
 
     def _sample_node_batch(self) -> int | None:
         """``sample_node_batch_size`` with ``"auto"`` decided (when the solve is traced)."""
-        if self.sample_node_batch_size != "auto":
-            return self.sample_node_batch_size
-        return None if _xla.on_accelerator() else 1
+        return _xla.resolve_auto(self.sample_node_batch_size, cpu=1, accelerator=None)
 
     def as_ddp(self) -> DDP:
         """The :class:`~rsmooth.control.DDP` with this solver's DDP options: what R-DDP runs

@@ -735,9 +735,7 @@ class NCPSolver(eqx.Module):
     def _chunk(self) -> int | None:
         """``chunk_size`` for :func:`rsmooth._batching.run_where_needed` (``None``: the whole
         batch); ``"auto"`` is decided here, when the solve is traced."""
-        if self.chunk_size != "auto":
-            return self.chunk_size
-        return None if _xla.on_accelerator() else CPU_CHUNK_SIZE
+        return _xla.resolve_auto(self.chunk_size, cpu=CPU_CHUNK_SIZE, accelerator=None)
 
     def start(self, G: Array, g: Array, mu: Array, warm_start: Array | None) -> tuple[Array, NCPInfo]:
         """The impulse ADMM starts from and its diagnostics (``converged``: it already solves
