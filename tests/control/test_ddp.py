@@ -390,3 +390,18 @@ def test_line_search_batch_auto_follows_the_backend(monkeypatch):
     assert control.DDP(num_step_sizes=6)._line_search_batch() == 6
     assert control.DDP(line_search_batch=3)._line_search_batch() == 3
     assert control.DDP(line_search_batch=30)._line_search_batch() == 10
+
+
+def test_line_search_auto_on_an_accelerator_takes_the_sequential_steps(monkeypatch):
+    """The "auto" line search traced as on a GPU (all ten step sizes at once) solves the
+    backtracking problem with the steps of the one-at-a-time search. (max_iterations = 29: a
+    solver no other test compiles, so this one is traced under the patched backend.)"""
+    from rsmooth import _xla
+
+    problem = _backtracking_problem()
+    sequential = control.ddp(problem, solver=control.DDP(max_iterations=29, line_search_batch=1))
+    monkeypatch.setattr(_xla, "on_accelerator", lambda: True)
+    batched = control.ddp(problem, solver=control.DDP(max_iterations=29))
+    assert batched.iterations == sequential.iterations
+    np.testing.assert_allclose(batched.stats["step_size"], sequential.stats["step_size"], rtol=1e-12)
+    np.testing.assert_allclose(batched.us, sequential.us, rtol=1e-12)
