@@ -13,11 +13,14 @@ timed without it.
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 
 from benchmarks._timing import fmt, machine, median_time
 from rsmooth import render
+from rsmooth.experiments import render_pose
 
 SIZE = 128
 # (subdivisions, tile_size, faces_per_tile): denser meshes need smaller tiles (see rasterize).
@@ -49,11 +52,7 @@ def _functions(mesh, camera, renderer):
     return forward, backward
 
 
-def _pose_step_time(repeats: int, problems: int = 8, **changes) -> tuple[float, "render_pose.Config"]:
-    import dataclasses
-
-    from rsmooth.experiments import render_pose
-
+def _pose_step_time(repeats: int, problems: int = 8, **changes) -> tuple[float, render_pose.Config]:
     config = dataclasses.replace(render_pose.Config(), problems=problems, **changes)
     mesh = render_pose.load(config.mesh)
     cam = render_pose.camera(config)
@@ -104,8 +103,6 @@ def main(repeats: int = 5) -> list[dict]:
                          "peak_mb_forward": m_forward, "peak_mb_forward_backward": m_backward})
         ratio = next(r["forward_backward"] for r in rows if r["faces"] == mesh.num_faces and r["num_samples"] == 8) / hard_forward
         print(f"perturbed (M=8) forward+backward / hard forward: {ratio:.2f}\n")
-    from rsmooth.experiments import render_pose
-
     # the defaults (4 faces per pixel, keep_best on, 16 samples) and one change at a time
     default = render_pose.Config()
     variants = ({}, {"faces_per_pixel": 8}, {"keep_best": False}, {"num_samples": 8})
