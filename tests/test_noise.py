@@ -33,10 +33,12 @@ def test_density_integrates_to_one_and_is_cdf_derivative(law):
     np.testing.assert_allclose(cdf_derivative, jnp.exp(law.log_prob(inner)), rtol=1e-9)
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64], ids=["float32", "float64"])
 @pytest.mark.parametrize("law", ALL, ids=lambda n: n.name)
-def test_samples_follow_the_cdf(law, getkey):
+def test_samples_follow_the_cdf(law, dtype, getkey):
+    # float32 draws come from rsmooth's own use of threefry (both words), float64 from JAX's
     n = 40_000
-    samples = np.sort(np.asarray(law.sample(getkey(), (n,))))
+    samples = np.sort(np.asarray(law.sample(getkey(), (n,), dtype), np.float64))
     empirical = np.arange(1, n + 1) / n
     # Kolmogorov-Smirnov statistic; its 99.9% quantile is about 1.95 / sqrt(n).
     ks = np.max(np.abs(np.asarray(law.cdf(samples)) - empirical))
@@ -65,22 +67,57 @@ def test_symmetry_flags(getkey):
             assert abs(median - (-np.log(np.log(2.0)))) < 0.02  # the Gumbel median
 
 
-SHAPED_DRAWS = {
-    "gaussian": jax.random.normal,
-    "gumbel": jax.random.gumbel,
-    "laplace": jax.random.laplace,
-    "logistic": jax.random.logistic,
-    "cauchy": jax.random.cauchy,
-    "uniform": lambda key, shape, dtype: jax.random.uniform(key, shape, dtype, minval=-1.0, maxval=1.0),
-}
-
-
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64], ids=["float32", "float64"])
 @pytest.mark.parametrize("law", ALL, ids=lambda n: n.name)
-def test_samples_are_jax_random_draws_of_the_shape(law):
-    # Laws draw flat and reshape (faster on CPU); the numbers must be those of JAX's own draw
-    # of the multi-dimensional shape, entry for entry, so that seeds keep their meaning.
+def test_samples_are_counted_in_row_major_order(law, dtype):
+    # A draw of any shape is the flat draw of its size, reshaped: a key means the same numbers
+    # whatever the layout the caller asks for.
     key = jax.random.key(11)
-    grid = law.sample(key, (5, 3, 7), jnp.float32)
-    assert grid.shape == (5, 3, 7) and grid.dtype == jnp.float32
-    np.testing.assert_array_equal(np.asarray(grid), np.asarray(SHAPED_DRAWS[law.name](key, (5, 3, 7), jnp.float32)))
-    assert law.sample(key, ()).shape == ()
+    grid = law.sample(key, (5, 3, 7), dtype)
+    assert grid.shape == (5, 3, 7) and grid.dtype == dtype
+    np.testing.assert_array_equal(np.asarray(grid).ravel(), np.asarray(law.sample(key, (105,), dtype)))
+    assert law.sample(key, (), dtype).shape == ()
+    assert bool(jnp.all(jnp.isfinite(grid)))
+
+
+def test_float32_uniforms_pair_both_threefry_words_independently(getkey):
+    # Numbers i and i + n/2 are the two words of one threefry block: they must look as
+    # independent as any two, and the pairs must fill the unit square evenly.
+    n = 200_000
+    u = np.asarray(noise._uniform(getkey(), (n,), jnp.float32), np.float64)
+    assert u.min() >= 0.0 and u.max() < 1.0
+    first, second = u[: n // 2], u[n // 2 :]
+    assert abs(np.corrcoef(first, second)[0, 1]) < 5.0 / np.sqrt(n // 2)
+    counts, _, _ = np.histogram2d(first, second, bins=10, range=[[0, 1], [0, 1]])
+    expected = n // 2 / 100
+    chi2 = float(np.sum((counts - expected) ** 2 / expected))
+    assert chi2 < 160.0  # 99 degrees of freedom: P(chi2 > 160) < 1e-4
+    # as many repeated values as n independent draws among 2^23 mantissas give (birthday
+    # problem: n - N (1 - exp(-n / N)) ~ 2,380 here), not more
+    levels = 2.0**23
+    repeats = n - np.unique(u).size
+    expected = n - levels * (1.0 - np.exp(-n / levels))
+    assert abs(repeats - expected) < 5.0 * np.sqrt(expected)
+
+
+def test_draws_depend_on_the_key_alone(getkey):
+    law = noise.Gaussian()
+    # a raw uint32 key and the typed key with the same data draw the same numbers
+    np.testing.assert_array_equal(
+        np.asarray(law.sample(jax.random.PRNGKey(3), (9,), jnp.float32)),
+        np.asarray(law.sample(jax.random.key(3), (9,), jnp.float32)),
+    )
+    # vmapped over keys, each row is that key's own draw
+    keys = jax.random.split(getkey(), 4)
+    batched = jax.vmap(lambda k: law.sample(k, (6,), jnp.float32))(keys)
+    for row, k in zip(batched, keys):
+        np.testing.assert_array_equal(np.asarray(row), np.asarray(law.sample(k, (6,), jnp.float32)))
+    assert len({tuple(np.asarray(r)) for r in batched}) == 4
+
+
+def test_other_key_implementations_draw_through_jax(getkey):
+    # keys that are not threefry's (here rbg) fall back to jax.random's uniform
+    key = jax.random.key(5, impl="rbg")
+    samples = np.sort(np.asarray(noise.Gumbel().sample(key, (40_000,), jnp.float32), np.float64))
+    ks = np.max(np.abs(np.asarray(noise.Gumbel().cdf(samples)) - np.arange(1, 40_001) / 40_000))
+    assert ks < 1.95 / np.sqrt(40_000)
