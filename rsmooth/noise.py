@@ -62,11 +62,13 @@ def _uniform(key: Array, shape, dtype, minval: float = 0.0, maxval: float = 1.0)
     the threefry-2x32 block of counters (i, i + n/2) gives numbers i and i + n/2 (n the size,
     rounded up to even), as JAX's random bits did before `jax_threefry_partitionable` (its
     default since 0.5), which keeps one of the two words. Half the blocks, and XLA on CPU
-    compiles this flat counter far better than the partitionable one: measured with jaxlib
-    0.10 on one core, 2.4 million uniforms 4.4 ms against 39 ms, and the perturbed renderer's
-    forward pass with 32 samples per pixel 1.4x faster (benchmarks/RESULTS.md). The price is
-    that a sharded draw is not generated in place on each shard; rsmooth shards the samples'
-    keys, not their draws (:mod:`rsmooth.parallel`). Other keys and dtypes: `jax.random.uniform`.
+    compiles this flat counter better than the partitionable one: measured with jaxlib 0.10 on
+    one core, 2.4 million uniforms 5.5 ms against 17 ms, the perturbed renderer's forward pass
+    with 32 samples per pixel 1.4x faster, a pose-optimization step 10-15 % (benchmarks/RESULTS.md).
+    The price: a draw sharded across devices is not generated in place on each shard. rsmooth
+    shards batches of keys (one per problem, :mod:`rsmooth.parallel`), each drawn whole where
+    it lies. Other key implementations and dtypes: `jax.random.uniform` (float64's 64 bits per
+    number gained only 20 % this way).
     """
     shape = tuple(shape)
     dtype = jax.dtypes.canonicalize_dtype(dtype)
