@@ -13,6 +13,7 @@ timed on its own states after the same protocol (its warm starts included).
 
 Ratios (goals from the issue): our batched step per env / ``mj_step`` (<= 2);
 ``mjd_transitionFD`` / our full Jacobian w.r.t. (x, u) (>= 5); MJX step / our step.
+MJX is the `mujoco-mjx` package (``pip install -e ".[bench]"``); without it its rows print n/a.
 """
 
 from __future__ import annotations
