@@ -254,6 +254,11 @@ def render_pose_command(
     samples: Optional[int] = typer.Option(
         None, "--samples", min=1, help="Monte-Carlo samples per pixel of the perturbed renderers (default 16, quick 8; 8 / "
         "16 / 32 solved 59 / 73 / 83 % of the cubes from 80 deg: see benchmarks/RESULTS.md)."),
+    sample_growth: Optional[int] = typer.Option(
+        None, "--sample-growth", min=1, help="Multiply the perturbed renderers' samples per pixel by this at each noise "
+        "decrease (the step averages that many renders), up to --max-samples (default 1: off)."),
+    max_samples: Optional[int] = typer.Option(
+        None, "--max-samples", min=1, help="Cap on the samples per pixel with --sample-growth (default 128)."),
     keep_best: Optional[bool] = typer.Option(
         None, "--keep-best/--last", help="Report each problem's iterate whose hard render is closest to the target "
         "(default) or the last iterate."),
@@ -274,7 +279,7 @@ def render_pose_command(
     init_errors_deg = tuple(float(e) for e in init_error) if init_error else None
     _run(_RENDER_POSE, out, seed, quick, mesh=mesh, init_errors_deg=init_errors_deg, problems=problems, methods=methods,
          steps=steps, num_samples=samples, keep_best=keep_best, pose_noise_deg=pose_noise, pose_noise_until=pose_noise_until,
-         restarts=restarts)
+         restarts=restarts, sample_growth=sample_growth, max_samples=max_samples)
 
 
 @render_app.command("reconstruct", help=_doc(

@@ -88,11 +88,12 @@ last_mean_error_deg (the last iterate's), first_run_solved_pct (solved by the fi
 before restarts), runs_per_problem (mean runs per problem, 1 without restarts: the compute
 spent), final_losses and initial_losses (per problem, the mean squared RGB error of the hard
 image of the reported and of the initial pose to the target), final_sigma (mean
-final noise scale factor), mean_translation_error (distance of the final translation to the true
+final noise scale factor), final_num_samples (mean final samples per pixel of the perturbed
+renderers, in all the renders of a step: num_samples unless sample_growth), mean_translation_error (distance of the final translation to the true
 one, 0 unless optimize_translation), seconds_per_step (wall time of one batched Adam step of
 batch_size problems, first steps excluded; null when there is none) and seconds_per_problem_step
 (the same per problem); also methods, init_errors_deg, success_deg, problems, batch_size (the
-problems per chunk actually run: at most the config's, so that chunks are of equal size), steps, image_size, mesh, num_faces, faces_per_pixel, num_samples (of the perturbed renderers) and
+problems per chunk actually run: at most the config's, so that chunks are of equal size), steps, image_size, mesh, num_faces, faces_per_pixel, num_samples (of the perturbed renderers), sample_growth and max_samples,
 cull_backfaces (whether faces seen from behind were dropped: by default when the mesh is closed) and
 interior_edges (whether coverage was smoothed across every triangle edge, as in the paper),
 keep_best, pose_noise_deg (the initial rotation noise of the pose smoothing, 0 when off) and
@@ -124,6 +125,12 @@ class Config:
     # problems, at 1x / 1.7x / 2.5x the step time on the CPU; 16 also solve 97 / 91 % from 20 /
     # 50 deg against 96 / 85 with 8 (benchmarks/RESULTS.md, session 24), hence the default
     num_samples: int = 16
+    # the issue's "samples may double": at each noise decrease the number of renders averaged
+    # per step is multiplied by this (1: off), each of num_samples samples per pixel, up to
+    # max_samples samples per pixel in all; the steps at the noise floor then cost up to
+    # max_samples / num_samples times more (see the module docstring for what it bought)
+    sample_growth: int = 1
+    max_samples: int = 128
     # candidates per pixel: since the candidate-selection fix of session 9, 4 suffice for the
     # torus (8 problems, seed 11, seamless: the same % solved at 20/50 deg as with 8, a step
     # 1.3-1.6x faster) as for the culled cube (session 8: the same solve rates, a step 2x faster)
@@ -264,9 +271,11 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
     hard = make_renderer(config, "hard", mesh)
     optimizer = optax.adam(optax.cosine_decay_schedule(config.learning_rate, config.steps, alpha=config.final_learning_rate))
     adaptive = method != "hard"
+    grows = config.sample_growth > 1 and method.startswith("perturbed")  # soft and hard draw no samples
     schedule = (
         schedules.Adaptive(
-            factor=config.decay_factor, momentum=config.momentum, floor=config.noise_floor, patience=config.patience
+            factor=config.decay_factor, momentum=config.momentum, floor=config.noise_floor, patience=config.patience,
+            sample_growth=config.sample_growth if grows else 1, max_num_samples=max(config.max_samples, config.num_samples),
         )
         if adaptive else schedules.Constant()
     )
@@ -299,11 +308,29 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
     def init(offset):
         params = {"delta": jnp.zeros(3), "translation": offset}
         best = (params, jnp.asarray(jnp.inf, offset.dtype))
-        return params, optimizer.init(params), schedule.init(1.0), best, jnp.zeros((), jnp.int32)
+        return params, optimizer.init(params), schedule.init(1.0, config.num_samples), best, jnp.zeros((), jnp.int32)
+
+    value_and_grads = jax.value_and_grad(loss_fn, argnums=(0, 1))
+
+    def estimate(params, sched, key, target, r_init, t):
+        """The loss and its gradients (params, noise scale) from one render of num_samples
+        samples per pixel, or with sample_growth the mean over sched.num_samples // num_samples
+        renders with independent noise (keys: `key`, then `key` folded with 1, 2, ...)."""
+        first = value_and_grads(params, sched.sigma, key, target, r_init, t)
+        if not grows:  # one render: no loop in the program
+            return first
+        passes = jnp.maximum(sched.num_samples // config.num_samples, 1)
+
+        def another(i, total):
+            out = value_and_grads(params, sched.sigma, jax.random.fold_in(key, i), target, r_init, t)
+            return jax.tree.map(jnp.add, total, out)
+
+        total = jax.lax.fori_loop(1, passes, another, first)
+        return jax.tree.map(lambda a: a / passes.astype(a.dtype), total)
 
     def step(state, key, target, r_init):
         params, opt_state, sched, best, t = state
-        loss, (grad, scale_grad) = jax.value_and_grad(loss_fn, argnums=(0, 1))(params, sched.sigma, key, target, r_init, t)
+        loss, (grad, scale_grad) = estimate(params, sched, key, target, r_init, t)
         if not config.optimize_translation:
             grad = {"delta": grad["delta"], "translation": jnp.zeros_like(grad["translation"])}
         updates, opt_state = optimizer.update(grad, opt_state, params)
@@ -367,6 +394,10 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
             raise ValueError(f"unknown method {method!r}; choose from {METHODS}")
     if not (np.isfinite(config.pose_noise_deg) and config.pose_noise_deg >= 0.0):
         raise ValueError(f"pose_noise_deg must be a finite number >= 0 (degrees), got {config.pose_noise_deg!r}")
+    for name in ("sample_growth", "max_samples"):
+        value = getattr(config, name)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be an int >= 1, got {value!r}")
     if not (np.isfinite(config.pose_noise_until) and 0.0 < config.pose_noise_until <= 1.0):
         raise ValueError(f"pose_noise_until must be in (0, 1] (a fraction of the steps), got {config.pose_noise_until!r}")
     mesh = load(config.mesh)
@@ -397,9 +428,10 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         """Runs the problems `indices` (into the setup's arrays) in chunks of `batch`;
         step_keys(c_index, chunk, padding, t) gives a chunk's keys at step t. Returns, per problem
         in the order of `indices`: the rotation error at every step (steps + 1, n), the reported
-        rotation and translation, the final noise scale factor; and the timed step durations."""
+        rotation and translation, the final noise scale factor and samples per pixel (n, 2);
+        and the timed step durations."""
         r_true, r_init, offset, targets = setup
-        errors, rotations, translations, sigmas, elapsed = [], [], [], [], []
+        errors, rotations, translations, ends, elapsed = [], [], [], [], []
         for c_index, lo in enumerate(range(0, len(indices), batch)):
             chunk = indices[lo:lo + batch]
             size = len(chunk)
@@ -433,10 +465,12 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
             else:
                 translations.append(state[0]["translation"][:size])
             rotations.append(rotation)
-            sigmas.append(np.asarray(state[2].sigma)[:size])
+            # the final noise scale factor, and samples per pixel: the renders the last step averaged
+            renders = np.maximum(np.asarray(state[2].num_samples)[:size] // config.num_samples, 1)
+            ends.append(np.stack([np.asarray(state[2].sigma)[:size], renders * config.num_samples], axis=-1))
         return (
             np.concatenate(errors, axis=1), jnp.concatenate(rotations), jnp.concatenate(translations),
-            np.concatenate(sigmas), elapsed,
+            np.concatenate(ends), elapsed,
         )
 
     with tqdm(total=total, desc="render-pose", disable=not progress) as bar:
@@ -454,7 +488,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
 
                 record = method == gif_method and err == gif_error
                 everything = np.arange(config.problems)
-                curve, rotation, translation, sigma, elapsed = optimize(init, step, setup, everything, first_keys, record, bar)
+                curve, rotation, translation, schedule_end, elapsed = optimize(init, step, setup, everything, first_keys, record, bar)
                 loss = np.array(hard_losses(rotation, translation, targets))  # updated by restarts
                 initial_loss = np.asarray(hard_losses(r_init, offset, targets))
                 first = _degrees(rotation, r_true)
@@ -481,7 +515,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
                     curve[:, better] = redo[0][:, take]
                     rotation = rotation.at[better].set(redo[1][take])
                     translation = translation.at[better].set(redo[2][take])
-                    sigma[better] = redo[3][take]
+                    schedule_end[better] = redo[3][take]
                     loss[better] = redo_loss[take]
                     elapsed += redo[4]
                 curves[(method, err)] = curve
@@ -500,7 +534,8 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
                     "runs_per_problem": float(np.mean(runs)),
                     "final_losses": loss.tolist(),
                     "initial_losses": initial_loss.tolist(),
-                    "final_sigma": float(np.mean(sigma)),
+                    "final_sigma": float(np.mean(schedule_end[:, 0])),
+                    "final_num_samples": float(np.mean(schedule_end[:, 1])),
                     "mean_translation_error": float(np.mean(np.linalg.norm(np.asarray(translation), axis=-1))),
                     "seconds_per_step": float(np.median(elapsed)) if elapsed else None,
                     "seconds_per_problem_step": float(np.median(elapsed)) / batch if elapsed else None,
@@ -522,6 +557,8 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "num_faces": int(mesh.faces.shape[0]),
         "faces_per_pixel": config.faces_per_pixel,
         "num_samples": config.num_samples,
+        "sample_growth": config.sample_growth,
+        "max_samples": config.max_samples,
         "cull_backfaces": target_renderer.cull_backfaces,
         "interior_edges": config.interior_edges,
         "keep_best": config.keep_best,

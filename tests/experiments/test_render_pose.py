@@ -3,6 +3,7 @@
 import dataclasses
 import json
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -99,6 +100,7 @@ def test_restarts_rerun_the_problems_whose_render_stays_far_from_the_target(tmp_
         {"methods": ("blurry",)}, {"batch_size": 0}, {"problems": 0}, {"pose_noise_deg": -1.0},
         {"pose_noise_deg": float("nan")}, {"pose_noise_until": 0.0}, {"pose_noise_until": 1.5},
         {"restarts": -1}, {"restarts": 1.5}, {"restart_loss": 0.0}, {"restart_loss": float("nan")},
+        {"sample_growth": 0}, {"sample_growth": 1.5}, {"max_samples": 0},
     ],
 )
 def test_bad_config_is_rejected(tmp_path, change):
@@ -162,3 +164,37 @@ def test_pose_noise_is_the_only_randomness_of_a_deterministic_renderer():
         np.testing.assert_array_equal(faded[0], faded[1])
     unsmoothed = deltas("hard", 0)
     np.testing.assert_array_equal(unsmoothed[0], unsmoothed[1])
+
+
+def test_sample_growth_averages_renders_with_independent_noise():
+    # With sample_growth, a step whose schedule holds 2 M samples per pixel averages two renders
+    # of M: its loss and its d loss / d noise scale (seen through the schedule's average, linear
+    # in it) are the means of the one-render steps with the keys it uses, `key` and `key` folded
+    # with 1; and a one-render step is the step without sample growth.
+    config = dataclasses.replace(
+        render_pose.Config.quick(), image_size=16, problems=1, num_samples=4, sample_growth=2, max_samples=16
+    )
+    mesh = render_pose.load(config.mesh)
+    cam = render_pose.camera(config)
+    r_true, r_init, offset = render_pose.problems(config, jax.random.key(3), 30.0)
+    hard = render_pose.make_renderer(config, "hard", mesh)
+    target = hard(None, render.transform_mesh(mesh, r_true[0]), cam).rgb[None]
+    _, init, step = render_pose.make_solver(config, "perturbed-gaussian", mesh, cam)
+    state = init(offset)
+    assert int(state[2].num_samples[0]) == config.num_samples
+
+    def with_samples(n):  # the state with n samples per pixel in the schedule
+        sched = eqx.tree_at(lambda s: s.num_samples, state[2], jnp.full_like(state[2].num_samples, n))
+        return (*state[:2], sched, *state[3:])
+
+    key = jax.random.key(7)
+    singles = [step(with_samples(4), k[None], target, r_init) for k in (key, jax.random.fold_in(key, 1))]
+    double = step(with_samples(8), key[None], target, r_init)
+    np.testing.assert_allclose(double[1], (singles[0][1] + singles[1][1]) / 2, rtol=1e-5)
+    emas = [np.asarray(out[0][2].ema) for out in singles]
+    assert not np.allclose(emas[0], emas[1])  # the two renders' noise differs
+    np.testing.assert_allclose(np.asarray(double[0][2].ema), (emas[0] + emas[1]) / 2, rtol=1e-4, atol=1e-9)
+    _, init_plain, step_plain = render_pose.make_solver(dataclasses.replace(config, sample_growth=1), "perturbed-gaussian", mesh, cam)
+    plain = step_plain(init_plain(offset), key[None], target, r_init)
+    np.testing.assert_allclose(plain[1], singles[0][1], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(plain[0][0]["delta"]), np.asarray(singles[0][0][0]["delta"]), rtol=1e-6)
