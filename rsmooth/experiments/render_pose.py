@@ -55,6 +55,13 @@ from 20 / 50 deg (without: 100 / 50; the 20-deg miss ends at 11 deg, the others 
 deg instead of under 1), soft 87.5 / 25; neither a noise-free end (the pose noise at 0 from
 75 % of the steps: 100 / 37.5 %, median 2.5 deg at 20; from 50 %: 87.5 / 50 %, median 2.0)
 nor Adam's b2 = 0.99 (87.5 / 50 %, median 1.2) brings the solved ones under 1 deg.
+More samples at the noise floor do (`sample_growth`, the paper's "samples may double"): the
+same mesh from 20 deg, 16 problems, seed 31, 200 steps, one CPU core each (benchmarks/RESULTS.md):
+16 samples per pixel throughout solve 87.5 % with a median final error of 0.79 deg; doubling
+them at each noise decrease up to 64 solves 93.75 % (one problem more, within noise) with a
+median of 0.27 deg, soft rendering's precision (0.27, session 24), for 2.6x the time; 32
+throughout: 87.5 %, median 0.32 deg, 1.5x the time. Off by default (the default command is
+already hours long on a CPU).
 
 Each problem reports the iterate whose hard-rendered image is closest to the target
 (`keep_best`, one hard render per step, ~3 % of a perturbed step on the cube), not the last one: at the
