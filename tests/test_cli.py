@@ -101,6 +101,11 @@ def test_render_pose_method_and_steps_reach_the_config(monkeypatch, tmp_path):
     assert negative.exit_code != 0 and "--pose-noise" in negative.output and len(calls) == 4
     beyond = CliRunner().invoke(cli.app, ["render", "pose", "--pose-noise-until", "1.5", "--out", str(tmp_path)])
     assert beyond.exit_code != 0 and "--pose-noise-until" in beyond.output and len(calls) == 4
+    CliRunner().invoke(cli.app, ["render", "pose", "--sample-growth", "2", "--max-samples", "64", "--out", str(tmp_path)])
+    assert calls[-1][1]["sample_growth"] == 2 and calls[-1][1]["max_samples"] == 64 and len(calls) == 5
+    assert calls[-2][1]["sample_growth"] is None and calls[-2][1]["max_samples"] is None  # the Config's defaults
+    zero = CliRunner().invoke(cli.app, ["render", "pose", "--sample-growth", "0", "--out", str(tmp_path)])
+    assert zero.exit_code != 0 and "--sample-growth" in zero.output and len(calls) == 5
 
 
 def test_control_estimator_and_samples_reach_the_configs(monkeypatch, tmp_path):
