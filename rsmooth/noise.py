@@ -79,8 +79,10 @@ def _uniform(key: Array, shape, dtype, minval: float = 0.0, maxval: float = 1.0)
         u = jax.random.uniform(key, (size,), dtype, minval=minval, maxval=maxval)
         return u.reshape(shape)
     data = jax.random.key_data(key)
+    if data.shape != (2,):
+        raise ValueError(f"key must be a single PRNG key, got a key array of shape {np.shape(key)}")
     count = jax.lax.iota(jnp.uint32, size + size % 2)
-    bits = threefry_2x32((data[..., 0], data[..., 1]), count)[:size]
+    bits = threefry_2x32((data[0], data[1]), count)[:size]
     # the 23 high bits as the mantissa of a float in [1, 2)
     floats = jax.lax.bitcast_convert_type((bits >> 9) | np.uint32(0x3F800000), jnp.float32) - 1.0
     lo, hi = jnp.asarray(minval, dtype), jnp.asarray(maxval, dtype)

@@ -115,6 +115,12 @@ def test_draws_depend_on_the_key_alone(getkey):
     assert len({tuple(np.asarray(r)) for r in batched}) == 4
 
 
+def test_a_key_array_is_refused():
+    keys = jax.random.split(jax.random.key(0), 3)
+    with pytest.raises(ValueError, match="single PRNG key"):
+        noise.Gaussian().sample(keys, (4,), jnp.float32)
+
+
 def test_other_key_implementations_draw_through_jax(getkey):
     # keys that are not threefry's (here rbg) fall back to jax.random's uniform
     key = jax.random.key(5, impl="rbg")
