@@ -60,7 +60,8 @@ same mesh from 20 deg, 16 problems, seed 31, 200 steps, one CPU core each (bench
 16 samples per pixel throughout solve 87.5 % with a median final error of 0.79 deg; doubling
 them at each noise decrease up to 64 solves 93.75 % (one problem more, within noise) with a
 median of 0.27 deg, soft rendering's precision (0.27, session 24), for 2.6x the time; 32
-throughout: 87.5 %, median 0.32 deg, 1.5x the time. Off by default (the default command is
+throughout: 87.5 %, median 0.32 deg, 1.5x the time. From 50 deg: 81.25 % (median 0.47 deg)
+with 16 throughout, 87.5 % (0.36 deg) with growth; soft 69 % (0.43 deg). Off by default (the default command is
 already hours long on a CPU).
 
 Each problem reports the iterate whose hard-rendered image is closest to the target
