@@ -389,7 +389,7 @@ def _degrees(r1, r2):
 def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     """Runs every method from every initial error; writes metrics.json, PNGs and a GIF."""
     out = Path(out)
-    for name in ("problems", "batch_size", "steps"):
+    for name in ("problems", "batch_size", "steps", "sample_growth", "max_samples"):
         value = getattr(config, name)
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ValueError(f"{name} must be an int >= 1, got {value!r}")
@@ -402,10 +402,6 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
             raise ValueError(f"unknown method {method!r}; choose from {METHODS}")
     if not (np.isfinite(config.pose_noise_deg) and config.pose_noise_deg >= 0.0):
         raise ValueError(f"pose_noise_deg must be a finite number >= 0 (degrees), got {config.pose_noise_deg!r}")
-    for name in ("sample_growth", "max_samples"):
-        value = getattr(config, name)
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be an int >= 1, got {value!r}")
     if not (np.isfinite(config.pose_noise_until) and 0.0 < config.pose_noise_until <= 1.0):
         raise ValueError(f"pose_noise_until must be in (0, 1] (a fraction of the steps), got {config.pose_noise_until!r}")
     mesh = load(config.mesh)
