@@ -327,7 +327,7 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
         first = value_and_grads(params, sched.sigma, key, target, r_init, t)
         if not grows:  # one render: no loop in the program
             return first
-        passes = jnp.maximum(sched.num_samples // config.num_samples, 1)
+        passes = _renders_per_step(config, sched.num_samples)
 
         def another(i, total):
             out = value_and_grads(params, sched.sigma, jax.random.fold_in(key, i), target, r_init, t)
@@ -375,6 +375,12 @@ def _solver(config: Config, method: str, mesh: render.Mesh, cam: render.Camera):
             _SOLVERS.pop(next(iter(_SOLVERS)))
         _SOLVERS[key] = make_solver(config, method, mesh, cam)[1:]
     return _SOLVERS[key]
+
+
+def _renders_per_step(config: Config, num_samples):
+    """How many renders of config.num_samples samples per pixel a step averages when its noise
+    schedule holds `num_samples` (sample growth; 1 without)."""
+    return jnp.maximum(num_samples // config.num_samples, 1)
 
 
 def _rotation(delta, r_init):
@@ -470,7 +476,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
                 translations.append(state[0]["translation"][:size])
             rotations.append(rotation)
             # the final noise scale factor, and samples per pixel: the renders the last step averaged
-            renders = np.maximum(np.asarray(state[2].num_samples)[:size] // config.num_samples, 1)
+            renders = np.asarray(_renders_per_step(config, state[2].num_samples[:size]))
             ends.append(np.stack([np.asarray(state[2].sigma)[:size], renders * config.num_samples], axis=-1))
         return (
             np.concatenate(errors, axis=1), jnp.concatenate(rotations), jnp.concatenate(translations),
