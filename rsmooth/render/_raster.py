@@ -709,9 +709,6 @@ def _fragment_geometry_bwd(residuals, cotangents):
     first.append(~(first[0] | first[1]))
     nearest = [first[i] if terms.flags is None else first[i] & terms.flags[i] for i in range(3)]
     g_d2 = [jnp.where(n, -2.0 * g_smallest, 0.0) for n in nearest]
-    # The cotangents' shared factors, computed once: without the barrier XLA fuses them into
-    # each of the 12 outputs below, recomputing them 12 times.
-    g_d2, g_edge, g_area = lax.optimization_barrier((g_d2, g_edge, g_area))
     g_x = [0.0, 0.0, 0.0]
     g_y = [0.0, 0.0, 0.0]
     for i in range(3):
