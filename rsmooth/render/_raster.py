@@ -643,102 +643,87 @@ def _fragment_terms(screen, depth_vertices, z_faces, edges, face_index, qx, qy) 
     )
 
 
-def _fragment_values(screen, depth_vertices, z_faces, edges, face_index, qx, qy) -> tuple[Array, Array, Array]:
-    terms = _fragment_terms(screen, depth_vertices, z_faces, edges, face_index, qx, qy)
+def _fragment_outputs(terms: _FragmentTerms) -> tuple[Array, Array, Array]:
     distance = jnp.where(terms.inside, terms.dist, -terms.dist)
     depth = sum(b * d for b, d in zip(terms.clipped, terms.depths))
     return distance, depth, jnp.stack(terms.weights, axis=-1)
 
 
-@jax.custom_vjp
+def _fragment_values(screen, depth_vertices, z_faces, edges, face_index, qx, qy) -> tuple[Array, Array, Array]:
+    """`_fragment_geometry` without its custom derivative (JAX's own)."""
+    return _fragment_outputs(_fragment_terms(screen, depth_vertices, z_faces, edges, face_index, qx, qy))
+
+
+@jax.custom_jvp
 def _fragment_geometry(screen, depth_vertices, z_faces, edges, face_index, qx, qy) -> tuple[Array, Array, Array]:
     """The fragments of the faces `face_index` (H, W, K) at the pixel centres (qx, qy): signed
     distance (H, W, K; to the flagged `edges` only, when given), normalized inverse depth
     (H, W, K) and perspective-correct barycentric weights (H, W, K, 3), from the projected
     faces (`screen` (F, 3, 2), `depth_vertices` and camera depths `z_faces`, (F, 3)).
 
-    Differentiable in `screen`, `depth_vertices` and `z_faces` by a hand-written reverse
-    mode (`_fragment_geometry_bwd`): JAX's transpose of these formulas left XLA on CPU six
-    fusions that each recomputed the shared part of the others (2 ms each on a 128 x 128 x 8
-    image, about a third of a perturbed render's backward pass), and materialized the
-    forward's intermediates; this one recomputes the forward from the inputs and sums the
-    per-fragment cotangents into the faces with one scatter. Its results are autodiff's of
-    `_fragment_values` up to rounding (tests/render/test_raster.py)."""
+    Differentiable in `screen`, `depth_vertices` and `z_faces` by a hand-written forward mode
+    (`_fragment_geometry_jvp`), which JAX transposes for reverse mode: JAX's own derivative of
+    these formulas left XLA on CPU, in reverse mode, six fusions (the cotangents of the six
+    vertex coordinates) that each recomputed the shared part of the others, 2 ms each on a
+    128 x 128 x 8 image, a third of a perturbed render's backward pass. Its results are
+    autodiff's of `_fragment_values` up to rounding (tests/render/test_raster.py)."""
     return _fragment_values(screen, depth_vertices, z_faces, edges, face_index, qx, qy)
 
 
-def _fragment_geometry_fwd(screen, depth_vertices, z_faces, edges, face_index, qx, qy):
-    values = _fragment_values(screen, depth_vertices, z_faces, edges, face_index, qx, qy)
-    return values, (screen, depth_vertices, z_faces, edges, face_index, qx, qy)
-
-
-def _normalize_bwd(values: list[Array], raw: list[Array], total: Array, cotangents: list[Array]) -> list[Array]:
-    """Reverse mode of ``values = raw / max(sum(raw), _TINY)`` (raw >= 0)."""
-    inner = sum(g * v for g, v in zip(cotangents, values))
-    inner = jnp.where(raw[0] + raw[1] + raw[2] > _TINY, inner, 0.0)
-    return [(g - inner) / total for g in cotangents]
-
-
-def _fragment_geometry_bwd(residuals, cotangents):
-    screen, depth_vertices, z_faces, edges, face_index, qx, qy = residuals
-    g_distance, g_depth, g_weights = cotangents
+@_fragment_geometry.defjvp
+def _fragment_geometry_jvp(primals, tangents):
+    screen, depth_vertices, z_faces, edges, face_index, qx, qy = primals
+    d_screen, d_depth_vertices, d_z_faces = tangents[:3]
     terms = _fragment_terms(screen, depth_vertices, z_faces, edges, face_index, qx, qy)
     xs, ys = terms.xs, terms.ys
-    # weights = normalize(clipped / zs)
-    g_perspective = _normalize_bwd(terms.weights, terms.perspective, terms.weights_total, [g_weights[..., i] for i in range(3)])
-    g_z = [
-        jnp.where(z_raw > _TINY, -g * p / z, 0.0)
-        for g, p, z, z_raw in zip(g_perspective, terms.perspective, terms.zs, (z_faces[:, i][face_index] for i in range(3)))
-    ]
-    # depth = sum(clipped * depths); clipped = normalize(max(bary, 0))
-    g_clipped = [g / z + g_depth * d for g, z, d in zip(g_perspective, terms.zs, terms.depths)]
-    g_depths = [g_depth * c for c in terms.clipped]
-    positive = [jnp.maximum(b, 0.0) for b in terms.bary]
-    g_positive = _normalize_bwd(terms.clipped, positive, terms.bary_total, g_clipped)
-    g_bary = [jnp.where(b > 0, g, 0.0) for g, b in zip(g_positive, terms.bary)]
-    # bary = [edge_1, edge_2, edge_0] / safe_area: cotangents of the edge functions and the area
-    g_edge = [g_bary[2] / terms.safe_area, g_bary[0] / terms.safe_area, g_bary[1] / terms.safe_area]
-    g_area = jnp.where(terms.area2 != 0, -sum(g * b for g, b in zip(g_bary, terms.bary)) / terms.safe_area, 0.0)
-    # distance = +-sqrt(max(min_i d2_i, _TINY)): the nearest counted edge's squared distance;
-    # its derivative in the segment's parameter t vanishes (t is optimal, or clamped), so
-    # d d2 / d p_i = -2 (1 - t) r, d d2 / d p_j = -2 t r (r = q - nearest point).
+    dx = [d_screen[:, i, 0][face_index] for i in range(3)]
+    dy = [d_screen[:, i, 1][face_index] for i in range(3)]
+
+    # distance = +-sqrt(max(min_i d2_i, _TINY)), the nearest counted edge's. With r = q - the
+    # nearest point p_i + t (p_j - p_i) of the edge, d d2 = -2 r . ((1 - t) dp_i + t dp_j):
+    # the term in dt vanishes (t is optimal, r . (p_j - p_i) = 0, or clamped, dt = 0).
     smallest = jnp.minimum(jnp.minimum(terms.d2[0], terms.d2[1]), terms.d2[2])
-    g_smallest = jnp.where(smallest > _TINY, jnp.where(terms.inside, g_distance, -g_distance) / (2.0 * terms.dist), 0.0)
     first = [terms.d2[0] == smallest]
     first.append((terms.d2[1] == smallest) & ~first[0])
     first.append(~(first[0] | first[1]))
-    nearest = [first[i] if terms.flags is None else first[i] & terms.flags[i] for i in range(3)]
-    g_d2 = [jnp.where(n, -2.0 * g_smallest, 0.0) for n in nearest]
-    g_x = [0.0, 0.0, 0.0]
-    g_y = [0.0, 0.0, 0.0]
+    d_smallest = 0.0
+    for i in range(3):
+        j = (i + 1) % 3
+        nearest = first[i] if terms.flags is None else first[i] & terms.flags[i]
+        s, t = 1.0 - terms.t[i], terms.t[i]
+        d_d2 = -2.0 * (terms.rx[i] * (s * dx[i] + t * dx[j]) + terms.ry[i] * (s * dy[i] + t * dy[j]))
+        d_smallest = d_smallest + jnp.where(nearest, d_d2, 0.0)
+    d_dist = jnp.where(smallest > _TINY, d_smallest / (2.0 * terms.dist), 0.0)
+
+    # bary = [edge_1, edge_2, edge_0] / area2, edge_i = cross(p_j - p_i, q - p_i),
+    # area2 = cross(p_1 - p_0, p_2 - p_0)
+    d_edge, d_area = [], 0.0
     for i in range(3):
         j, k = (i + 1) % 3, (i + 2) % 3
-        sx, sy = g_d2[i] * terms.rx[i], g_d2[i] * terms.ry[i]
-        g_x[i] = g_x[i] + (1.0 - terms.t[i]) * sx
-        g_y[i] = g_y[i] + (1.0 - terms.t[i]) * sy
-        g_x[j] = g_x[j] + terms.t[i] * sx
-        g_y[j] = g_y[j] + terms.t[i] * sy
-        # edge_i = cross(p_j - p_i, q - p_i)
-        g_x[i] = g_x[i] + g_edge[i] * (ys[j] - qy)
-        g_y[i] = g_y[i] + g_edge[i] * (qx - xs[j])
-        g_x[j] = g_x[j] + g_edge[i] * (qy - ys[i])
-        g_y[j] = g_y[j] + g_edge[i] * (xs[i] - qx)
-        # area2 = cross(p_1 - p_0, p_2 - p_0): d/dx_i = y_j - y_k, d/dy_i = x_k - x_j
-        g_x[i] = g_x[i] + g_area * (ys[j] - ys[k])
-        g_y[i] = g_y[i] + g_area * (xs[k] - xs[j])
-    # The 12 cotangents per fragment summed into the faces, one scatter each (stacking them on
-    # a trailing axis for one scatter cost more than the scatters: a strided copy).
-    index = face_index.reshape(-1)
-    zeros = jnp.zeros(screen.shape[0], screen.dtype)
+        d_edge.append((ys[j] - qy) * dx[i] + (qx - xs[j]) * dy[i] + (qy - ys[i]) * dx[j] + (xs[i] - qx) * dy[j])
+        d_area = d_area + (ys[j] - ys[k]) * dx[i] + (xs[k] - xs[j]) * dy[i]
+    d_area = jnp.where(terms.area2 != 0, d_area, 0.0)
+    d_bary = [(e - b * d_area) / terms.safe_area for e, b in zip((d_edge[1], d_edge[2], d_edge[0]), terms.bary)]
+    # clipped = normalize(max(bary, 0)); depth = sum(clipped * depths)
+    d_clipped = _normalize_jvp(
+        terms.clipped, [jnp.maximum(b, 0.0) for b in terms.bary], terms.bary_total,
+        [jnp.where(b > 0, d, 0.0) for b, d in zip(terms.bary, d_bary)],
+    )
+    d_depths = [d_depth_vertices[:, i][face_index] for i in range(3)]
+    d_depth = sum(dc * d + c * dd for dc, d, c, dd in zip(d_clipped, terms.depths, terms.clipped, d_depths))
+    # weights = normalize(clipped / max(z, _TINY))
+    d_zs = [jnp.where(z_faces[:, i][face_index] > _TINY, d_z_faces[:, i][face_index], 0.0) for i in range(3)]
+    d_perspective = [(dc - p * dz) / z for dc, p, dz, z in zip(d_clipped, terms.perspective, d_zs, terms.zs)]
+    d_weights = _normalize_jvp(terms.weights, terms.perspective, terms.weights_total, d_perspective)
 
-    def to_faces(gs):
-        return jnp.stack([zeros.at[index].add(jnp.broadcast_to(g, face_index.shape).reshape(-1)) for g in gs], axis=-1)
-
-    g_screen = jnp.stack([to_faces(g_x), to_faces(g_y)], axis=-1)  # (F, 3, 2)
-    return g_screen, to_faces(g_depths), to_faces(g_z), None, None, None, None
+    tangent = (jnp.where(terms.inside, d_dist, -d_dist), d_depth, jnp.stack(d_weights, axis=-1))
+    return _fragment_outputs(terms), tangent
 
 
-_fragment_geometry.defvjp(_fragment_geometry_fwd, _fragment_geometry_bwd)
+def _normalize_jvp(values: list[Array], raw: list[Array], total: Array, d_raw: list[Array]) -> list[Array]:
+    """Forward mode of ``values = raw / max(sum(raw), _TINY)`` (raw >= 0)."""
+    d_total = jnp.where(raw[0] + raw[1] + raw[2] > _TINY, d_raw[0] + d_raw[1] + d_raw[2], 0.0)
+    return [(d - v * d_total) / total for d, v in zip(d_raw, values)]
 
 
 def _clipped_fragments(

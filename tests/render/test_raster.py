@@ -129,15 +129,15 @@ def test_smoothed_candidates_always_hold_the_visible_face(margin):
 
 @pytest.mark.parametrize("with_edges", [False, True])
 @pytest.mark.parametrize("output", ["distance", "depth", "weights", "all"])
-def test_fragment_gradients_equal_autodiff_of_the_formulas(getkey, with_edges, output):
-    # The fragments' hand-written reverse mode (rsmooth.render._raster._fragment_geometry)
-    # against JAX's reverse mode of the same formulas, on random triangles around a 12 x 10
-    # grid of pixels: faces with no counted edge (an interior face: its distance is constant)
-    # or all three, pixels inside and outside; and two zero-area faces (three collinear
-    # vertices, two equal vertices), where both derivatives are finite but may differ: there
-    # edges overlap, or a barycentric coordinate is exactly 0, and of the subgradients at
-    # these kinks (min of tied distances, max(b, 0) at b = 0) autodiff takes the average,
-    # the hand-written one a one-sided one.
+def test_fragment_derivatives_equal_autodiff_of_the_formulas(getkey, with_edges, output):
+    # The fragments' hand-written forward mode (rsmooth.render._raster._fragment_geometry),
+    # and JAX's transpose of it (reverse mode), against JAX's derivatives of the same formulas,
+    # on random triangles around a 12 x 10 grid of pixels: faces with no counted edge (an
+    # interior face: its distance is constant) or all three, pixels inside and outside; and
+    # two zero-area faces (three collinear vertices, two equal vertices), where both
+    # derivatives are finite but may differ: there edges overlap, or a barycentric coordinate
+    # is exactly 0, and of the subgradients at these kinks (min of tied distances, max(b, 0)
+    # at b = 0) autodiff takes the average, the hand-written one a one-sided one.
     from rsmooth.render import _raster
 
     faces = 7
@@ -151,23 +151,36 @@ def test_fragment_gradients_equal_autodiff_of_the_formulas(getkey, with_edges, o
     qx = (jnp.arange(10.0) + 0.5)[None, :, None]
     qy = (jnp.arange(12.0) + 0.5)[:, None, None]
     args = (screen, depths, z)
-
-    def call(fn):
-        return jax.vjp(lambda *a: fn(*a, edges, index, qx, qy), *args)
-
-    reference, reference_vjp = call(_raster._fragment_values)
-    values, vjp = call(_raster._fragment_geometry)
-    for a, b in zip(reference, values):
-        np.testing.assert_array_equal(a, b)
-    cotangents = [jax.random.normal(getkey(), v.shape) for v in values]
-    for g in vjp(tuple(cotangents)):
-        assert np.all(np.isfinite(g))
-    generic = (index != 3) & (index != 4)
-    cotangents = [jnp.where(generic if c.ndim == 3 else generic[..., None], c, 0.0) for c in cotangents]
     keep = {"distance": 0, "depth": 1, "weights": 2}.get(output)
-    if keep is not None:
-        cotangents = [c if i == keep else jnp.zeros_like(c) for i, c in enumerate(cotangents)]
-    expected, got = reference_vjp(tuple(cotangents)), vjp(tuple(cotangents))
+
+    def function(fn):
+        def outputs(*a):
+            values = fn(*a, edges, index, qx, qy)
+            return values if keep is None else values[keep]
+
+        return outputs
+
+    reference, new = function(_raster._fragment_values), function(_raster._fragment_geometry)
+    generic = (index != 3) & (index != 4)
+    # forward mode, with the degenerate faces held still (zero tangents)
+    tangents = tuple(jax.random.normal(getkey(), a.shape) for a in args)
+    generic_face = jnp.ones(faces, bool).at[3].set(False).at[4].set(False)
+    held = tuple(t * generic_face.reshape((faces,) + (1,) * (t.ndim - 1)) for t in tangents)
+    values, got = jax.jvp(new, args, held)
+    expected_values, expected = jax.jvp(reference, args, held)
+    for a, b in zip(jax.tree.leaves(expected_values), jax.tree.leaves(values)):
+        np.testing.assert_array_equal(a, b)
+    for e, g in zip(jax.tree.leaves(expected), jax.tree.leaves(got)):
+        np.testing.assert_allclose(g, e, rtol=1e-9, atol=1e-9 * float(jnp.max(jnp.abs(e))) + 1e-12)
+    _, got_all = jax.jvp(new, args, tangents)
+    assert all(np.all(np.isfinite(g)) for g in jax.tree.leaves(got_all))
+    # reverse mode, with no cotangent on the degenerate faces' fragments
+    cotangents = jax.tree.map(lambda v: jax.random.normal(getkey(), v.shape), values)
+    _, vjp = jax.vjp(new, *args)
+    assert all(np.all(np.isfinite(g)) for g in vjp(cotangents))
+    cotangents = jax.tree.map(lambda c: jnp.where(generic if c.ndim == 3 else generic[..., None], c, 0.0), cotangents)
+    _, reference_vjp = jax.vjp(reference, *args)
+    expected, got = reference_vjp(cotangents), vjp(cotangents)
     for name, e, g in zip(("screen", "depths", "z"), expected, got):
         np.testing.assert_allclose(g, e, rtol=1e-9, atol=1e-9 * float(jnp.max(jnp.abs(e))) + 1e-12, err_msg=name)
     if output in ("distance", "all"):

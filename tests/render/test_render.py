@@ -243,3 +243,21 @@ def test_edge_neighbors_pair_the_faces_of_closed_and_open_meshes():
     np.testing.assert_array_equal(np.asarray(render.edge_neighbors(FACES)), -np.ones((2, 3)))  # two separate triangles
     open_square = np.array([[0, 1, 2], [0, 2, 3]])
     np.testing.assert_array_equal(np.asarray(render.edge_neighbors(open_square)), [[-1, -1, 1], [0, -1, -1]])
+
+
+def test_forward_and_reverse_mode_give_the_same_image_jacobian(getkey):
+    # The image's Jacobian with respect to a pose (axis-angle, translation) by jacfwd (the
+    # fragments' hand-written forward mode, the estimator's linear tangent) and by jacrev
+    # (their transposes): equal up to rounding, for the same key.
+    renderer = render.Renderer(mode="perturbed", sigma=0.7, gamma=0.01, num_samples=8, faces_per_pixel=4, faces_per_tile=16)
+    mesh = render.position_colors(square(side_for_pixels(12.0)))
+    key = getkey()
+
+    def image(pose):
+        moved = render.transform_mesh(mesh, render.axis_angle_to_matrix(pose[:3]), pose[3:])
+        return renderer(key, moved, CAMERA).rgb
+
+    pose = jnp.array([0.3, -0.2, 0.1, 0.05, -0.03, 0.2])
+    forward, reverse = jax.jit(jax.jacfwd(image))(pose), jax.jit(jax.jacrev(image))(pose)
+    assert forward.shape == (SIZE, SIZE, 3, 6) and float(jnp.max(jnp.abs(forward))) > 0.1
+    np.testing.assert_allclose(forward, reverse, rtol=1e-9, atol=1e-12)
