@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import equinox as eqx
@@ -89,12 +90,56 @@ def _broadcast(points: Array, triangles: Array) -> tuple[Array, Array]:
     return jnp.broadcast_to(points, lead + (2,)), jnp.broadcast_to(triangles, lead + (3, 2))
 
 
+class _EdgeTerms(NamedTuple):
+    """Per point and triangle (lists: per edge i, from vertex i to i + 1)."""
+
+    t: list[Array]  # parameter of the point of the edge nearest to q
+    rx: list[Array]  # q minus that point
+    ry: list[Array]
+    d2: list[Array]  # squared distance (_NO_EDGE**2 where the edge does not count)
+    dist: Array  # distance to the nearest counted edge
+    area2: Array  # twice the signed area
+    safe_area: Array
+    bary: list[Array]  # screen-space barycentric coordinates
+    inside: Array
+
+
+def _edge_terms(
+    qx: Array,
+    qy: Array,
+    xs: Sequence[Array],
+    ys: Sequence[Array],
+    edges: Sequence[Array] | None = None,
+) -> _EdgeTerms:
+    """The quantities of `_edge_geometry_xy` (and of the fragments' derivatives)."""
+    t, rx, ry, d2, edge = [], [], [], [], []
+    for i in range(3):
+        j = (i + 1) % 3
+        ex, ey = xs[j] - xs[i], ys[j] - ys[i]
+        wx, wy = qx - xs[i], qy - ys[i]
+        t.append(jnp.clip((wx * ex + wy * ey) / jnp.maximum(ex * ex + ey * ey, _TINY), 0.0, 1.0))
+        rx.append(wx - t[i] * ex)
+        ry.append(wy - t[i] * ey)
+        squared = rx[i] * rx[i] + ry[i] * ry[i]
+        d2.append(squared if edges is None else jnp.where(edges[i], squared, _NO_EDGE**2))
+        # Edge function: cross(p_{i+1} - p_i, q - p_i).
+        edge.append(ex * wy - ey * wx)
+    dist = jnp.sqrt(jnp.maximum(jnp.minimum(jnp.minimum(d2[0], d2[1]), d2[2]), _TINY))
+    area2 = (xs[1] - xs[0]) * (ys[2] - ys[0]) - (ys[1] - ys[0]) * (xs[2] - xs[0])  # twice the signed area
+    safe_area = jnp.where(area2 == 0, 1.0, area2)
+    # The vertex k is opposite the edge k + 1.
+    bary = [edge[1] / safe_area, edge[2] / safe_area, edge[0] / safe_area]
+    # Triangles are closed: a pixel centre on an edge shared by two faces is not lost.
+    inside = (bary[0] >= 0) & (bary[1] >= 0) & (bary[2] >= 0) & (area2 != 0)
+    return _EdgeTerms(t, rx, ry, d2, dist, area2, safe_area, bary, inside)
+
+
 def _edge_geometry_xy(
     qx: Array,
     qy: Array,
-    xs: tuple[Array, Array, Array],
-    ys: tuple[Array, Array, Array],
-    edges: tuple[Array, Array, Array] | None = None,
+    xs: Sequence[Array],
+    ys: Sequence[Array],
+    edges: Sequence[Array] | None = None,
 ) -> tuple[Array, list[Array]]:
     """Signed distance (...) and the three screen-space barycentric coordinates (each (...)) of
     the points (qx, qy) in the triangles of vertices (xs[i], ys[i]), all broadcast together.
@@ -104,25 +149,8 @@ def _edge_geometry_xy(
     Written per coordinate and per edge, with no axis of length 2 or 3: the renderer calls it
     on (H, W, K) fragments, where XLA on CPU handles short axes badly (reductions handed to
     YNNPACK, see rsmooth._unrolled; `roll`s whose transposes become pads in the gradient)."""
-    dist2, edge = [], []
-    for i in range(3):
-        j = (i + 1) % 3
-        ex, ey = xs[j] - xs[i], ys[j] - ys[i]
-        wx, wy = qx - xs[i], qy - ys[i]
-        t = jnp.clip((wx * ex + wy * ey) / jnp.maximum(ex * ex + ey * ey, _TINY), 0.0, 1.0)
-        rx, ry = wx - t * ex, wy - t * ey
-        d2 = rx * rx + ry * ry
-        dist2.append(d2 if edges is None else jnp.where(edges[i], d2, _NO_EDGE**2))
-        # Edge function: cross(p_{i+1} - p_i, q - p_i).
-        edge.append(ex * wy - ey * wx)
-    dist = jnp.sqrt(jnp.maximum(jnp.minimum(jnp.minimum(dist2[0], dist2[1]), dist2[2]), _TINY))
-    area2 = (xs[1] - xs[0]) * (ys[2] - ys[0]) - (ys[1] - ys[0]) * (xs[2] - xs[0])  # twice the signed area
-    safe_area = jnp.where(area2 == 0, 1.0, area2)
-    # The vertex k is opposite the edge k + 1.
-    bary = [edge[1] / safe_area, edge[2] / safe_area, edge[0] / safe_area]
-    # Triangles are closed: a pixel centre on an edge shared by two faces is not lost.
-    inside = (bary[0] >= 0) & (bary[1] >= 0) & (bary[2] >= 0) & (area2 != 0)
-    return jnp.where(inside, dist, -dist), bary
+    terms = _edge_terms(qx, qy, xs, ys, edges)
+    return jnp.where(terms.inside, terms.dist, -terms.dist), terms.bary
 
 
 def _edge_geometry(points: Array, triangles: Array) -> tuple[Array, Array]:
@@ -585,23 +613,15 @@ def _triangle_fragments(
 
 
 class _FragmentTerms(NamedTuple):
-    """The per-fragment quantities of `_fragment_terms`, all (H, W, K) (lists: per vertex or edge)."""
+    """The per-fragment quantities of `_fragment_terms`, all (H, W, K) (lists: per vertex)."""
 
     xs: list[Array]
     ys: list[Array]
     depths: list[Array]  # normalized inverse depth of each vertex
     zs: list[Array]  # camera-frame depth of each vertex, floored at _TINY
     flags: list[Array] | None  # edges that count for the distance
-    t: list[Array]  # per edge: parameter of the point of the segment nearest to q
-    rx: list[Array]  # per edge: q minus that point
-    ry: list[Array]
-    d2: list[Array]  # per edge: squared distance (_NO_EDGE**2 where the edge does not count)
-    dist: Array
-    inside: Array
-    area2: Array
-    safe_area: Array
-    bary: list[Array]  # screen-space barycentric coordinates (unclipped)
-    bary_total: Array  # normalizer of the clipped ones
+    edge: _EdgeTerms
+    bary_total: Array  # normalizer of the clipped barycentric coordinates
     clipped: list[Array]  # clipped and normalized
     perspective: list[Array]  # clipped / zs
     weights_total: Array
@@ -615,36 +635,19 @@ def _fragment_terms(screen, depth_vertices, z_faces, edges, face_index, qx, qy) 
     depths = [depth_vertices[:, i][face_index] for i in range(3)]
     zs = [jnp.maximum(z_faces[:, i][face_index], _TINY) for i in range(3)]
     flags = None if edges is None else [edges[:, i][face_index] for i in range(3)]
-    t, rx, ry, d2, edge = [], [], [], [], []
-    for i in range(3):  # as _edge_geometry_xy
-        j = (i + 1) % 3
-        ex, ey = xs[j] - xs[i], ys[j] - ys[i]
-        wx, wy = qx - xs[i], qy - ys[i]
-        t.append(jnp.clip((wx * ex + wy * ey) / jnp.maximum(ex * ex + ey * ey, _TINY), 0.0, 1.0))
-        rx.append(wx - t[i] * ex)
-        ry.append(wy - t[i] * ey)
-        squared = rx[i] * rx[i] + ry[i] * ry[i]
-        d2.append(squared if flags is None else jnp.where(flags[i], squared, _NO_EDGE**2))
-        edge.append(ex * wy - ey * wx)
-    dist = jnp.sqrt(jnp.maximum(jnp.minimum(jnp.minimum(d2[0], d2[1]), d2[2]), _TINY))
-    area2 = (xs[1] - xs[0]) * (ys[2] - ys[0]) - (ys[1] - ys[0]) * (xs[2] - xs[0])
-    safe_area = jnp.where(area2 == 0, 1.0, area2)
-    bary = [edge[1] / safe_area, edge[2] / safe_area, edge[0] / safe_area]
-    inside = (bary[0] >= 0) & (bary[1] >= 0) & (bary[2] >= 0) & (area2 != 0)
-    positive = [jnp.maximum(b, 0.0) for b in bary]
+    edge = _edge_terms(qx, qy, xs, ys, flags)
+    positive = [jnp.maximum(b, 0.0) for b in edge.bary]
     bary_total = jnp.maximum(positive[0] + positive[1] + positive[2], _TINY)
     clipped = [b / bary_total for b in positive]
+    # Perspective-correct weights for attributes: screen weights divided by depth, renormalized.
     perspective = [b / z for b, z in zip(clipped, zs)]
     weights_total = jnp.maximum(perspective[0] + perspective[1] + perspective[2], _TINY)
     weights = [p / weights_total for p in perspective]
-    return _FragmentTerms(
-        xs, ys, depths, zs, flags, t, rx, ry, d2, dist, inside, area2, safe_area, bary, bary_total, clipped,
-        perspective, weights_total, weights,
-    )
+    return _FragmentTerms(xs, ys, depths, zs, flags, edge, bary_total, clipped, perspective, weights_total, weights)
 
 
 def _fragment_outputs(terms: _FragmentTerms) -> tuple[Array, Array, Array]:
-    distance = jnp.where(terms.inside, terms.dist, -terms.dist)
+    distance = jnp.where(terms.edge.inside, terms.edge.dist, -terms.edge.dist)
     depth = sum(b * d for b, d in zip(terms.clipped, terms.depths))
     return distance, depth, jnp.stack(terms.weights, axis=-1)
 
@@ -675,25 +678,25 @@ def _fragment_geometry_jvp(primals, tangents):
     screen, depth_vertices, z_faces, edges, face_index, qx, qy = primals
     d_screen, d_depth_vertices, d_z_faces = tangents[:3]
     terms = _fragment_terms(screen, depth_vertices, z_faces, edges, face_index, qx, qy)
-    xs, ys = terms.xs, terms.ys
+    xs, ys, edge = terms.xs, terms.ys, terms.edge
     dx = [d_screen[:, i, 0][face_index] for i in range(3)]
     dy = [d_screen[:, i, 1][face_index] for i in range(3)]
 
     # distance = +-sqrt(max(min_i d2_i, _TINY)), the nearest counted edge's. With r = q - the
     # nearest point p_i + t (p_j - p_i) of the edge, d d2 = -2 r . ((1 - t) dp_i + t dp_j):
     # the term in dt vanishes (t is optimal, r . (p_j - p_i) = 0, or clamped, dt = 0).
-    smallest = jnp.minimum(jnp.minimum(terms.d2[0], terms.d2[1]), terms.d2[2])
-    first = [terms.d2[0] == smallest]
-    first.append((terms.d2[1] == smallest) & ~first[0])
+    smallest = jnp.minimum(jnp.minimum(edge.d2[0], edge.d2[1]), edge.d2[2])
+    first = [edge.d2[0] == smallest]
+    first.append((edge.d2[1] == smallest) & ~first[0])
     first.append(~(first[0] | first[1]))
     d_smallest = 0.0
     for i in range(3):
         j = (i + 1) % 3
         nearest = first[i] if terms.flags is None else first[i] & terms.flags[i]
-        s, t = 1.0 - terms.t[i], terms.t[i]
-        d_d2 = -2.0 * (terms.rx[i] * (s * dx[i] + t * dx[j]) + terms.ry[i] * (s * dy[i] + t * dy[j]))
+        s, t = 1.0 - edge.t[i], edge.t[i]
+        d_d2 = -2.0 * (edge.rx[i] * (s * dx[i] + t * dx[j]) + edge.ry[i] * (s * dy[i] + t * dy[j]))
         d_smallest = d_smallest + jnp.where(nearest, d_d2, 0.0)
-    d_dist = jnp.where(smallest > _TINY, d_smallest / (2.0 * terms.dist), 0.0)
+    d_dist = jnp.where(smallest > _TINY, d_smallest / (2.0 * edge.dist), 0.0)
 
     # bary = [edge_1, edge_2, edge_0] / area2, edge_i = cross(p_j - p_i, q - p_i),
     # area2 = cross(p_1 - p_0, p_2 - p_0)
@@ -702,12 +705,12 @@ def _fragment_geometry_jvp(primals, tangents):
         j, k = (i + 1) % 3, (i + 2) % 3
         d_edge.append((ys[j] - qy) * dx[i] + (qx - xs[j]) * dy[i] + (qy - ys[i]) * dx[j] + (xs[i] - qx) * dy[j])
         d_area = d_area + (ys[j] - ys[k]) * dx[i] + (xs[k] - xs[j]) * dy[i]
-    d_area = jnp.where(terms.area2 != 0, d_area, 0.0)
-    d_bary = [(e - b * d_area) / terms.safe_area for e, b in zip((d_edge[1], d_edge[2], d_edge[0]), terms.bary)]
+    d_area = jnp.where(edge.area2 != 0, d_area, 0.0)
+    d_bary = [(e - b * d_area) / edge.safe_area for e, b in zip((d_edge[1], d_edge[2], d_edge[0]), edge.bary)]
     # clipped = normalize(max(bary, 0)); depth = sum(clipped * depths)
     d_clipped = _normalize_jvp(
-        terms.clipped, [jnp.maximum(b, 0.0) for b in terms.bary], terms.bary_total,
-        [jnp.where(b > 0, d, 0.0) for b, d in zip(terms.bary, d_bary)],
+        terms.clipped, [jnp.maximum(b, 0.0) for b in edge.bary], terms.bary_total,
+        [jnp.where(b > 0, d, 0.0) for b, d in zip(edge.bary, d_bary)],
     )
     d_depths = [d_depth_vertices[:, i][face_index] for i in range(3)]
     d_depth = sum(dc * d + c * dd for dc, d, c, dd in zip(d_clipped, terms.depths, terms.clipped, d_depths))
@@ -716,7 +719,7 @@ def _fragment_geometry_jvp(primals, tangents):
     d_perspective = [(dc - p * dz) / z for dc, p, dz, z in zip(d_clipped, terms.perspective, d_zs, terms.zs)]
     d_weights = _normalize_jvp(terms.weights, terms.perspective, terms.weights_total, d_perspective)
 
-    tangent = (jnp.where(terms.inside, d_dist, -d_dist), d_depth, jnp.stack(d_weights, axis=-1))
+    tangent = (jnp.where(edge.inside, d_dist, -d_dist), d_depth, jnp.stack(d_weights, axis=-1))
     return _fragment_outputs(terms), tangent
 
 
