@@ -97,6 +97,7 @@ class _EdgeTerms(NamedTuple):
     rx: list[Array]  # q minus that point
     ry: list[Array]
     d2: list[Array]  # squared distance (_NO_EDGE**2 where the edge does not count)
+    smallest: Array  # the smallest of d2
     dist: Array  # distance to the nearest counted edge
     area2: Array  # twice the signed area
     safe_area: Array
@@ -124,14 +125,15 @@ def _edge_terms(
         d2.append(squared if edges is None else jnp.where(edges[i], squared, _NO_EDGE**2))
         # Edge function: cross(p_{i+1} - p_i, q - p_i).
         edge.append(ex * wy - ey * wx)
-    dist = jnp.sqrt(jnp.maximum(jnp.minimum(jnp.minimum(d2[0], d2[1]), d2[2]), _TINY))
+    smallest = jnp.minimum(jnp.minimum(d2[0], d2[1]), d2[2])
+    dist = jnp.sqrt(jnp.maximum(smallest, _TINY))
     area2 = (xs[1] - xs[0]) * (ys[2] - ys[0]) - (ys[1] - ys[0]) * (xs[2] - xs[0])  # twice the signed area
     safe_area = jnp.where(area2 == 0, 1.0, area2)
     # The vertex k is opposite the edge k + 1.
     bary = [edge[1] / safe_area, edge[2] / safe_area, edge[0] / safe_area]
     # Triangles are closed: a pixel centre on an edge shared by two faces is not lost.
     inside = (bary[0] >= 0) & (bary[1] >= 0) & (bary[2] >= 0) & (area2 != 0)
-    return _EdgeTerms(t, rx, ry, d2, dist, area2, safe_area, bary, inside)
+    return _EdgeTerms(t, rx, ry, d2, smallest, dist, area2, safe_area, bary, inside)
 
 
 def _edge_geometry_xy(
@@ -618,9 +620,11 @@ class _FragmentTerms(NamedTuple):
     xs: list[Array]
     ys: list[Array]
     depths: list[Array]  # normalized inverse depth of each vertex
-    zs: list[Array]  # camera-frame depth of each vertex, floored at _TINY
+    z_raw: list[Array]  # camera-frame depth of each vertex
+    zs: list[Array]  # the same, floored at _TINY
     flags: list[Array] | None  # edges that count for the distance
     edge: _EdgeTerms
+    positive: list[Array]  # barycentric coordinates clipped at 0
     bary_total: Array  # normalizer of the clipped barycentric coordinates
     clipped: list[Array]  # clipped and normalized
     perspective: list[Array]  # clipped / zs
@@ -633,7 +637,8 @@ def _fragment_terms(screen, depth_vertices, z_faces, edges, face_index, qx, qy) 
     xs = [screen[:, i, 0][face_index] for i in range(3)]
     ys = [screen[:, i, 1][face_index] for i in range(3)]
     depths = [depth_vertices[:, i][face_index] for i in range(3)]
-    zs = [jnp.maximum(z_faces[:, i][face_index], _TINY) for i in range(3)]
+    z_raw = [z_faces[:, i][face_index] for i in range(3)]
+    zs = [jnp.maximum(z, _TINY) for z in z_raw]
     flags = None if edges is None else [edges[:, i][face_index] for i in range(3)]
     edge = _edge_terms(qx, qy, xs, ys, flags)
     positive = [jnp.maximum(b, 0.0) for b in edge.bary]
@@ -643,7 +648,9 @@ def _fragment_terms(screen, depth_vertices, z_faces, edges, face_index, qx, qy) 
     perspective = [b / z for b, z in zip(clipped, zs)]
     weights_total = jnp.maximum(perspective[0] + perspective[1] + perspective[2], _TINY)
     weights = [p / weights_total for p in perspective]
-    return _FragmentTerms(xs, ys, depths, zs, flags, edge, bary_total, clipped, perspective, weights_total, weights)
+    return _FragmentTerms(
+        xs, ys, depths, z_raw, zs, flags, edge, positive, bary_total, clipped, perspective, weights_total, weights
+    )
 
 
 def _fragment_outputs(terms: _FragmentTerms) -> tuple[Array, Array, Array]:
@@ -685,7 +692,7 @@ def _fragment_geometry_jvp(primals, tangents):
     # distance = +-sqrt(max(min_i d2_i, _TINY)), the nearest counted edge's. With r = q - the
     # nearest point p_i + t (p_j - p_i) of the edge, d d2 = -2 r . ((1 - t) dp_i + t dp_j):
     # the term in dt vanishes (t is optimal, r . (p_j - p_i) = 0, or clamped, dt = 0).
-    smallest = jnp.minimum(jnp.minimum(edge.d2[0], edge.d2[1]), edge.d2[2])
+    smallest = edge.smallest
     first = [edge.d2[0] == smallest]
     first.append((edge.d2[1] == smallest) & ~first[0])
     first.append(~(first[0] | first[1]))
@@ -709,13 +716,13 @@ def _fragment_geometry_jvp(primals, tangents):
     d_bary = [(e - b * d_area) / edge.safe_area for e, b in zip((d_edge[1], d_edge[2], d_edge[0]), edge.bary)]
     # clipped = normalize(max(bary, 0)); depth = sum(clipped * depths)
     d_clipped = _normalize_jvp(
-        terms.clipped, [jnp.maximum(b, 0.0) for b in edge.bary], terms.bary_total,
+        terms.clipped, terms.positive, terms.bary_total,
         [jnp.where(b > 0, d, 0.0) for b, d in zip(edge.bary, d_bary)],
     )
     d_depths = [d_depth_vertices[:, i][face_index] for i in range(3)]
     d_depth = sum(dc * d + c * dd for dc, d, c, dd in zip(d_clipped, terms.depths, terms.clipped, d_depths))
     # weights = normalize(clipped / max(z, _TINY))
-    d_zs = [jnp.where(z_faces[:, i][face_index] > _TINY, d_z_faces[:, i][face_index], 0.0) for i in range(3)]
+    d_zs = [jnp.where(z > _TINY, d_z_faces[:, i][face_index], 0.0) for i, z in enumerate(terms.z_raw)]
     d_perspective = [(dc - p * dz) / z for dc, p, dz, z in zip(d_clipped, terms.perspective, d_zs, terms.zs)]
     d_weights = _normalize_jvp(terms.weights, terms.perspective, terms.weights_total, d_perspective)
 
