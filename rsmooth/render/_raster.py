@@ -370,14 +370,26 @@ def project_faces(mesh: Mesh, camera: Camera, cull_backfaces: bool = False):
     valid = valid & jnp.all(jnp.isfinite(screen), axis=(-1, -2))
     if cull_backfaces:
         valid = valid & _front_facing(mesh, camera)
-    return screen, z_faces, _normalized_depth(z_faces, camera), valid
+    return screen, z_faces, _normalized_depth(z_faces, camera.near, camera.far), valid
 
 
-def _normalized_depth(z: Array, camera: Camera) -> Array:
+def _normalized_depth(z: Array, near: Array, far: Array) -> Array:
     """(1/z - 1/far) / (1/near - 1/far) with z clamped to [near, inf): 1 at the near plane."""
-    safe_z = jnp.where(z > camera.near, z, camera.near)
-    inv_near, inv_far = 1.0 / camera.near, 1.0 / camera.far
+    safe_z = jnp.where(z > near, z, near)
+    inv_near, inv_far = 1.0 / near, 1.0 / far
     return (1.0 / safe_z - inv_far) / (inv_near - inv_far)
+
+
+def _normalized_depth_jvp(
+    value: Array, z: Array, near: Array, far: Array, dz: Array, d_near: Array, d_far: Array
+) -> Array:
+    """Forward mode of `_normalized_depth` (`value`: its output)."""
+    in_front = z > near
+    safe_z = jnp.where(in_front, z, near)
+    d_safe = jnp.where(in_front, dz, d_near)
+    d_inv_far = -d_far / (far * far)
+    d_scale = -d_near / (near * near) - d_inv_far
+    return (-d_safe / (safe_z * safe_z) - d_inv_far - value * d_scale) / (1.0 / near - 1.0 / far)
 
 
 # Near-plane clipping. A face crossing the plane z = near is cut into the convex polygon of its
@@ -454,7 +466,7 @@ def _clip_faces(mesh: Mesh, camera: Camera, cull_backfaces: bool = False) -> _Cl
         ],
         axis=1,
     )
-    depth = _normalized_depth(z_faces, camera)
+    depth = _normalized_depth(z_faces, near, camera.far)
     corner_depth = [rotated(depth, j) for j in range(3)]
     one = jnp.ones_like(corner_depth[0])
     polygon_depth = jnp.stack(
@@ -516,26 +528,47 @@ def _clipped_face_forms(vertices: Array, camera: Camera) -> tuple[Array, Array, 
     return lines, plane, near_line
 
 
-def _polygon_geometry_xy(
-    qx: Array, qy: Array, xs: tuple[Array, ...], ys: tuple[Array, ...], edges: tuple[Array, ...] | None
-) -> tuple[Array, list[Array], Array, Array]:
-    """`_edge_geometry_xy` for the 4-slot polygons of `_clip_faces`: the distance (...) to the
-    polygon's boundary (to its flagged edges only with `edges`), the screen-space barycentric
+class _PolygonTerms(NamedTuple):
+    """`_EdgeTerms` for the 4-slot polygons of `_clip_faces` (lists: per polygon edge i, from
+    slot i to slot i + 1), all (...)."""
+
+    t: list[Array]
+    rx: list[Array]
+    ry: list[Array]
+    counts: list[Array]  # the edge counts for the distance: flagged (when flags are given), of nonzero length
+    d2: list[Array]  # squared distance (_NO_EDGE**2 where the edge does not count)
+    smallest: Array
+    dist: Array  # distance to the polygon's boundary (its counted edges)
+    edge: list[Array]  # edge functions
+    area2: Array  # twice the signed area of the triangle of slots 0, 1, 2
+    safe_area: Array
+    bary: list[Array]  # screen-space barycentric coordinates in that triangle
+    in_triangle: Array
+    in_polygon: Array
+
+
+def _polygon_terms(
+    qx: Array, qy: Array, xs: Sequence[Array], ys: Sequence[Array], edges: Sequence[Array] | None
+) -> _PolygonTerms:
+    """`_edge_terms` for the 4-slot polygons of `_clip_faces`: the distance to the polygon's
+    boundary (to its flagged edges only with `edges`), the screen-space barycentric
     coordinates in the triangle of its first three slots and whether q is inside that triangle
-    (what `_edge_geometry_xy` gives for a face entirely in front, bit for bit), and whether q
-    is inside the polygon. Edges of zero length (a triangle's repeated slot) do not count."""
-    dist2, edge = [], []
+    (what `_edge_terms` gives for a face entirely in front, bit for bit), and whether q is
+    inside the polygon. Edges of zero length (a triangle's repeated slot) do not count."""
+    t, rx, ry, counts, d2, edge = [], [], [], [], [], []
     for i in range(4):
         j = (i + 1) % 4
         ex, ey = xs[j] - xs[i], ys[j] - ys[i]
         wx, wy = qx - xs[i], qy - ys[i]
         length2 = ex * ex + ey * ey
-        t = jnp.clip((wx * ex + wy * ey) / jnp.maximum(length2, _TINY), 0.0, 1.0)
-        rx, ry = wx - t * ex, wy - t * ey
-        counts = length2 > 0 if edges is None else edges[i] & (length2 > 0)
-        dist2.append(jnp.where(counts, rx * rx + ry * ry, _NO_EDGE**2))
+        t.append(jnp.clip((wx * ex + wy * ey) / jnp.maximum(length2, _TINY), 0.0, 1.0))
+        rx.append(wx - t[i] * ex)
+        ry.append(wy - t[i] * ey)
+        counts.append(length2 > 0 if edges is None else edges[i] & (length2 > 0))
+        d2.append(jnp.where(counts[i], rx[i] * rx[i] + ry[i] * ry[i], _NO_EDGE**2))
         edge.append(ex * wy - ey * wx)
-    dist = jnp.sqrt(jnp.maximum(jnp.minimum(jnp.minimum(jnp.minimum(dist2[0], dist2[1]), dist2[2]), dist2[3]), _TINY))
+    smallest = jnp.minimum(jnp.minimum(jnp.minimum(d2[0], d2[1]), d2[2]), d2[3])
+    dist = jnp.sqrt(jnp.maximum(smallest, _TINY))
     area2 = (xs[1] - xs[0]) * (ys[2] - ys[0]) - (ys[1] - ys[0]) * (xs[2] - xs[0])
     safe_area = jnp.where(area2 == 0, 1.0, area2)
     # In the triangle (slots 0, 1, 2) the edge from slot 2 back to slot 0 is polygon edge 3
@@ -547,7 +580,7 @@ def _polygon_geometry_xy(
     in_polygon = polygon_area2 != 0
     for e in edge:
         in_polygon = in_polygon & jnp.where(positive, e >= 0, e <= 0)
-    return dist, bary, in_triangle, in_polygon
+    return _PolygonTerms(t, rx, ry, counts, d2, smallest, dist, edge, area2, safe_area, bary, in_triangle, in_polygon)
 
 
 def _near_culled(mesh: Mesh, camera: Camera, margin: Array, cull_backfaces: bool) -> Array:
@@ -747,27 +780,71 @@ def _clipped_fragments(
 ) -> tuple[Array, Array, Array]:
     """`_triangle_fragments` for the polygons of `_clip_faces` (``clip_near=True``)."""
     height, width = camera.image_size
-    xs = tuple(faces.polygon[:, i, 0][face_index] for i in range(4))
-    ys = tuple(faces.polygon[:, i, 1][face_index] for i in range(4))
-    edges = None
+    flags = None
     if not interior_edges:
         silhouette = _silhouette_edges(mesh, camera, faces.valid)
         # the near plane's cut is a silhouette edge: what lies behind it shows there
         silhouette = jnp.concatenate([silhouette, jnp.ones_like(silhouette[:, :1])], axis=1)
         flags = jnp.take_along_axis(silhouette, faces.edge_source, axis=1)  # (F, 4)
-        edges = tuple(flags[:, i][face_index] for i in range(4))
-    distance, bary, in_triangle, in_polygon = _polygon_geometry_xy(qx, qy, xs, ys, edges)  # (H, W, K), 3 x (H, W, K)
-    vertices = [[faces.vertices[:, i, j][face_index] for j in range(3)] for i in range(3)]  # camera frame
-    z = [v[2] for v in vertices]
-    cut = ~((z[0] > camera.near) & (z[1] > camera.near) & (z[2] > camera.near))  # the face crosses the near plane
-    distance = jnp.where(jnp.where(cut, in_polygon, in_triangle), distance, -distance)
+    dtype = faces.polygon.dtype
+    lens = tuple(jnp.asarray(a, dtype) for a in (camera.near, camera.far, camera.focal_length))
+    cx, cy = qx - width / 2.0, qy - height / 2.0
+    return _clipped_geometry(faces.polygon, faces.vertices, lens, flags, face_index, qx, qy, cx, cy)
+
+
+class _ClippedTerms(NamedTuple):
+    """The per-fragment quantities of `_clipped_terms`, all (H, W, K) (lists: per slot or vertex)."""
+
+    xs: list[Array]  # polygon slots
+    ys: list[Array]
+    polygon: _PolygonTerms
+    vertices: list[list[Array]]  # [vertex][coordinate], camera frame
+    cut: Array  # the face crosses the near plane
+    # a face in front: screen-space barycentric coordinates, as `_FragmentTerms`
+    z_front: list[Array]
+    positive: list[Array]
+    bary_total: Array
+    clipped: list[Array]
+    front_depths: list[Array]  # normalized inverse depths of the vertices
+    zs: list[Array]
+    perspective: list[Array]
+    weights_total: Array
+    weights: list[Array]
+    # a face crossing the near plane: homogeneous barycentric coordinates
+    ray: tuple[Array, Array]
+    normals: list[tuple[Array, Array, Array]]  # v_{i+1} x v_{i+2}
+    flip: Array  # det(v0, v1, v2) < 0
+    homogeneous: list[Array]
+    cut_positive: list[Array]
+    cut_total: Array
+    cut_weights: list[Array]
+    z_point: Array
+    cut_depth: Array
+
+
+def _clipped_terms(polygon, vertices, lens, flags, face_index, qx, qy, cx, cy) -> _ClippedTerms:
+    """Gathers the selected faces' polygons and vertices and computes every quantity of
+    `_clipped_geometry`."""
+    near, far, focal = lens
+    xs = [polygon[:, i, 0][face_index] for i in range(4)]
+    ys = [polygon[:, i, 1][face_index] for i in range(4)]
+    edges = None if flags is None else [flags[:, i][face_index] for i in range(4)]
+    terms = _polygon_terms(qx, qy, xs, ys, edges)
+    v = [[vertices[:, i, j][face_index] for j in range(3)] for i in range(3)]
+    z = [vertex[2] for vertex in v]
+    cut = ~((z[0] > near) & (z[1] > near) & (z[2] > near))
 
     # A face in front: screen-space barycentric coordinates clipped to the triangle give the
     # depth (affine in screen space) and, divided by depth, the perspective-correct weights.
     z_front = [jnp.where(cut, 1.0, zi) for zi in z]  # (finite derivatives in the branch not taken)
-    bary = _clip_normalize(bary)
-    depth = sum(b * _normalized_depth(zi, camera) for b, zi in zip(bary, z_front))
-    weights = _clip_normalize([b / jnp.maximum(zi, _TINY) for b, zi in zip(bary, z_front)])
+    positive = [jnp.maximum(b, 0.0) for b in terms.bary]
+    bary_total = jnp.maximum(positive[0] + positive[1] + positive[2], _TINY)
+    clipped = [b / bary_total for b in positive]
+    front_depths = [_normalized_depth(zi, near, far) for zi in z_front]
+    zs = [jnp.maximum(zi, _TINY) for zi in z_front]
+    perspective = [b / zi for b, zi in zip(clipped, zs)]
+    weights_total = jnp.maximum(perspective[0] + perspective[1] + perspective[2], _TINY)
+    weights = [p / weights_total for p in perspective]
 
     # A face crossing the near plane: homogeneous barycentric coordinates, proportional to
     # (v_{i+1} x v_{i+2}) . r(q) for the ray r(q) of the pixel, are the perspective-correct
@@ -776,23 +853,134 @@ def _clipped_fragments(
     # plane where it lies in the cut part. For a face in front this is the branch above in
     # exact arithmetic (clipping screen-space or perspective-correct coordinates drops the same
     # vertices), so nothing jumps when a vertex reaches the near plane.
-    focal = camera.focal_length
-    ray = ((qx - width / 2.0) / focal, (qy - height / 2.0) / focal)
-    homogeneous = []
+    ray = (cx / focal, cy / focal)
+    normals = []
     for i in range(3):
-        (x1, y1, z1), (x2, y2, z2) = vertices[(i + 1) % 3], vertices[(i + 2) % 3]
-        homogeneous.append((y1 * z2 - z1 * y2) * ray[0] + (z1 * x2 - x1 * z2) * ray[1] + (x1 * y2 - y1 * x2))
-    x0, y0, z0 = vertices[0]
-    (x1, y1, z1), (x2, y2, z2) = vertices[1], vertices[2]
-    det = x0 * (y1 * z2 - z1 * y2) + y0 * (z1 * x2 - x1 * z2) + z0 * (x1 * y2 - y1 * x2)
-    homogeneous = [jnp.where(det < 0, -h, h) for h in homogeneous]
-    cut_weights = _clip_normalize(homogeneous)
+        (x1, y1, z1), (x2, y2, z2) = v[(i + 1) % 3], v[(i + 2) % 3]
+        normals.append((y1 * z2 - z1 * y2, z1 * x2 - x1 * z2, x1 * y2 - y1 * x2))
+    det = v[0][0] * normals[0][0] + v[0][1] * normals[0][1] + v[0][2] * normals[0][2]
+    flip = det < 0
+    homogeneous = [jnp.where(flip, -h, h) for h in (n[0] * ray[0] + n[1] * ray[1] + n[2] for n in normals)]
+    cut_positive = [jnp.maximum(h, 0.0) for h in homogeneous]
+    cut_total = jnp.maximum(cut_positive[0] + cut_positive[1] + cut_positive[2], _TINY)
+    cut_weights = [h / cut_total for h in cut_positive]
     z_point = cut_weights[0] * z[0] + cut_weights[1] * z[1] + cut_weights[2] * z[2]
-    cut_depth = _normalized_depth(z_point, camera)
+    cut_depth = _normalized_depth(z_point, near, far)
+    return _ClippedTerms(
+        xs, ys, terms, v, cut, z_front, positive, bary_total, clipped, front_depths, zs, perspective, weights_total,
+        weights, ray, normals, flip, homogeneous, cut_positive, cut_total, cut_weights, z_point, cut_depth,
+    )
 
-    depth = jnp.where(cut, cut_depth, depth)
-    weights = jnp.stack([jnp.where(cut, c, w) for c, w in zip(cut_weights, weights)], axis=-1)
+
+def _clipped_outputs(terms: _ClippedTerms) -> tuple[Array, Array, Array]:
+    polygon, cut = terms.polygon, terms.cut
+    distance = jnp.where(jnp.where(cut, polygon.in_polygon, polygon.in_triangle), polygon.dist, -polygon.dist)
+    front_depth = sum(b * d for b, d in zip(terms.clipped, terms.front_depths))
+    depth = jnp.where(cut, terms.cut_depth, front_depth)
+    weights = jnp.stack([jnp.where(cut, c, w) for c, w in zip(terms.cut_weights, terms.weights)], axis=-1)
     return distance, depth, weights
+
+
+def _clipped_values(polygon, vertices, lens, flags, face_index, qx, qy, cx, cy) -> tuple[Array, Array, Array]:
+    """`_clipped_geometry` without its custom derivative (JAX's own)."""
+    return _clipped_outputs(_clipped_terms(polygon, vertices, lens, flags, face_index, qx, qy, cx, cy))
+
+
+@jax.custom_jvp
+def _clipped_geometry(polygon, vertices, lens, flags, face_index, qx, qy, cx, cy) -> tuple[Array, Array, Array]:
+    """`_fragment_geometry` for the faces of `_clip_faces`: the signed distance (to the
+    polygon's flagged edges only, when `flags` (F, 4) are given), the normalized inverse depth
+    and the perspective-correct weights (H, W, K, 3) of the faces `face_index` (H, W, K) at
+    the pixel centres (qx, qy), from the polygons (F, 4, 2), the camera-frame vertices
+    (F, 3, 3) and the camera's ``lens = (near, far, focal length)``; (cx, cy) are the pixel
+    centres relative to the image centre.
+
+    Differentiable in `polygon`, `vertices` and `lens` by a hand-written forward mode
+    (`_clipped_geometry_jvp`), which JAX transposes for reverse mode, for the reason given at
+    `_fragment_geometry` (here JAX's own derivative was nine fusions of 3-6 ms, the
+    cotangents of the nine vertex coordinates, each recomputing the others' shared part). Its
+    results are autodiff's of `_clipped_values` up to rounding (tests/render/test_near_clip.py)."""
+    return _clipped_values(polygon, vertices, lens, flags, face_index, qx, qy, cx, cy)
+
+
+@_clipped_geometry.defjvp
+def _clipped_geometry_jvp(primals, tangents):
+    polygon, vertices, lens, flags, face_index, qx, qy, cx, cy = primals
+    d_polygon, d_vertices, d_lens = tangents[:3]
+    near, far, focal = lens
+    d_near, d_far, d_focal = d_lens
+    terms = _clipped_terms(polygon, vertices, lens, flags, face_index, qx, qy, cx, cy)
+    xs, ys, poly, v, cut = terms.xs, terms.ys, terms.polygon, terms.vertices, terms.cut
+    dx = [d_polygon[:, i, 0][face_index] for i in range(4)]
+    dy = [d_polygon[:, i, 1][face_index] for i in range(4)]
+    dv = [[d_vertices[:, i, j][face_index] for j in range(3)] for i in range(3)]
+
+    # The distance to the nearest counted polygon edge, as in `_fragment_geometry_jvp`.
+    found, d_smallest = jnp.zeros_like(cut), 0.0
+    for i in range(4):
+        j = (i + 1) % 4
+        first = (poly.d2[i] == poly.smallest) & ~found
+        found = found | first
+        s, t = 1.0 - poly.t[i], poly.t[i]
+        d_d2 = -2.0 * (poly.rx[i] * (s * dx[i] + t * dx[j]) + poly.ry[i] * (s * dy[i] + t * dy[j]))
+        d_smallest = d_smallest + jnp.where(first & poly.counts[i], d_d2, 0.0)
+    d_dist = jnp.where(poly.smallest > _TINY, d_smallest / (2.0 * poly.dist), 0.0)
+    inside = jnp.where(cut, poly.in_polygon, poly.in_triangle)
+
+    # A face in front: bary = [edge_1, edge_3, edge_0] / area2 (polygon edges), area2 of slots 0-2.
+    d_edge = []
+    for i in range(4):
+        j = (i + 1) % 4
+        d_edge.append((ys[j] - qy) * dx[i] + (qx - xs[j]) * dy[i] + (qy - ys[i]) * dx[j] + (xs[i] - qx) * dy[j])
+    d_area = 0.0
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        d_area = d_area + (ys[j] - ys[k]) * dx[i] + (xs[k] - xs[j]) * dy[i]
+    d_area = jnp.where(poly.area2 != 0, d_area, 0.0)
+    d_bary = [(e - b * d_area) / poly.safe_area for e, b in zip((d_edge[1], d_edge[3], d_edge[0]), poly.bary)]
+    d_clipped = _normalize_jvp(
+        terms.clipped, terms.positive, terms.bary_total,
+        [jnp.where(b > 0, d, 0.0) for b, d in zip(poly.bary, d_bary)],
+    )
+    d_z_front = [jnp.where(cut, 0.0, dv[i][2]) for i in range(3)]
+    d_front_depths = [
+        _normalized_depth_jvp(nd, zf, near, far, dzf, d_near, d_far)
+        for nd, zf, dzf in zip(terms.front_depths, terms.z_front, d_z_front)
+    ]
+    d_front_depth = sum(
+        dc * nd + c * dnd for dc, nd, c, dnd in zip(d_clipped, terms.front_depths, terms.clipped, d_front_depths)
+    )
+    d_zs = [jnp.where(zf > _TINY, dzf, 0.0) for zf, dzf in zip(terms.z_front, d_z_front)]
+    d_perspective = [(dc - p * dz) / z for dc, p, dz, z in zip(d_clipped, terms.perspective, d_zs, terms.zs)]
+    d_weights = _normalize_jvp(terms.weights, terms.perspective, terms.weights_total, d_perspective)
+
+    # A face crossing the near plane: h_i = +-(v_{i+1} x v_{i+2}) . (cx / f, cy / f, 1).
+    d_ray = (-terms.ray[0] * d_focal / focal, -terms.ray[1] * d_focal / focal)
+    d_homogeneous = []
+    for i in range(3):
+        (x1, y1, z1), (x2, y2, z2) = v[(i + 1) % 3], v[(i + 2) % 3]
+        (dx1, dy1, dz1), (dx2, dy2, dz2) = dv[(i + 1) % 3], dv[(i + 2) % 3]
+        n = terms.normals[i]
+        d_n = (
+            dy1 * z2 + y1 * dz2 - dz1 * y2 - z1 * dy2,
+            dz1 * x2 + z1 * dx2 - dx1 * z2 - x1 * dz2,
+            dx1 * y2 + x1 * dy2 - dy1 * x2 - y1 * dx2,
+        )
+        d_h = d_n[0] * terms.ray[0] + n[0] * d_ray[0] + d_n[1] * terms.ray[1] + n[1] * d_ray[1] + d_n[2]
+        d_homogeneous.append(jnp.where(terms.flip, -d_h, d_h))
+    d_cut_weights = _normalize_jvp(
+        terms.cut_weights, terms.cut_positive, terms.cut_total,
+        [jnp.where(h > 0, d, 0.0) for h, d in zip(terms.homogeneous, d_homogeneous)],
+    )
+    d_z_point = sum(dw * p[2] + w * dp[2] for dw, w, p, dp in zip(d_cut_weights, terms.cut_weights, v, dv))
+    d_cut_depth = _normalized_depth_jvp(terms.cut_depth, terms.z_point, near, far, d_z_point, d_near, d_far)
+
+    tangent = (
+        jnp.where(inside, d_dist, -d_dist),
+        jnp.where(cut, d_cut_depth, d_front_depth),
+        jnp.stack([jnp.where(cut, c, w) for c, w in zip(d_cut_weights, d_weights)], axis=-1),
+    )
+    return _clipped_outputs(terms), tangent
 
 
 def rasterize(
