@@ -344,3 +344,28 @@ def test_clipped_fragment_derivatives_equal_autodiff_of_the_formulas(getkey, wit
         assert float(jnp.max(jnp.abs(got[0]))) > 0  # the distance reaches the polygons
     if output in ("depth", "all"):
         assert all(abs(float(g)) > 0 for g in got[2][:2])  # near and far move the depth
+
+
+@pytest.mark.parametrize("depth_near_edge", [0.2, 0.5, 0.9])
+def test_soft_gradient_through_clipped_faces_equals_finite_differences(draw, getkey, depth_near_edge):
+    # End to end, through _clip_faces and the clipped fragments' hand-written derivative: the
+    # gradient of the soft image's weighted sum with respect to the vertices, along a random
+    # direction, against central differences. Vertex depths (see square()): 0.12, 0.28, 2.28,
+    # 2.12 (the face 0-1-2 has one vertex in front: 3 slots; 0-2-3 two: 4 slots); 0.42, 0.58,
+    # 1.98, 1.82 (each face has one vertex behind); all in front.
+    key = getkey()
+    mesh = square(depth_near_edge)
+    vertices = np.asarray(mesh.vertices)
+    assert np.sum(vertices[:, 2] < NEAR) == {0.2: 2, 0.5: 1, 0.9: 0}[depth_near_edge]
+    weights = render.Image(rgb=np.random.default_rng(1).uniform(size=(SIZE, SIZE, 3)), alpha=np.ones((SIZE, SIZE)))
+    direction = np.asarray(jax.random.normal(getkey(), vertices.shape))
+
+    def loss(v):
+        image = draw(key, render.Mesh(v, FACES, COLORS))[0]["soft"]
+        return float(jnp.sum(image.rgb * weights.rgb) + jnp.sum(image.alpha * weights.alpha))
+
+    h = 1e-6
+    finite_difference = (loss(vertices + h * direction) - loss(vertices - h * direction)) / (2 * h)
+    gradient = np.asarray(draw(key, mesh)[2])
+    assert abs(finite_difference) > 1e-2
+    np.testing.assert_allclose(np.sum(gradient * direction), finite_difference, rtol=1e-5)
