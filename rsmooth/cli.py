@@ -272,6 +272,10 @@ def render_pose_command(
         None, "--restarts", min=0, help="Run a problem again from its initial pose with fresh noise, up to this many "
         "times, while its best hard render stays far from the target (loss above 5 % of the initial pose's; no ground "
         "truth used); each reports its closest run (default 0: one run, the paper's protocol)."),
+    average_iterates: Optional[float] = typer.Option(
+        None, "--average-iterates", min=0.0, max=0.999, help="With --keep-best, also consider the exponential average "
+        "of the iterates with this decay per step (e.g. 0.97; one more hard render per step; default 0: off): the "
+        "perturbed gradient's noise makes the last steps wander around the solution."),
 ):
     from rsmooth.experiments.render_pose import METHODS
 
@@ -279,7 +283,7 @@ def render_pose_command(
     init_errors_deg = tuple(float(e) for e in init_error) if init_error else None
     _run(_RENDER_POSE, out, seed, quick, mesh=mesh, init_errors_deg=init_errors_deg, problems=problems, methods=methods,
          steps=steps, num_samples=samples, keep_best=keep_best, pose_noise_deg=pose_noise, pose_noise_until=pose_noise_until,
-         restarts=restarts, sample_growth=sample_growth, max_samples=max_samples)
+         restarts=restarts, sample_growth=sample_growth, max_samples=max_samples, average_decay=average_iterates)
 
 
 @render_app.command("reconstruct", help=_doc(
