@@ -722,36 +722,11 @@ def _fragment_geometry_jvp(primals, tangents):
     dx = [d_screen[:, i, 0][face_index] for i in range(3)]
     dy = [d_screen[:, i, 1][face_index] for i in range(3)]
 
-    # distance = +-sqrt(max(min_i d2_i, _TINY)), the nearest counted edge's. With r = q - the
-    # nearest point p_i + t (p_j - p_i) of the edge, d d2 = -2 r . ((1 - t) dp_i + t dp_j):
-    # the term in dt vanishes (t is optimal, r . (p_j - p_i) = 0, or clamped, dt = 0).
-    smallest = edge.smallest
-    first = [edge.d2[0] == smallest]
-    first.append((edge.d2[1] == smallest) & ~first[0])
-    first.append(~(first[0] | first[1]))
-    d_smallest = 0.0
-    for i in range(3):
-        j = (i + 1) % 3
-        nearest = first[i] if terms.flags is None else first[i] & terms.flags[i]
-        s, t = 1.0 - edge.t[i], edge.t[i]
-        d_d2 = -2.0 * (edge.rx[i] * (s * dx[i] + t * dx[j]) + edge.ry[i] * (s * dy[i] + t * dy[j]))
-        d_smallest = d_smallest + jnp.where(nearest, d_d2, 0.0)
-    d_dist = jnp.where(smallest > _TINY, d_smallest / (2.0 * edge.dist), 0.0)
+    d_dist = _nearest_edge_jvp(edge.t, edge.rx, edge.ry, edge.d2, edge.smallest, edge.dist, terms.flags, dx, dy)
 
-    # bary = [edge_1, edge_2, edge_0] / area2, edge_i = cross(p_j - p_i, q - p_i),
-    # area2 = cross(p_1 - p_0, p_2 - p_0)
-    d_edge, d_area = [], 0.0
-    for i in range(3):
-        j, k = (i + 1) % 3, (i + 2) % 3
-        d_edge.append((ys[j] - qy) * dx[i] + (qx - xs[j]) * dy[i] + (qy - ys[i]) * dx[j] + (xs[i] - qx) * dy[j])
-        d_area = d_area + (ys[j] - ys[k]) * dx[i] + (xs[k] - xs[j]) * dy[i]
-    d_area = jnp.where(edge.area2 != 0, d_area, 0.0)
-    d_bary = [(e - b * d_area) / edge.safe_area for e, b in zip((d_edge[1], d_edge[2], d_edge[0]), edge.bary)]
-    # clipped = normalize(max(bary, 0)); depth = sum(clipped * depths)
-    d_clipped = _normalize_jvp(
-        terms.clipped, terms.positive, terms.bary_total,
-        [jnp.where(b > 0, d, 0.0) for b, d in zip(edge.bary, d_bary)],
-    )
+    # bary = [edge_1, edge_2, edge_0] / area2; clipped = normalize(max(bary, 0));
+    # depth = sum(clipped * depths)
+    d_clipped = _barycentric_jvp(xs, ys, dx, dy, qx, qy, (1, 2, 0), edge.area2, edge.safe_area, edge.bary, terms)
     d_depths = [d_depth_vertices[:, i][face_index] for i in range(3)]
     d_depth = sum(dc * d + c * dd for dc, d, c, dd in zip(d_clipped, terms.depths, terms.clipped, d_depths))
     # weights = normalize(clipped / max(z, _TINY))
@@ -761,6 +736,48 @@ def _fragment_geometry_jvp(primals, tangents):
 
     tangent = (jnp.where(edge.inside, d_dist, -d_dist), d_depth, jnp.stack(d_weights, axis=-1))
     return _fragment_outputs(terms), tangent
+
+
+def _nearest_edge_jvp(t, rx, ry, d2, smallest, dist, counts, dx, dy) -> Array:
+    """Forward mode of the distance ``sqrt(max(min_i d2_i, _TINY))`` to the nearest counted edge
+    of a polygon (edge i from vertex i to i + 1, of all ``len(t)``; `counts`: None for all).
+
+    With r = q - the nearest point p_i + t (p_j - p_i) of the edge, d d2 = -2 r . ((1 - t) dp_i
+    + t dp_j): the term in dt vanishes (t is optimal, r . (p_j - p_i) = 0, or clamped, dt = 0).
+    Of tied edges the first counts (autodiff would average them)."""
+    n = len(t)
+    found, d_smallest = jnp.zeros(jnp.shape(smallest), bool), 0.0
+    for i in range(n):
+        j = (i + 1) % n
+        first = (d2[i] == smallest) & ~found
+        found = found | first
+        nearest = first if counts is None else first & counts[i]
+        s, u = 1.0 - t[i], t[i]
+        d_d2 = -2.0 * (rx[i] * (s * dx[i] + u * dx[j]) + ry[i] * (s * dy[i] + u * dy[j]))
+        d_smallest = d_smallest + jnp.where(nearest, d_d2, 0.0)
+    return jnp.where(smallest > _TINY, d_smallest / (2.0 * dist), 0.0)
+
+
+def _barycentric_jvp(xs, ys, dx, dy, qx, qy, opposite, area2, safe_area, bary, terms) -> list[Array]:
+    """Forward mode of the screen-space barycentric coordinates clipped to the triangle of
+    vertices 0, 1, 2 and normalized (`terms.clipped`, from `terms.positive` and
+    `terms.bary_total`): bary_k = edge_{opposite[k]} / area2, with the edge functions
+    edge_i = cross(p_j - p_i, q - p_i) of a polygon's edges (j = i + 1 around all ``len(xs)``
+    vertices) and area2 = cross(p_1 - p_0, p_2 - p_0)."""
+    n = len(xs)
+    d_edge = []
+    for i in range(n):
+        j = (i + 1) % n
+        d_edge.append((ys[j] - qy) * dx[i] + (qx - xs[j]) * dy[i] + (qy - ys[i]) * dx[j] + (xs[i] - qx) * dy[j])
+    d_area = 0.0
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        d_area = d_area + (ys[j] - ys[k]) * dx[i] + (xs[k] - xs[j]) * dy[i]
+    d_area = jnp.where(area2 != 0, d_area, 0.0)
+    d_bary = [(d_edge[e] - b * d_area) / safe_area for e, b in zip(opposite, bary)]
+    return _normalize_jvp(
+        terms.clipped, terms.positive, terms.bary_total, [jnp.where(b > 0, d, 0.0) for b, d in zip(bary, d_bary)]
+    )
 
 
 def _normalize_jvp(values: list[Array], raw: list[Array], total: Array, d_raw: list[Array]) -> list[Array]:
@@ -915,33 +932,11 @@ def _clipped_geometry_jvp(primals, tangents):
     dy = [d_polygon[:, i, 1][face_index] for i in range(4)]
     dv = [[d_vertices[:, i, j][face_index] for j in range(3)] for i in range(3)]
 
-    # The distance to the nearest counted polygon edge, as in `_fragment_geometry_jvp`.
-    found, d_smallest = jnp.zeros_like(cut), 0.0
-    for i in range(4):
-        j = (i + 1) % 4
-        first = (poly.d2[i] == poly.smallest) & ~found
-        found = found | first
-        s, t = 1.0 - poly.t[i], poly.t[i]
-        d_d2 = -2.0 * (poly.rx[i] * (s * dx[i] + t * dx[j]) + poly.ry[i] * (s * dy[i] + t * dy[j]))
-        d_smallest = d_smallest + jnp.where(first & poly.counts[i], d_d2, 0.0)
-    d_dist = jnp.where(poly.smallest > _TINY, d_smallest / (2.0 * poly.dist), 0.0)
+    d_dist = _nearest_edge_jvp(poly.t, poly.rx, poly.ry, poly.d2, poly.smallest, poly.dist, poly.counts, dx, dy)
     inside = jnp.where(cut, poly.in_polygon, poly.in_triangle)
 
     # A face in front: bary = [edge_1, edge_3, edge_0] / area2 (polygon edges), area2 of slots 0-2.
-    d_edge = []
-    for i in range(4):
-        j = (i + 1) % 4
-        d_edge.append((ys[j] - qy) * dx[i] + (qx - xs[j]) * dy[i] + (qy - ys[i]) * dx[j] + (xs[i] - qx) * dy[j])
-    d_area = 0.0
-    for i in range(3):
-        j, k = (i + 1) % 3, (i + 2) % 3
-        d_area = d_area + (ys[j] - ys[k]) * dx[i] + (xs[k] - xs[j]) * dy[i]
-    d_area = jnp.where(poly.area2 != 0, d_area, 0.0)
-    d_bary = [(e - b * d_area) / poly.safe_area for e, b in zip((d_edge[1], d_edge[3], d_edge[0]), poly.bary)]
-    d_clipped = _normalize_jvp(
-        terms.clipped, terms.positive, terms.bary_total,
-        [jnp.where(b > 0, d, 0.0) for b, d in zip(poly.bary, d_bary)],
-    )
+    d_clipped = _barycentric_jvp(xs, ys, dx, dy, qx, qy, (1, 3, 0), poly.area2, poly.safe_area, poly.bary, terms)
     d_z_front = [jnp.where(cut, 0.0, dv[i][2]) for i in range(3)]
     d_front_depths = [
         _normalized_depth_jvp(nd, zf, near, far, dzf, d_near, d_far)
