@@ -271,10 +271,11 @@ class Fragments(eqx.Module):
     near_culled: Array
 
 
-def _clip_normalize(bary: list[Array]) -> list[Array]:
-    clipped = [jnp.maximum(b, 0.0) for b in bary]
-    total = jnp.maximum(clipped[0] + clipped[1] + clipped[2], _TINY)
-    return [b / total for b in clipped]
+def _normalized(raw: list[Array]) -> tuple[Array, list[Array]]:
+    """``(total, raw / total)`` with ``total = max(sum(raw), _TINY)``, for three raw >= 0
+    (its forward mode: `_normalize_jvp`)."""
+    total = jnp.maximum(raw[0] + raw[1] + raw[2], _TINY)
+    return total, [r / total for r in raw]
 
 
 def _face_forms(screen: Array, depth: Array) -> tuple[Array, Array]:
@@ -675,12 +676,10 @@ def _fragment_terms(screen, depth_vertices, z_faces, edges, face_index, qx, qy) 
     flags = None if edges is None else [edges[:, i][face_index] for i in range(3)]
     edge = _edge_terms(qx, qy, xs, ys, flags)
     positive = [jnp.maximum(b, 0.0) for b in edge.bary]
-    bary_total = jnp.maximum(positive[0] + positive[1] + positive[2], _TINY)
-    clipped = [b / bary_total for b in positive]
+    bary_total, clipped = _normalized(positive)
     # Perspective-correct weights for attributes: screen weights divided by depth, renormalized.
     perspective = [b / z for b, z in zip(clipped, zs)]
-    weights_total = jnp.maximum(perspective[0] + perspective[1] + perspective[2], _TINY)
-    weights = [p / weights_total for p in perspective]
+    weights_total, weights = _normalized(perspective)
     return _FragmentTerms(
         xs, ys, depths, z_raw, zs, flags, edge, positive, bary_total, clipped, perspective, weights_total, weights
     )
@@ -855,13 +854,11 @@ def _clipped_terms(polygon, vertices, lens, flags, face_index, qx, qy, cx, cy) -
     # depth (affine in screen space) and, divided by depth, the perspective-correct weights.
     z_front = [jnp.where(cut, 1.0, zi) for zi in z]  # (finite derivatives in the branch not taken)
     positive = [jnp.maximum(b, 0.0) for b in terms.bary]
-    bary_total = jnp.maximum(positive[0] + positive[1] + positive[2], _TINY)
-    clipped = [b / bary_total for b in positive]
+    bary_total, clipped = _normalized(positive)
     front_depths = [_normalized_depth(zi, near, far) for zi in z_front]
     zs = [jnp.maximum(zi, _TINY) for zi in z_front]
     perspective = [b / zi for b, zi in zip(clipped, zs)]
-    weights_total = jnp.maximum(perspective[0] + perspective[1] + perspective[2], _TINY)
-    weights = [p / weights_total for p in perspective]
+    weights_total, weights = _normalized(perspective)
 
     # A face crossing the near plane: homogeneous barycentric coordinates, proportional to
     # (v_{i+1} x v_{i+2}) . r(q) for the ray r(q) of the pixel, are the perspective-correct
@@ -879,8 +876,7 @@ def _clipped_terms(polygon, vertices, lens, flags, face_index, qx, qy, cx, cy) -
     flip = det < 0
     homogeneous = [jnp.where(flip, -h, h) for h in (n[0] * ray[0] + n[1] * ray[1] + n[2] for n in normals)]
     cut_positive = [jnp.maximum(h, 0.0) for h in homogeneous]
-    cut_total = jnp.maximum(cut_positive[0] + cut_positive[1] + cut_positive[2], _TINY)
-    cut_weights = [h / cut_total for h in cut_positive]
+    cut_total, cut_weights = _normalized(cut_positive)
     z_point = cut_weights[0] * z[0] + cut_weights[1] * z[1] + cut_weights[2] * z[2]
     cut_depth = _normalized_depth(z_point, near, far)
     return _ClippedTerms(
