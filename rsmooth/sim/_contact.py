@@ -421,6 +421,13 @@ def implicit_impulse_tangent(
     # contacts on a rank-deficient G whose impulses are not unique) eps = 1e-12 bounds the
     # gain by about 3 / (2 sqrt(eps)) instead of returning inf or NaN.
     factor = jax.scipy.linalg.cho_factor(jacobian.T @ jacobian + regularization * identity)
+    if rhs.ndim == 2 and rhs.shape[1] > 3 * n:
+        # Many columns (the Jacobian columns of a step): the three refined solves are linear in
+        # rhs, dlambda = -T rhs with T = (I + E + E^2) B, B = (JᵀJ + eps I)^{-1} Jᵀ and E = I - B J
+        # (3 n x 3 n): form T once and apply it, one product per column instead of nine
+        B = cholesky_inverse(factor) @ jacobian.T
+        E = identity - B @ jacobian
+        return -((B + E @ (B + E @ B)) @ rhs)
     solve = many_column_solver(factor, rhs)
     impulse_dot = jnp.zeros_like(rhs)
     for _ in range(3):
@@ -437,9 +444,19 @@ def many_column_solver(factor, rhs: Array):
     implicit derivative's algebra. Otherwise (a JVP's vector) it solves directly."""
     n = factor[0].shape[0]
     if rhs.ndim == 2 and rhs.shape[1] > n:
-        inverse = jax.scipy.linalg.cho_solve(factor, jnp.eye(n, dtype=factor[0].dtype))
+        inverse = cholesky_inverse(factor)
         return lambda b: inverse @ b
     return lambda b: jax.scipy.linalg.cho_solve(factor, b)
+
+
+def cholesky_inverse(factor) -> Array:
+    """``A^-1`` from a Cholesky ``factor`` of ``A`` (``jax.scipy.linalg.cho_factor``): one
+    triangular solve for ``L^-1`` and the product ``L^-T L^-1``, where ``cho_solve`` with the
+    identity takes two solves (on the CPU a batched triangular solve costs several times the
+    product: ~2 us against ~0.5 us per 18 x 18 matrix under ``vmap``)."""
+    c, lower = factor
+    inverse = jax.scipy.linalg.solve_triangular(c, jnp.eye(c.shape[0], dtype=c.dtype), lower=lower)
+    return inverse.T @ inverse if lower else inverse @ inverse.T
 
 
 # Contact modes of the active-set Newton polish (NCPSolver.polish).

@@ -16,7 +16,10 @@ from rsmooth.sim._contact import (
     NCPSolver,
     SpringDamper,
     contact_frame,
+    cholesky_inverse,
     corrected_free_velocity,
+    fixed_point_step_sizes,
+    implicit_impulse_tangent,
     log_barrier_force,
     ncp_residuals,
     project_to_friction_cone,
@@ -387,6 +390,32 @@ def mixed_mode_problem(key, modes):
 
 
 MODES = [("stick",), ("slide",), ("separate",), ("stick", "slide", "separate")]
+
+
+def test_implicit_tangent_of_many_columns_equals_the_refined_solves(getkey):
+    """dlambda for a matrix of right-hand sides (more columns than unknowns: the step
+    Jacobian's case) is formed as one operator (I + E + E^2) B; it equals the three refined
+    solves applied column by column, at a solution where contacts stick, slide and separate
+    (the separated contact's rows exactly zero)."""
+    modes = ("stick", "slide", "separate")
+    G, g, mu, solution = mixed_mode_problem(getkey(), modes)
+    step_sizes = fixed_point_step_sizes(G, len(modes))
+    rhs = jax.random.normal(getkey(), (3 * len(modes), 20), dtype=G.dtype)
+    tangent = functools.partial(implicit_impulse_tangent, 1e-12, solution, G, g, mu, step_sizes)
+    many = tangent(rhs)
+    columns = jnp.stack([tangent(rhs[:, k]) for k in range(rhs.shape[1])], axis=1)
+    assert float(jnp.max(jnp.abs(columns))) > 0.1
+    np.testing.assert_allclose(many, columns, rtol=0, atol=1e-10 * float(jnp.max(jnp.abs(columns))))
+    assert not np.any(np.asarray(many[6:]))
+
+
+@pytest.mark.parametrize("lower", [True, False])
+def test_cholesky_inverse_is_the_inverse(getkey, lower):
+    a = jax.random.normal(getkey(), (7, 7), dtype=jnp.float64)
+    spd = a @ a.T + 0.1 * jnp.eye(7)
+    inverse = cholesky_inverse(jax.scipy.linalg.cho_factor(spd, lower=lower))
+    np.testing.assert_allclose(inverse @ spd, np.eye(7), atol=1e-10)
+    np.testing.assert_allclose(inverse, inverse.T, atol=1e-12 * float(jnp.max(jnp.abs(inverse))))
 
 
 @pytest.mark.parametrize("modes", MODES, ids=["-".join(m) for m in MODES])
