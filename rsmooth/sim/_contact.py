@@ -428,18 +428,17 @@ def implicit_impulse_tangent(
         B = cholesky_inverse(factor) @ jacobian.T
         E = identity - B @ jacobian
         return -((B + E @ (B + E @ B)) @ rhs)
-    solve = many_column_solver(factor, rhs)
     impulse_dot = jnp.zeros_like(rhs)
     for _ in range(3):
         residual = -rhs - jacobian @ impulse_dot
-        impulse_dot = impulse_dot + solve(jacobian.T @ residual)
+        impulse_dot = impulse_dot + jax.scipy.linalg.cho_solve(factor, jacobian.T @ residual)
     return impulse_dot
 
 
 def many_column_solver(factor, rhs: Array):
     """``b -> A^-1 b`` for a Cholesky ``factor`` of ``A`` (n x n) and right-hand sides shaped
     like ``rhs``. With more than ``n`` columns (the Jacobian columns of a step), ``A^-1`` is
-    formed once (n columns of triangular solves) and applied by matrix products: XLA's batched
+    formed once (:func:`cholesky_inverse`) and applied by matrix products: XLA's batched
     triangular solve on CPU costs per column, and under ``vmap`` it was the largest part of the
     implicit derivative's algebra. Otherwise (a JVP's vector) it solves directly."""
     n = factor[0].shape[0]

@@ -113,7 +113,6 @@ class _VelocityUpdate(NamedTuple):
     clipped: Array
     mass_factor: tuple[Array, bool]  # Cholesky factor of M (jax.scipy.linalg.cho_factor)
     jacobian: Array  # contact Jacobian J, (3 n, nv)
-    half_delassus: Array  # L^-1 Jᵀ (nv, 3 n), L the Cholesky factor of M: G = (L^-1 Jᵀ)ᵀ (L^-1 Jᵀ)
     delassus: Array  # G = J M^-1 Jᵀ
     free_velocity: Array  # g: the NCP's free contact velocity (hard contact)
     mu: Array  # friction coefficient per contact
@@ -503,7 +502,7 @@ class RigidBodySystem(eqx.Module):
             ncp = NCPInfo(jnp.zeros((), jnp.int32), zero, zero, zero, jnp.ones((), bool), zero)
         v_next = v_free + jax.scipy.linalg.solve_triangular(factor[0], half @ impulse, lower=True, trans="T")
         return _VelocityUpdate(
-            v_next, impulse, distance, ncp, clipped, factor, jacobian, half, delassus, free_velocity, mu, kinematics, inertias,
+            v_next, impulse, distance, ncp, clipped, factor, jacobian, delassus, free_velocity, mu, kinematics, inertias,
             mass,
         )
 
@@ -658,10 +657,7 @@ def _velocity_update_tangent(
     impulse = lax.stop_gradient(update.impulse)
     solve = many_column_solver(update.mass_factor, momentum_dot)
     free_motion_dot = -solve(momentum_dot)  # dv+ at fixed lambda
-    if momentum_dot.ndim == 2 and momentum_dot.shape[1] > momentum_dot.shape[0]:
-        minv_jt = solve(update.jacobian.T)  # M^-1 is formed: a product
-    else:
-        minv_jt = jax.scipy.linalg.solve_triangular(update.mass_factor[0], update.half_delassus, lower=True, trans="T")
+    minv_jt = solve(update.jacobian.T)  # primal: once for all tangents (a product where M^-1 is formed)
     velocity_dot = velocity_dot + update.jacobian @ free_motion_dot
     G, g, mu = update.delassus, update.free_velocity, update.mu
     step_sizes = fixed_point_step_sizes(G, mu.shape[0])
