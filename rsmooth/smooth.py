@@ -39,7 +39,7 @@ def smooth(
     num_samples: int,
     estimator: str = "zeroth",
     noise: Noise = Gaussian(),
-    baseline: bool = True,
+    baseline: bool | str = True,
     antithetic: bool = False,
     gamma: float | None = None,
     lipschitz: float | None = None,
@@ -54,7 +54,8 @@ def smooth(
         estimator: ``"zeroth"`` (score function; any `f`), ``"first"`` (mean of sampled
             gradients; `f` differentiable by JAX) or ``"alpha"`` (their blend, Suh et al. 2022).
         noise: the noise law (see :mod:`rsmooth.noise`).
-        baseline, antithetic: variance reduction for the zeroth-order rule.
+        baseline, antithetic: variance reduction for the zeroth-order rule (see
+            :func:`rsmooth.zeroth_order`: True, False or ``"leave-one-out"``).
         gamma, lipschitz, delta: trust region of the alpha-order rule (see
             :func:`rsmooth.alpha_order`).
 
@@ -85,6 +86,7 @@ def smooth(
         needs_score=estimator != "first",
         minimum=4 if estimator == "alpha" else 1,
     )
+    _est.check_baseline(baseline, num_samples // 2 if estimator == "alpha" else num_samples)
     if gamma is not None and _checks.is_traced(gamma):
         raise TypeError("gamma must be a Python float in smooth() (pass a traced one to alpha_order)")
     options = dict(
@@ -143,7 +145,7 @@ def _smoothed_flat(f_converted, num_consts, *, num_samples, estimator, noise, ba
         if estimator == "zeroth":
             values = jax.vmap(f)(perturbed)
             score = noise.score(z)
-            centred = values - f(x)[None, :] if baseline else values
+            centred = values - _est.baseline_values(values, baseline, lambda: f(x))
             # Linear in (x_dot, sigma_dot); the same weights as zeroth_order's (see there).
             weights = (-(score @ x_dot) - sigma_dot * (jnp.sum(z * score, axis=-1) + x.shape[0])) / sigma
             value = checked(jnp.mean(values, axis=0), x, values)
@@ -180,7 +182,7 @@ def smooth_elementwise(
     num_samples: int,
     estimator: str = "zeroth",
     noise: Noise = Gaussian(),
-    baseline: bool = True,
+    baseline: bool | str = True,
     antithetic: bool = False,
 ) -> Callable:
     r"""Randomized smoothing of an elementwise function, with independent noise per element.
@@ -214,6 +216,7 @@ def smooth_elementwise(
     if estimator not in ("zeroth", "first"):
         raise ValueError(f"estimator must be 'zeroth' or 'first' for smooth_elementwise, got {estimator!r}")
     _est._check_options(sigma, num_samples, noise, antithetic=antithetic, needs_score=estimator == "zeroth")
+    _est.check_baseline(baseline, num_samples)
 
     def samples(key, x):
         shape = (num_samples // 2 if antithetic else num_samples,) + x.shape
@@ -236,7 +239,7 @@ def smooth_elementwise(
         if estimator == "zeroth":
             values = f(x[None] + sigma * z)
             score = noise.score(z)
-            centred = values - f(x)[None] if baseline else values
+            centred = values - _est.baseline_values(values, baseline, lambda: f(x))
             # Per element: weight -score(z) / sigma for x, -(z score(z) + 1) / sigma for sigma.
             weights = (-score * x_dot[None] - sigma_dot * (z * score + 1.0)) / sigma
             tangent = jnp.mean(centred * weights, axis=0)

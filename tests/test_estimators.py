@@ -157,6 +157,33 @@ def test_antithetic_and_baseline_reduce_variance(getkey):
     assert antithetic < with_baseline / 3
 
 
+def test_leave_one_out_baseline_is_unbiased_and_lowers_the_variance_at_a_jump(getkey):
+    # The Heaviside at its jump: f(x) = 0 is the worst constant baseline there (the smoothed
+    # value is 1/2). Per term, E[(H(z) - b)^2 z^2] - phi(0)^2 is 0.341 for b = f(x) and
+    # 0.091 for b = 1/2, which the leave-one-out mean approaches as M grows.
+    x, num_samples, trials = jnp.array(0.0), 16, 4000
+    keys = jax.random.split(getkey(), trials)
+    spreads = {}
+    for baseline in (True, "leave-one-out"):
+        via_estimator = jax.vmap(
+            lambda k: rsmooth.zeroth_order(heaviside, k, x, sigma=1.0, num_samples=num_samples, baseline=baseline).grad
+        )(keys)
+        g = rsmooth.smooth(heaviside, sigma=1.0, num_samples=num_samples, baseline=baseline)
+        via_smooth = jax.vmap(jax.grad(g, argnums=1), in_axes=(0, None))(keys, x)
+        np.testing.assert_allclose(via_smooth, via_estimator, rtol=1e-10, atol=1e-12)  # one rule
+        h = rsmooth.smooth_elementwise(heaviside, sigma=1.0, num_samples=num_samples, baseline=baseline)
+        elementwise = jax.vmap(lambda k: jax.grad(lambda v: jnp.sum(h(k, v)))(x[None])[0])(keys)
+        for grads in (via_estimator, elementwise):
+            within(np.mean(grads), norm.pdf(0.0), np.std(grads) / np.sqrt(trials))
+        spreads[baseline] = float(np.var(via_estimator))
+    assert abs(spreads[True] - 0.341 / num_samples) < 0.15 * 0.341 / num_samples
+    assert spreads["leave-one-out"] < 0.45 * spreads[True]
+    # d/dsigma too, where the hard baseline is no better: unbiased (Phi(0 / sigma) is flat in sigma)
+    est = jax.vmap(lambda k: rsmooth.zeroth_order(
+        heaviside, k, jnp.array(0.5), sigma=1.0, num_samples=num_samples, baseline="leave-one-out").sigma_grad)(keys)
+    within(np.mean(est), -0.5 * norm.pdf(0.5), np.std(est) / np.sqrt(trials))
+
+
 def test_same_key_same_result_and_jit(getkey):
     key = getkey()
     f = lambda x: jnp.sum(heaviside(x) * x**2)  # noqa: E731
@@ -216,6 +243,18 @@ class TestBadInput:
             rsmooth.zeroth_order(self.f, getkey(), self.x, sigma=0.1, num_samples=5, antithetic=True)
         with pytest.raises(ValueError, match="num_samples"):
             rsmooth.alpha_order(self.f, getkey(), self.x, sigma=0.1, num_samples=2)
+
+    def test_baseline(self, getkey):
+        with pytest.raises(ValueError, match="baseline must be True, False or 'leave-one-out'"):
+            rsmooth.zeroth_order(self.f, getkey(), self.x, sigma=0.1, num_samples=4, baseline="mean")
+        with pytest.raises(ValueError, match="needs num_samples >= 2"):
+            rsmooth.zeroth_order(self.f, getkey(), self.x, sigma=0.1, num_samples=1, baseline="leave-one-out")
+        with pytest.raises(ValueError, match="baseline must be"):
+            rsmooth.smooth(self.f, sigma=0.1, num_samples=8, estimator="alpha", baseline="leave_one_out")
+        with pytest.raises(ValueError, match="baseline must be"):
+            rsmooth.alpha_order(self.f, getkey(), self.x, sigma=0.1, num_samples=8, baseline=None)
+        with pytest.raises(ValueError, match="baseline"):
+            rsmooth.smooth_elementwise(jnp.sign, sigma=0.1, num_samples=4, baseline=1)
 
     def test_noise(self, getkey):
         with pytest.raises(ValueError, match="symmetric"):

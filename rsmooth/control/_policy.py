@@ -361,7 +361,8 @@ class PolicyGradient(eqx.Module):
             of ``Adaptive``); sample growth (``Adaptive.sample_growth``) recompiles the step.
         noise: the noise law.
         antithetic: antithetic pairs in the estimators.
-        baseline: the zeroth-order baseline ``V(theta)`` (``"zeroth"`` and ``"alpha"``).
+        baseline: the zeroth-order baseline (``"zeroth"`` and ``"alpha"``): True, ``V(theta)``;
+            ``"leave-one-out"``, the mean of the other samples' costs; False, none.
         delta: the confidence level ``1 - delta`` of the alpha-order trust region.
         gamma: the alpha-order trust-region radius (``None``: the estimator's scale-free rule).
         shared_samples: evaluate :math:`V` and its gradient at the same ``num_samples``
@@ -382,13 +383,14 @@ class PolicyGradient(eqx.Module):
     schedule: _schedules.Schedule = eqx.field(static=True, default=_schedules.Constant())
     noise: Noise = eqx.field(static=True, default=Gaussian())
     antithetic: bool = eqx.field(static=True, default=False)
-    baseline: bool = eqx.field(static=True, default=True)
+    baseline: bool | str = eqx.field(static=True, default=True)
     delta: float = eqx.field(static=True, default=0.05)
     gamma: float | None = eqx.field(static=True, default=None)
     shared_samples: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         _check_estimator(self.estimator, self.num_samples)
+        _estimators.check_baseline(self.baseline, self.num_samples // 2 if self.estimator == "alpha" else self.num_samples)
         if self.shared_samples:
             if self.antithetic:
                 raise ValueError("shared_samples draws independent samples: it does not take antithetic=True")
@@ -462,9 +464,9 @@ def _shared_sample_estimate(problem, policy, key, theta, sigma, solver: PolicyGr
     )
     values = _checks.check_finite(values, _estimators._NONFINITE_F)
     grads = _checks.check_finite(grads, _estimators._NONFINITE_GRAD)
-    reference = values[:1] if solver.baseline else jnp.zeros_like(values[:1])
     flat_estimate, alpha = _estimators._shared_sample_estimate(
-        index, z, values[1:, None], grads[1:, None, :], reference, sigma, solver.noise, solver.gamma, None, solver.delta
+        index, z, values[1:, None], grads[1:, None, :], values[:1], sigma, solver.noise, solver.gamma, None, solver.delta,
+        solver.baseline,
     )
     flat = _estimators._Flat(flat_theta, None, unravel, ())
     return _estimators._package(flat, flat_estimate, {"alpha": alpha}), values[0]

@@ -85,6 +85,7 @@ import optax
 from tqdm.auto import tqdm
 
 from rsmooth import noise, parallel, render, schedules, viz
+from rsmooth.estimators import check_baseline
 
 METRICS_DOC = """metrics.json keys: for each method (perturbed-gaussian, perturbed-cauchy, soft, hard),
 a dict keyed by the initial rotation error in degrees (as a string) holding solved_pct (percent of
@@ -106,7 +107,7 @@ cull_backfaces (whether faces seen from behind were dropped: by default when the
 interior_edges (whether coverage was smoothed across every triangle edge, as in the paper),
 keep_best, pose_noise_deg (the initial rotation noise of the pose smoothing, 0 when off) and
 pose_noise_until (the fraction of the steps at which that noise has faded to 0), restarts,
-restart_loss and average_decay (see Config)."""
+restart_loss, average_decay and baseline (see Config)."""
 
 METHODS = ("perturbed-gaussian", "perturbed-cauchy", "soft", "hard")
 
@@ -202,6 +203,10 @@ class Config:
     # 0.58 -> 0.54 from 50, solved rates unchanged; soft (exact gradient) about unchanged (median
     # 0.23 / 0.25, one problem 1.05 -> 0.52 deg). Off by default: the measured runs are without it
     average_decay: float = 0.0
+    # the perturbed estimator's baseline (rsmooth.render.Renderer): True, the hard pixel (Le
+    # Lidec et al.'s); "leave-one-out", the mean of the pixel's other samples (lower variance at
+    # the edge pixels, where the hard pixel is 0 or 1 and the smoothed one in between)
+    baseline: bool | str = True
     gif_every: int = 2
 
     @classmethod
@@ -242,7 +247,8 @@ def make_renderer(config: Config, method: str, mesh: render.Mesh | None = None) 
         raise ValueError(f"unknown method {method!r}; choose from {METHODS}")
     dilation = 3.0 if method == "perturbed-gaussian" else 6.0
     return render.Renderer(
-        mode="perturbed", num_samples=config.num_samples, coverage_noise=laws[method], dilation=dilation, **common
+        mode="perturbed", num_samples=config.num_samples, coverage_noise=laws[method], dilation=dilation,
+        baseline=config.baseline, **common
     )
 
 
@@ -423,6 +429,8 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         raise ValueError(f"restart_loss must be a finite number > 0 (a fraction of the initial image loss), got {config.restart_loss!r}")
     if not (np.isfinite(config.average_decay) and 0.0 <= config.average_decay < 1.0):
         raise ValueError(f"average_decay must be in [0, 1) (0: no averaging), got {config.average_decay!r}")
+    if any(m.startswith("perturbed") for m in config.methods):
+        check_baseline(config.baseline, config.num_samples)
     for method in config.methods:
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; choose from {METHODS}")
@@ -597,6 +605,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "restarts": config.restarts,
         "restart_loss": config.restart_loss,
         "average_decay": config.average_decay,
+        "baseline": config.baseline,
         "gif": f"optimization.gif: {gif_method}, initial error {gif_error:g} deg, problem 0 (target | current)",
     }
     viz.write_metrics(out / "metrics.json", metrics)

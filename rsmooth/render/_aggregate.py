@@ -147,6 +147,7 @@ def perturbed_aggregate(
     coverage_noise: Noise = Gaussian(),
     depth_noise: Noise = Gumbel(),
     background_depth: ArrayLike = 0.0,
+    baseline: bool | str = True,
 ) -> Array:
     r"""Perturbed z-buffer weights of one pixel, :math:`\mathbb{E}\,w^*(d+\sigma X, z+\gamma G)`.
 
@@ -167,6 +168,11 @@ def perturbed_aggregate(
         depth_noise: law of the depth noise G (Gumbel: softmax aggregation; Gaussian).
         background_depth: the background's normalized inverse depth; it is the (K+1)-th option
             and gets its own depth-noise sample.
+        baseline: the estimator's baseline: True, the hard weights :math:`w^*(d, z)` (the
+            paper's); ``"leave-one-out"``, each sample's the mean of the others' weights
+            (lower variance at the pixels where the hard weights jump, the edges and
+            occlusion boundaries, whose gradients the image has; no hard evaluation; needs
+            ``num_samples >= 2``); False, none (see :func:`rsmooth.zeroth_order`).
 
     Returns:
         (K + 1,) weights summing to 1, the background's last.
@@ -189,5 +195,5 @@ def perturbed_aggregate(
     def oracle(x):
         return hard_aggregate(x[:k], x[k : 2 * k], x[2 * k])
 
-    g = smooth(oracle, sigma=1.0, num_samples=num_samples, estimator="zeroth", noise=noise, baseline=True)
+    g = smooth(oracle, sigma=1.0, num_samples=num_samples, estimator="zeroth", noise=noise, baseline=baseline)
     return g(key, point)

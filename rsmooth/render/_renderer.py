@@ -38,6 +38,7 @@ from jax.typing import ArrayLike
 
 from rsmooth import _checks
 from rsmooth._unrolled import sum_last
+from rsmooth.estimators import check_baseline as _check_baseline
 from rsmooth.noise import Gaussian, Gumbel, Noise
 from rsmooth.render._aggregate import hard_aggregate, perturbed_aggregate, soft_aggregate
 from rsmooth.render._camera import Camera
@@ -80,6 +81,9 @@ class Renderer(eqx.Module):
         coverage_noise: law of the noise on signed distances (perturbed): Gaussian, Logistic,
             Cauchy, ... (any law with a differentiable density).
         depth_noise: law of the noise on depths (perturbed): Gumbel (softmax-like) or Gaussian.
+        baseline: the perturbed estimator's baseline (static): True, the hard pixel (the
+            paper's); ``"leave-one-out"``, the mean of the other samples (lower variance at
+            edges, see :func:`rsmooth.render.perturbed_aggregate`); False, none.
         faces_per_pixel: candidate faces kept per pixel (K).
         faces_per_tile: candidate faces kept per tile in the first culling pass.
         tile_size: tile side in pixels.
@@ -110,6 +114,7 @@ class Renderer(eqx.Module):
     num_samples: int = eqx.field(static=True, default=8)
     coverage_noise: Noise = Gaussian()
     depth_noise: Noise = Gumbel()
+    baseline: bool | str = eqx.field(static=True, default=True)
     faces_per_pixel: int = eqx.field(static=True, default=8)
     faces_per_tile: int = eqx.field(static=True, default=64)
     tile_size: int = eqx.field(static=True, default=8)
@@ -136,6 +141,8 @@ class Renderer(eqx.Module):
             raise ValueError(
                 f"faces_per_tile ({self.faces_per_tile}) must be >= faces_per_pixel ({self.faces_per_pixel})"
             )
+        if self.mode == "perturbed":
+            _check_baseline(self.baseline, self.num_samples)
         for name in ("coverage_noise", "depth_noise"):
             law = getattr(self, name)
             if not isinstance(law, Noise):
@@ -209,7 +216,7 @@ class Renderer(eqx.Module):
                 return perturbed_aggregate(
                     key, d, z, sigma=sigma, gamma=gamma, num_samples=self.num_samples,
                     coverage_noise=self.coverage_noise, depth_noise=self.depth_noise,
-                    background_depth=self.background_depth,
+                    background_depth=self.background_depth, baseline=self.baseline,
                 )
 
             weights = jax.vmap(pixel)(keys, distance.reshape(-1, k), depth.reshape(-1, k))

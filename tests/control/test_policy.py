@@ -204,6 +204,16 @@ def test_shared_samples_serve_the_three_estimators_with_one_compiled_step(getkey
     alpha = shared["alpha"].stats["alpha"]
     assert np.all((alpha >= 0.0) & (alpha <= 1.0)) and np.median(alpha) > 0.9
     assert shared["alpha"].stats["cost"][-1] < shared["alpha"].stats["cost"][0]
+    # The leave-one-out baseline: the same on shared samples as in the separate estimator.
+    loo = dataclasses.replace(solvers["zeroth"], baseline="leave-one-out")
+    shared_loo = control.optimize_policy(LINEAR, policy, key, THETA_LINEAR, solver=loo)
+    separate_loo = control.optimize_policy(
+        LINEAR, OPEN_LOOP, key, THETA_LINEAR, solver=dataclasses.replace(loo, shared_samples=False)
+    )
+    np.testing.assert_allclose(shared_loo.stats["theta"], separate_loo.stats["theta"], rtol=1e-12, atol=1e-14)
+    assert not np.allclose(shared_loo.stats["theta"][1:], shared["zeroth"].stats["theta"][1:])
+    with pytest.raises(ValueError, match="baseline must be"):
+        control.PolicyGradient(estimator="zeroth", num_samples=8, baseline="mean")
     with pytest.raises(ValueError, match="antithetic"):
         control.PolicyGradient(estimator="first", num_samples=8, antithetic=True, shared_samples=True)
     with pytest.raises(ValueError, match="num_samples"):

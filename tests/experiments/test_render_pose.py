@@ -101,7 +101,7 @@ def test_restarts_rerun_the_problems_whose_render_stays_far_from_the_target(tmp_
         {"pose_noise_deg": float("nan")}, {"pose_noise_until": 0.0}, {"pose_noise_until": 1.5},
         {"restarts": -1}, {"restarts": 1.5}, {"restart_loss": 0.0}, {"restart_loss": float("nan")},
         {"sample_growth": 0}, {"sample_growth": 1.5}, {"max_samples": 0}, {"average_decay": 1.0},
-        {"average_decay": -0.1}, {"average_decay": float("nan")},
+        {"average_decay": -0.1}, {"average_decay": float("nan")}, {"baseline": "mean"},
     ],
 )
 def test_bad_config_is_rejected(tmp_path, change):
