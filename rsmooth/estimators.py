@@ -170,7 +170,8 @@ LEAVE_ONE_OUT = "leave-one-out"
 
 def check_baseline(baseline, num_samples: int):
     """``baseline`` is True (``f(x)``), False (none) or ``"leave-one-out"`` (which needs two
-    samples or more); returns it."""
+    samples or more: always true of alpha order's zeroth-order half, whose estimator takes at
+    least four); returns it."""
     if baseline is True or baseline is False:
         return baseline
     if baseline != LEAVE_ONE_OUT:
@@ -207,15 +208,15 @@ def _zeroth_order_flat(flat: _Flat, key, sigma, num_samples, noise, baseline, an
 
 def _zeroth_order_terms(z, values, reference, sigma, noise, antithetic) -> _FlatEstimate:
     """The zeroth-order estimate from the noise ``z`` (M, d), the values ``f(x + sigma z)``
-    (M, m) and the baseline ``reference``, (m,) or per sample (M, m) (zeros for none). (With
-    a per-sample baseline the terms are not quite independent; the variance is estimated as
-    if they were.)"""
+    (M, m) and the baseline ``reference`` (1, m), or per sample (M, m) (:func:`baseline_values`).
+    (With a per-sample baseline the terms are not quite independent; the variance is estimated
+    as if they were.)"""
     num_samples, dim = z.shape
     score = noise.score(z)
     weights = -score / sigma
     # d/dsigma of log[mu((y - x)/sigma) / sigma^d] = -(z . score(z) + d) / sigma.
     sigma_weights = -(jnp.sum(z * score, axis=-1) + dim) / sigma
-    centred = values - (reference[None, :] if reference.ndim == 1 else reference)
+    centred = values - reference
     if antithetic:
         # A pair (z, -z) is one independent unit; for a symmetric law the score is odd, so
         # the pair's term is (f(x + sigma z) - f(x - sigma z)) / 2 * weight(z): no baseline.
@@ -587,7 +588,7 @@ def alpha_order(
     sigma, num_samples = _check_options(
         sigma, num_samples, noise, antithetic=antithetic, needs_score=True, minimum=4
     )
-    check_baseline(baseline, num_samples // 2)  # the zeroth-order half of the samples
+    check_baseline(baseline, num_samples)
     if not 0.0 < delta < 1.0:
         raise ValueError(f"delta must be in (0, 1), got {delta}")
     if lipschitz is not None and not lipschitz > 0:

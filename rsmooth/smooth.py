@@ -86,7 +86,7 @@ def smooth(
         needs_score=estimator != "first",
         minimum=4 if estimator == "alpha" else 1,
     )
-    _est.check_baseline(baseline, num_samples // 2 if estimator == "alpha" else num_samples)
+    _est.check_baseline(baseline, num_samples)
     if gamma is not None and _checks.is_traced(gamma):
         raise TypeError("gamma must be a Python float in smooth() (pass a traced one to alpha_order)")
     options = dict(

@@ -390,7 +390,7 @@ class PolicyGradient(eqx.Module):
 
     def __check_init__(self):
         _check_estimator(self.estimator, self.num_samples)
-        _estimators.check_baseline(self.baseline, self.num_samples // 2 if self.estimator == "alpha" else self.num_samples)
+        _estimators.check_baseline(self.baseline, self.num_samples)
         if self.shared_samples:
             if self.antithetic:
                 raise ValueError("shared_samples draws independent samples: it does not take antithetic=True")
