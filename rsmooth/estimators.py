@@ -188,7 +188,8 @@ def baseline_values(values: Array, baseline, f_at_x: Callable[[], Array]) -> Arr
     the estimator stays unbiased (``E score(z) = 0``). Leave-one-out needs no evaluation at
     ``x`` and is near the smoothed value itself, where ``f(x)`` of a discontinuous ``f`` may
     be far from it: for a step at ``x`` (an edge pixel of a renderer) ``f(x)`` is 0 or 1 while
-    the smoothed value is 1/2, which doubles the variance of each term (Kool, van Hoof,
+    the smoothed value is 1/2, which makes each term's variance 0.341 against 0.091 for the
+    Gaussian (tests/test_estimators.py; Kool, van Hoof,
     Welling, "Buy 4 REINFORCE samples, get a baseline for free!", ICLR 2019 workshop)."""
     if baseline == LEAVE_ONE_OUT:
         num_samples = values.shape[0]
