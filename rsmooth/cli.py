@@ -237,6 +237,18 @@ def _methods(method: Optional[list[str]], known: tuple[str, ...]) -> Optional[tu
     return tuple(dict.fromkeys(method)) if method else None
 
 
+BaselineOption = typer.Option(
+    None, "--baseline", help="The perturbed estimator's baseline: 'hard' (the hard pixel, the paper's; default) or "
+    "'leave-one-out' (the mean of the pixel's other samples: lower variance at edges).")
+
+
+def _baseline(baseline: Optional[str]) -> bool | str | None:
+    """The --baseline value as the renderers take it (None: the experiment's default)."""
+    if baseline not in (None, "hard", "leave-one-out"):
+        raise typer.BadParameter(f"--baseline must be 'hard' or 'leave-one-out', got {baseline!r}")
+    return None if baseline is None else (True if baseline == "hard" else baseline)
+
+
 @render_app.command("pose", help=_doc(
     "Recover a mesh's rotation from one RGB image with the perturbed renderer (Gaussian or Cauchy "
     "noise, adaptive noise decrease), a SoftRas-like one and the hard z-buffer.", _RENDER_POSE))
@@ -276,21 +288,16 @@ def render_pose_command(
         None, "--average-iterates", min=0.0, max=0.999, help="With --keep-best, also consider the exponential average "
         "of the iterates with this decay per step (e.g. 0.97; one more hard render per step; default 0: off): the "
         "perturbed gradient's noise makes the last steps wander around the solution."),
-    baseline: Optional[str] = typer.Option(
-        None, "--baseline", help="The perturbed estimator's baseline: 'hard' (the hard pixel, the paper's; default) or "
-        "'leave-one-out' (the mean of the pixel's other samples: lower variance at edges)."),
+    baseline: Optional[str] = BaselineOption,
 ):
     from rsmooth.experiments.render_pose import METHODS
-
-    if baseline not in (None, "hard", "leave-one-out"):
-        raise typer.BadParameter(f"--baseline must be 'hard' or 'leave-one-out', got {baseline!r}")
 
     methods = _methods(method, METHODS)
     init_errors_deg = tuple(float(e) for e in init_error) if init_error else None
     _run(_RENDER_POSE, out, seed, quick, mesh=mesh, init_errors_deg=init_errors_deg, problems=problems, methods=methods,
          steps=steps, num_samples=samples, keep_best=keep_best, pose_noise_deg=pose_noise, pose_noise_until=pose_noise_until,
          restarts=restarts, sample_growth=sample_growth, max_samples=max_samples, average_decay=average_iterates,
-         baseline=None if baseline is None else (True if baseline == "hard" else baseline))
+         baseline=_baseline(baseline))
 
 
 @render_app.command("reconstruct", help=_doc(
@@ -313,12 +320,13 @@ def render_reconstruct_command(
     laplacian_weight: Optional[float] = typer.Option(
         None, "--laplacian-weight", min=0.0, help="Weight of the Laplacian of the vertex offsets (default 30; thin "
         "parts gain from more, sharp corners lose: see benchmarks/RESULTS.md)."),
+    baseline: Optional[str] = BaselineOption,
 ):
     from rsmooth.experiments.render_reconstruct import METHODS
 
     methods = _methods(method, METHODS)
     _run(_RENDER_RECONSTRUCT, out, seed, quick, targets=tuple(mesh) if mesh else None, views=views, methods=methods,
-         steps=steps, num_samples=samples, laplacian_weight=laplacian_weight)
+         steps=steps, num_samples=samples, laplacian_weight=laplacian_weight, baseline=_baseline(baseline))
 
 
 MethodOption = typer.Option(

@@ -149,3 +149,17 @@ def test_render_reconstruct_options_reach_the_config(monkeypatch, tmp_path):
     assert bad.exit_code != 0 and "--method" in bad.output and len(calls) == 2
     negative = CliRunner().invoke(cli.app, ["render", "reconstruct", "--laplacian-weight", "-1", "--out", str(tmp_path)])
     assert negative.exit_code != 0 and "--laplacian-weight" in negative.output and len(calls) == 2
+
+
+@pytest.mark.parametrize("command", ["pose", "reconstruct"])
+def test_render_baseline_option_reaches_the_config(monkeypatch, tmp_path, command):
+    calls = []
+    monkeypatch.setattr(cli, "_run", lambda experiment, out, seed, quick, **overrides: calls.append(overrides))
+    for value, expected in (("hard", True), ("leave-one-out", "leave-one-out")):
+        result = CliRunner().invoke(cli.app, ["render", command, "--baseline", value, "--out", str(tmp_path)])
+        assert result.exit_code == 0, result.output
+        assert calls[-1]["baseline"] == expected
+    CliRunner().invoke(cli.app, ["render", command, "--out", str(tmp_path)])
+    assert calls[-1]["baseline"] is None  # the Config's default
+    bad = CliRunner().invoke(cli.app, ["render", command, "--baseline", "mean", "--out", str(tmp_path)])
+    assert bad.exit_code != 0 and "--baseline" in bad.output and len(calls) == 3

@@ -51,6 +51,7 @@ import optax
 from tqdm.auto import tqdm
 
 from rsmooth import noise, parallel, render, schedules, viz
+from rsmooth.estimators import check_baseline
 
 METRICS_DOC = """metrics.json keys: for each method (perturbed-gaussian, soft, hard), a dict keyed by
 target name holding iou_3d (voxelized IoU of the reconstruction with the target, on a
@@ -63,7 +64,7 @@ first_gradient_norm (norm of the silhouette loss' gradient with respect to the o
 first step: exactly 0 for hard) and seconds_per_step (wall time of one Adam step of the batch of
 all targets); 'initial', the same scores for the undeformed icosphere; also methods, targets,
 views, steps, image_size, subdivisions, num_vertices, num_faces, voxel_resolution,
-chamfer_points, num_samples (perturbed), laplacian_weight, flatten_weight, target_faces."""
+chamfer_points, num_samples and baseline (perturbed), laplacian_weight, flatten_weight, target_faces."""
 
 METHODS = ("perturbed-gaussian", "soft", "hard")
 
@@ -99,6 +100,9 @@ class Config:
     sigma: float = 0.6
     gamma: float = 0.02  # depth temperature (normalized inverse depth)
     num_samples: int = 8
+    # the perturbed estimator's baseline (rsmooth.render.Renderer): True, the hard pixel (Le
+    # Lidec et al.'s); "leave-one-out", the mean of the pixel's other samples
+    baseline: bool | str = True
     faces_per_pixel: int = 8
     faces_per_tile: int = 64
     decay_factor: float = 2.0
@@ -185,7 +189,10 @@ def make_renderer(config: Config, method: str) -> render.Renderer:
     if method == "soft":
         return render.Renderer(mode="soft", dilation=6.0, **common)
     if method == "perturbed-gaussian":
-        return render.Renderer(mode="perturbed", num_samples=config.num_samples, coverage_noise=noise.Gaussian(), **common)
+        return render.Renderer(
+            mode="perturbed", num_samples=config.num_samples, coverage_noise=noise.Gaussian(), baseline=config.baseline,
+            **common,
+        )
     raise ValueError(f"unknown method {method!r}; choose from {METHODS}")
 
 
@@ -285,6 +292,8 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
             raise ValueError(f"unknown method {method!r}; choose from {METHODS}")
     if not config.targets:
         raise ValueError("targets must name at least one mesh")
+    if "perturbed-gaussian" in config.methods:
+        check_baseline(config.baseline, config.num_samples)
     for name in ("laplacian_weight", "flatten_weight", "rgb_weight"):
         weight = getattr(config, name)
         if not (np.isfinite(weight) and weight >= 0):
@@ -368,6 +377,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "voxel_resolution": config.voxel_resolution,
         "chamfer_points": config.chamfer_points,
         "num_samples": config.num_samples,
+        "baseline": config.baseline,
         "laplacian_weight": config.laplacian_weight,
         "flatten_weight": config.flatten_weight,
         "target_faces": {name: int(mesh.faces.shape[0]) for name, mesh in zip(names, meshes)},

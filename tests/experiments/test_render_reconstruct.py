@@ -36,6 +36,7 @@ def test_perturbed_reconstruction_of_a_cube_improves_and_hard_does_not_move(tmp_
     assert set(keys) <= set(saved["perturbed-gaussian"]["cube"]) and set(keys) <= set(saved["hard"]["cube"])
     assert saved["targets"] == ["cube"] and saved["num_faces"] == 320
     assert (saved["num_samples"], saved["laplacian_weight"]) == (config.num_samples, config.laplacian_weight)
+    assert saved["baseline"] is True
     for name in ("losses.png", "silhouettes_cube.png", "reconstructions.png", "optimization.gif"):
         assert (tmp_path / name).stat().st_size > 0
     assert not list(tmp_path.glob(".*"))
@@ -57,8 +58,8 @@ def test_unknown_targets_and_methods_are_rejected(tmp_path):
     config = dataclasses.replace(render_reconstruct.Config.quick(), methods=("blurry",))
     with pytest.raises(ValueError, match="blurry"):
         render_reconstruct.run(config, tmp_path, jax.random.key(0), progress=False)
-    for name, weight in (("laplacian_weight", -1.0), ("flatten_weight", float("nan"))):
-        config = dataclasses.replace(render_reconstruct.Config.quick(), **{name: weight})
+    for name, value in (("laplacian_weight", -1.0), ("flatten_weight", float("nan")), ("baseline", "mean")):
+        config = dataclasses.replace(render_reconstruct.Config.quick(), **{name: value})
         with pytest.raises(ValueError, match=name):
             render_reconstruct.run(config, tmp_path, jax.random.key(0), progress=False)
     assert not any(tmp_path.iterdir())  # nothing written
