@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -52,7 +53,9 @@ def _functions(mesh, camera, renderer):
     return forward, backward
 
 
-def _pose_step_time(repeats: int, problems: int = 8, **changes) -> tuple[float, render_pose.Config]:
+def _pose_step_time(repeats: int, problems: int = 8, at_cap: bool = False, **changes) -> tuple[float, render_pose.Config]:
+    """Median time of one batched Adam step of render pose; `at_cap`: a step whose noise schedule
+    holds max_samples samples per pixel (the late steps with sample growth)."""
     config = dataclasses.replace(render_pose.Config(), problems=problems, **changes)
     mesh = render_pose.load(config.mesh)
     cam = render_pose.camera(config)
@@ -60,6 +63,10 @@ def _pose_step_time(repeats: int, problems: int = 8, **changes) -> tuple[float, 
     r_true, r_init, offset = render_pose.problems(config, jax.random.key(0), 20.0)
     target = jax.vmap(lambda r: render.Renderer(mode="hard")(None, render.transform_mesh(mesh, r), cam).rgb)(r_true)
     state = init(offset)
+    if at_cap:
+        schedule = state[2]
+        capped = jnp.full_like(schedule.num_samples, max(config.max_samples, config.num_samples))
+        state = (*state[:2], eqx.tree_at(lambda s: s.num_samples, schedule, capped), *state[3:])
     keys = jax.random.split(jax.random.key(1), config.problems)
     return median_time(step, state, keys, target, r_init, repeats=repeats), config
 
@@ -114,6 +121,15 @@ def main(repeats: int = 5) -> list[dict]:
               f"{change}): {fmt(t_one)} per Adam step (goal: under 50 ms per iteration)")
         rows.append({"pose_step": t_one, "problems": 1, "faces_per_pixel": config.faces_per_pixel,
                      "keep_best": config.keep_best, "num_samples": config.num_samples})
+    # with sample growth, the steps after the noise has decreased average up to
+    # max_samples / num_samples renders (render_pose.Config.sample_growth)
+    growth = {"sample_growth": 2, "max_samples": 64}
+    t_first, config = _pose_step_time(repeats, problems=1, **growth)
+    t_cap, _ = _pose_step_time(repeats, problems=1, at_cap=True, **growth)
+    print(f"pose optimization, one problem, sample growth 2 up to {config.max_samples} samples per pixel: {fmt(t_first)} per "
+          f"Adam step at the start ({config.num_samples} samples), {fmt(t_cap)} at the cap ({config.max_samples}: "
+          f"{t_cap / t_first:.2f}x)")
+    rows.append({"pose_step": t_first, "pose_step_at_cap": t_cap, "problems": 1, **growth})
     t_step, config = _pose_step_time(repeats)
     print(f"pose optimization (render-pose defaults: cube, {SIZE} x {SIZE}, perturbed-gaussian M = {default.num_samples}, "
           f"{config.problems} problems vmapped): {fmt(t_step)} per Adam step, {fmt(t_step / config.problems)} per problem")
