@@ -268,9 +268,10 @@ def render_pose_command(
         "16 / 32 solved 59 / 73 / 83 % of the cubes from 80 deg: see benchmarks/RESULTS.md)."),
     sample_growth: Optional[int] = typer.Option(
         None, "--sample-growth", min=1, help="Multiply the perturbed renderers' samples per pixel by this at each noise "
-        "decrease (the step averages that many renders), up to --max-samples (default 1: off)."),
+        "decrease (the step averages that many renders), up to --max-samples (default 2; 1: off, ~3x faster "
+        "per run, less precise: see benchmarks/RESULTS.md; quick 1)."),
     max_samples: Optional[int] = typer.Option(
-        None, "--max-samples", min=1, help="Cap on the samples per pixel with --sample-growth (default 128)."),
+        None, "--max-samples", min=1, help="Cap on the samples per pixel with --sample-growth (default 64)."),
     keep_best: Optional[bool] = typer.Option(
         None, "--keep-best/--last", help="Report each problem's iterate whose hard render is closest to the target "
         "(default) or the last iterate."),
