@@ -121,9 +121,10 @@ def main(repeats: int = 5) -> list[dict]:
               f"{change}): {fmt(t_one)} per Adam step (goal: under 50 ms per iteration)")
         rows.append({"pose_step": t_one, "problems": 1, "faces_per_pixel": config.faces_per_pixel,
                      "keep_best": config.keep_best, "num_samples": config.num_samples})
+        if not changes:
+            t_first = t_one
     # with sample growth (on by default), the steps after the noise has decreased average up to
     # max_samples / num_samples renders (render_pose.Config.sample_growth)
-    t_first = rows[-len(variants)]["pose_step"]  # the defaults' first step
     t_cap, config = _pose_step_time(repeats, problems=1, at_cap=True)
     print(f"pose optimization, one problem, the defaults at the sample cap (sample growth {config.sample_growth} up to "
           f"{config.max_samples} samples per pixel, {config.max_samples // config.num_samples} renders per step): "

@@ -65,10 +65,10 @@ with 16 throughout, 87.5 % (0.36 deg) with growth; soft 69 % (0.43 deg). On by d
 session 31 (growth 2 up to 64 samples; benchmarks/RESULTS.md): on four unseen panda meshes (16 to
 32 problems each, 20 and 50 deg) it solves 142 of 160 problems against soft's 130, nearly as
 near the truth (median error of the solved 0.15-0.83 deg, soft's 0.15-0.33; with 16 samples
-throughout the perturbed renderer had trailed soft by 10 points on panda link2); on the cube (50 problems of the default command's,
-seed 0) 96 / 86 / 77 % from 20 / 50 / 80 deg (80: the first 30) against 96 / 80 / 70 with 16
-throughout, losing none. It costs ~3x
-the time of a run (`--sample-growth 1` turns it off).
+throughout the perturbed renderer had trailed soft by 10 points on panda link2); on the cube
+(50 problems of the default command's, seed 0) 96 / 86 / 77 % from 20 / 50 / 80 deg (80: the
+first 30) against 96 / 80 / 70 with 16 throughout, losing none. It costs ~3x the time of a run
+(`--sample-growth 1` turns it off).
 
 Each problem reports the iterate whose hard-rendered image is closest to the target
 (`keep_best`, one hard render per step, ~3 % of a perturbed step on the cube), not the last one: at the
