@@ -33,6 +33,22 @@ def test_density_integrates_to_one_and_is_cdf_derivative(law):
     np.testing.assert_allclose(cdf_derivative, jnp.exp(law.log_prob(inner)), rtol=1e-9)
 
 
+@pytest.mark.parametrize("law", ALL, ids=lambda n: n.name)
+def test_survival_function_is_one_minus_cdf_and_keeps_the_upper_tail(law):
+    z = jnp.linspace(-5.0, 5.0, 101)
+    np.testing.assert_allclose(law.sf(z) + law.cdf(z), 1.0, atol=1e-14)
+    if isinstance(law, noise.Uniform):
+        return
+    # in float32, far in the upper tail, where 1 - cdf rounds to 0: the float64 value, to float32's
+    # relative precision
+    tail = {"gaussian": [5.0, 7.0, 9.0], "cauchy": [1e3, 1e5, 1e7]}.get(law.name, [6.0, 14.0, 30.0])
+    tail = jnp.array(tail)
+    reference = np.asarray(law.sf(tail))  # float64
+    assert np.all(reference > 1e-30)
+    assert float(1.0 - law.cdf(tail[-1].astype(jnp.float32))) < reference[-1] / 2  # what sf is for
+    np.testing.assert_allclose(law.sf(tail.astype(jnp.float32)), reference, rtol=1e-5)
+
+
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64], ids=["float32", "float64"])
 @pytest.mark.parametrize("law", ALL, ids=lambda n: n.name)
 def test_samples_follow_the_cdf(law, dtype, getkey):

@@ -13,7 +13,7 @@ per-pixel culling: :func:`rasterize`), aggregation (hard, soft, perturbed), shad
 :func:`silhouette_iou`).
 """
 
-from rsmooth.render._aggregate import ProductNoise, hard_aggregate, perturbed_aggregate, soft_aggregate
+from rsmooth.render._aggregate import ProductNoise, change_probability, hard_aggregate, perturbed_aggregate, soft_aggregate
 from rsmooth.render._camera import (
     Camera,
     axis_angle_to_matrix,
@@ -83,6 +83,7 @@ __all__ = [
     "look_at",
     "normal_consistency_loss",
     "perturbed_aggregate",
+    "change_probability",
     "position_colors",
     "project_faces",
     "quaternion_to_matrix",

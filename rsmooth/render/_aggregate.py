@@ -26,19 +26,20 @@ it weighs each face by its coverage probability, :math:`\hat w_k \propto
 
 from __future__ import annotations
 
+import math
 from typing import ClassVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax import Array
+from jax import Array, lax
 from jax.typing import ArrayLike
 
 from rsmooth._unrolled import log_sigmoid
 from rsmooth.noise import Gaussian, Gumbel, Noise
 from rsmooth.smooth import smooth
 
-__all__ = ["hard_aggregate", "soft_aggregate", "perturbed_aggregate", "ProductNoise"]
+__all__ = ["hard_aggregate", "soft_aggregate", "perturbed_aggregate", "change_probability", "ProductNoise"]
 
 # Scaled distances are clamped to [-_FAR, _FAR]: a slot that far out (in) is never (always)
 # covered, whatever the noise, and the clamp makes its derivative with respect to sigma zero.
@@ -197,3 +198,65 @@ def perturbed_aggregate(
 
     g = smooth(oracle, sigma=1.0, num_samples=num_samples, estimator="zeroth", noise=noise, baseline=baseline)
     return g(key, point)
+
+
+def change_probability(
+    distance: ArrayLike,
+    depth: ArrayLike,
+    *,
+    sigma: ArrayLike,
+    gamma: ArrayLike,
+    coverage_noise: Noise = Gaussian(),
+    depth_noise: Noise = Gumbel(),
+    background_depth: ArrayLike = 0.0,
+) -> Array:
+    r"""An upper bound on the probability that one sample of the perturbed z-buffer differs from
+    the hard one, :math:`Pig(w^*(d+\sigma X, z+\gamma G) \neq w^*(d, z)\big)`, per pixel.
+
+    By the union bound over the events that can change the hard weights: a slot's coverage
+    flips (:math:`P(\sigma X_k < -d_k)` for a covered slot, :math:`P(\sigma X_k > -d_k)`
+    otherwise), or an option covered in the hard image (a face, or the background) overtakes
+    the hard winner :math:`w` in depth, :math:`P(\gamma(G_j - G_w) > z_w - z_j) \le
+    P(G_j > \Delta_j/2) + P(G_w < -\Delta_j/2)` with :math:`\Delta_j = (z_w - z_j)/\gamma`
+    (exactly :math:`\mathrm{sigmoid}(-\Delta_j)` for Gumbel depth noise, the difference of two
+    Gumbel variables being logistic, and :math:`P(N(0, 2) > \Delta_j)` for Gaussian).
+    Where the bound is ~0 every sample of the pixel is its hard value, and the estimator's
+    terms (with a baseline) are zero: a perturbed render may spend its samples on the pixels
+    where it is not (see :meth:`rsmooth.render.Renderer.uncertainty`). Computed in the noise
+    laws' tails (:meth:`rsmooth.noise.Noise.sf`), outside the derivative.
+
+    Args:
+        distance, depth: (..., K) signed distances and normalized inverse depths, as in
+            :func:`perturbed_aggregate` (a slot with a distance below -1e12 sigma is empty).
+        sigma, gamma, coverage_noise, depth_noise, background_depth: as in
+            :func:`perturbed_aggregate`.
+
+    Returns:
+        (...,) the bound, in [0, 1].
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> # a face 6 sigma inside its edge, and nothing behind it within 30 gamma
+        >>> p = change_probability(jnp.array([6.0]), jnp.array([0.3]), sigma=1.0, gamma=0.01)
+        >>> bool(p < 1e-8), float(change_probability(jnp.array([0.0]), jnp.array([0.3]), sigma=1.0, gamma=0.01))
+        (True, 0.5)
+    """
+    distance = lax.stop_gradient(jnp.asarray(distance))
+    depth = lax.stop_gradient(jnp.asarray(depth))
+    sigma, gamma = lax.stop_gradient(sigma), lax.stop_gradient(gamma)
+    scaled = _scaled(distance, sigma)
+    covered = distance > 0
+    flips = jnp.where(covered, coverage_noise.cdf(-scaled), coverage_noise.sf(-scaled))
+    depths = _with_background(depth, jnp.asarray(background_depth))
+    options = _with_background(covered, jnp.asarray(True))
+    winner = jnp.argmax(jnp.where(options, depths, -jnp.inf), axis=-1, keepdims=True)
+    gap = (jnp.take_along_axis(depths, winner, axis=-1) - depths) / gamma  # >= 0 for the options
+    if isinstance(depth_noise, Gumbel):  # G_j - G_w is logistic: exact
+        overtakes = jax.nn.sigmoid(-gap)
+    elif isinstance(depth_noise, Gaussian):  # G_j - G_w ~ N(0, 2): exact
+        overtakes = depth_noise.sf(gap / math.sqrt(2.0))
+    else:
+        overtakes = depth_noise.sf(0.5 * gap) + depth_noise.cdf(-0.5 * gap)
+    others = options & (lax.broadcasted_iota(winner.dtype, depths.shape, depths.ndim - 1) != winner)
+    overtakes = jnp.where(others, overtakes, 0.0)
+    return jnp.minimum(jnp.sum(flips, axis=-1) + jnp.sum(overtakes, axis=-1), 1.0)

@@ -974,6 +974,19 @@ def _clipped_geometry_jvp(primals, tangents):
     return _clipped_outputs(terms), tangent
 
 
+def check_pixels(pixels: ArrayLike, num_pixels: int) -> Array:
+    """`pixels` as a (P,) integer array of indices into a flattened image of `num_pixels` pixels
+    (checked when concrete), or a clear error."""
+    pixels = jnp.asarray(pixels)
+    if pixels.ndim != 1 or not jnp.issubdtype(pixels.dtype, jnp.integer):
+        raise ValueError(f"pixels must be a 1-D integer array of flat pixel indices, got shape {pixels.shape} and dtype {pixels.dtype}")
+    if _is_concrete(pixels) and pixels.size:
+        host = np.asarray(pixels)
+        if not (0 <= host.min() and host.max() < num_pixels):
+            raise ValueError(f"pixels must lie in [0, {num_pixels}) (the image's H * W), got {host.min()} to {host.max()}")
+    return pixels
+
+
 def rasterize(
     mesh: Mesh,
     camera: Camera,
@@ -987,6 +1000,7 @@ def rasterize(
     cull_backfaces: bool = False,
     interior_edges: bool = True,
     clip_near: bool = False,
+    pixels: ArrayLike | None = None,
 ) -> Fragments:
     r"""Per-pixel candidate faces and their differentiable fragments.
 
@@ -1027,11 +1041,19 @@ def rasterize(
             the cut is a silhouette edge (see ``_clip_faces``). Static: False (the default)
             traces the program without clipping, which culls those faces whole; True costs
             about twice the hard forward time on any mesh (a polygon of 4 slots per face).
+        pixels: (P,) integer indices into the flattened image (row-major, ``row * W + col``):
+            the fragments of these pixels only, of shape (P, K). The candidates are chosen as
+            for the whole image (a cheap pass, outside the derivative); the differentiable
+            fragments, the costly part, are computed at the P pixels alone. Indices must lie
+            in [0, H W) (traced indices cannot be checked; out-of-range ones are clamped).
 
     Returns:
-        :class:`Fragments` of shape (H, W, K), K = min(faces_per_pixel, faces_per_tile, F).
+        :class:`Fragments` of shape (H, W, K), K = min(faces_per_pixel, faces_per_tile, F), or
+        (P, K) with `pixels`.
     """
     height, width = camera.image_size
+    if pixels is not None:
+        pixels = check_pixels(pixels, height * width)
     if clip_near:
         clipped = _clip_faces(mesh, camera, cull_backfaces)
         valid = clipped.valid
@@ -1141,8 +1163,14 @@ def rasterize(
     face_index, present = to_image(face_index), to_image(present)
 
     # The differentiable fragments of the selected faces only.
-    qx = (jnp.arange(width, dtype=dtype) + 0.5)[None, :, None]
-    qy = (jnp.arange(height, dtype=dtype) + 0.5)[:, None, None]
+    if pixels is None:
+        qx = (jnp.arange(width, dtype=dtype) + 0.5)[None, :, None]
+        qy = (jnp.arange(height, dtype=dtype) + 0.5)[:, None, None]
+    else:
+        face_index = face_index.reshape(height * width, -1)[pixels]
+        present = present.reshape(height * width, -1)[pixels]
+        qx = (pixels % width).astype(dtype)[:, None] + 0.5
+        qy = (pixels // width).astype(dtype)[:, None] + 0.5
     if clip_near:
         distance, depth, weights = _clipped_fragments(mesh, camera, clipped, face_index, qx, qy, interior_edges)
         near_culled = jnp.zeros_like(tile_overflow)

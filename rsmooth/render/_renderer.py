@@ -40,7 +40,7 @@ from rsmooth import _checks
 from rsmooth._unrolled import sum_last
 from rsmooth.estimators import check_baseline as _check_baseline
 from rsmooth.noise import Gaussian, Gumbel, Noise
-from rsmooth.render._aggregate import hard_aggregate, perturbed_aggregate, soft_aggregate
+from rsmooth.render._aggregate import change_probability, hard_aggregate, perturbed_aggregate, soft_aggregate
 from rsmooth.render._camera import Camera
 from rsmooth.render._mesh import Mesh
 from rsmooth.render._raster import Fragments, rasterize
@@ -158,6 +158,7 @@ class Renderer(eqx.Module):
         *,
         sigma: ArrayLike | None = None,
         gamma: ArrayLike | None = None,
+        pixels: ArrayLike | None = None,
     ) -> Image:
         """Renders `mesh` seen by `camera`.
 
@@ -167,9 +168,15 @@ class Renderer(eqx.Module):
             camera: the camera (static image size).
             sigma, gamma: override the configured noise levels (may be traced, e.g. by a noise
                 schedule; the perturbed estimator then also estimates their derivatives).
+            pixels: (P,) integer indices into the flattened image (``row * W + col``): render
+                these pixels only, at a cost about proportional to P (the candidate selection
+                still scans the image, see :func:`rsmooth.render.rasterize`). A perturbed
+                pixel draws the same noise as in the whole image rendered with the same key,
+                so its value and derivatives are the same. Use it to spend more samples where
+                the image is random (:meth:`uncertainty`).
 
         Returns:
-            An :class:`Image`.
+            An :class:`Image`; with `pixels`, its `rgb` is (P, 3) and its `alpha` (P,).
         """
         if not isinstance(mesh, Mesh):
             raise TypeError(f"mesh must be an rsmooth.render.Mesh, got {type(mesh).__name__}")
@@ -183,9 +190,10 @@ class Renderer(eqx.Module):
         sigma = jnp.asarray(self.sigma if sigma is None else sigma, dtype)
         gamma = jnp.asarray(self.gamma if gamma is None else gamma, dtype)
         hard = self.mode == "hard"
-        fragments = self.fragments(mesh, camera, sigma=sigma, gamma=gamma)
+        fragments = self.fragments(mesh, camera, sigma=sigma, gamma=gamma, pixels=pixels)
         height, width = camera.image_size
         k = fragments.face_index.shape[-1]
+        shape = fragments.face_index.shape[:-1]  # (H, W), or (P,)
 
         diffuse, specular = shade_faces(mesh, camera, self.light)
         face = fragments.face_index
@@ -211,6 +219,8 @@ class Renderer(eqx.Module):
             weights = soft_aggregate(distance, depth, sigma=sigma, gamma=gamma, background_depth=self.background_depth)
         else:
             keys = jax.random.split(key, height * width)
+            if pixels is not None:
+                keys = keys[pixels]
 
             def pixel(key, d, z):
                 return perturbed_aggregate(
@@ -220,13 +230,19 @@ class Renderer(eqx.Module):
                 )
 
             weights = jax.vmap(pixel)(keys, distance.reshape(-1, k), depth.reshape(-1, k))
-            weights = weights.reshape(height, width, k + 1)
+            weights = weights.reshape(shape + (k + 1,))
         background = jnp.asarray(self.background, dtype)
         rgb = jnp.stack([sum_last(weights[..., :k] * color[c]) + weights[..., k] * background[c] for c in range(3)], axis=-1)
         return Image(rgb=rgb, alpha=1.0 - weights[..., k])
 
     def fragments(
-        self, mesh: Mesh, camera: Camera, *, sigma: ArrayLike | None = None, gamma: ArrayLike | None = None
+        self,
+        mesh: Mesh,
+        camera: Camera,
+        *,
+        sigma: ArrayLike | None = None,
+        gamma: ArrayLike | None = None,
+        pixels: ArrayLike | None = None,
     ) -> Fragments:
         """The rasterizer's output that this renderer draws (:func:`rsmooth.render.rasterize`
         with its options), and with it the diagnostics that the image does not carry:
@@ -260,4 +276,39 @@ class Renderer(eqx.Module):
             cull_backfaces=self.cull_backfaces,
             interior_edges=hard or self.interior_edges,
             clip_near=self.clip_near,
+            pixels=pixels,
+        )
+
+    def uncertainty(
+        self, mesh: Mesh, camera: Camera, *, sigma: ArrayLike | None = None, gamma: ArrayLike | None = None
+    ) -> Array:
+        """(H, W): per pixel, an upper bound on the probability that a sample of the perturbed
+        pixel differs from the hard pixel (:func:`rsmooth.render.change_probability` of its
+        candidates), outside the derivative.
+
+        Where it is ~0 (e.g. below 1e-9), every sample the renderer draws for the pixel gives the
+        hard pixel, and the estimator's terms vanish (with a baseline): more samples there change
+        nothing. With Gaussian coverage noise, only the pixels within ~6 sigma of a silhouette
+        edge (or where faces lie within ~20 gamma in depth) are random. Rank pixels by it to
+        render more samples at the random ones alone (`pixels` of :meth:`__call__`).
+
+        Example:
+            >>> import jax.numpy as jnp
+            >>> from rsmooth.render import Renderer, cube, look_at
+            >>> camera = look_at(jnp.array([0.0, 0.0, 4.0]), image_size=(32, 32), near=3.0, far=5.0)
+            >>> p = Renderer(sigma=0.5, cull_backfaces=True).uncertainty(cube(), camera)
+            >>> float(p[16, 16]) < 1e-9, float(p[0, 0]) < 1e-9, float(p.max()) > 0.4  # centre, corner, edge
+            (True, True, True)
+        """
+        if self.mode != "perturbed":
+            raise ValueError(f"uncertainty is the perturbed renderer's (mode 'perturbed'), got mode {self.mode!r}")
+        dtype = mesh.vertices.dtype
+        sigma = jnp.asarray(self.sigma if sigma is None else sigma, dtype)
+        gamma = jnp.asarray(self.gamma if gamma is None else gamma, dtype)
+        fragments = jax.lax.stop_gradient(self.fragments(mesh, camera, sigma=sigma, gamma=gamma))
+        return change_probability(
+            jnp.where(fragments.present, fragments.distance, -_NEVER),
+            jnp.where(fragments.present, fragments.depth, 0.0),
+            sigma=sigma, gamma=gamma, coverage_noise=self.coverage_noise, depth_noise=self.depth_noise,
+            background_depth=self.background_depth,
         )

@@ -290,3 +290,98 @@ def test_forward_and_reverse_mode_give_the_same_image_jacobian(getkey):
     forward, reverse = jax.jit(jax.jacfwd(image))(pose), jax.jit(jax.jacrev(image))(pose)
     assert forward.shape == (SIZE, SIZE, 3, 6) and float(jnp.max(jnp.abs(forward))) > 0.1
     np.testing.assert_allclose(forward, reverse, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("mode", ["hard", "soft", "perturbed"])
+def test_rendering_some_pixels_gives_their_values_and_derivatives_in_the_whole_image(mode, getkey):
+    # the same noise (one key per pixel, split from the render's key): the same numbers
+    mesh = square(side_for_pixels(10.0), color=(0.3, 0.6, 0.9))
+    renderer = render.Renderer(mode=mode, sigma=0.7, gamma=0.01, num_samples=8, faces_per_pixel=4, faces_per_tile=16)
+    pixels = jnp.asarray(np.random.default_rng(0).choice(SIZE * SIZE, 200, replace=False))
+    r0 = render.axis_angle_to_matrix(jnp.array([0.2, 0.3, 0.1]))
+
+    def whole(t, key):
+        image = renderer(key, render.transform_mesh(mesh, r0, t), CAMERA)
+        return jnp.concatenate([image.rgb.reshape(-1, 3), image.alpha.reshape(-1, 1)], axis=1)[pixels]
+
+    def some(t, key):
+        image = renderer(key, render.transform_mesh(mesh, r0, t), CAMERA, pixels=pixels)
+        assert image.rgb.shape == (200, 3) and image.alpha.shape == (200,)
+        return jnp.concatenate([image.rgb, image.alpha[:, None]], axis=1)
+
+    key, t = getkey(), jnp.array([0.05, -0.02, 0.0])
+    a, b = jax.jit(whole)(t, key), jax.jit(some)(t, key)
+    assert float(jnp.max(a[:, 3])) > 0.5 and float(jnp.min(a[:, 3])) < 1e-6  # inside, outside (and edges)
+    np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-12, atol=1e-12)
+    if mode != "hard":
+        ja, jb = jax.jit(jax.jacrev(whole))(t, key), jax.jit(jax.jacrev(some))(t, key)
+        assert float(jnp.max(jnp.abs(ja))) > 0.1
+        np.testing.assert_allclose(np.asarray(jb), np.asarray(ja), rtol=1e-9, atol=1e-9)
+
+
+def test_bad_pixel_indices_are_named():
+    renderer = render.Renderer(mode="hard", faces_per_pixel=2, faces_per_tile=8)
+    with pytest.raises(ValueError, match=r"pixels must lie in \[0, 1024\)"):
+        renderer(None, render.cube(), CAMERA, pixels=jnp.array([0, SIZE * SIZE]))
+    with pytest.raises(ValueError, match="pixels must be a 1-D integer array"):
+        renderer(None, render.cube(), CAMERA, pixels=jnp.array([[1, 2]]))
+    with pytest.raises(ValueError, match="pixels must be a 1-D integer array"):
+        renderer(None, render.cube(), CAMERA, pixels=jnp.array([1.0, 2.0]))
+    with pytest.raises(ValueError, match="perturbed renderer's"):
+        renderer.uncertainty(render.cube(), CAMERA)
+
+
+@pytest.mark.parametrize("depth_noise", [noise.Gumbel(), noise.Gaussian(), noise.Logistic()], ids=lambda n: n.name)
+def test_change_probability_bounds_how_often_a_sample_is_not_the_hard_pixel(depth_noise, getkey):
+    # random pixels of 3 slots (one empty), some covered, depths near one another and the
+    # background: the frequency of samples whose z-buffer weights differ from the hard ones
+    n, samples, sigma, gamma = 400, 4000, 0.8, 0.02
+    distance = jax.random.uniform(getkey(), (n, 3), minval=-4.0, maxval=4.0).at[:, 2].set(-1e20)
+    depth = jax.random.uniform(getkey(), (n, 3), minval=0.0, maxval=0.15)
+    bound = render.change_probability(distance, depth, sigma=sigma, gamma=gamma, depth_noise=depth_noise, background_depth=0.02)
+
+    def frequency(key, d, z):
+        x = jax.random.normal(key, (samples, 3))
+        g = depth_noise.sample(jax.random.fold_in(key, 1), (samples, 4))
+        hard = render.hard_aggregate(d, z, 0.02)
+        noisy = jax.vmap(lambda x, g: render.hard_aggregate(d + sigma * x, z + gamma * g[:3], 0.02 + gamma * g[3]))(x, g)
+        return jnp.mean(jnp.any(noisy != hard[None, :], axis=-1))
+
+    freq = jax.jit(jax.vmap(frequency))(jax.random.split(getkey(), n), distance, depth)
+    slack = 4.0 * np.sqrt(np.asarray(bound) * (1 - np.asarray(bound)) / samples) + 2.0 / samples
+    assert np.all(np.asarray(freq) <= np.asarray(bound) + slack)
+    assert 0.1 < float(jnp.mean(freq)) < 0.9  # the pixels are random enough for the check to bite
+    # one slot always covered, so only the depth order can change: exact for Gumbel and Gaussian
+    gap = jnp.linspace(0.0, 0.2, 11)
+    alone = render.change_probability(jnp.full((11, 1), 1e15), (0.02 + gap)[:, None], sigma=sigma, gamma=gamma, depth_noise=depth_noise, background_depth=0.02)
+    exact = {"gumbel": jax.nn.sigmoid(-gap / gamma), "gaussian": norm.sf(gap / (gamma * np.sqrt(2)))}
+    if depth_noise.name in exact:
+        np.testing.assert_allclose(np.asarray(alone), np.asarray(exact[depth_noise.name]), rtol=1e-9)
+    # and the coverage of a lone face, far in front of the background: Phi(-|d| / sigma)
+    d = jnp.linspace(-7.0, 7.0, 15)
+    lone = render.change_probability(d[:, None], jnp.full((15, 1), 0.9), sigma=sigma, gamma=gamma, background_depth=0.02)
+    # (+ the background overtaking it, sigmoid(-44) < 1e-19)
+    np.testing.assert_allclose(np.asarray(lone), norm.cdf(-np.abs(np.asarray(d)) / sigma), rtol=1e-6, atol=1e-19)
+
+
+def test_pixels_the_noise_cannot_change_render_their_hard_value_with_zero_derivative(getkey):
+    mesh = render.position_colors(render.cube(1.2))
+    renderer = render.Renderer(mode="perturbed", sigma=0.5, gamma=0.01, num_samples=16, faces_per_pixel=4, faces_per_tile=32, cull_backfaces=True)
+    hard = render.Renderer(mode="hard", faces_per_pixel=4, faces_per_tile=32, cull_backfaces=True)
+    camera = render.look_at(jnp.array([0.0, 0.0, 4.0]), image_size=(SIZE, SIZE), fov=40.0, near=2.0, far=6.0)
+    r0 = render.axis_angle_to_matrix(jnp.array([0.4, 0.5, 0.2]))
+    p = np.asarray(renderer.uncertainty(render.transform_mesh(mesh, r0), camera)).ravel()
+    certain = jnp.asarray(np.flatnonzero(p < 1e-12))
+    assert 0.3 * SIZE * SIZE < certain.size < SIZE * SIZE  # some of the cube, the background; not the edges
+
+    def alpha(t, key):
+        m = render.transform_mesh(mesh, r0, t)
+        return renderer(key, m, camera, pixels=certain).alpha, renderer(key, m, camera, pixels=certain).rgb
+
+    key, t = getkey(), jnp.zeros(3)
+    expected = hard(None, render.transform_mesh(mesh, r0), camera)
+    got_alpha, got_rgb = jax.jit(alpha)(t, key)
+    np.testing.assert_array_equal(np.asarray(got_alpha), np.asarray(expected.alpha).ravel()[np.asarray(certain)])
+    np.testing.assert_allclose(np.asarray(got_rgb), np.asarray(expected.rgb).reshape(-1, 3)[np.asarray(certain)], atol=1e-12)
+    jac = jax.jit(jax.jacrev(lambda t, k: alpha(t, k)[0]))(t, key)
+    np.testing.assert_array_equal(np.asarray(jac), 0.0)
