@@ -272,6 +272,10 @@ def render_pose_command(
         "per run, less precise: see benchmarks/RESULTS.md; quick 1)."),
     max_samples: Optional[int] = typer.Option(
         None, "--max-samples", min=1, help="Cap on the samples per pixel with --sample-growth (default 64)."),
+    growth_pixels: Optional[float] = typer.Option(
+        None, "--growth-pixels", min=0.0, max=1.0, help="With --sample-growth, the fraction of the image that a step's "
+        "renders after the first draw: the pixels the noise changes most (default 0.125; 1: whole renders, each with "
+        "its own pose noise)."),
     keep_best: Optional[bool] = typer.Option(
         None, "--keep-best/--last", help="Report each problem's iterate whose hard render is closest to the target "
         "(default) or the last iterate."),
@@ -297,7 +301,8 @@ def render_pose_command(
     init_errors_deg = tuple(float(e) for e in init_error) if init_error else None
     _run(_RENDER_POSE, out, seed, quick, mesh=mesh, init_errors_deg=init_errors_deg, problems=problems, methods=methods,
          steps=steps, num_samples=samples, keep_best=keep_best, pose_noise_deg=pose_noise, pose_noise_until=pose_noise_until,
-         restarts=restarts, sample_growth=sample_growth, max_samples=max_samples, average_decay=average_iterates,
+         restarts=restarts, sample_growth=sample_growth, max_samples=max_samples, growth_pixels=growth_pixels,
+         average_decay=average_iterates,
          baseline=_baseline(baseline))
 
 

@@ -108,7 +108,7 @@ renderers, in all the renders of a step: num_samples unless sample_growth), mean
 one, 0 unless optimize_translation), seconds_per_step (wall time of one batched Adam step of
 batch_size problems, first steps excluded; null when there is none) and seconds_per_problem_step
 (the same per problem); also methods, init_errors_deg, success_deg, problems, batch_size (the
-problems per chunk actually run: at most the config's, so that chunks are of equal size), steps, image_size, mesh, num_faces, faces_per_pixel, num_samples (of the perturbed renderers), sample_growth and max_samples,
+problems per chunk actually run: at most the config's, so that chunks are of equal size), steps, image_size, mesh, num_faces, faces_per_pixel, num_samples (of the perturbed renderers), sample_growth, max_samples and growth_pixels,
 cull_backfaces (whether faces seen from behind were dropped: by default when the mesh is closed) and
 interior_edges (whether coverage was smoothed across every triangle edge, as in the paper),
 keep_best, pose_noise_deg (the initial rotation noise of the pose smoothing, 0 when off) and
@@ -149,6 +149,15 @@ class Config:
     # renders, ~3x the time of a one-render step over a run of the default command
     sample_growth: int = 2
     max_samples: int = 64
+    # with sample growth, the renders after a step's first draw only this fraction of the image's
+    # pixels, those the noise can change most (rsmooth.render.Renderer.uncertainty, at the step's
+    # pose); each pixel's estimate averages the renders that drew it. At the sample cap only 2-10 %
+    # of the cube's pixels are random (within ~6 sigma of a silhouette edge): the others give the
+    # same value and derivative in every render, so skipping them changes the estimate only where
+    # more pixels than this are random (and then it stays unbiased, with fewer samples there).
+    # The step's pose noise (pose_noise_deg) is then one draw shared by its renders. 1: every
+    # render draws the whole image, each with its own pose noise (session 31's growth)
+    growth_pixels: float = 0.125
     # candidates per pixel: since the candidate-selection fix of session 9, 4 suffice for the
     # torus (8 problems, seed 11, seamless: the same % solved at 20/50 deg as with 8, a step
     # 1.3-1.6x faster) as for the culled cube (session 8: the same solve rates, a step 2x faster)
@@ -319,24 +328,40 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
     def pose(params, r_init):
         return _rotation(params["delta"], r_init), params["translation"]
 
-    def loss_fn(params, scale, key, target, r_init, t):
+    def noisy_pose(params, scale, key, t):
+        """params with the step's pose noise (the gradient with respect to them is the one at
+        the noisy pose); the identity without pose smoothing."""
         if config.pose_noise_deg > 0.0 and adaptive:  # the hard renderer stays unsmoothed
-            key, k_pose = jax.random.split(key)
             # linear decay to exactly 0 at step fade_steps (not 1 - t / fade_steps: XLA turns the
             # division into a product by a rounded reciprocal, and the end would be -5e-8, not 0)
             fade = jnp.maximum(fade_steps - t, 0).astype(params["delta"].dtype) / fade_steps
             eps = np.deg2rad(config.pose_noise_deg) * jax.lax.stop_gradient(scale) * fade
-            params = {**params, "delta": params["delta"] + eps * jax.random.normal(k_pose, (3,), params["delta"].dtype)}
+            params = {**params, "delta": params["delta"] + eps * jax.random.normal(key, (3,), params["delta"].dtype)}
+        return params
+
+    def posed_mesh(params, r_init):
         rotation, translation = pose(params, r_init)
-        image = renderer(
-            key, render.transform_mesh(mesh, rotation, translation), cam,
-            sigma=scale * renderer.sigma, gamma=scale * renderer.gamma,
-        )
+        return render.transform_mesh(mesh, rotation, translation)
+
+    def image_loss(params, scale, key, target, r_init, pixels=None, weight=None):
+        """The mean squared RGB error of a render, over the whole image; with `pixels`, the
+        squared errors of those pixels only, times `weight`, over the image's size; with a
+        (H, W) `weight` (and no pixels), of the whole image weighted per pixel."""
+        image = renderer(key, posed_mesh(params, r_init), cam, sigma=scale * renderer.sigma, gamma=scale * renderer.gamma, pixels=pixels)
+        if pixels is not None:
+            return weight * jnp.sum((image.rgb - target.reshape(-1, 3)[pixels]) ** 2) / target.size
+        if weight is not None:
+            return jnp.sum(weight[..., None] * (image.rgb - target) ** 2) / target.size
         return jnp.mean((image.rgb - target) ** 2)
 
+    def loss_fn(params, scale, key, target, r_init, t):
+        if config.pose_noise_deg > 0.0 and adaptive:
+            key, k_pose = jax.random.split(key)
+            params = noisy_pose(params, scale, k_pose, t)
+        return image_loss(params, scale, key, target, r_init)
+
     def hard_loss(params, target, r_init):
-        rotation, translation = pose(params, r_init)
-        image = hard(None, render.transform_mesh(mesh, rotation, translation), cam)
+        image = hard(None, posed_mesh(params, r_init), cam)
         return jnp.mean((image.rgb - target) ** 2)
 
     def init(offset):
@@ -346,11 +371,18 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
         return params, optimizer.init(params), schedule.init(1.0, config.num_samples), best, jnp.zeros((), jnp.int32), params
 
     value_and_grads = jax.value_and_grad(loss_fn, argnums=(0, 1))
+    image_value_and_grads = jax.value_and_grad(image_loss, argnums=(0, 1))
+    height, width = cam.image_size
+    sparse = grows and config.growth_pixels < 1.0
+    num_sparse = max(1, round(config.growth_pixels * height * width))
 
     def estimate(params, sched, key, target, r_init, t):
         """The loss and its gradients (params, noise scale) from one render of num_samples
         samples per pixel, or with sample_growth the mean over sched.num_samples // num_samples
-        renders with independent noise (keys: `key`, then `key` folded with 1, 2, ...)."""
+        renders with independent noise (keys: `key`, then `key` folded with 1, 2, ...); with
+        growth_pixels < 1 the renders after the first draw only the most uncertain pixels."""
+        if sparse:
+            return sparse_estimate(params, sched, key, target, r_init, t)
         first = value_and_grads(params, sched.sigma, key, target, r_init, t)
         if not grows:  # one render: no loop in the program
             return first
@@ -362,6 +394,32 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
 
         total = jax.lax.fori_loop(1, passes, another, first)
         return jax.tree.map(lambda a: a / passes.astype(a.dtype), total)
+
+    def sparse_estimate(params, sched, key, target, r_init, t):
+        """estimate() whose renders after the first draw the num_sparse pixels of largest
+        change probability at the step's (noisy) pose: sum over pixels of the mean over the
+        renders that drew the pixel. Given the pose noise, which is shared, the pixels are
+        chosen independently of the image noise: each pixel's estimate is unbiased."""
+        noisy = params
+        if config.pose_noise_deg > 0.0 and adaptive:  # the keys of loss_fn
+            key, k_pose = jax.random.split(key)
+            noisy = noisy_pose(params, sched.sigma, k_pose, t)
+        scale = sched.sigma
+        uncertainty = renderer.uncertainty(
+            jax.lax.stop_gradient(posed_mesh(noisy, r_init)), cam, sigma=scale * renderer.sigma, gamma=scale * renderer.gamma
+        )
+        _, pixels = jax.lax.top_k(uncertainty.reshape(-1), num_sparse)
+        passes = _renders_per_step(config, sched.num_samples)
+        share = 1.0 / passes.astype(target.dtype)
+        chosen = jnp.zeros(height * width, target.dtype).at[pixels].set(1.0).reshape(height, width)
+        weight = jnp.where(chosen > 0, share, 1.0)
+        first = image_value_and_grads(noisy, scale, key, target, r_init, None, weight)
+
+        def another(i, total):
+            out = image_value_and_grads(noisy, scale, jax.random.fold_in(key, i), target, r_init, pixels, share)
+            return jax.tree.map(jnp.add, total, out)
+
+        return jax.lax.fori_loop(1, passes, another, first)
 
     def step(state, key, target, r_init):
         params, opt_state, sched, best, t, average = state
@@ -433,6 +491,8 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         value = getattr(config, name)
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+    if not (np.isfinite(config.growth_pixels) and 0.0 < config.growth_pixels <= 1.0):
+        raise ValueError(f"growth_pixels must be in (0, 1] (a fraction of the image's pixels), got {config.growth_pixels!r}")
     if isinstance(config.restarts, bool) or not isinstance(config.restarts, int) or config.restarts < 0:
         raise ValueError(f"restarts must be an int >= 0, got {config.restarts!r}")
     if not (np.isfinite(config.restart_loss) and config.restart_loss > 0.0):
@@ -607,6 +667,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "num_samples": config.num_samples,
         "sample_growth": config.sample_growth,
         "max_samples": config.max_samples,
+        "growth_pixels": config.growth_pixels,
         "cull_backfaces": target_renderer.cull_backfaces,
         "interior_edges": config.interior_edges,
         "keep_best": config.keep_best,

@@ -101,7 +101,8 @@ def test_restarts_rerun_the_problems_whose_render_stays_far_from_the_target(tmp_
         {"pose_noise_deg": float("nan")}, {"pose_noise_until": 0.0}, {"pose_noise_until": 1.5},
         {"restarts": -1}, {"restarts": 1.5}, {"restart_loss": 0.0}, {"restart_loss": float("nan")},
         {"sample_growth": 0}, {"sample_growth": 1.5}, {"max_samples": 0}, {"average_decay": 1.0},
-        {"average_decay": -0.1}, {"average_decay": float("nan")}, {"baseline": "mean"},
+        {"average_decay": -0.1}, {"average_decay": float("nan")}, {"baseline": "mean"}, {"growth_pixels": 0.0},
+        {"growth_pixels": 1.5},
     ],
 )
 def test_bad_config_is_rejected(tmp_path, change):
@@ -216,7 +217,8 @@ def test_sample_growth_averages_renders_with_independent_noise():
     # in it) are the means of the one-render steps with the keys it uses, `key` and `key` folded
     # with 1; and a one-render step is the step without sample growth.
     config = dataclasses.replace(
-        render_pose.Config.quick(), image_size=16, problems=1, num_samples=4, sample_growth=2, max_samples=16
+        render_pose.Config.quick(), image_size=16, problems=1, num_samples=4, sample_growth=2, max_samples=16,
+        growth_pixels=1.0,
     )
     mesh = render_pose.load(config.mesh)
     cam = render_pose.camera(config)
@@ -242,3 +244,38 @@ def test_sample_growth_averages_renders_with_independent_noise():
     plain = step_plain(init_plain(offset), key[None], target, r_init)
     np.testing.assert_allclose(plain[1], singles[0][1], rtol=1e-6)
     np.testing.assert_allclose(np.asarray(plain[0][0]["delta"]), np.asarray(singles[0][0][0]["delta"]), rtol=1e-6)
+
+
+def test_growth_renders_of_the_uncertain_pixels_alone_give_the_whole_renders_estimate():
+    # Without pose noise the renders of a step differ only by the image noise: where the noise
+    # cannot change a pixel (Renderer.uncertainty ~ 0), every render gives it the same value and
+    # derivative, so the renders after the first may skip it. When growth_pixels covers every
+    # pixel that is random, the step is the one of whole renders (the same keys per pixel);
+    # when it covers too few, it is not (the check bites).
+    base = dataclasses.replace(
+        render_pose.Config.quick(), image_size=16, problems=1, num_samples=4, sample_growth=2, max_samples=16,
+        pose_noise_deg=0.0, sigma=2.0,
+    )
+    mesh = render_pose.load(base.mesh)
+    cam = render_pose.camera(base)
+    r_true, r_init, offset = render_pose.problems(base, jax.random.key(3), 30.0)
+    hard = render_pose.make_renderer(base, "hard", mesh)
+    target = hard(None, render.transform_mesh(mesh, r_true[0]), cam).rgb[None]
+    perturbed = render_pose.make_renderer(base, "perturbed-gaussian", mesh)
+    random = perturbed.uncertainty(render.transform_mesh(mesh, render_pose._rotation(jnp.zeros(3), r_init[0])), cam) > 1e-12
+    assert 0.1 < float(jnp.mean(random)) < 0.7  # the premise: some random pixels, not all
+
+    def step(growth_pixels):
+        config = dataclasses.replace(base, growth_pixels=growth_pixels)
+        _, init, step = render_pose.make_solver(config, "perturbed-gaussian", mesh, cam)
+        state = init(offset)
+        sched = eqx.tree_at(lambda s: s.num_samples, state[2], jnp.full_like(state[2].num_samples, 16))  # 4 renders
+        new, loss, _ = step((*state[:2], sched, *state[3:]), jax.random.key(7)[None], target, r_init)
+        return float(loss[0]), np.asarray(new[2].ema), np.asarray(new[0]["delta"])
+
+    whole = step(1.0)
+    covering = step(float(jnp.mean(random)) + 0.05)
+    for a, b in zip(whole, covering):
+        np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12)
+    too_few = step(0.05)
+    assert not np.allclose(too_few[1], whole[1], rtol=1e-3)
