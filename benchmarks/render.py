@@ -124,12 +124,15 @@ def main(repeats: int = 5) -> list[dict]:
         if not changes:
             t_first = t_one
     # with sample growth (on by default), the steps after the noise has decreased average up to
-    # max_samples / num_samples renders (render_pose.Config.sample_growth)
-    t_cap, config = _pose_step_time(repeats, problems=1, at_cap=True)
-    print(f"pose optimization, one problem, the defaults at the sample cap (sample growth {config.sample_growth} up to "
-          f"{config.max_samples} samples per pixel, {config.max_samples // config.num_samples} renders per step): "
-          f"{fmt(t_cap)} per Adam step, {t_cap / t_first:.2f}x the first steps'")
-    rows.append({"pose_step_at_cap": t_cap, "problems": 1, "max_samples": config.max_samples})
+    # max_samples / num_samples renders (render_pose.Config.sample_growth), which after the first
+    # draw only the growth_pixels most uncertain pixels; and with whole renders (growth_pixels 1)
+    for growth_pixels in (default.growth_pixels, 1.0):
+        t_cap, config = _pose_step_time(repeats, problems=1, at_cap=True, growth_pixels=growth_pixels)
+        print(f"pose optimization, one problem, the defaults at the sample cap (sample growth {config.sample_growth} up to "
+              f"{config.max_samples} samples per pixel, {config.max_samples // config.num_samples} renders per step, the "
+              f"renders after the first drawing {growth_pixels:g} of the pixels): {fmt(t_cap)} per Adam step, "
+              f"{t_cap / t_first:.2f}x the first steps'")
+        rows.append({"pose_step_at_cap": t_cap, "problems": 1, "max_samples": config.max_samples, "growth_pixels": growth_pixels})
     t_step, config = _pose_step_time(repeats)
     print(f"pose optimization (render-pose defaults: cube, {SIZE} x {SIZE}, perturbed-gaussian M = {default.num_samples}, "
           f"{config.problems} problems vmapped): {fmt(t_step)} per Adam step, {fmt(t_step / config.problems)} per problem")

@@ -158,6 +158,9 @@ class Config:
     # The step's pose noise (pose_noise_deg) is then one draw shared by its renders. 1: every
     # render draws the whole image, each with its own pose noise (session 31's growth)
     growth_pixels: float = 0.125
+    # with sample growth and whole renders (growth_pixels 1), the renders of a step come in
+    # antithetic pairs of pose noise (+eps z, -eps z): ...
+    antithetic_pose: bool = True
     # candidates per pixel: since the candidate-selection fix of session 9, 4 suffice for the
     # torus (8 problems, seed 11, seamless: the same % solved at 20/50 deg as with 8, a step
     # 1.3-1.6x faster) as for the culled cube (session 8: the same solve rates, a step 2x faster)
@@ -328,7 +331,7 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
     def pose(params, r_init):
         return _rotation(params["delta"], r_init), params["translation"]
 
-    def noisy_pose(params, scale, key, t):
+    def noisy_pose(params, scale, key, t, sign=1.0):
         """params with the step's pose noise (the gradient with respect to them is the one at
         the noisy pose); the identity without pose smoothing."""
         if config.pose_noise_deg > 0.0 and adaptive:  # the hard renderer stays unsmoothed
@@ -336,7 +339,7 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
             # division into a product by a rounded reciprocal, and the end would be -5e-8, not 0)
             fade = jnp.maximum(fade_steps - t, 0).astype(params["delta"].dtype) / fade_steps
             eps = np.deg2rad(config.pose_noise_deg) * jax.lax.stop_gradient(scale) * fade
-            params = {**params, "delta": params["delta"] + eps * jax.random.normal(key, (3,), params["delta"].dtype)}
+            params = {**params, "delta": params["delta"] + sign * eps * jax.random.normal(key, (3,), params["delta"].dtype)}
         return params
 
     def posed_mesh(params, r_init):
@@ -354,10 +357,11 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
             return jnp.sum(weight[..., None] * (image.rgb - target) ** 2) / target.size
         return jnp.mean((image.rgb - target) ** 2)
 
-    def loss_fn(params, scale, key, target, r_init, t):
+    def loss_fn(params, scale, key, target, r_init, t, pose_key=None, sign=1.0):
+        """The loss of one render, at a pose drawn with `key` (or `pose_key`, times `sign`)."""
         if config.pose_noise_deg > 0.0 and adaptive:
             key, k_pose = jax.random.split(key)
-            params = noisy_pose(params, scale, k_pose, t)
+            params = noisy_pose(params, scale, k_pose if pose_key is None else pose_key, t, sign)
         return image_loss(params, scale, key, target, r_init)
 
     def hard_loss(params, target, r_init):
@@ -389,37 +393,52 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
         passes = _renders_per_step(config, sched.num_samples)
 
         def another(i, total):
-            out = value_and_grads(params, sched.sigma, jax.random.fold_in(key, i), target, r_init, t)
+            if config.antithetic_pose:  # an odd render: the previous one's pose noise, negated
+                pair = i - i % 2
+                pair_key = jax.lax.cond(pair == 0, lambda: key, lambda: jax.random.fold_in(key, pair))
+                pose_key, sign = jax.random.split(pair_key)[1], jnp.where(i % 2 == 1, -1.0, 1.0)
+            else:
+                pose_key, sign = None, 1.0
+            out = value_and_grads(params, sched.sigma, jax.random.fold_in(key, i), target, r_init, t, pose_key, sign)
             return jax.tree.map(jnp.add, total, out)
 
         total = jax.lax.fori_loop(1, passes, another, first)
         return jax.tree.map(lambda a: a / passes.astype(a.dtype), total)
 
     def sparse_estimate(params, sched, key, target, r_init, t):
-        """estimate() whose renders after the first draw the num_sparse pixels of largest
-        change probability at the step's (noisy) pose: sum over pixels of the mean over the
-        renders that drew the pixel. Given the pose noise, which is shared, the pixels are
-        chosen independently of the image noise: each pixel's estimate is unbiased."""
-        noisy = params
-        if config.pose_noise_deg > 0.0 and adaptive:  # the keys of loss_fn
-            key, k_pose = jax.random.split(key)
-            noisy = noisy_pose(params, sched.sigma, k_pose, t)
+        """estimate() whose renders after the first of each pose draw the num_sparse pixels of
+        largest change probability at that pose: per pose, the sum over pixels of the mean over
+        the renders that drew the pixel. With pose noise and antithetic_pose, two poses (+eps z,
+        -eps z) of passes / 2 renders each once the step averages two renders or more, and the
+        mean of the two; otherwise one pose. Given a pose, its pixels are chosen independently
+        of the image noise: each pixel's estimate is unbiased."""
         scale = sched.sigma
-        uncertainty = renderer.uncertainty(
-            jax.lax.stop_gradient(posed_mesh(noisy, r_init)), cam, sigma=scale * renderer.sigma, gamma=scale * renderer.gamma
-        )
-        _, pixels = jax.lax.top_k(uncertainty.reshape(-1), num_sparse)
         passes = _renders_per_step(config, sched.num_samples)
-        share = 1.0 / passes.astype(target.dtype)
-        chosen = jnp.zeros(height * width, target.dtype).at[pixels].set(1.0).reshape(height, width)
-        weight = jnp.where(chosen > 0, share, 1.0)
-        first = image_value_and_grads(noisy, scale, key, target, r_init, None, weight)
+        pose_noise = config.pose_noise_deg > 0.0 and adaptive
+        image_key, pose_key = jax.random.split(key) if pose_noise else (key, None)  # the keys of loss_fn
+        poses = jnp.minimum(passes, 2) if pose_noise and config.antithetic_pose else jnp.ones_like(passes)
+        renders = passes // poses  # per pose (passes is a power of sample_growth: exact for 2)
+        share = 1.0 / renders.astype(target.dtype)
 
-        def another(i, total):
-            out = image_value_and_grads(noisy, scale, jax.random.fold_in(key, i), target, r_init, pixels, share)
-            return jax.tree.map(jnp.add, total, out)
+        def one_pose(g, total):
+            noisy = params if pose_key is None else noisy_pose(params, scale, pose_key, t, jnp.where(g == 1, -1.0, 1.0))
+            k = jax.lax.cond(g == 0, lambda: image_key, lambda: jax.random.fold_in(image_key, 0x7FFFFFFF))
+            uncertainty = renderer.uncertainty(
+                jax.lax.stop_gradient(posed_mesh(noisy, r_init)), cam, sigma=scale * renderer.sigma, gamma=scale * renderer.gamma
+            )
+            _, pixels = jax.lax.top_k(uncertainty.reshape(-1), num_sparse)
+            chosen = jnp.zeros(height * width, target.dtype).at[pixels].set(1.0).reshape(height, width)
+            first = image_value_and_grads(noisy, scale, k, target, r_init, None, jnp.where(chosen > 0, share, 1.0))
 
-        return jax.lax.fori_loop(1, passes, another, first)
+            def another(i, total):
+                out = image_value_and_grads(noisy, scale, jax.random.fold_in(k, i), target, r_init, pixels, share)
+                return jax.tree.map(jnp.add, total, out)
+
+            return jax.tree.map(jnp.add, total, jax.lax.fori_loop(1, renders, another, first))
+
+        zero = jax.tree.map(jnp.zeros_like, (jnp.zeros((), target.dtype), (params, scale)))
+        total = jax.lax.fori_loop(0, poses, one_pose, zero)
+        return jax.tree.map(lambda a: a / poses.astype(a.dtype), total)
 
     def step(state, key, target, r_init):
         params, opt_state, sched, best, t, average = state

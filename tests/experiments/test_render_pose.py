@@ -218,7 +218,7 @@ def test_sample_growth_averages_renders_with_independent_noise():
     # with 1; and a one-render step is the step without sample growth.
     config = dataclasses.replace(
         render_pose.Config.quick(), image_size=16, problems=1, num_samples=4, sample_growth=2, max_samples=16,
-        growth_pixels=1.0,
+        growth_pixels=1.0, antithetic_pose=False,
     )
     mesh = render_pose.load(config.mesh)
     cam = render_pose.camera(config)
@@ -279,3 +279,37 @@ def test_growth_renders_of_the_uncertain_pixels_alone_give_the_whole_renders_est
         np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12)
     too_few = step(0.05)
     assert not np.allclose(too_few[1], whole[1], rtol=1e-3)
+
+
+@pytest.mark.parametrize("growth_pixels", [1.0, 0.125])
+def test_antithetic_pose_noise_keeps_the_mean_gradient_and_lowers_its_variance(growth_pixels):
+    # Two renders per step at the poses delta + eps z and delta - eps z: the first-order terms of
+    # the pose noise cancel in their mean. The same problem 32 times near its solution, with 32
+    # samples per pixel so that the pose noise dominates the gradient's variance (measured: std
+    # ratios 0.41-0.53; at 128 x 128 and the noise floor 0.19-0.37, benchmarks/RESULTS.md). With
+    # growth_pixels < 1 the other render is of the uncertain pixels at the same pose, or of the
+    # whole image at the opposite pose.
+    n = 32
+    base = dataclasses.replace(
+        render_pose.Config.quick(), image_size=32, problems=n, num_samples=32, sample_growth=2, max_samples=64, growth_pixels=growth_pixels,
+    )
+    mesh = render_pose.load(base.mesh)
+    cam = render_pose.camera(base)
+    r_true, _, offset = render_pose.problems(base, jax.random.key(0), 20.0)
+    r_true = jnp.broadcast_to(r_true[0], r_true.shape)
+    r_init = jnp.broadcast_to(render.axis_angle_to_matrix(jnp.array([0.01, -0.01, 0.005])) @ r_true[0], r_true.shape)
+    hard = render_pose.make_renderer(base, "hard", mesh)
+    target = jax.vmap(lambda r: hard(None, render.transform_mesh(mesh, r), cam).rgb)(r_true)
+
+    def gradients(antithetic):
+        config = dataclasses.replace(base, antithetic_pose=antithetic)
+        _, init, step = render_pose.make_solver(config, "perturbed-gaussian", mesh, cam)
+        state = init(jnp.zeros_like(offset))
+        sched = eqx.tree_at(lambda s: (s.sigma, s.num_samples), state[2], (jnp.full_like(state[2].sigma, 0.25), jnp.full_like(state[2].num_samples, 64)))
+        new = step((*state[:2], sched, *state[3:]), jax.random.split(jax.random.key(5), n), target, r_init)
+        return np.asarray(new[0][1][0].mu["delta"]) / (1.0 - 0.9)  # Adam's first moment after one step: 0.1 g
+
+    independent, antithetic = gradients(False), gradients(True)
+    assert np.all(antithetic.std(axis=0) < 0.7 * independent.std(axis=0))
+    stderr = np.sqrt((independent.var(axis=0) + antithetic.var(axis=0)) / n)
+    assert np.all(np.abs(antithetic.mean(axis=0) - independent.mean(axis=0)) < 4 * stderr)
