@@ -268,14 +268,17 @@ def render_pose_command(
         "16 / 32 solved 59 / 73 / 83 % of the cubes from 80 deg: see benchmarks/RESULTS.md)."),
     sample_growth: Optional[int] = typer.Option(
         None, "--sample-growth", min=1, help="Multiply the perturbed renderers' samples per pixel by this at each noise "
-        "decrease (the step averages that many renders), up to --max-samples (default 2; 1: off, ~3x faster "
+        "decrease (the step averages that many renders), up to --max-samples (default 2; 1: off, ~2x faster "
         "per run, less precise: see benchmarks/RESULTS.md; quick 1)."),
     max_samples: Optional[int] = typer.Option(
         None, "--max-samples", min=1, help="Cap on the samples per pixel with --sample-growth (default 64)."),
     growth_pixels: Optional[float] = typer.Option(
         None, "--growth-pixels", min=0.0, max=1.0, help="With --sample-growth, the fraction of the image that a step's "
-        "renders after the first draw: the pixels the noise changes most (default 0.125; 1: whole renders, each with "
-        "its own pose noise)."),
+        "renders after the first of each pose draw: the pixels the noise changes most (default 0.125; 1: whole "
+        "renders only, each at its own pose)."),
+    antithetic_pose: Optional[bool] = typer.Option(
+        None, "--antithetic-pose/--independent-pose", help="With --sample-growth, draw a step's pose noise in "
+        "antithetic pairs (+eps z, -eps z; default: the first-order terms cancel) or independently."),
     keep_best: Optional[bool] = typer.Option(
         None, "--keep-best/--last", help="Report each problem's iterate whose hard render is closest to the target "
         "(default) or the last iterate."),
@@ -302,7 +305,7 @@ def render_pose_command(
     _run(_RENDER_POSE, out, seed, quick, mesh=mesh, init_errors_deg=init_errors_deg, problems=problems, methods=methods,
          steps=steps, num_samples=samples, keep_best=keep_best, pose_noise_deg=pose_noise, pose_noise_until=pose_noise_until,
          restarts=restarts, sample_growth=sample_growth, max_samples=max_samples, growth_pixels=growth_pixels,
-         average_decay=average_iterates,
+         antithetic_pose=antithetic_pose, average_decay=average_iterates,
          baseline=_baseline(baseline))
 
 

@@ -67,8 +67,16 @@ session 31 (growth 2 up to 64 samples; benchmarks/RESULTS.md): on four unseen pa
 near the truth (median error of the solved 0.15-0.83 deg, soft's 0.15-0.33; with 16 samples
 throughout the perturbed renderer had trailed soft by 10 points on panda link2); on the cube
 (50 problems of the default command's, seed 0) 96 / 86 / 77 % from 20 / 50 / 80 deg (80: the
-first 30) against 96 / 80 / 70 with 16 throughout, losing none. It costs ~3x the time of a run
-(`--sample-growth 1` turns it off).
+first 30) against 96 / 80 / 70 with 16 throughout, losing none. Near the solution most of the
+gradient's variance on the cube is the pose noise's, not the image's (`antithetic_pose`), and
+the image noise lives at the few pixels near a silhouette edge (`growth_pixels`): since session
+32 a step's renders come at two opposite poses (+eps z, -eps z), each with one whole render, the
+others drawing only the eighth of the pixels the noise changes most. The same 50 cube problems
+from 50 deg: 86 % solved as with session 31's four whole renders (mean error 9.5 against 11.2
+deg, nearer the truth on 24 of the 41 both solve) at 0.16 against 0.27 s per problem-step;
+panda link2 (32 problems from 20 deg, seed 211): 87.5 against 90.6 % (one problem), nearer on 19
+of 28 (median 0.57 against 0.85 deg). A run costs ~2x the time of one render per step
+(`--sample-growth 1` turns growth off; benchmarks/RESULTS.md, session 32).
 
 Each problem reports the iterate whose hard-rendered image is closest to the target
 (`keep_best`, one hard render per step, ~3 % of a perturbed step on the cube), not the last one: at the
@@ -108,7 +116,7 @@ renderers, in all the renders of a step: num_samples unless sample_growth), mean
 one, 0 unless optimize_translation), seconds_per_step (wall time of one batched Adam step of
 batch_size problems, first steps excluded; null when there is none) and seconds_per_problem_step
 (the same per problem); also methods, init_errors_deg, success_deg, problems, batch_size (the
-problems per chunk actually run: at most the config's, so that chunks are of equal size), steps, image_size, mesh, num_faces, faces_per_pixel, num_samples (of the perturbed renderers), sample_growth, max_samples and growth_pixels,
+problems per chunk actually run: at most the config's, so that chunks are of equal size), steps, image_size, mesh, num_faces, faces_per_pixel, num_samples (of the perturbed renderers), sample_growth, max_samples, growth_pixels and antithetic_pose,
 cull_backfaces (whether faces seen from behind were dropped: by default when the mesh is closed) and
 interior_edges (whether coverage was smoothed across every triangle edge, as in the paper),
 keep_best, pose_noise_deg (the initial rotation noise of the pose smoothing, 0 when off) and
@@ -146,20 +154,26 @@ class Config:
     # the Monte-Carlo noise of the gradient at the noise floor, which left problems unsolved on
     # meshes the tests have not seen (see the module docstring). The price: after the first noise
     # decreases (within ~50 of the 200 steps) a step averages up to max_samples / num_samples
-    # renders, ~3x the time of a one-render step over a run of the default command
+    # renders, most of them of a few pixels (growth_pixels): ~2x the time of a one-render step
+    # over a run of the default command (~3x with whole renders)
     sample_growth: int = 2
     max_samples: int = 64
-    # with sample growth, the renders after a step's first draw only this fraction of the image's
-    # pixels, those the noise can change most (rsmooth.render.Renderer.uncertainty, at the step's
-    # pose); each pixel's estimate averages the renders that drew it. At the sample cap only 2-10 %
-    # of the cube's pixels are random (within ~6 sigma of a silhouette edge): the others give the
-    # same value and derivative in every render, so skipping them changes the estimate only where
-    # more pixels than this are random (and then it stays unbiased, with fewer samples there).
-    # The step's pose noise (pose_noise_deg) is then one draw shared by its renders. 1: every
-    # render draws the whole image, each with its own pose noise (session 31's growth)
+    # with sample growth, a step's renders after the first of each pose draw only this fraction
+    # of the image's pixels, those the noise changes most at that pose
+    # (rsmooth.render.Renderer.uncertainty); each pixel's estimate averages the renders that drew
+    # it. At the sample cap 2-10 % of the cube's pixels are random (within ~6 sigma of a
+    # silhouette edge): the others have the same value and derivative in every render, so skipping
+    # them changes the estimate only where more pixels than this are random, and there it stays
+    # unbiased, with fewer samples. The renders of a pose share its pose noise; with
+    # antithetic_pose a step of 2 renders or more has two poses, each with one whole render. 1:
+    # whole renders only, each with its own pose (session 31's growth). One problem's step at the
+    # cap (4 renders), cube: 75 ms against 103 with whole renders (first steps 41 / 36 ms)
     growth_pixels: float = 0.125
-    # with sample growth and whole renders (growth_pixels 1), the renders of a step come in
-    # antithetic pairs of pose noise (+eps z, -eps z): ...
+    # a step's pose noise (pose_noise_deg) in antithetic pairs, +eps z and -eps z, rather than
+    # independent draws: the first-order terms of the pose noise, most of the gradient's
+    # variance near the solution on the cube, cancel in their mean (the cube 0.2 deg from the
+    # truth at the noise floor, 48 draws: gradient std on the worst axis 2.7e-3 with two
+    # antithetic renders, 9.8e-3 with two independent ones, 7.4e-3 with four, 14.4e-3 with one)
     antithetic_pose: bool = True
     # candidates per pixel: since the candidate-selection fix of session 9, 4 suffice for the
     # torus (8 problems, seed 11, seamless: the same % solved at 20/50 deg as with 8, a step
@@ -687,6 +701,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "sample_growth": config.sample_growth,
         "max_samples": config.max_samples,
         "growth_pixels": config.growth_pixels,
+        "antithetic_pose": config.antithetic_pose,
         "cull_backfaces": target_renderer.cull_backfaces,
         "interior_edges": config.interior_edges,
         "keep_best": config.keep_best,
