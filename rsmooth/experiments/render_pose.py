@@ -397,8 +397,9 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
     def estimate(params, sched, key, target, r_init, t):
         """The loss and its gradients (params, noise scale) from one render of num_samples
         samples per pixel, or with sample_growth the mean over sched.num_samples // num_samples
-        renders with independent noise (keys: `key`, then `key` folded with 1, 2, ...); with
-        growth_pixels < 1 the renders after the first draw only the most uncertain pixels."""
+        renders with independent image noise (keys: `key`, then `key` folded with 1, 2, ...),
+        and with antithetic_pose each odd render at the previous one's pose noise, negated; with
+        growth_pixels < 1, see sparse_estimate."""
         if sparse:
             return sparse_estimate(params, sched, key, target, r_init, t)
         first = value_and_grads(params, sched.sigma, key, target, r_init, t)
@@ -431,7 +432,9 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
         pose_noise = config.pose_noise_deg > 0.0 and adaptive
         image_key, pose_key = jax.random.split(key) if pose_noise else (key, None)  # the keys of loss_fn
         poses = jnp.minimum(passes, 2) if pose_noise and config.antithetic_pose else jnp.ones_like(passes)
-        renders = passes // poses  # per pose (passes is a power of sample_growth: exact for 2)
+        # per pose: passes is a power of sample_growth, so exact for growth 2 (3: 1 and 4 per pose
+        # for 3 and 9 renders)
+        renders = passes // poses
         share = 1.0 / renders.astype(target.dtype)
 
         def one_pose(g, total):
