@@ -54,6 +54,15 @@ MODES = ("hard", "soft", "perturbed")
 _NEVER = 1e20
 
 
+def _slots(fragments: Fragments) -> tuple[Array, Array]:
+    """The candidates' signed distances and depths as the aggregations take them: an empty slot
+    at distance -_NEVER (never covered) and depth 0."""
+    return (
+        jnp.where(fragments.present, fragments.distance, -_NEVER),
+        jnp.where(fragments.present, fragments.depth, 0.0),
+    )
+
+
 class Image(eqx.Module):
     """A rendered image.
 
@@ -187,8 +196,7 @@ class Renderer(eqx.Module):
                 raise ValueError("the perturbed renderer needs a PRNG key")
             _checks.check_key(key)
         dtype = mesh.vertices.dtype
-        sigma = jnp.asarray(self.sigma if sigma is None else sigma, dtype)
-        gamma = jnp.asarray(self.gamma if gamma is None else gamma, dtype)
+        sigma, gamma = self._levels(mesh, sigma, gamma)
         hard = self.mode == "hard"
         fragments = self.fragments(mesh, camera, sigma=sigma, gamma=gamma, pixels=pixels)
         height, width = camera.image_size
@@ -211,8 +219,7 @@ class Renderer(eqx.Module):
             for c in range(3)
         ]  # 3 x (H, W, K)
 
-        distance = jnp.where(fragments.present, fragments.distance, -_NEVER)
-        depth = jnp.where(fragments.present, fragments.depth, 0.0)
+        distance, depth = _slots(fragments)
         if hard:
             weights = hard_aggregate(distance, depth, self.background_depth)
         elif self.mode == "soft":
@@ -234,6 +241,14 @@ class Renderer(eqx.Module):
         background = jnp.asarray(self.background, dtype)
         rgb = jnp.stack([sum_last(weights[..., :k] * color[c]) + weights[..., k] * background[c] for c in range(3)], axis=-1)
         return Image(rgb=rgb, alpha=1.0 - weights[..., k])
+
+    def _levels(self, mesh: Mesh, sigma: ArrayLike | None, gamma: ArrayLike | None) -> tuple[Array, Array]:
+        """sigma and gamma of a call (the configured ones where None), in the mesh's dtype."""
+        dtype = mesh.vertices.dtype
+        return (
+            jnp.asarray(self.sigma if sigma is None else sigma, dtype),
+            jnp.asarray(self.gamma if gamma is None else gamma, dtype),
+        )
 
     def fragments(
         self,
@@ -260,9 +275,7 @@ class Renderer(eqx.Module):
             16
             0
         """
-        dtype = mesh.vertices.dtype
-        sigma = jnp.asarray(self.sigma if sigma is None else sigma, dtype)
-        gamma = jnp.asarray(self.gamma if gamma is None else gamma, dtype)
+        sigma, gamma = self._levels(mesh, sigma, gamma)
         hard = self.mode == "hard"
         return rasterize(
             mesh,
@@ -302,13 +315,9 @@ class Renderer(eqx.Module):
         """
         if self.mode != "perturbed":
             raise ValueError(f"uncertainty is the perturbed renderer's (mode 'perturbed'), got mode {self.mode!r}")
-        dtype = mesh.vertices.dtype
-        sigma = jnp.asarray(self.sigma if sigma is None else sigma, dtype)
-        gamma = jnp.asarray(self.gamma if gamma is None else gamma, dtype)
+        sigma, gamma = self._levels(mesh, sigma, gamma)
         fragments = jax.lax.stop_gradient(self.fragments(mesh, camera, sigma=sigma, gamma=gamma))
         return change_probability(
-            jnp.where(fragments.present, fragments.distance, -_NEVER),
-            jnp.where(fragments.present, fragments.depth, 0.0),
-            sigma=sigma, gamma=gamma, coverage_noise=self.coverage_noise, depth_noise=self.depth_noise,
+            *_slots(fragments), sigma=sigma, gamma=gamma, coverage_noise=self.coverage_noise, depth_noise=self.depth_noise,
             background_depth=self.background_depth,
         )
