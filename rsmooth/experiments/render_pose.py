@@ -75,7 +75,8 @@ others drawing only the eighth of the pixels the noise changes most. The same 50
 from 50 deg: 86 % solved as with session 31's four whole renders (mean error 9.5 against 11.2
 deg, nearer the truth on 24 of the 41 both solve) at 0.16 against 0.27 s per problem-step;
 panda link2 (32 problems from 20 deg, seed 211): 87.5 against 90.6 % (one problem), nearer on 19
-of 28 (median 0.57 against 0.85 deg). A run costs ~2x the time of one render per step
+of 28 (median 0.57 against 0.85 deg); the cube from 20 / 50 / 80 deg, 50 problems each: 96 / 86
+/ 72 % (one render per step: 96 / 80 / 68). A run costs ~2x the time of one render per step
 (`--sample-growth 1` turns growth off; benchmarks/RESULTS.md, session 32).
 
 Each problem reports the iterate whose hard-rendered image is closest to the target
