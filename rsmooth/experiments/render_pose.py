@@ -341,6 +341,7 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
         if adaptive else schedules.Constant()
     )
 
+    pose_smoothing = config.pose_noise_deg > 0.0 and adaptive  # the hard renderer stays unsmoothed
     fade_steps = max(1, round(config.pose_noise_until * config.steps))  # the pose noise is 0 from this step
 
     def pose(params, r_init):
@@ -349,7 +350,7 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
     def noisy_pose(params, scale, key, t, sign=1.0):
         """params with the step's pose noise (the gradient with respect to them is the one at
         the noisy pose); the identity without pose smoothing."""
-        if config.pose_noise_deg > 0.0 and adaptive:  # the hard renderer stays unsmoothed
+        if pose_smoothing:
             # linear decay to exactly 0 at step fade_steps (not 1 - t / fade_steps: XLA turns the
             # division into a product by a rounded reciprocal, and the end would be -5e-8, not 0)
             fade = jnp.maximum(fade_steps - t, 0).astype(params["delta"].dtype) / fade_steps
@@ -374,7 +375,7 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
 
     def loss_fn(params, scale, key, target, r_init, t, pose_key=None, sign=1.0):
         """The loss of one render, at a pose drawn with `key` (or `pose_key`, times `sign`)."""
-        if config.pose_noise_deg > 0.0 and adaptive:
+        if pose_smoothing:
             key, k_pose = jax.random.split(key)
             params = noisy_pose(params, scale, k_pose if pose_key is None else pose_key, t, sign)
         return image_loss(params, scale, key, target, r_init)
@@ -430,9 +431,8 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
         of the image noise: each pixel's estimate is unbiased."""
         scale = sched.sigma
         passes = _renders_per_step(config, sched.num_samples)
-        pose_noise = config.pose_noise_deg > 0.0 and adaptive
-        image_key, pose_key = jax.random.split(key) if pose_noise else (key, None)  # the keys of loss_fn
-        poses = jnp.minimum(passes, 2) if pose_noise and config.antithetic_pose else jnp.ones_like(passes)
+        image_key, pose_key = jax.random.split(key) if pose_smoothing else (key, None)  # the keys of loss_fn
+        poses = jnp.minimum(passes, 2) if pose_smoothing and config.antithetic_pose else jnp.ones_like(passes)
         # per pose: passes is a power of sample_growth, so exact for growth 2 (3: 1 and 4 per pose
         # for 3 and 9 renders)
         renders = passes // poses
