@@ -14,6 +14,7 @@ timed without it.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import equinox as eqx
 import jax
@@ -55,7 +56,8 @@ def _functions(mesh, camera, renderer):
 
 def _pose_step_time(repeats: int, problems: int = 8, at_cap: bool = False, **changes) -> tuple[float, render_pose.Config]:
     """Median time of one batched Adam step of render pose; `at_cap`: a step whose noise schedule
-    holds max_samples samples per pixel (the late steps with sample growth)."""
+    holds max_samples samples per pixel at the noise scale where growth reaches them (the late
+    steps with sample growth: each growth comes with a noise decrease)."""
     config = dataclasses.replace(render_pose.Config(), problems=problems, **changes)
     mesh = render_pose.load(config.mesh)
     cam = render_pose.camera(config)
@@ -65,8 +67,10 @@ def _pose_step_time(repeats: int, problems: int = 8, at_cap: bool = False, **cha
     state = init(offset)
     if at_cap:
         schedule = state[2]
-        capped = jnp.full_like(schedule.num_samples, max(config.max_samples, config.num_samples))
-        state = (*state[:2], eqx.tree_at(lambda s: s.num_samples, schedule, capped), *state[3:])
+        cap = max(config.max_samples, config.num_samples)
+        growths = math.ceil(math.log(cap / config.num_samples) / math.log(config.sample_growth)) if config.sample_growth > 1 else 0
+        capped = (jnp.full_like(schedule.sigma, config.decay_factor ** -growths), jnp.full_like(schedule.num_samples, cap))
+        state = (*state[:2], eqx.tree_at(lambda s: (s.sigma, s.num_samples), schedule, capped), *state[3:])
     keys = jax.random.split(jax.random.key(1), config.problems)
     return median_time(step, state, keys, target, r_init, repeats=repeats), config
 
@@ -124,15 +128,20 @@ def main(repeats: int = 5) -> list[dict]:
         if not changes:
             t_first = t_one
     # with sample growth (on by default), the steps after the noise has decreased average up to
-    # max_samples / num_samples renders (render_pose.Config.sample_growth), which after the first
-    # draw only the growth_pixels most uncertain pixels; and with whole renders (growth_pixels 1)
-    for growth_pixels in (default.growth_pixels, 1.0):
-        t_cap, config = _pose_step_time(repeats, problems=1, at_cap=True, growth_pixels=growth_pixels)
+    # max_samples / num_samples renders (render_pose.Config.sample_growth), at two antithetic
+    # poses; the perturbed renders draw only the pixels their noise may change, in chunks of
+    # pixel_chunk of the image (the rest: one hard render per pose); and with whole renders
+    # (pixel_chunk 1), first steps and at the cap
+    t_whole, _ = _pose_step_time(repeats, problems=1, pixel_chunk=1.0)
+    print(f"pose optimization, one problem, the defaults with whole perturbed renders (pixel_chunk 1): {fmt(t_whole)} per Adam "
+          f"step, {t_whole / t_first:.2f}x the defaults'")
+    rows.append({"pose_step": t_whole, "problems": 1, "pixel_chunk": 1.0})
+    for pixel_chunk in (default.pixel_chunk, 1.0):
+        t_cap, config = _pose_step_time(repeats, problems=1, at_cap=True, pixel_chunk=pixel_chunk)
         print(f"pose optimization, one problem, the defaults at the sample cap (sample growth {config.sample_growth} up to "
-              f"{config.max_samples} samples per pixel, {config.max_samples // config.num_samples} renders per step, the "
-              f"renders after the first drawing {growth_pixels:g} of the pixels): {fmt(t_cap)} per Adam step, "
-              f"{t_cap / t_first:.2f}x the first steps'")
-        rows.append({"pose_step_at_cap": t_cap, "problems": 1, "max_samples": config.max_samples, "growth_pixels": growth_pixels})
+              f"{config.max_samples} samples per pixel, {config.max_samples // config.num_samples} renders per step, "
+              f"pixel_chunk {pixel_chunk:g}): {fmt(t_cap)} per Adam step, {t_cap / t_first:.2f}x the first steps' of the defaults")
+        rows.append({"pose_step_at_cap": t_cap, "problems": 1, "max_samples": config.max_samples, "pixel_chunk": pixel_chunk})
     t_step, config = _pose_step_time(repeats)
     print(f"pose optimization (render-pose defaults: cube, {SIZE} x {SIZE}, perturbed-gaussian M = {default.num_samples}, "
           f"{config.problems} problems vmapped): {fmt(t_step)} per Adam step, {fmt(t_step / config.problems)} per problem")

@@ -272,10 +272,10 @@ def render_pose_command(
         "per run, less precise: see benchmarks/RESULTS.md; quick 1)."),
     max_samples: Optional[int] = typer.Option(
         None, "--max-samples", min=1, help="Cap on the samples per pixel with --sample-growth (default 64)."),
-    growth_pixels: Optional[float] = typer.Option(
-        None, "--growth-pixels", min=0.0, max=1.0, help="With --sample-growth, the fraction of the image that a step's "
-        "renders after the first of each pose draw: the pixels the noise changes most (default 0.125; 1: whole "
-        "renders only, each at its own pose)."),
+    pixel_chunk: Optional[float] = typer.Option(
+        None, "--pixel-chunk", min=0.0, max=1.0, help="The perturbed renders draw only the pixels their noise may "
+        "change, in chunks of this fraction of the image (default 0.125), the others coming from one hard render "
+        "(the same estimate, faster); 1: whole perturbed renders."),
     antithetic_pose: Optional[bool] = typer.Option(
         None, "--antithetic-pose/--independent-pose", help="With --sample-growth, draw a step's pose noise in "
         "antithetic pairs (+eps z, -eps z; default: the first-order terms cancel) or independently."),
@@ -304,7 +304,7 @@ def render_pose_command(
     init_errors_deg = tuple(float(e) for e in init_error) if init_error else None
     _run(_RENDER_POSE, out, seed, quick, mesh=mesh, init_errors_deg=init_errors_deg, problems=problems, methods=methods,
          steps=steps, num_samples=samples, keep_best=keep_best, pose_noise_deg=pose_noise, pose_noise_until=pose_noise_until,
-         restarts=restarts, sample_growth=sample_growth, max_samples=max_samples, growth_pixels=growth_pixels,
+         restarts=restarts, sample_growth=sample_growth, max_samples=max_samples, pixel_chunk=pixel_chunk,
          antithetic_pose=antithetic_pose, average_decay=average_iterates,
          baseline=_baseline(baseline))
 

@@ -125,6 +125,9 @@ pose_noise_until (the fraction of the steps at which that noise has faded to 0),
 restart_loss, average_decay and baseline (see Config)."""
 
 METHODS = ("perturbed-gaussian", "perturbed-cauchy", "soft", "hard")
+# a pixel whose samples differ from its hard value with probability at most this (per sample,
+# Renderer.uncertainty) is rendered hard (Config.pixel_chunk)
+_CERTAIN = 1e-12
 
 
 @dataclasses.dataclass(frozen=True)
@@ -159,17 +162,14 @@ class Config:
     # over a run of the default command (~3x with whole renders)
     sample_growth: int = 2
     max_samples: int = 64
-    # with sample growth, a step's renders after the first of each pose draw only this fraction
-    # of the image's pixels, those the noise changes most at that pose
-    # (rsmooth.render.Renderer.uncertainty); each pixel's estimate averages the renders that drew
-    # it. At the sample cap 2-10 % of the cube's pixels are random (within ~6 sigma of a
-    # silhouette edge): the others have the same value and derivative in every render, so skipping
-    # them changes the estimate only where more pixels than this are random, and there it stays
-    # unbiased, with fewer samples. The renders of a pose share its pose noise; with
-    # antithetic_pose a step of 2 renders or more has two poses, each with one whole render. 1:
-    # whole renders only, each with its own pose (session 31's growth). One problem's step at the
-    # cap (4 renders), cube: 75 ms against 103 with whole renders (first steps 41 / 36 ms)
-    growth_pixels: float = 0.125
+    # the perturbed renders draw only the pixels that their noise may change (those whose
+    # Renderer.uncertainty, an upper bound on the probability that a sample differs from the hard
+    # pixel, exceeds 1e-12), in chunks of this fraction of the image's pixels, as many as they
+    # fill; the others, whose value and derivative are the hard pixel's in every sample, come
+    # from one hard render per pose. The same estimate as whole renders (to rounding, a test), at
+    # less cost: 42 / 20 / 10 % of the cube's pixels are random at noise scale 1 / 0.5 / 0.25
+    # (sigma 3 / 1.5 / 0.75 px). 1: whole perturbed renders. One problem's step, cube: XX
+    pixel_chunk: float = 0.125
     # a step's pose noise (pose_noise_deg) in antithetic pairs, +eps z and -eps z, rather than
     # independent draws: the first-order terms of the pose noise, most of the gradient's
     # variance near the solution on the cube, cancel in their mean (the cube 0.2 deg from the
@@ -364,11 +364,11 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
 
     def image_loss(params, scale, key, target, r_init, pixels=None, weight=None):
         """The mean squared RGB error of a render, over the whole image; with `pixels`, the
-        squared errors of those pixels only, times `weight`, over the image's size; with a
+        squared errors of those pixels only, times their (P,) `weight`, over the image's size; with a
         (H, W) `weight` (and no pixels), of the whole image weighted per pixel."""
         image = renderer(key, posed_mesh(params, r_init), cam, sigma=scale * renderer.sigma, gamma=scale * renderer.gamma, pixels=pixels)
         if pixels is not None:
-            return weight * jnp.sum((image.rgb - target.reshape(-1, 3)[pixels]) ** 2) / target.size
+            return jnp.sum(weight[:, None] * (image.rgb - target.reshape(-1, 3)[pixels]) ** 2) / target.size
         if weight is not None:
             return jnp.sum(weight[..., None] * (image.rgb - target) ** 2) / target.size
         return jnp.mean((image.rgb - target) ** 2)
@@ -393,17 +393,25 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
     value_and_grads = jax.value_and_grad(loss_fn, argnums=(0, 1))
     image_value_and_grads = jax.value_and_grad(image_loss, argnums=(0, 1))
     height, width = cam.image_size
-    sparse = grows and config.growth_pixels < 1.0
-    num_sparse = max(1, round(config.growth_pixels * height * width))
+    num_pixels = height * width
+    chunked = method.startswith("perturbed") and config.pixel_chunk < 1.0
+    chunk = min(num_pixels, max(1, round(config.pixel_chunk * num_pixels)))
+
+    def hard_image_loss(params, target, r_init, weight):
+        """image_loss of the hard render, each pixel's squared error times its (H, W) weight."""
+        image = hard(None, posed_mesh(params, r_init), cam)
+        return jnp.sum(weight[..., None] * (image.rgb - target) ** 2) / target.size
+
+    hard_value_and_grad = jax.value_and_grad(hard_image_loss)
 
     def estimate(params, sched, key, target, r_init, t):
         """The loss and its gradients (params, noise scale) from one render of num_samples
         samples per pixel, or with sample_growth the mean over sched.num_samples // num_samples
         renders with independent image noise (keys: `key`, then `key` folded with 1, 2, ...),
         and with antithetic_pose each odd render at the previous one's pose noise, negated; with
-        growth_pixels < 1, see sparse_estimate."""
-        if sparse:
-            return sparse_estimate(params, sched, key, target, r_init, t)
+        pixel_chunk < 1, see chunked_estimate."""
+        if chunked:
+            return chunked_estimate(params, sched, key, target, r_init, t)
         first = value_and_grads(params, sched.sigma, key, target, r_init, t)
         if not grows:  # one render: no loop in the program
             return first
@@ -422,37 +430,57 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
         total = jax.lax.fori_loop(1, passes, another, first)
         return jax.tree.map(lambda a: a / passes.astype(a.dtype), total)
 
-    def sparse_estimate(params, sched, key, target, r_init, t):
-        """estimate() whose renders after the first of each pose draw the num_sparse pixels of
-        largest change probability at that pose: per pose, the sum over pixels of the mean over
-        the renders that drew the pixel. With pose noise and antithetic_pose, two poses (+eps z,
-        -eps z) of passes / 2 renders each once the step averages two renders or more, and the
-        mean of the two; otherwise one pose. Given a pose, its pixels are chosen independently
-        of the image noise: each pixel's estimate is unbiased."""
+    def chunked_estimate(params, sched, key, target, r_init, t):
+        """estimate() whose perturbed renders draw only the random pixels of their pose (those
+        whose samples may differ from the hard pixel: Renderer.uncertainty > _CERTAIN), in
+        chunks of `chunk` pixels, as many as they fill; the other pixels, whose value and
+        derivative are the hard pixel's in every sample, come from one hard render of the pose.
+        Without pose noise this is estimate() with the same keys per pixel (a test). The poses
+        of a step: with pose noise and antithetic_pose, two (+eps z, -eps z) once it averages
+        two renders or more, each with half the renders; with independent pose noise one per
+        render; without pose noise one."""
         scale = sched.sigma
         passes = _renders_per_step(config, sched.num_samples)
         image_key, pose_key = jax.random.split(key) if pose_smoothing else (key, None)  # the keys of loss_fn
-        poses = jnp.minimum(passes, 2) if pose_smoothing and config.antithetic_pose else jnp.ones_like(passes)
+        if pose_smoothing and config.antithetic_pose:
+            poses = jnp.minimum(passes, 2)
+        else:
+            poses = passes if pose_smoothing else jnp.ones_like(passes)
         # per pose: passes is a power of sample_growth, so exact for growth 2 (3: 1 and 4 per pose
         # for 3 and 9 renders)
         renders = passes // poses
         share = 1.0 / renders.astype(target.dtype)
+        position = jnp.arange(chunk)
 
         def one_pose(g, total):
-            noisy = params if pose_key is None else noisy_pose(params, scale, pose_key, t, jnp.where(g == 1, -1.0, 1.0))
-            k = jax.lax.cond(g == 0, lambda: image_key, lambda: jax.random.fold_in(image_key, 0x7FFFFFFF))
+            if pose_key is None:
+                noisy = params
+            elif config.antithetic_pose:
+                noisy = noisy_pose(params, scale, pose_key, t, jnp.where(g == 1, -1.0, 1.0))
+            else:
+                noisy = noisy_pose(params, scale, jax.lax.cond(g == 0, lambda: pose_key, lambda: jax.random.fold_in(pose_key, g)), t)
+            k = jax.lax.cond(g == 0, lambda: image_key, lambda: jax.random.fold_in(image_key, 0x7FFFFFFF - g + 1))
             uncertainty = renderer.uncertainty(
                 jax.lax.stop_gradient(posed_mesh(noisy, r_init)), cam, sigma=scale * renderer.sigma, gamma=scale * renderer.gamma
-            )
-            _, pixels = jax.lax.top_k(uncertainty.reshape(-1), num_sparse)
-            chosen = jnp.zeros(height * width, target.dtype).at[pixels].set(1.0).reshape(height, width)
-            first = image_value_and_grads(noisy, scale, k, target, r_init, None, jnp.where(chosen > 0, share, 1.0))
+            ).reshape(-1)
+            order = jnp.argsort(-uncertainty)  # the random pixels first
+            drawn = jnp.sum(uncertainty > _CERTAIN)
+            chunks = (drawn + chunk - 1) // chunk
+            drawn = jnp.minimum(chunks * chunk, num_pixels)  # the last chunk is whole
+            rank = jnp.zeros(num_pixels, order.dtype).at[order].set(jnp.arange(num_pixels, dtype=order.dtype))
+            loss, grad = hard_value_and_grad(noisy, target, r_init, (rank >= drawn).astype(target.dtype).reshape(height, width))
+            total = jax.tree.map(jnp.add, total, (loss, (grad, jnp.zeros_like(scale))))
 
-            def another(i, total):
-                out = image_value_and_grads(noisy, scale, jax.random.fold_in(k, i), target, r_init, pixels, share)
+            def one_render(j, total):
+                c, i = j // renders, j % renders
+                start = jnp.minimum(c * chunk, num_pixels - chunk)  # the last chunk may overlap the one before
+                pixels = jax.lax.dynamic_slice(order, (start,), (chunk,))
+                weight = jnp.where(start + position >= c * chunk, share, 0.0)
+                render_key = jax.lax.cond(i == 0, lambda: k, lambda: jax.random.fold_in(k, i))
+                out = image_value_and_grads(noisy, scale, render_key, target, r_init, pixels, weight)
                 return jax.tree.map(jnp.add, total, out)
 
-            return jax.tree.map(jnp.add, total, jax.lax.fori_loop(1, renders, another, first))
+            return jax.lax.fori_loop(0, chunks * renders, one_render, total)
 
         zero = jax.tree.map(jnp.zeros_like, (jnp.zeros((), target.dtype), (params, scale)))
         total = jax.lax.fori_loop(0, poses, one_pose, zero)
@@ -528,8 +556,8 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         value = getattr(config, name)
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ValueError(f"{name} must be an int >= 1, got {value!r}")
-    if not (np.isfinite(config.growth_pixels) and 0.0 < config.growth_pixels <= 1.0):
-        raise ValueError(f"growth_pixels must be in (0, 1] (a fraction of the image's pixels), got {config.growth_pixels!r}")
+    if not (np.isfinite(config.pixel_chunk) and 0.0 < config.pixel_chunk <= 1.0):
+        raise ValueError(f"pixel_chunk must be in (0, 1] (a fraction of the image's pixels), got {config.pixel_chunk!r}")
     if isinstance(config.restarts, bool) or not isinstance(config.restarts, int) or config.restarts < 0:
         raise ValueError(f"restarts must be an int >= 0, got {config.restarts!r}")
     if not (np.isfinite(config.restart_loss) and config.restart_loss > 0.0):
@@ -704,7 +732,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "num_samples": config.num_samples,
         "sample_growth": config.sample_growth,
         "max_samples": config.max_samples,
-        "growth_pixels": config.growth_pixels,
+        "pixel_chunk": config.pixel_chunk,
         "antithetic_pose": config.antithetic_pose,
         "cull_backfaces": target_renderer.cull_backfaces,
         "interior_edges": config.interior_edges,
