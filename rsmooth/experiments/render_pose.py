@@ -117,7 +117,7 @@ renderers, in all the renders of a step: num_samples unless sample_growth), mean
 one, 0 unless optimize_translation), seconds_per_step (wall time of one batched Adam step of
 batch_size problems, first steps excluded; null when there is none) and seconds_per_problem_step
 (the same per problem); also methods, init_errors_deg, success_deg, problems, batch_size (the
-problems per chunk actually run: at most the config's, so that chunks are of equal size), steps, image_size, mesh, num_faces, faces_per_pixel, num_samples (of the perturbed renderers), sample_growth, max_samples, growth_pixels and antithetic_pose,
+problems per chunk actually run: at most the config's, so that chunks are of equal size), steps, image_size, mesh, num_faces, faces_per_pixel, num_samples (of the perturbed renderers), sample_growth, max_samples, pixel_chunk and antithetic_pose,
 cull_backfaces (whether faces seen from behind were dropped: by default when the mesh is closed) and
 interior_edges (whether coverage was smoothed across every triangle edge, as in the paper),
 keep_best, pose_noise_deg (the initial rotation noise of the pose smoothing, 0 when off) and
@@ -127,7 +127,7 @@ restart_loss, average_decay and baseline (see Config)."""
 METHODS = ("perturbed-gaussian", "perturbed-cauchy", "soft", "hard")
 # a pixel whose samples differ from its hard value with probability at most this (per sample,
 # Renderer.uncertainty) is rendered hard (Config.pixel_chunk)
-_CERTAIN = 1e-12
+_CERTAIN = render.NEGLIGIBLE
 
 
 @dataclasses.dataclass(frozen=True)

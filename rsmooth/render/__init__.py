@@ -50,12 +50,13 @@ from rsmooth.render._raster import (
     rasterize,
     signed_distance,
 )
-from rsmooth.render._renderer import MODES, Image, Renderer
+from rsmooth.render._renderer import MODES, NEGLIGIBLE, Image, Renderer
 from rsmooth.render._shade import DirectionalLight, shade_faces
 
 __all__ = [
     "COVERAGE_MODES",
     "MODES",
+    "NEGLIGIBLE",
     "Camera",
     "DirectionalLight",
     "Fragments",

@@ -46,9 +46,14 @@ from rsmooth.render._mesh import Mesh
 from rsmooth.render._raster import Fragments, rasterize
 from rsmooth.render._shade import DirectionalLight, _triple, shade_faces
 
-__all__ = ["Image", "Renderer", "MODES"]
+__all__ = ["Image", "Renderer", "MODES", "NEGLIGIBLE"]
 
 MODES = ("hard", "soft", "perturbed")
+
+# A pixel whose perturbed samples differ from its hard value with probability at most this (per
+# sample, :meth:`Renderer.uncertainty`) is treated as certain: rendered hard, with no samples
+# (`Renderer.sample_budget`; the render-pose experiment's `pixel_chunk`).
+NEGLIGIBLE = 1e-12
 
 # Signed distance given to empty candidate slots: never covered, whatever the noise.
 _NEVER = 1e20
@@ -109,6 +114,15 @@ class Renderer(eqx.Module):
             along the edges shared by two faces of a continuous surface; False (the default)
             smooths only the silhouette and boundary edges, where the image is discontinuous
             (see :func:`rsmooth.render.rasterize`). Hard rendering is the same either way.
+        sample_budget: the fraction of the pixels (of the image, or of `pixels`) at which the
+            perturbed renderer draws its samples (static; 1: all). The pixels whose change
+            probability (:meth:`uncertainty`) exceeds :data:`NEGLIGIBLE` draw them; the others
+            take their hard value, which every sample would give them, and a zero derivative
+            from the aggregation (their shading's remains): the same image and derivatives as
+            all pixels drawing samples, at a cost about proportional to the budget. When more
+            pixels than the budget are random, every pixel draws samples (a ``lax.cond``, so
+            under ``jax.vmap`` with a batched mesh both ways run: there, render chosen
+            `pixels` instead, as the render-pose experiment does).
         dilation: candidate faces lie within `dilation * sigma` pixels of the pixel centre
             (smoothed modes); the noise's tail beyond is dropped (heavy-tailed laws such as
             Cauchy need a larger dilation).
@@ -131,6 +145,7 @@ class Renderer(eqx.Module):
     clip_near: bool = eqx.field(static=True, default=False)
     interior_edges: bool = eqx.field(static=True, default=False)
     dilation: float = eqx.field(static=True, default=3.0, converter=float)
+    sample_budget: float = eqx.field(static=True, default=1.0, converter=float)
     light: DirectionalLight = DirectionalLight()
     background: tuple[float, float, float] = eqx.field(static=True, default=(0.0, 0.0, 0.0), converter=_triple)
     background_depth: float = eqx.field(static=True, default=0.0, converter=float)
@@ -144,6 +159,8 @@ class Renderer(eqx.Module):
                 raise ValueError(f"{name} must be a positive number, got {value!r}")
         for name in ("num_samples", "faces_per_pixel", "faces_per_tile", "tile_size"):
             _checks.check_num_samples(getattr(self, name), name)
+        if not 0.0 < self.sample_budget <= 1.0:
+            raise ValueError(f"sample_budget must be in (0, 1] (a fraction of the pixels), got {self.sample_budget}")
         if not self.dilation >= 0:
             raise ValueError(f"dilation must be >= 0, got {self.dilation}")
         if self.faces_per_tile < self.faces_per_pixel:
@@ -236,7 +253,29 @@ class Renderer(eqx.Module):
                     background_depth=self.background_depth, baseline=self.baseline,
                 )
 
-            weights = jax.vmap(pixel)(keys, distance.reshape(-1, k), depth.reshape(-1, k))
+            flat_distance, flat_depth = distance.reshape(-1, k), depth.reshape(-1, k)
+            num_pixels = flat_distance.shape[0]
+            budget = min(num_pixels, max(1, round(self.sample_budget * num_pixels)))
+
+            def everywhere():
+                return jax.vmap(pixel)(keys, flat_distance, flat_depth)
+
+            if budget == num_pixels:
+                weights = everywhere()
+            else:
+                uncertainty = change_probability(
+                    flat_distance, flat_depth, sigma=sigma, gamma=gamma, coverage_noise=self.coverage_noise,
+                    depth_noise=self.depth_noise, background_depth=self.background_depth,
+                )
+
+                def budgeted():
+                    _, random = jax.lax.top_k(uncertainty, budget)
+                    hard_weights = jax.lax.stop_gradient(hard_aggregate(flat_distance, flat_depth, self.background_depth))
+                    drawn = jax.vmap(pixel)(keys[random], flat_distance[random], flat_depth[random])
+                    return hard_weights.at[random].set(drawn)
+
+                fits = jnp.sum(uncertainty > NEGLIGIBLE) <= budget
+                weights = jax.lax.cond(fits, budgeted, everywhere)
             weights = weights.reshape(shape + (k + 1,))
         background = jnp.asarray(self.background, dtype)
         rgb = jnp.stack([sum_last(weights[..., :k] * color[c]) + weights[..., k] * background[c] for c in range(3)], axis=-1)
