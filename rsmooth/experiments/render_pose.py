@@ -69,15 +69,14 @@ throughout the perturbed renderer had trailed soft by 10 points on panda link2);
 (50 problems of the default command's, seed 0) 96 / 86 / 77 % from 20 / 50 / 80 deg (80: the
 first 30) against 96 / 80 / 70 with 16 throughout, losing none. Near the solution most of the
 gradient's variance on the cube is the pose noise's, not the image's (`antithetic_pose`), and
-the image noise lives at the few pixels near a silhouette edge (`growth_pixels`): since session
-32 a step's renders come at two opposite poses (+eps z, -eps z), each with one whole render, the
-others drawing only the eighth of the pixels the noise changes most. The same 50 cube problems
-from 50 deg: 86 % solved as with session 31's four whole renders (mean error 9.5 against 11.2
-deg, nearer the truth on 24 of the 41 both solve) at 0.16 against 0.27 s per problem-step;
-panda link2 (32 problems from 20 deg, seed 211): 87.5 against 90.6 % (one problem), nearer on 19
-of 28 (median 0.57 against 0.85 deg); the cube from 20 / 50 / 80 deg, 50 problems each: 96 / 86
-/ 72 % (one render per step: 96 / 80 / 68). A run costs ~2x the time of one render per step
-(`--sample-growth 1` turns growth off; benchmarks/RESULTS.md, session 32).
+the image noise lives at the few pixels near a silhouette edge: since session 32 a step's
+renders come at two opposite poses (+eps z, -eps z), and since session 33 its perturbed renders
+draw only the pixels their noise may change (`pixel_chunk`; the others, whose every sample is
+the hard pixel, from one hard render per pose: the same estimate). The cube from 20 / 50 / 80
+deg, 50 problems each: 96 / 86 / 72 % (one render per step: 96 / 80 / 68); from 50 deg 84 %
+with session 33's chunks (one problem, noise) at 0.087 s per problem-step against 0.16 (session
+32) and 0.27 (session 31's four whole renders). A run costs about the time of one whole render
+per step (`--sample-growth 1` turns growth off; benchmarks/RESULTS.md, sessions 32-33).
 
 Each problem reports the iterate whose hard-rendered image is closest to the target
 (`keep_best`, one hard render per step, ~3 % of a perturbed step on the cube), not the last one: at the
@@ -158,8 +157,8 @@ class Config:
     # the Monte-Carlo noise of the gradient at the noise floor, which left problems unsolved on
     # meshes the tests have not seen (see the module docstring). The price: after the first noise
     # decreases (within ~50 of the 200 steps) a step averages up to max_samples / num_samples
-    # renders, most of them of a few pixels (growth_pixels): ~2x the time of a one-render step
-    # over a run of the default command (~3x with whole renders)
+    # renders (of the random pixels alone, pixel_chunk): about the time of one whole render per
+    # step over a run of the default command (~3x with whole renders)
     sample_growth: int = 2
     max_samples: int = 64
     # the perturbed renders draw only the pixels that their noise may change (those whose
@@ -168,7 +167,9 @@ class Config:
     # fill; the others, whose value and derivative are the hard pixel's in every sample, come
     # from one hard render per pose. The same estimate as whole renders (to rounding, a test), at
     # less cost: 42 / 20 / 10 % of the cube's pixels are random at noise scale 1 / 0.5 / 0.25
-    # (sigma 3 / 1.5 / 0.75 px). 1: whole perturbed renders. One problem's step, cube: XX
+    # (sigma 3 / 1.5 / 0.75 px). 1: whole perturbed renders. One problem's step, cube (both cores,
+    # benchmarks/RESULTS.md, session 33): first steps 23.4 ms, at the sample cap 35.6, against
+    # 32.4 / 93.1 ms with whole renders
     pixel_chunk: float = 0.125
     # a step's pose noise (pose_noise_deg) in antithetic pairs, +eps z and -eps z, rather than
     # independent draws: the first-order terms of the pose noise, most of the gradient's
