@@ -248,8 +248,10 @@ class Config:
 
     @classmethod
     def quick(cls) -> "Config":
-        # one render per step: the quick profile stays a two-minute look
-        return cls(image_size=48, problems=4, steps=60, num_samples=8, faces_per_tile=32, sample_growth=1)
+        # one render per step: the quick profile stays a two-minute look; whole renders: the random
+        # pixels' chunks compile for longer than a short run at 48 x 48 wins back (perturbed
+        # Gaussian alone, one core: 26.6 s against 32.9 with chunks)
+        return cls(image_size=48, problems=4, steps=60, num_samples=8, faces_per_tile=32, sample_growth=1, pixel_chunk=1.0)
 
 
 def load(name: str) -> render.Mesh:
