@@ -116,20 +116,20 @@ def main(repeats: int = 5) -> list[dict]:
         print(f"perturbed (M=8) forward+backward / hard forward: {ratio:.2f}")
         # The sphere is closed: culling its back faces leaves the hard image as it is, and the
         # perturbed renderer's samples are then random only near the silhouette (the back faces'
-        # depth noise made every pixel of the sphere random), where sample_budget draws them.
+        # depth noise made every pixel of the sphere random), which sample_chunk draws alone.
         common = dict(sigma=1.0, gamma=0.01, faces_per_pixel=8, faces_per_tile=faces_per_tile, tile_size=tile_size, cull_backfaces=True)
         hard_culled = median_time(_functions(mesh, camera, render.Renderer(mode="hard", **common))[0], key, t0, repeats=repeats)
         uncertainty = render.Renderer(mode="perturbed", **common).uncertainty(mesh, camera)
         random = float(jnp.mean(uncertainty > render.NEGLIGIBLE))
         line = []
-        for budget in (1.0, 0.25):
-            renderer = render.Renderer(mode="perturbed", num_samples=8, sample_budget=budget, **common)
+        for chunk in (1.0, 0.125):
+            renderer = render.Renderer(mode="perturbed", num_samples=8, sample_chunk=chunk, **common)
             forward, backward = _functions(mesh, camera, renderer)
             t_forward, t_backward = median_time(forward, key, t0, repeats=repeats), median_time(backward, key, t0, repeats=repeats)
-            line.append(f"sample_budget {budget:g}: forward {fmt(t_forward)}, fwd+bwd {fmt(t_backward)}, "
+            line.append(f"sample_chunk {chunk:g}: forward {fmt(t_forward)}, fwd+bwd {fmt(t_backward)}, "
                         f"{t_backward / hard_culled:.2f}x the hard forward")
             rows.append({"faces": mesh.num_faces, "mode": "perturbed", "num_samples": 8, "cull_backfaces": True,
-                         "sample_budget": budget, "forward": t_forward, "forward_backward": t_backward, "hard_forward": hard_culled})
+                         "sample_chunk": chunk, "forward": t_forward, "forward_backward": t_backward, "hard_forward": hard_culled})
         print(f"back faces culled: hard forward {fmt(hard_culled)}; {random:.1%} of the pixels random; perturbed M=8 "
               + "; ".join(line) + "\n")
     # the defaults (4 faces per pixel, keep_best on, 16 samples at the first steps) and one change at a time

@@ -52,7 +52,7 @@ MODES = ("hard", "soft", "perturbed")
 
 # A pixel whose perturbed samples differ from its hard value with probability at most this (per
 # sample, :meth:`Renderer.uncertainty`) is treated as certain: rendered hard, with no samples
-# (`Renderer.sample_budget`; the render-pose experiment's `pixel_chunk`).
+# (`Renderer.sample_chunk`; the render-pose experiment's `pixel_chunk`).
 NEGLIGIBLE = 1e-12
 
 # Signed distance given to empty candidate slots: never covered, whatever the noise.
@@ -66,6 +66,50 @@ def _slots(fragments: Fragments) -> tuple[Array, Array]:
         jnp.where(fragments.present, fragments.distance, -_NEVER),
         jnp.where(fragments.present, fragments.depth, 0.0),
     )
+
+
+def _random_pixel_weights(pixel, chunk, distance, depth, sigma, gamma, keys, order, chunks, hard_weights):
+    """(N, K+1) aggregation weights: `pixel(key, d, z, sigma, gamma)` at the rows order[:chunks *
+    chunk] (the random pixels, in chunks of `chunk`, the last one overlapping the one before
+    when `chunk` does not divide N), `hard_weights` at the others. A loop of a traced number of
+    chunks, which reverse mode cannot differentiate: a custom VJP loops again over the chunks,
+    each with its own VJP (distance, depth: (N, K); the derivatives with respect to sigma and
+    gamma are summed over the chunks; keys, order, chunks, hard_weights: none)."""
+    n = distance.shape[0]
+    position = jnp.arange(chunk)
+
+    def rows_of(order, c):
+        start = jnp.minimum(c * chunk, n - chunk)
+        return jax.lax.dynamic_slice(order, (start,), (chunk,)), start + position >= c * chunk  # rows, not yet drawn
+
+    def drawn(keys, d, z, s, g):
+        return jax.vmap(lambda key, d, z: pixel(key, d, z, s, g))(keys, d, z)
+
+    @jax.custom_vjp
+    def weights(d, z, s, g, keys, order, chunks, base):
+        def body(c, w):
+            rows, _ = rows_of(order, c)  # rows drawn before are drawn again, with the same keys
+            return w.at[rows].set(drawn(keys[rows], d[rows], z[rows], s, g))
+
+        return jax.lax.fori_loop(0, chunks, body, base)
+
+    def forward(d, z, s, g, keys, order, chunks, base):
+        return weights(d, z, s, g, keys, order, chunks, base), (d, z, s, g, keys, order, chunks)
+
+    def backward(residuals, cotangent):
+        d, z, s, g, keys, order, chunks = residuals
+
+        def body(c, total):
+            rows, fresh = rows_of(order, c)
+            _, vjp = jax.vjp(lambda dd, zz, ss, gg: drawn(keys[rows], dd, zz, ss, gg), d[rows], z[rows], s, g)
+            gd, gz, gs, gg = vjp(jnp.where(fresh[:, None], cotangent[rows], 0.0))
+            return total[0].at[rows].add(gd), total[1].at[rows].add(gz), total[2] + gs, total[3] + gg
+
+        zero = (jnp.zeros_like(d), jnp.zeros_like(z), jnp.zeros_like(s), jnp.zeros_like(g))
+        return (*jax.lax.fori_loop(0, chunks, body, zero), None, None, None, None)
+
+    weights.defvjp(forward, backward)
+    return weights(distance, depth, sigma, gamma, keys, order, chunks, hard_weights)
 
 
 class Image(eqx.Module):
@@ -114,15 +158,15 @@ class Renderer(eqx.Module):
             along the edges shared by two faces of a continuous surface; False (the default)
             smooths only the silhouette and boundary edges, where the image is discontinuous
             (see :func:`rsmooth.render.rasterize`). Hard rendering is the same either way.
-        sample_budget: the fraction of the pixels (of the image, or of `pixels`) at which the
-            perturbed renderer draws its samples (static; 1: all). The pixels whose change
-            probability (:meth:`uncertainty`) exceeds :data:`NEGLIGIBLE` draw them; the others
-            take their hard value, which every sample would give them, and a zero derivative
-            from the aggregation (their shading's remains): the same image and derivatives as
-            all pixels drawing samples, at a cost about proportional to the budget. When more
-            pixels than the budget are random, every pixel draws samples (a ``lax.cond``, so
-            under ``jax.vmap`` with a batched mesh both ways run: there, render chosen
-            `pixels` instead, as the render-pose experiment does).
+        sample_chunk: the perturbed renderer draws its samples only at the pixels whose change
+            probability (:meth:`uncertainty`) exceeds :data:`NEGLIGIBLE`, in chunks of this
+            fraction of the pixels (of the image, or of `pixels`), as many chunks as they fill
+            (static; 1, the default: every pixel draws samples, no selection). The other
+            pixels take their hard value, which every sample would give them, with a zero
+            derivative from the aggregation (their shading's remains): the same image and
+            derivatives, at a cost about proportional to the random pixels. A loop of a traced
+            number of chunks under a custom VJP: reverse mode, `jit` and `vmap` (which runs
+            the most chunks of the batch) work, forward mode (`jax.jvp`, `jacfwd`) does not.
         dilation: candidate faces lie within `dilation * sigma` pixels of the pixel centre
             (smoothed modes); the noise's tail beyond is dropped (heavy-tailed laws such as
             Cauchy need a larger dilation).
@@ -145,7 +189,7 @@ class Renderer(eqx.Module):
     clip_near: bool = eqx.field(static=True, default=False)
     interior_edges: bool = eqx.field(static=True, default=False)
     dilation: float = eqx.field(static=True, default=3.0, converter=float)
-    sample_budget: float = eqx.field(static=True, default=1.0, converter=float)
+    sample_chunk: float = eqx.field(static=True, default=1.0, converter=float)
     light: DirectionalLight = DirectionalLight()
     background: tuple[float, float, float] = eqx.field(static=True, default=(0.0, 0.0, 0.0), converter=_triple)
     background_depth: float = eqx.field(static=True, default=0.0, converter=float)
@@ -159,8 +203,8 @@ class Renderer(eqx.Module):
                 raise ValueError(f"{name} must be a positive number, got {value!r}")
         for name in ("num_samples", "faces_per_pixel", "faces_per_tile", "tile_size"):
             _checks.check_num_samples(getattr(self, name), name)
-        if not 0.0 < self.sample_budget <= 1.0:
-            raise ValueError(f"sample_budget must be in (0, 1] (a fraction of the pixels), got {self.sample_budget}")
+        if not 0.0 < self.sample_chunk <= 1.0:
+            raise ValueError(f"sample_chunk must be in (0, 1] (a fraction of the pixels), got {self.sample_chunk}")
         if not self.dilation >= 0:
             raise ValueError(f"dilation must be >= 0, got {self.dilation}")
         if self.faces_per_tile < self.faces_per_pixel:
@@ -246,7 +290,7 @@ class Renderer(eqx.Module):
             if pixels is not None:
                 keys = keys[pixels]
 
-            def pixel(key, d, z):
+            def pixel(key, d, z, sigma=sigma, gamma=gamma):
                 return perturbed_aggregate(
                     key, d, z, sigma=sigma, gamma=gamma, num_samples=self.num_samples,
                     coverage_noise=self.coverage_noise, depth_noise=self.depth_noise,
@@ -255,27 +299,21 @@ class Renderer(eqx.Module):
 
             flat_distance, flat_depth = distance.reshape(-1, k), depth.reshape(-1, k)
             num_pixels = flat_distance.shape[0]
-            budget = min(num_pixels, max(1, round(self.sample_budget * num_pixels)))
-
-            def everywhere():
-                return jax.vmap(pixel)(keys, flat_distance, flat_depth)
-
-            if budget == num_pixels:
-                weights = everywhere()
+            if self.sample_chunk >= 1.0:
+                weights = jax.vmap(pixel)(keys, flat_distance, flat_depth)
             else:
+                fixed = jax.lax.stop_gradient((flat_distance, flat_depth))
                 uncertainty = change_probability(
-                    flat_distance, flat_depth, sigma=sigma, gamma=gamma, coverage_noise=self.coverage_noise,
-                    depth_noise=self.depth_noise, background_depth=self.background_depth,
+                    *fixed, sigma=sigma, gamma=gamma, coverage_noise=self.coverage_noise, depth_noise=self.depth_noise,
+                    background_depth=self.background_depth,
                 )
-
-                def budgeted():
-                    _, random = jax.lax.top_k(uncertainty, budget)
-                    hard_weights = jax.lax.stop_gradient(hard_aggregate(flat_distance, flat_depth, self.background_depth))
-                    drawn = jax.vmap(pixel)(keys[random], flat_distance[random], flat_depth[random])
-                    return hard_weights.at[random].set(drawn)
-
-                fits = jnp.sum(uncertainty > NEGLIGIBLE) <= budget
-                weights = jax.lax.cond(fits, budgeted, everywhere)
+                order = jnp.argsort(-uncertainty)  # the random pixels first
+                chunk = min(num_pixels, max(1, round(self.sample_chunk * num_pixels)))
+                chunks = (jnp.sum(uncertainty > NEGLIGIBLE) + chunk - 1) // chunk
+                hard_weights = hard_aggregate(*fixed, self.background_depth)
+                weights = _random_pixel_weights(
+                    pixel, chunk, flat_distance, flat_depth, sigma, gamma, keys, order, chunks, hard_weights
+                )
             weights = weights.reshape(shape + (k + 1,))
         background = jnp.asarray(self.background, dtype)
         rgb = jnp.stack([sum_last(weights[..., :k] * color[c]) + weights[..., k] * background[c] for c in range(3)], axis=-1)

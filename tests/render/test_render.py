@@ -319,38 +319,51 @@ def test_rendering_some_pixels_gives_their_values_and_derivatives_in_the_whole_i
         np.testing.assert_allclose(np.asarray(jb), np.asarray(ja), rtol=1e-9, atol=1e-9)
 
 
-def test_sample_budget_gives_the_image_and_derivatives_of_samples_everywhere(getkey):
+def test_sample_chunk_gives_the_image_and_derivatives_of_samples_everywhere(getkey):
     # The pixels the noise cannot change take their hard value with no samples: the image and its
-    # derivatives are those of every pixel drawing samples (the same key per pixel), when the
-    # budget holds every random pixel (0.5) and when it does not (0.1: every pixel draws samples).
+    # derivatives are those of every pixel drawing samples (the same key per pixel), in chunks of
+    # 0.1 of the pixels (8 chunks) and of 0.6 (2 chunks, the second overlapping the first: the
+    # image has 1024 pixels), and in a vmapped batch of two poses.
     mesh = render.position_colors(render.cube(1.2))
     camera = render.look_at(jnp.array([0.0, 0.0, 4.0]), image_size=(SIZE, SIZE), fov=40.0, near=2.0, far=6.0)
-    options = dict(mode="perturbed", sigma=0.7, gamma=0.01, num_samples=8, faces_per_pixel=4, faces_per_tile=32, cull_backfaces=True)
+    options = dict(mode="perturbed", sigma=1.5, gamma=0.01, num_samples=8, faces_per_pixel=4, faces_per_tile=32, cull_backfaces=True)
     r0 = render.axis_angle_to_matrix(jnp.array([0.4, 0.5, 0.2]))
-    random = jnp.mean(render.Renderer(**options).uncertainty(render.transform_mesh(mesh, r0), camera) > render.NEGLIGIBLE)
-    assert 0.1 < float(random) < 0.5  # the premise: the budget 0.5 holds the random pixels, 0.1 does not
     key, t = getkey(), jnp.array([0.03, -0.02, 0.0])
+    ts = jnp.stack([t, jnp.array([0.3, 0.1, -0.2])])
+    for pose in ts:  # the premise: between 0.6 and 0.8 of the pixels are random
+        random = render.Renderer(**options).uncertainty(render.transform_mesh(mesh, r0, pose), camera) > render.NEGLIGIBLE
+        assert 0.6 < float(jnp.mean(random)) < 0.8
     weights = jax.random.normal(jax.random.key(1), (SIZE, SIZE, 4))  # a random direction of the image
 
-    def image_and_gradient(budget):
-        renderer = render.Renderer(**options, sample_budget=budget)
+    def image_and_gradient(chunk):
+        renderer = render.Renderer(**options, sample_chunk=chunk)
 
         def projected(t):
             out = renderer(key, render.transform_mesh(mesh, r0, t), camera)
             out = jnp.concatenate([out.rgb, out.alpha[..., None]], axis=-1)
             return jnp.sum(weights * out), out
 
-        (_, out), grad = jax.jit(jax.value_and_grad(projected, has_aux=True))(t)
+        return jax.value_and_grad(projected, has_aux=True)
+
+    def run(fn, t):
+        (_, out), grad = jax.jit(fn)(t)
         return out, grad
 
-    a, ga = image_and_gradient(1.0)
+    a, ga = run(image_and_gradient(1.0), t)
     assert float(jnp.max(jnp.abs(ga))) > 0.1
-    for budget in (0.5, 0.1):
-        b, gb = image_and_gradient(budget)
+    for chunk in (0.1, 0.6):
+        b, gb = run(image_and_gradient(chunk), t)
         np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(np.asarray(gb), np.asarray(ga), rtol=1e-9, atol=1e-12)
-    with pytest.raises(ValueError, match=r"sample_budget must be in \(0, 1\]"):
-        render.Renderer(sample_budget=0.0)
+    # batched: the poses' random pixels differ
+    outs, grads = run(jax.vmap(image_and_gradient(0.6)), ts)
+    np.testing.assert_allclose(np.asarray(outs[0]), np.asarray(b), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(grads[0]), np.asarray(gb), rtol=1e-9, atol=1e-12)
+    other, g_other = run(image_and_gradient(1.0), ts[1])
+    np.testing.assert_allclose(np.asarray(outs[1]), np.asarray(other), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(grads[1]), np.asarray(g_other), rtol=1e-9, atol=1e-12)
+    with pytest.raises(ValueError, match=r"sample_chunk must be in \(0, 1\]"):
+        render.Renderer(sample_chunk=0.0)
 
 
 def test_bad_pixel_indices_are_named():
