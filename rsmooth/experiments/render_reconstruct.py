@@ -64,7 +64,7 @@ first_gradient_norm (norm of the silhouette loss' gradient with respect to the o
 first step: exactly 0 for hard) and seconds_per_step (wall time of one Adam step of the batch of
 all targets); 'initial', the same scores for the undeformed icosphere; also methods, targets,
 views, steps, image_size, subdivisions, num_vertices, num_faces, voxel_resolution,
-chamfer_points, num_samples and baseline (perturbed), laplacian_weight, flatten_weight, target_faces."""
+chamfer_points, num_samples, sample_chunk and baseline (perturbed), laplacian_weight, flatten_weight, target_faces."""
 
 METHODS = ("perturbed-gaussian", "soft", "hard")
 
@@ -105,6 +105,11 @@ class Config:
     baseline: bool | str = True
     faces_per_pixel: int = 8
     faces_per_tile: int = 64
+    # the perturbed renderer draws its samples at the random pixels alone (a quarter of a view's
+    # at the start, fewer as the noise decreases), in chunks of this fraction of a view's pixels
+    # (rsmooth.render.Renderer.sample_chunk; 1: every pixel): the same images and gradients.
+    # Cube and upper leg, 8 views at 64 x 64, one core: 0.22 s per step against 0.37
+    sample_chunk: float = 0.125
     decay_factor: float = 2.0
     momentum: float = 0.9
     noise_floor: float = 0.1  # smallest noise scale factor
@@ -191,7 +196,7 @@ def make_renderer(config: Config, method: str) -> render.Renderer:
     if method == "perturbed-gaussian":
         return render.Renderer(
             mode="perturbed", num_samples=config.num_samples, coverage_noise=noise.Gaussian(), baseline=config.baseline,
-            **common,
+            sample_chunk=config.sample_chunk, **common,
         )
     raise ValueError(f"unknown method {method!r}; choose from {METHODS}")
 
@@ -377,6 +382,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "voxel_resolution": config.voxel_resolution,
         "chamfer_points": config.chamfer_points,
         "num_samples": config.num_samples,
+        "sample_chunk": config.sample_chunk,
         "baseline": config.baseline,
         "laplacian_weight": config.laplacian_weight,
         "flatten_weight": config.flatten_weight,
