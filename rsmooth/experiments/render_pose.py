@@ -125,9 +125,6 @@ pose_noise_until (the fraction of the steps at which that noise has faded to 0),
 restart_loss, average_decay and baseline (see Config)."""
 
 METHODS = ("perturbed-gaussian", "perturbed-cauchy", "soft", "hard")
-# a pixel whose samples differ from its hard value with probability at most this (per sample,
-# Renderer.uncertainty) is rendered hard (Config.pixel_chunk)
-_CERTAIN = render.NEGLIGIBLE
 
 
 @dataclasses.dataclass(frozen=True)
@@ -384,8 +381,12 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
             params = noisy_pose(params, scale, k_pose if pose_key is None else pose_key, t, sign)
         return image_loss(params, scale, key, target, r_init)
 
-    def hard_loss(params, target, r_init):
+    def hard_loss(params, target, r_init, weight=None):
+        """image_loss of the hard render; with an (H, W) `weight`, each pixel's squared error
+        times its weight."""
         image = hard(None, posed_mesh(params, r_init), cam)
+        if weight is not None:
+            return jnp.sum(weight[..., None] * (image.rgb - target) ** 2) / target.size
         return jnp.mean((image.rgb - target) ** 2)
 
     def init(offset):
@@ -401,12 +402,7 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
     chunked = method.startswith("perturbed") and config.pixel_chunk < 1.0
     chunk = min(num_pixels, max(1, round(config.pixel_chunk * num_pixels)))
 
-    def hard_image_loss(params, target, r_init, weight):
-        """image_loss of the hard render, each pixel's squared error times its (H, W) weight."""
-        image = hard(None, posed_mesh(params, r_init), cam)
-        return jnp.sum(weight[..., None] * (image.rgb - target) ** 2) / target.size
-
-    hard_value_and_grad = jax.value_and_grad(hard_image_loss)
+    hard_value_and_grad = jax.value_and_grad(hard_loss)
 
     def estimate(params, sched, key, target, r_init, t):
         """The loss and its gradients (params, noise scale) from one render of num_samples
@@ -436,7 +432,7 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
 
     def chunked_estimate(params, sched, key, target, r_init, t):
         """estimate() whose perturbed renders draw only the random pixels of their pose (those
-        whose samples may differ from the hard pixel: Renderer.uncertainty > _CERTAIN), in
+        whose samples may differ from the hard pixel: Renderer.uncertainty > render.NEGLIGIBLE), in
         chunks of `chunk` pixels, as many as they fill; the other pixels, whose value and
         derivative are the hard pixel's in every sample, come from one hard render of the pose.
         Without pose noise this is estimate() with the same keys per pixel (a test). The poses
@@ -454,7 +450,6 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
         # for 3 and 9 renders)
         renders = passes // poses
         share = 1.0 / renders.astype(target.dtype)
-        position = jnp.arange(chunk)
 
         def one_pose(g, total):
             if pose_key is None:
@@ -467,19 +462,16 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
             uncertainty = renderer.uncertainty(
                 jax.lax.stop_gradient(posed_mesh(noisy, r_init)), cam, sigma=scale * renderer.sigma, gamma=scale * renderer.gamma
             ).reshape(-1)
-            order = jnp.argsort(-uncertainty)  # the random pixels first
-            drawn = jnp.sum(uncertainty > _CERTAIN)
-            chunks = (drawn + chunk - 1) // chunk
+            order, chunks = render.random_pixel_chunks(uncertainty, chunk)
             drawn = jnp.minimum(chunks * chunk, num_pixels)  # the last chunk is whole
             rank = jnp.zeros(num_pixels, order.dtype).at[order].set(jnp.arange(num_pixels, dtype=order.dtype))
             loss, grad = hard_value_and_grad(noisy, target, r_init, (rank >= drawn).astype(target.dtype).reshape(height, width))
             total = jax.tree.map(jnp.add, total, (loss, (grad, jnp.zeros_like(scale))))
 
             def one_render(j, total):
-                c, i = j // renders, j % renders
-                start = jnp.minimum(c * chunk, num_pixels - chunk)  # the last chunk may overlap the one before
-                pixels = jax.lax.dynamic_slice(order, (start,), (chunk,))
-                weight = jnp.where(start + position >= c * chunk, share, 0.0)
+                pixels, fresh = render.chunk_rows(order, j // renders, chunk)
+                i = j % renders
+                weight = jnp.where(fresh, share, 0.0)
                 render_key = jax.lax.cond(i == 0, lambda: k, lambda: jax.random.fold_in(k, i))
                 out = image_value_and_grads(noisy, scale, render_key, target, r_init, pixels, weight)
                 return jax.tree.map(jnp.add, total, out)

@@ -50,13 +50,15 @@ from rsmooth.render._raster import (
     rasterize,
     signed_distance,
 )
-from rsmooth.render._renderer import MODES, NEGLIGIBLE, Image, Renderer
+from rsmooth.render._renderer import MODES, NEGLIGIBLE, Image, Renderer, chunk_rows, random_pixel_chunks
 from rsmooth.render._shade import DirectionalLight, shade_faces
 
 __all__ = [
     "COVERAGE_MODES",
     "MODES",
     "NEGLIGIBLE",
+    "chunk_rows",
+    "random_pixel_chunks",
     "Camera",
     "DirectionalLight",
     "Fragments",

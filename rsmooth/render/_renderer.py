@@ -46,7 +46,7 @@ from rsmooth.render._mesh import Mesh
 from rsmooth.render._raster import Fragments, rasterize
 from rsmooth.render._shade import DirectionalLight, _triple, shade_faces
 
-__all__ = ["Image", "Renderer", "MODES", "NEGLIGIBLE"]
+__all__ = ["Image", "Renderer", "MODES", "NEGLIGIBLE", "random_pixel_chunks", "chunk_rows"]
 
 MODES = ("hard", "soft", "perturbed")
 
@@ -68,6 +68,22 @@ def _slots(fragments: Fragments) -> tuple[Array, Array]:
     )
 
 
+def random_pixel_chunks(uncertainty: Array, chunk: int) -> tuple[Array, Array]:
+    """(order, num_chunks): the (N,) pixels by decreasing `uncertainty` (:meth:`Renderer.uncertainty`,
+    flattened), and how many chunks of `chunk` of them hold every pixel whose uncertainty exceeds
+    :data:`NEGLIGIBLE` (see :func:`chunk_rows`)."""
+    order = jnp.argsort(-uncertainty)
+    return order, (jnp.sum(uncertainty > NEGLIGIBLE) + chunk - 1) // chunk
+
+
+def chunk_rows(order: Array, index: ArrayLike, chunk: int) -> tuple[Array, Array]:
+    """(rows, fresh): chunk `index` of `order`, `chunk` entries from ``index * chunk``, or the last
+    `chunk` entries where fewer remain; `fresh` marks those not in an earlier chunk (the last
+    chunk overlaps the one before when `chunk` does not divide the length)."""
+    start = jnp.minimum(index * chunk, order.shape[0] - chunk)
+    return jax.lax.dynamic_slice(order, (start,), (chunk,)), start + jnp.arange(chunk) >= index * chunk
+
+
 def _random_pixel_weights(pixel, chunk, distance, depth, sigma, gamma, keys, order, chunks, hard_weights):
     """(N, K+1) aggregation weights: `pixel(key, d, z, sigma, gamma)` at the rows order[:chunks *
     chunk] (the random pixels, in chunks of `chunk`, the last one overlapping the one before
@@ -75,20 +91,13 @@ def _random_pixel_weights(pixel, chunk, distance, depth, sigma, gamma, keys, ord
     chunks, which reverse mode cannot differentiate: a custom VJP loops again over the chunks,
     each with its own VJP (distance, depth: (N, K); the derivatives with respect to sigma and
     gamma are summed over the chunks; keys, order, chunks, hard_weights: none)."""
-    n = distance.shape[0]
-    position = jnp.arange(chunk)
-
-    def rows_of(order, c):
-        start = jnp.minimum(c * chunk, n - chunk)
-        return jax.lax.dynamic_slice(order, (start,), (chunk,)), start + position >= c * chunk  # rows, not yet drawn
-
     def drawn(keys, d, z, s, g):
         return jax.vmap(lambda key, d, z: pixel(key, d, z, s, g))(keys, d, z)
 
     @jax.custom_vjp
     def weights(d, z, s, g, keys, order, chunks, base):
         def body(c, w):
-            rows, _ = rows_of(order, c)  # rows drawn before are drawn again, with the same keys
+            rows, _ = chunk_rows(order, c, chunk)  # rows drawn before are drawn again, with the same keys
             return w.at[rows].set(drawn(keys[rows], d[rows], z[rows], s, g))
 
         return jax.lax.fori_loop(0, chunks, body, base)
@@ -100,7 +109,7 @@ def _random_pixel_weights(pixel, chunk, distance, depth, sigma, gamma, keys, ord
         d, z, s, g, keys, order, chunks = residuals
 
         def body(c, total):
-            rows, fresh = rows_of(order, c)
+            rows, fresh = chunk_rows(order, c, chunk)
             _, vjp = jax.vjp(lambda dd, zz, ss, gg: drawn(keys[rows], dd, zz, ss, gg), d[rows], z[rows], s, g)
             gd, gz, gs, gg = vjp(jnp.where(fresh[:, None], cotangent[rows], 0.0))
             return total[0].at[rows].add(gd), total[1].at[rows].add(gz), total[2] + gs, total[3] + gg
@@ -307,9 +316,8 @@ class Renderer(eqx.Module):
                     *fixed, sigma=sigma, gamma=gamma, coverage_noise=self.coverage_noise, depth_noise=self.depth_noise,
                     background_depth=self.background_depth,
                 )
-                order = jnp.argsort(-uncertainty)  # the random pixels first
                 chunk = min(num_pixels, max(1, round(self.sample_chunk * num_pixels)))
-                chunks = (jnp.sum(uncertainty > NEGLIGIBLE) + chunk - 1) // chunk
+                order, chunks = random_pixel_chunks(uncertainty, chunk)
                 hard_weights = hard_aggregate(*fixed, self.background_depth)
                 weights = _random_pixel_weights(
                     pixel, chunk, flat_distance, flat_depth, sigma, gamma, keys, order, chunks, hard_weights

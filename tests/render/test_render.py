@@ -319,6 +319,22 @@ def test_rendering_some_pixels_gives_their_values_and_derivatives_in_the_whole_i
         np.testing.assert_allclose(np.asarray(jb), np.asarray(ja), rtol=1e-9, atol=1e-9)
 
 
+def test_random_pixel_chunks_cover_each_random_pixel_once():
+    uncertainty = jnp.array([0.0, 0.3, 1e-13, 0.5, 2e-12, 0.0, 0.9, 1e-3, 0.0, 0.2])  # 6 above 1e-12
+    order, chunks = render.random_pixel_chunks(uncertainty, 4)
+    assert int(chunks) == 2
+    np.testing.assert_array_equal(np.asarray(order[:6]), [6, 3, 1, 9, 7, 4])
+    fresh_rows = []
+    for chunk in (4, 3):  # 3 chunks of 4 overlap at the end (10 rows), 4 of 3 too (12)
+        fresh_rows = []
+        for c in range(-(-10 // chunk)):
+            rows, fresh = render.chunk_rows(order, c, chunk)
+            assert rows.shape == (chunk,)
+            fresh_rows += np.asarray(rows)[np.asarray(fresh)].tolist()
+        assert sorted(fresh_rows) == list(range(10))  # each row once, in order
+        assert fresh_rows == np.asarray(order).tolist()
+
+
 def test_sample_chunk_gives_the_image_and_derivatives_of_samples_everywhere(getkey):
     # The pixels the noise cannot change take their hard value with no samples: the image and its
     # derivatives are those of every pixel drawing samples (the same key per pixel), in chunks of
