@@ -463,15 +463,14 @@ def make_solver(config: Config, method: str, mesh: render.Mesh, cam: render.Came
                 jax.lax.stop_gradient(posed_mesh(noisy, r_init)), cam, sigma=scale * renderer.sigma, gamma=scale * renderer.gamma
             ).reshape(-1)
             order, chunks = render.random_pixel_chunks(uncertainty, chunk)
-            drawn = jnp.minimum(chunks * chunk, num_pixels)  # the last chunk is whole
-            rank = jnp.zeros(num_pixels, order.dtype).at[order].set(jnp.arange(num_pixels, dtype=order.dtype))
-            loss, grad = hard_value_and_grad(noisy, target, r_init, (rank >= drawn).astype(target.dtype).reshape(height, width))
+            random = uncertainty > render.NEGLIGIBLE  # the chunks' pixels count where random, the hard render's elsewhere
+            loss, grad = hard_value_and_grad(noisy, target, r_init, (~random).astype(target.dtype).reshape(height, width))
             total = jax.tree.map(jnp.add, total, (loss, (grad, jnp.zeros_like(scale))))
 
             def one_render(j, total):
                 pixels, fresh = render.chunk_rows(order, j // renders, chunk)
                 i = j % renders
-                weight = jnp.where(fresh, share, 0.0)
+                weight = jnp.where(fresh & random[pixels], share, 0.0)
                 render_key = jax.lax.cond(i == 0, lambda: k, lambda: jax.random.fold_in(k, i))
                 out = image_value_and_grads(noisy, scale, render_key, target, r_init, pixels, weight)
                 return jax.tree.map(jnp.add, total, out)
