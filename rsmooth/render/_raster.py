@@ -645,7 +645,34 @@ def _triangle_fragments(
     gathered per vertex and coordinate as (H, W, K) arrays (see _edge_geometry_xy)."""
     screen, z_faces, depth_vertices, valid = projected
     edges = None if interior_edges else _silhouette_edges(mesh, camera, valid)
+    return triangle_fragments_at((screen, depth_vertices, z_faces), edges, face_index, qx, qy)
+
+
+def triangle_geometry(
+    mesh: Mesh, camera: Camera, cull_backfaces: bool, interior_edges: bool
+) -> tuple[tuple[Array, Array, Array], Array | None]:
+    """(geometry, edges): what :func:`triangle_fragments_at` takes, the projected faces
+    (pixel coordinates (F, 3, 2), normalized inverse depths (F, 3), camera depths (F, 3)),
+    differentiable, and the (F, 3) flags of the edges that count for the distances (None with
+    `interior_edges`), as :func:`rasterize` (without `clip_near`) computes its fragments."""
+    screen, z_faces, depth_vertices, valid = project_faces(mesh, camera, cull_backfaces)
+    edges = None if interior_edges else _silhouette_edges(mesh, camera, valid)
+    return (screen, depth_vertices, z_faces), edges
+
+
+def triangle_fragments_at(geometry, edges, face_index, qx, qy) -> tuple[Array, Array, Array]:
+    """Signed distance, depth and perspective-correct weights of the faces `face_index` at the
+    pixel centres (qx, qy) (broadcast against it), from :func:`triangle_geometry`'s output: the
+    fragments of :func:`rasterize` (without `clip_near`), recomputed where wanted (the renderer's
+    `sample_chunk` differentiates them at the sampled pixels alone)."""
+    screen, depth_vertices, z_faces = geometry
     return _fragment_geometry(screen, depth_vertices, z_faces, edges, face_index, qx, qy)
+
+
+def pixel_centres(pixels: Array, width: int, dtype) -> tuple[Array, Array]:
+    """(x, y), each (P, 1): the centres of the flat pixel indices `pixels` of an image `width`
+    pixels wide."""
+    return (pixels % width).astype(dtype)[:, None] + 0.5, (pixels // width).astype(dtype)[:, None] + 0.5
 
 
 class _FragmentTerms(NamedTuple):
@@ -1169,8 +1196,7 @@ def rasterize(
     else:
         face_index = face_index.reshape(height * width, -1)[pixels]
         present = present.reshape(height * width, -1)[pixels]
-        qx = (pixels % width).astype(dtype)[:, None] + 0.5
-        qy = (pixels // width).astype(dtype)[:, None] + 0.5
+        qx, qy = pixel_centres(pixels, width, dtype)
     if clip_near:
         distance, depth, weights = _clipped_fragments(mesh, camera, clipped, face_index, qx, qy, interior_edges)
         near_culled = jnp.zeros_like(tile_overflow)

@@ -323,7 +323,7 @@ def test_random_pixel_chunks_cover_each_random_pixel_once():
     uncertainty = jnp.array([0.0, 0.3, 1e-13, 0.5, 2e-12, 0.0, 0.9, 1e-3, 0.0, 0.2])  # 6 above 1e-12
     order, chunks = render.random_pixel_chunks(uncertainty, 4)
     assert int(chunks) == 2
-    np.testing.assert_array_equal(np.asarray(order[:6]), [6, 3, 1, 9, 7, 4])
+    np.testing.assert_array_equal(np.asarray(order), [1, 3, 4, 6, 7, 9, 0, 2, 5, 8])  # random first
     fresh_rows = []
     for chunk in (4, 3):  # 3 chunks of 4 overlap at the end (10 rows), 4 of 3 too (12)
         fresh_rows = []
@@ -351,8 +351,8 @@ def test_sample_chunk_gives_the_image_and_derivatives_of_samples_everywhere(getk
         assert 0.6 < float(jnp.mean(random)) < 0.8
     weights = jax.random.normal(jax.random.key(1), (SIZE, SIZE, 4))  # a random direction of the image
 
-    def image_and_gradient(chunk):
-        renderer = render.Renderer(**options, sample_chunk=chunk)
+    def image_and_gradient(chunk, **changes):
+        renderer = render.Renderer(**{**options, **changes}, sample_chunk=chunk)
 
         def projected(t):
             out = renderer(key, render.transform_mesh(mesh, r0, t), camera)
@@ -378,6 +378,13 @@ def test_sample_chunk_gives_the_image_and_derivatives_of_samples_everywhere(getk
     other, g_other = run(image_and_gradient(1.0), ts[1])
     np.testing.assert_allclose(np.asarray(outs[1]), np.asarray(other), rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(np.asarray(grads[1]), np.asarray(g_other), rtol=1e-9, atol=1e-12)
+    # the fragments' derivatives are recomputed at the sampled pixels (distances to every edge
+    # here), or taken from the whole image's (near-plane clipping)
+    for changes in ({"interior_edges": True}, {"clip_near": True}):
+        a, ga = run(image_and_gradient(1.0, **changes), t)
+        b, gb = run(image_and_gradient(0.6, **changes), t)
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(gb), np.asarray(ga), rtol=1e-9, atol=1e-12)
     with pytest.raises(ValueError, match=r"sample_chunk must be in \(0, 1\]"):
         render.Renderer(sample_chunk=0.0)
 
