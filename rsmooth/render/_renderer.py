@@ -71,21 +71,6 @@ def _slot_values(present: Array, distance: Array, depth: Array) -> tuple[Array, 
     return jnp.where(present, distance, -_NEVER), jnp.where(present, depth, 0.0)
 
 
-def _triangle_slots_at(geometry, aux, rows: Array) -> tuple[Array, Array]:
-    """The slots (:func:`_slots`) of the flat pixels `rows`, recomputed from the projected faces
-    (`geometry`, differentiable; aux: the edge flags, the (N, K) candidates and their presence,
-    and the (N, 1) pixel centres)."""
-    edges, face_index, present, qx, qy = aux
-    distance, depth, _ = triangle_fragments_at(geometry, edges, face_index[rows], qx[rows], qy[rows])
-    return _slot_values(present[rows], distance, depth)
-
-
-def _gathered_slots_at(geometry, aux, rows: Array) -> tuple[Array, Array]:
-    """The slots of the flat pixels `rows`, gathered (geometry: the (N, K) slots themselves)."""
-    del aux
-    return geometry[0][rows], geometry[1][rows]
-
-
 def random_pixel_chunks(uncertainty: Array, chunk: int) -> tuple[Array, Array]:
     """(order, num_chunks): the (N,) pixels whose `uncertainty` (:meth:`Renderer.uncertainty`,
     flattened) exceeds :data:`NEGLIGIBLE` first, then the others, each in image order; and how
@@ -107,45 +92,69 @@ def chunk_rows(order: Array, index: ArrayLike, chunk: int) -> tuple[Array, Array
     return jax.lax.dynamic_slice(order, (start,), (chunk,)), start + jnp.arange(chunk) >= index * chunk
 
 
-def _random_pixel_weights(pixel, chunk, slots_at, geometry, aux, slots, sigma, gamma, keys, order, chunks, hard_weights):
-    """(N, K+1) aggregation weights: `pixel(key, d, z, sigma, gamma)` at the rows order[:chunks *
-    chunk] (the random pixels, in chunks of `chunk`, the last one overlapping the one before
-    when `chunk` does not divide N), `hard_weights` at the others.
+def _random_pixel_outputs(outputs_at, params, aux, sigma, gamma, keys, order, chunks, chunk, base):
+    """(N, C) per-pixel outputs: ``outputs_at(params, aux, keys[rows], rows, sigma, gamma)`` at the
+    rows order[:chunks * chunk] (the random pixels, in chunks of `chunk`, the last one
+    overlapping the one before when `chunk` does not divide N), `base` at the others.
 
-    `slots`: the (N, K) distances and depths, values only; ``slots_at(geometry, aux, rows)``:
-    the same at `rows`, differentiable in `geometry` (the projected faces: the derivatives of
-    the fragments are then computed at the sampled pixels alone, not at every pixel of the
-    image; or the slots themselves). A loop of a traced number of chunks, which reverse mode
-    cannot differentiate: a custom VJP loops again over the chunks, each with its own VJP
-    through `slots_at` (the derivatives with respect to `geometry`, sigma and gamma are summed
-    over the chunks; aux, slots, keys, order, chunks, hard_weights: none)."""
-    def drawn(keys, d, z, s, g):
-        return jax.vmap(lambda key, d, z: pixel(key, d, z, s, g))(keys, d, z)
-
+    A loop of a traced number of chunks, which reverse mode cannot differentiate: a custom VJP
+    loops again over the chunks, each with its own VJP (the derivatives with respect to
+    `params`, sigma and gamma are summed over the chunks, `base`'s are the cotangent where no
+    chunk drew; aux, keys, order, chunks: none). `outputs_at` computes everything it needs at
+    the rows, from `params`: the fragments' derivatives are then taken at the sampled pixels
+    alone (recomputed there in the backward pass)."""
     @jax.custom_vjp
-    def weights(geometry, s, g, aux, slots, keys, order, chunks, base):
-        def body(c, w):
+    def outputs(params, s, g, base, aux, keys, order, chunks):
+        def body(c, out):
             rows, _ = chunk_rows(order, c, chunk)  # rows drawn before are drawn again, with the same keys
-            return w.at[rows].set(drawn(keys[rows], slots[0][rows], slots[1][rows], s, g))
+            return out.at[rows].set(outputs_at(params, aux, keys[rows], rows, s, g))
 
         return jax.lax.fori_loop(0, chunks, body, base)
 
-    def forward(geometry, s, g, aux, slots, keys, order, chunks, base):
-        return weights(geometry, s, g, aux, slots, keys, order, chunks, base), (geometry, s, g, aux, keys, order, chunks)
+    def forward(params, s, g, base, aux, keys, order, chunks):
+        return outputs(params, s, g, base, aux, keys, order, chunks), (params, s, g, aux, keys, order, chunks)
 
     def backward(residuals, cotangent):
-        geometry, s, g, aux, keys, order, chunks = residuals
+        params, s, g, aux, keys, order, chunks = residuals
 
-        def body(c, total):
+        def body(c, carry):
+            total, rest = carry
             rows, fresh = chunk_rows(order, c, chunk)
-            _, vjp = jax.vjp(lambda geo, ss, gg: drawn(keys[rows], *slots_at(geo, aux, rows), ss, gg), geometry, s, g)
-            return jax.tree.map(jnp.add, total, vjp(jnp.where(fresh[:, None], cotangent[rows], 0.0)))
+            _, vjp = jax.vjp(lambda p, ss, gg: outputs_at(p, aux, keys[rows], rows, ss, gg), params, s, g)
+            total = jax.tree.map(jnp.add, total, vjp(jnp.where(fresh[:, None], cotangent[rows], 0.0)))
+            return total, rest.at[rows].set(0.0)
 
-        zero = jax.tree.map(jnp.zeros_like, (geometry, s, g))
-        return (*jax.lax.fori_loop(0, chunks, body, zero), None, None, None, None, None, None)
+        zero = jax.tree.map(jnp.zeros_like, (params, s, g))
+        total, rest = jax.lax.fori_loop(0, chunks, body, (zero, cotangent))
+        return (*total, rest, None, None, None, None)
 
-    weights.defvjp(forward, backward)
-    return weights(geometry, sigma, gamma, aux, slots, keys, order, chunks, hard_weights)
+    outputs.defvjp(forward, backward)
+    return outputs(params, sigma, gamma, base, aux, keys, order, chunks)
+
+
+def _face_colors(face_albedo, diffuse, specular, light_color, face, barycentric) -> list[Array]:
+    """3 x (..., K): the colours of the faces `face` (..., K) at the fragments' perspective-correct
+    `barycentric` weights (..., K, 3), from the faces' vertex albedos (F, 3, 3), diffuse
+    factors (F,) and specular RGB (F, 3). Per channel, with the sums over the 3 vertices
+    written out: no short reduction forward, and no broadcast of a per-pixel factor over the
+    channels, whose transpose in reverse mode is one (jaxlib 0.10's CPU reductions over short
+    axes are slow: rsmooth._unrolled; these took a third of a pose step)."""
+    albedo = face_albedo[face]  # (..., K, 3 vertices, 3 channels)
+    shade, highlight = diffuse[face], specular[face]  # (..., K), (..., K, 3)
+    bary = [barycentric[..., v] for v in range(3)]
+    return [
+        (bary[0] * albedo[..., 0, c] + bary[1] * albedo[..., 1, c] + bary[2] * albedo[..., 2, c]) * shade * light_color[c]
+        + highlight[..., c]
+        for c in range(3)
+    ]
+
+
+def _rgba(weights: Array, color: list[Array], background: Array) -> Array:
+    """(..., 4): the RGB composited by the aggregation `weights` (..., K + 1) of the K colours
+    (3 x (..., K)) and the background (last weight), and alpha, 1 - the background's weight."""
+    k = weights.shape[-1] - 1
+    rgb = [sum_last(weights[..., :k] * color[c]) + weights[..., k] * background[c] for c in range(3)]
+    return jnp.stack([*rgb, 1.0 - weights[..., k]], axis=-1)
 
 
 class Image(eqx.Module):
@@ -294,79 +303,110 @@ class Renderer(eqx.Module):
             if key is None:
                 raise ValueError("the perturbed renderer needs a PRNG key")
             _checks.check_key(key)
-        dtype = mesh.vertices.dtype
         sigma, gamma = self._levels(mesh, sigma, gamma)
-        hard = self.mode == "hard"
+        if self.mode == "perturbed" and self.sample_chunk < 1.0:
+            return self._sampled_at_random_pixels(key, mesh, camera, sigma, gamma, pixels)
         fragments = self.fragments(mesh, camera, sigma=sigma, gamma=gamma, pixels=pixels)
-        height, width = camera.image_size
         k = fragments.face_index.shape[-1]
-        shape = fragments.face_index.shape[:-1]  # (H, W), or (P,)
-
-        diffuse, specular = shade_faces(mesh, camera, self.light)
-        face = fragments.face_index
-        albedo = mesh.albedo()[mesh.faces][face]  # (H, W, K, 3 vertices, 3 channels)
-        shade, highlight = diffuse[face], specular[face]  # (H, W, K), (H, W, K, 3)
-        light_color = jnp.asarray(self.light.color, dtype)
-        bary = [fragments.barycentric[..., v] for v in range(3)]
-        # Per channel, with the sums over the 3 vertices and the K faces of a pixel written out:
-        # no short reduction forward, and no broadcast of a per-pixel factor over the channels,
-        # whose transpose in reverse mode is one (jaxlib 0.10's CPU reductions over short axes
-        # are slow: rsmooth._unrolled; these took a third of a pose step)
-        color = [
-            (bary[0] * albedo[..., 0, c] + bary[1] * albedo[..., 1, c] + bary[2] * albedo[..., 2, c])
-            * shade * light_color[c] + highlight[..., c]
-            for c in range(3)
-        ]  # 3 x (H, W, K)
-
+        color = _face_colors(*self._shading(mesh, camera), self._light_color(mesh), fragments.face_index, fragments.barycentric)
         distance, depth = _slots(fragments)
-        if hard:
+        if self.mode == "hard":
             weights = hard_aggregate(distance, depth, self.background_depth)
         elif self.mode == "soft":
             weights = soft_aggregate(distance, depth, sigma=sigma, gamma=gamma, background_depth=self.background_depth)
         else:
-            keys = jax.random.split(key, height * width)
-            if pixels is not None:
-                keys = keys[pixels]
+            pixel = self._pixel_weights(sigma, gamma)
+            flat = [a.reshape(-1, k) for a in (distance, depth)]
+            weights = jax.vmap(pixel)(self._pixel_keys(key, camera, pixels), *flat).reshape(distance.shape[:-1] + (k + 1,))
+        rgba = _rgba(weights, color, jnp.asarray(self.background, mesh.vertices.dtype))
+        return Image(rgb=rgba[..., :3], alpha=rgba[..., 3])
 
-            def pixel(key, d, z, sigma=sigma, gamma=gamma):
-                return perturbed_aggregate(
-                    key, d, z, sigma=sigma, gamma=gamma, num_samples=self.num_samples,
-                    coverage_noise=self.coverage_noise, depth_noise=self.depth_noise,
-                    background_depth=self.background_depth, baseline=self.baseline,
-                )
+    def _shading(self, mesh: Mesh, camera: Camera) -> tuple[Array, Array, Array]:
+        """The faces' vertex albedos (F, 3, 3), diffuse factors (F,) and specular RGB (F, 3)."""
+        return (mesh.albedo()[mesh.faces], *shade_faces(mesh, camera, self.light))
 
-            flat_distance, flat_depth = distance.reshape(-1, k), depth.reshape(-1, k)
-            num_pixels = flat_distance.shape[0]
-            if self.sample_chunk >= 1.0:
-                weights = jax.vmap(pixel)(keys, flat_distance, flat_depth)
-            else:
-                fixed = jax.lax.stop_gradient((flat_distance, flat_depth))
-                if self.clip_near:
-                    slots_at, geometry, aux = _gathered_slots_at, (flat_distance, flat_depth), None
-                else:
-                    # The fragments' distances and depths are differentiated at the sampled pixels
-                    # alone (recomputed there in the backward pass), not at every pixel: the
-                    # derivatives of the others' weights are zero.
-                    slots_at = _triangle_slots_at
-                    geometry, edges = triangle_geometry(mesh, camera, self.cull_backfaces, self.interior_edges)
-                    ids = jnp.arange(height * width) if pixels is None else check_pixels(pixels, height * width)
-                    face_index = jax.lax.stop_gradient(fragments.face_index).reshape(-1, k)
-                    present = fragments.present.reshape(-1, k)
-                    aux = (edges, face_index, present, *pixel_centres(ids, width, dtype))
-                uncertainty = change_probability(
-                    *fixed, sigma=sigma, gamma=gamma, coverage_noise=self.coverage_noise, depth_noise=self.depth_noise,
-                    background_depth=self.background_depth,
-                )
-                chunk = min(num_pixels, max(1, round(self.sample_chunk * num_pixels)))
-                order, chunks = random_pixel_chunks(uncertainty, chunk)
-                hard_weights = hard_aggregate(*fixed, self.background_depth)
-                weights = _random_pixel_weights(
-                    pixel, chunk, slots_at, geometry, aux, fixed, sigma, gamma, keys, order, chunks, hard_weights
-                )
-            weights = weights.reshape(shape + (k + 1,))
+    def _light_color(self, mesh: Mesh) -> Array:
+        return jnp.asarray(self.light.color, mesh.vertices.dtype)
+
+    def _pixel_keys(self, key: Array, camera: Camera, pixels: Array | None) -> Array:
+        """One key per pixel, the same for a pixel whether the image or `pixels` is rendered."""
+        height, width = camera.image_size
+        keys = jax.random.split(key, height * width)
+        return keys if pixels is None else keys[pixels]
+
+    def _pixel_weights(self, sigma: Array, gamma: Array):
+        """``pixel(key, d, z, sigma=sigma, gamma=gamma)``: one pixel's (K + 1) perturbed weights."""
+        def pixel(key, d, z, sigma=sigma, gamma=gamma):
+            return perturbed_aggregate(
+                key, d, z, sigma=sigma, gamma=gamma, num_samples=self.num_samples,
+                coverage_noise=self.coverage_noise, depth_noise=self.depth_noise,
+                background_depth=self.background_depth, baseline=self.baseline,
+            )
+
+        return pixel
+
+    def _sampled_at_random_pixels(self, key, mesh, camera, sigma, gamma, pixels) -> Image:
+        """The perturbed image with samples at the random pixels alone (`sample_chunk`): the
+        candidates' distances and depths of every pixel, values only, rank the pixels; the
+        random ones are drawn in chunks (`_random_pixel_outputs`), each chunk's fragments
+        recomputed there, with their derivatives; the others take their hard winner's colour,
+        whose fragment alone is recomputed, differentiably (K = 1: the other candidates'
+        barycentric weights and colours are not computed there)."""
+        height, width = camera.image_size
+        dtype = mesh.vertices.dtype
+        fragments = self.fragments(mesh, camera, sigma=sigma, gamma=gamma, pixels=pixels)
+        k = fragments.face_index.shape[-1]
+        shape = fragments.face_index.shape[:-1]  # (H, W), or (P,)
+        slots = [a.reshape(-1, k) for a in _slots(fragments)]
+        num_pixels = slots[0].shape[0]
+        fixed = jax.lax.stop_gradient(slots)
+        uncertainty = change_probability(
+            *fixed, sigma=sigma, gamma=gamma, coverage_noise=self.coverage_noise, depth_noise=self.depth_noise,
+            background_depth=self.background_depth,
+        )
+        chunk = min(num_pixels, max(1, round(self.sample_chunk * num_pixels)))
+        order, chunks = random_pixel_chunks(uncertainty, chunk)
+        hard_weights = hard_aggregate(*fixed, self.background_depth)  # (N, K + 1), one-hot
+        keys = self._pixel_keys(key, camera, pixels)
+        pixel = self._pixel_weights(sigma, gamma)
+        shading, light_color = self._shading(mesh, camera), self._light_color(mesh)
         background = jnp.asarray(self.background, dtype)
-        rgb = jnp.stack([sum_last(weights[..., :k] * color[c]) + weights[..., k] * background[c] for c in range(3)], axis=-1)
-        return Image(rgb=rgb, alpha=1.0 - weights[..., k])
+
+        def drawn(keys, d, z, s, g):
+            return jax.vmap(lambda key, d, z: pixel(key, d, z, s, g))(keys, d, z)
+
+        if self.clip_near:
+            # the clipped fragments of every pixel, differentiated there, gathered at the rows
+            color = [c.reshape(-1, k) for c in _face_colors(*shading, light_color, fragments.face_index, fragments.barycentric)]
+            params, aux = (slots, color), None
+            base = _rgba(hard_weights, color, background)
+
+            def outputs_at(params, aux, keys, rows, s, g):
+                (d, z), color = params
+                return _rgba(drawn(keys, d[rows], z[rows], s, g), [c[rows] for c in color], background)
+        else:
+            geometry, edges = triangle_geometry(mesh, camera, self.cull_backfaces, self.interior_edges)
+            ids = jnp.arange(height * width) if pixels is None else check_pixels(pixels, height * width)
+            qx, qy = pixel_centres(ids, width, dtype)
+            face_index = jax.lax.stop_gradient(fragments.face_index).reshape(-1, k)
+            params, aux = (geometry, shading), (edges, face_index, fragments.present.reshape(-1, k), qx, qy)
+
+            def outputs_at(params, aux, keys, rows, s, g):
+                geometry, shading = params
+                edges, face_index, present, qx, qy = aux
+                face = face_index[rows]
+                d, z, bary = triangle_fragments_at(geometry, edges, face, qx[rows], qy[rows])
+                weights = drawn(keys, *_slot_values(present[rows], d, z), s, g)
+                return _rgba(weights, _face_colors(*shading, light_color, face, bary), background)
+
+            winner = jnp.argmax(hard_weights, axis=-1)  # K: the background
+            face = jnp.take_along_axis(face_index, jnp.minimum(winner, k - 1)[:, None], axis=-1)  # (N, 1)
+            _, _, bary = triangle_fragments_at(geometry, edges, face, qx, qy)
+            covered = (winner < k).astype(dtype)[:, None]
+            base = _rgba(jnp.concatenate([covered, 1.0 - covered], axis=-1), _face_colors(*shading, light_color, face, bary), background)
+        rgba = _random_pixel_outputs(outputs_at, params, aux, sigma, gamma, keys, order, chunks, chunk, base)
+        rgba = rgba.reshape(shape + (4,))
+        return Image(rgb=rgba[..., :3], alpha=rgba[..., 3])
 
     def _levels(self, mesh: Mesh, sigma: ArrayLike | None, gamma: ArrayLike | None) -> tuple[Array, Array]:
         """sigma and gamma of a call (the configured ones where None), in the mesh's dtype."""

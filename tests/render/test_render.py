@@ -1,5 +1,7 @@
 """The renderer: areas, occlusion, aggregation, derivatives, empty views, errors."""
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -338,17 +340,28 @@ def test_random_pixel_chunks_cover_each_random_pixel_once():
 def test_sample_chunk_gives_the_image_and_derivatives_of_samples_everywhere(getkey):
     # The pixels the noise cannot change take their hard value with no samples: the image and its
     # derivatives are those of every pixel drawing samples (the same key per pixel), in chunks of
-    # 0.1 of the pixels (8 chunks) and of 0.6 (2 chunks, the second overlapping the first: the
-    # image has 1024 pixels), and in a vmapped batch of two poses.
+    # 0.6 of the pixels (2 chunks, the second overlapping the first: the image has 1024 pixels),
+    # in a vmapped batch of two poses, and in chunks of 0.1 (3 chunks) with sigma = 0.5, where a
+    # tenth of the pixels are covered and certain: their colour is their hard winner's, with its
+    # shading's derivatives (its fragment recomputed alone, or gathered from the whole image's
+    # with near-plane clipping). The random pixels' fragments are recomputed in each chunk, with
+    # distances to every edge (interior_edges) or to the silhouette edges alone.
     mesh = render.position_colors(render.cube(1.2))
     camera = render.look_at(jnp.array([0.0, 0.0, 4.0]), image_size=(SIZE, SIZE), fov=40.0, near=2.0, far=6.0)
     options = dict(mode="perturbed", sigma=1.5, gamma=0.01, num_samples=8, faces_per_pixel=4, faces_per_tile=32, cull_backfaces=True)
     r0 = render.axis_angle_to_matrix(jnp.array([0.4, 0.5, 0.2]))
     key, t = getkey(), jnp.array([0.03, -0.02, 0.0])
     ts = jnp.stack([t, jnp.array([0.3, 0.1, -0.2])])
+    edges = {"interior_edges": True}
+
+    @functools.partial(jax.jit, static_argnums=0)
+    def random(renderer, t):
+        return renderer.uncertainty(render.transform_mesh(mesh, r0, t), camera) > render.NEGLIGIBLE
+
     for pose in ts:  # the premise: between 0.6 and 0.8 of the pixels are random
-        random = render.Renderer(**options).uncertainty(render.transform_mesh(mesh, r0, pose), camera) > render.NEGLIGIBLE
-        assert 0.6 < float(jnp.mean(random)) < 0.8
+        assert 0.6 < float(jnp.mean(random(render.Renderer(**options, **edges), pose))) < 0.8
+    hard_alpha = jax.jit(lambda t: render.Renderer(mode="hard")(None, render.transform_mesh(mesh, r0, t), camera).alpha)(t)
+    assert float(jnp.mean(~random(render.Renderer(**{**options, "sigma": 0.5}), t) & (hard_alpha > 0))) > 0.08
     weights = jax.random.normal(jax.random.key(1), (SIZE, SIZE, 4))  # a random direction of the image
 
     def image_and_gradient(chunk, **changes):
@@ -359,32 +372,34 @@ def test_sample_chunk_gives_the_image_and_derivatives_of_samples_everywhere(getk
             out = jnp.concatenate([out.rgb, out.alpha[..., None]], axis=-1)
             return jnp.sum(weights * out), out
 
-        return jax.value_and_grad(projected, has_aux=True)
+        return jax.jit(jax.value_and_grad(projected, has_aux=True))
 
     def run(fn, t):
-        (_, out), grad = jax.jit(fn)(t)
-        return out, grad
+        (_, out), grad = fn(t)
+        return np.asarray(out), np.asarray(grad)
 
-    a, ga = run(image_and_gradient(1.0), t)
-    assert float(jnp.max(jnp.abs(ga))) > 0.1
-    for chunk in (0.1, 0.6):
-        b, gb = run(image_and_gradient(chunk), t)
-        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-12, atol=1e-12)
-        np.testing.assert_allclose(np.asarray(gb), np.asarray(ga), rtol=1e-9, atol=1e-12)
+    def check(b, gb, a, ga):
+        np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(gb, ga, rtol=1e-9, atol=1e-12)
+
+    everywhere = image_and_gradient(1.0, **edges)
+    a, ga = run(everywhere, t)
+    assert float(np.max(np.abs(ga))) > 0.1
+    b, gb = run(image_and_gradient(0.6, **edges), t)
+    check(b, gb, a, ga)
     # batched: the poses' random pixels differ
-    outs, grads = run(jax.vmap(image_and_gradient(0.6)), ts)
-    np.testing.assert_allclose(np.asarray(outs[0]), np.asarray(b), rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(grads[0]), np.asarray(gb), rtol=1e-9, atol=1e-12)
-    other, g_other = run(image_and_gradient(1.0), ts[1])
-    np.testing.assert_allclose(np.asarray(outs[1]), np.asarray(other), rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(grads[1]), np.asarray(g_other), rtol=1e-9, atol=1e-12)
-    # the fragments' derivatives are recomputed at the sampled pixels (distances to every edge
-    # here), or taken from the whole image's (near-plane clipping)
-    for changes in ({"interior_edges": True}, {"clip_near": True}):
-        a, ga = run(image_and_gradient(1.0, **changes), t)
-        b, gb = run(image_and_gradient(0.6, **changes), t)
-        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-12, atol=1e-12)
-        np.testing.assert_allclose(np.asarray(gb), np.asarray(ga), rtol=1e-9, atol=1e-12)
+    outs, grads = run(jax.vmap(image_and_gradient(0.6, **edges)), ts)
+    check(outs[0], grads[0], b, gb)
+    check(outs[1], grads[1], *run(everywhere, ts[1]))
+    a, ga = run(image_and_gradient(1.0, sigma=0.5), t)
+    for clip_near in (True, False):  # no face crosses the near plane: the same image either way
+        b, gb = run(image_and_gradient(0.1, sigma=0.5, clip_near=clip_near), t)
+        check(b, gb, a, ga)
+    # some pixels alone: the same values
+    pixels = jnp.arange(0, SIZE * SIZE, 3)
+    renderer = render.Renderer(**{**options, "sigma": 0.5}, sample_chunk=0.1)
+    some = jax.jit(lambda t: renderer(key, render.transform_mesh(mesh, r0, t), camera, pixels=pixels))(t)
+    np.testing.assert_allclose(np.asarray(some.rgba()), b.reshape(-1, 4)[pixels], rtol=1e-12, atol=1e-12)
     with pytest.raises(ValueError, match=r"sample_chunk must be in \(0, 1\]"):
         render.Renderer(sample_chunk=0.0)
 
