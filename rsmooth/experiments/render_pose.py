@@ -74,8 +74,8 @@ renders come at two opposite poses (+eps z, -eps z), and since session 33 its pe
 draw only the pixels their noise may change (`pixel_chunk`; the others, whose every sample is
 the hard pixel, from one hard render per pose: the same estimate). The cube from 20 / 50 / 80
 deg, 50 problems each: 96 / 86 / 72 % (one render per step: 96 / 80 / 68); with session 33's
-chunks, on all 100 of the default problems, 87 % from 50 deg and 77 % from 80 (the paper: 84 /
-67 perturbed, 75 / 55 SoftRas), at 0.09-0.10 s per problem-step against 0.16 (session 32) and
+chunks, on all 100 of the default problems, 98 / 87 / 77 % from 20 / 50 / 80 deg (the paper: 93 /
+84 / 67 perturbed, 84 / 75 / 55 SoftRas), at 0.09-0.10 s per problem-step against 0.16 (session 32) and
 0.27 (session 31's four whole renders). A run costs about the time of one whole render
 per step (`--sample-growth 1` turns growth off; benchmarks/RESULTS.md, sessions 32-33).
 

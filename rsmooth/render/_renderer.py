@@ -216,8 +216,8 @@ class Renderer(eqx.Module):
             fragments and colours are computed (and differentiated) in the chunks alone; the
             others' from their hard winner's fragment alone (with `clip_near`, the fragments of
             every pixel are differentiated). Use 1/8 for gradients: on a closed 1,280-face
-            sphere at 128 x 128 (back faces culled, M = 8) it cut forward + backward from 6.8x
-            to 2x the hard forward pass (benchmarks/RESULTS.md). A loop of a traced number of
+            sphere at 128 x 128 (back faces culled, M = 8, 15 % of the pixels random) it cut
+            forward + backward from 44 to 18.5 ms (2 cores; benchmarks/RESULTS.md). A loop of a traced number of
             chunks under a custom VJP: reverse mode, `jit` and `vmap` (which runs the most
             chunks of the batch) work, forward mode (`jax.jvp`, `jacfwd`) does not.
         dilation: candidate faces lie within `dilation * sigma` pixels of the pixel centre
