@@ -325,8 +325,8 @@ def render_reconstruct_command(
         None, "--method", help="perturbed-gaussian, soft or hard (repeatable; default all three)."),
     steps: Optional[int] = typer.Option(None, "--steps", min=1, help="Adam steps (default 200, quick 60)."),
     samples: Optional[int] = typer.Option(
-        None, "--samples", min=1, help="Monte-Carlo samples per pixel of the perturbed renderer (default 8; 32 fits "
-        "thin parts better at ~1.4x the time: see benchmarks/RESULTS.md)."),
+        None, "--samples", min=1, help="Monte-Carlo samples per pixel of the perturbed renderer (default 32, quick 8; "
+        "8 is 1.6x faster and fits thin parts worse: see benchmarks/RESULTS.md)."),
     sample_chunk: Optional[float] = typer.Option(
         None, "--sample-chunk", min=0.0, max=1.0, help="The perturbed renderer draws its samples at the pixels its "
         "noise may change alone, in chunks of this fraction of a view (the same images and gradients, faster; "
