@@ -157,8 +157,8 @@ def _mean_and_variance(a: Array, w: Array):
     """Mean over units i of the outer products a_i w_i^T, and the variance of that mean,
     entry by entry, without forming the (N, m, d) array of terms."""
     n = a.shape[0]
-    mean = jnp.einsum("im,id->md", a, w) / n
-    second = jnp.einsum("im,id->md", a**2, w**2) / n
+    mean = jnp.einsum("im,id->md", a, w, precision="highest") / n
+    second = jnp.einsum("im,id->md", a**2, w**2, precision="highest") / n
     if n == 1:
         return mean, jnp.full_like(mean, jnp.inf)
     variance = jnp.maximum(second - mean**2, 0.0) / (n - 1)
@@ -285,7 +285,7 @@ def _first_order_terms(z, values, jacobians, antithetic) -> _FlatEstimate:
         value=jnp.mean(values, axis=0),
         jacobian=jacobian,
         # d/dsigma f(x + sigma z) = grad f(x + sigma z) . z
-        sigma_grad=jnp.mean(jnp.einsum("imd,id->im", jacobians, z), axis=0),
+        sigma_grad=jnp.mean(jnp.einsum("imd,id->im", jacobians, z, precision="highest"), axis=0),
         variance=variance,
         max_score_norm=jnp.zeros((), z.dtype),
     )

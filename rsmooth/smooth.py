@@ -25,6 +25,7 @@ from jax.typing import ArrayLike
 
 from rsmooth import _checks
 from rsmooth import estimators as _est
+from rsmooth._xla import matmul as _matmul
 from rsmooth.noise import Gaussian, Noise
 
 __all__ = ["smooth", "smooth_elementwise", "ESTIMATORS"]
@@ -147,7 +148,7 @@ def _smoothed_flat(f_converted, num_consts, *, num_samples, estimator, noise, ba
             score = noise.score(z)
             centred = values - _est.baseline_values(values, baseline, lambda: f(x))
             # Linear in (x_dot, sigma_dot); the same weights as zeroth_order's (see there).
-            weights = (-(score @ x_dot) - sigma_dot * (jnp.sum(z * score, axis=-1) + x.shape[0])) / sigma
+            weights = (-_matmul(score, x_dot) - sigma_dot * (jnp.sum(z * score, axis=-1) + x.shape[0])) / sigma
             value = checked(jnp.mean(values, axis=0), x, values)
             tangent = jnp.mean(centred * weights[:, None], axis=0)
         elif estimator == "first":
@@ -163,7 +164,7 @@ def _smoothed_flat(f_converted, num_consts, *, num_samples, estimator, noise, ba
                 flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta
             )
             value = estimate.value
-            tangent = estimate.jacobian @ x_dot + estimate.sigma_grad * sigma_dot
+            tangent = _matmul(estimate.jacobian, x_dot) + estimate.sigma_grad * sigma_dot
         if num_consts:
             # Pathwise derivative with respect to the values f closes over.
             def consts_tangent(v):

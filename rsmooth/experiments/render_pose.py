@@ -314,7 +314,8 @@ def problems(config: Config, key, init_error_deg: float):
     r_true = jax.vmap(lambda k: render.quaternion_to_matrix(normal(k, (4,))))(jax.random.split(k_true, n))
     axis = normal(k_axis, (n, 3))
     axis = axis / jnp.linalg.norm(axis, axis=1, keepdims=True)
-    r_init = render.axis_angle_to_matrix(np.deg2rad(init_error_deg) * axis) @ r_true
+    r_init = render.axis_angle_to_matrix(np.deg2rad(init_error_deg) * axis)
+    r_init = jnp.matmul(r_init, r_true, precision="highest")
     offset = normal(k_trans, (n, 3))
     offset = config.init_translation * offset / jnp.linalg.norm(offset, axis=1, keepdims=True)
     if not config.optimize_translation:
@@ -537,7 +538,7 @@ def _renders_per_step(config: Config, num_samples):
 
 def _rotation(delta, r_init):
     """The pose's rotation: exp([delta]) r_init."""
-    return render.axis_angle_to_matrix(delta) @ r_init
+    return jnp.matmul(render.axis_angle_to_matrix(delta), r_init, precision="highest")
 
 
 def _degrees(r1, r2):

@@ -25,6 +25,8 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
+from rsmooth._xla import matmul as _matmul
+
 __all__ = [
     "Camera",
     "look_at",
@@ -68,7 +70,7 @@ def axis_angle_to_matrix(axis_angle: ArrayLike) -> Array:
         -2,
     )
     eye = jnp.broadcast_to(jnp.eye(3, dtype=v.dtype), k.shape)
-    return eye + a * k + b * (k @ k)
+    return eye + a * k + b * _matmul(k, k)
 
 
 def quaternion_to_matrix(quaternion: ArrayLike) -> Array:
@@ -95,7 +97,7 @@ def quaternion_to_matrix(quaternion: ArrayLike) -> Array:
 def rotation_angle(r1: ArrayLike, r2: ArrayLike) -> Array:
     """Geodesic distance (radians, in [0, pi]) between two rotation matrices."""
     r1, r2 = jnp.asarray(r1), jnp.asarray(r2)
-    cos = (jnp.trace(jnp.swapaxes(r1, -1, -2) @ r2, axis1=-2, axis2=-1) - 1.0) / 2.0
+    cos = (jnp.trace(_matmul(jnp.swapaxes(r1, -1, -2), r2), axis1=-2, axis2=-1) - 1.0) / 2.0
     return jnp.arccos(jnp.clip(cos, -1.0, 1.0))
 
 
@@ -166,7 +168,7 @@ class Camera(eqx.Module):
     def to_camera(self, points: ArrayLike) -> Array:
         """World points (N, 3) -> camera-frame points (N, 3)."""
         points = jnp.asarray(points)
-        return points @ self.rotation.T + self.translation[None, :]
+        return _matmul(points, self.rotation.T) + self.translation[None, :]
 
     def project(self, points: ArrayLike) -> tuple[Array, Array]:
         """World points (N, 3) -> pixel coordinates (N, 2) and depths z (N,).
@@ -213,5 +215,5 @@ def look_at(
     right = right / jnp.linalg.norm(right)
     down = jnp.cross(forward, right)
     rotation = jnp.stack([right, down, forward])
-    return Camera(rotation, -rotation @ eye, fov=fov, near=near, far=far, image_size=image_size)
+    return Camera(rotation, -_matmul(rotation, eye), fov=fov, near=near, far=far, image_size=image_size)
 

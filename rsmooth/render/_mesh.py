@@ -29,6 +29,8 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
+from rsmooth._xla import matmul as _matmul
+
 __all__ = [
     "Mesh",
     "load_mesh",
@@ -130,7 +132,7 @@ class Mesh(eqx.Module):
 
 def transform_mesh(mesh: Mesh, rotation: ArrayLike, translation: ArrayLike | None = None) -> Mesh:
     """The mesh moved rigidly: v -> R v + t (works under jit/grad; no re-validation)."""
-    vertices = mesh.vertices @ jnp.asarray(rotation).T
+    vertices = _matmul(mesh.vertices, jnp.asarray(rotation).T)
     if translation is not None:
         vertices = vertices + jnp.asarray(translation)[None, :]
     return eqx.tree_at(lambda m: m.vertices, mesh, vertices)

@@ -16,6 +16,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jax import Array
 
+from rsmooth._xla import matmul as _matmul
+
 from rsmooth.render._camera import Camera
 from rsmooth.render._mesh import Mesh, face_normals
 
@@ -61,9 +63,9 @@ def shade_faces(mesh: Mesh, camera: Camera, light: DirectionalLight) -> tuple[Ar
     facing = jnp.sum(normals * to_camera, axis=-1, keepdims=True)
     normals = jnp.where(facing < 0, -normals, normals)
     direction = jnp.asarray(light.direction, vertices.dtype)
-    to_light = -(camera.rotation @ direction)
+    to_light = -_matmul(camera.rotation, direction)
     to_light = to_light / jnp.linalg.norm(to_light)
-    lambert = jnp.maximum(normals @ to_light, 0.0)
+    lambert = jnp.maximum(_matmul(normals, to_light), 0.0)
     diffuse = light.ambient + light.diffuse * lambert
     color = jnp.asarray(light.color, vertices.dtype)
     if light.specular > 0:

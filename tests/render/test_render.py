@@ -471,3 +471,42 @@ def test_pixels_the_noise_cannot_change_render_their_hard_value_with_zero_deriva
     np.testing.assert_allclose(np.asarray(got_rgb), np.asarray(expected.rgb).reshape(-1, 3)[np.asarray(certain)], atol=1e-12)
     jac = jax.jit(jax.jacrev(lambda t, k: alpha(t, k)[0]))(t, key)
     np.testing.assert_array_equal(np.asarray(jac), 0.0)
+
+
+def _dot_precisions(jaxpr, found):
+    """The precision of every matrix product in a jaxpr and in the jaxprs inside it."""
+    from jax.extend import core
+
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "dot_general":
+            found.append(eqn.params["precision"])
+        for param in eqn.params.values():
+            for sub in param if isinstance(param, (list, tuple)) else [param]:
+                if isinstance(sub, core.ClosedJaxpr):
+                    _dot_precisions(sub.jaxpr, found)
+                elif isinstance(sub, core.Jaxpr):
+                    _dot_precisions(sub, found)
+    return found
+
+
+@pytest.mark.parametrize(
+    "options", [dict(mode="hard"), dict(mode="soft"), dict(mode="perturbed", num_samples=2), dict(mode="perturbed", sample_chunk=0.5)]
+)
+def test_float32_products_ask_for_full_precision(options):
+    # On NVIDIA GPUs a float32 product defaults to TF32 (a 10-bit mantissa): on an H100 it
+    # collapsed a rescaled robot mesh's small faces to zero area. CPUs compute every precision
+    # alike, so the test reads the request: every product of the render and its gradient, with
+    # respect to the pose, asks for full precision (rsmooth._xla.matmul).
+    mesh = render.position_colors(render.icosphere(1))
+    camera = render.look_at(jnp.array([0.3, 0.2, 3.0]), image_size=(8, 8))
+    renderer = render.Renderer(**options)
+
+    def loss(pose):
+        rotation = render.axis_angle_to_matrix(pose[:3])
+        image = renderer(jax.random.key(0), render.transform_mesh(mesh, rotation, pose[3:]), camera)
+        return jnp.sum(image.rgb) + render.rotation_angle(rotation, jnp.eye(3, dtype=jnp.float32))
+
+    jaxpr = jax.make_jaxpr(jax.grad(loss))(jnp.full(6, 0.1, jnp.float32)).jaxpr
+    precisions = _dot_precisions(jaxpr, [])
+    assert precisions, "no product found: the test no longer looks at the renderer's geometry"
+    assert all(p == (jax.lax.Precision.HIGHEST, jax.lax.Precision.HIGHEST) for p in precisions), precisions
