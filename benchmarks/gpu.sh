@@ -9,14 +9,15 @@
 #   sim.save_model(".gpu/solo12.npz", sim.load_urdf(sim.solo12_urdf_path()))
 #   source = sim.example_robot_data_root() / "robots/solo_description"
 #   target = pathlib.Path(".gpu/cmeel.prefix/share/example-robot-data/robots/solo_description")
-#   for name in ("robots/solo12.urdf", "srdf/solo.srdf"):  # the URDF's path, the SRDF's posture
+#   for name in ("robots/solo12.urdf", "srdf/solo.srdf",  # the URDF's path, the SRDF's posture
+#                "meshes/stl/solo12/solo12_upper_leg_left_side.stl"):  # a render reconstruct target
 #       (target / name).parent.mkdir(parents=True, exist_ok=True)
 #       shutil.copy(source / name, target / name)
 #   EOF
 #   pip download --no-deps --only-binary=:all: --python-version 3.12 -d .gpu/whl trimesh  # the renderer's primitives
 # then run `bash benchmarks/gpu.sh` on the GPU machine with .gpu beside it. Each phase has
 # its own time limit, so that one that hangs or fails leaves the others' numbers; the logs go
-# to $OUT (default /tmp/rsmooth-gpu). The limits add up to 18 min: where one call may run 10,
+# to $OUT (default /tmp/rsmooth-gpu). The limits add up to over 20 min: where one call may run 10,
 # choose with PHASES="render control ..." (on the H200 of session 22: render 2 min, control
 # 1.5, tests 1.7, core 0.3, sim 1.8, pose 2.1; session 24: control-default 1.4, control-batched
 # 1.5, sim 2.4 with its chunk sizes, pose-samples 2). A fresh machine took ~30 s to start.
@@ -27,7 +28,7 @@ mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD:$PWD/.gpu:/tmp/rsmooth-site" RSMOOTH_BENCHMARK_SOLO12_MODEL="$PWD/.gpu/solo12.npz"
 PY=${PYTHON:-python3}
 PHASES=${PHASES:-"info render control control-batched tests core sim pose"}
-# other phases, by name only: pose-samples control-default
+# other phases, by name only: pose-samples control-default reconstruct-seeds
 if compgen -G ".gpu/whl/*.whl" > /dev/null; then
   $PY -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/rsmooth-site .gpu/whl/*.whl
 fi
@@ -46,7 +47,8 @@ phase() {  # phase NAME LIMIT_SECONDS COMMAND...
 
 phase info 30 bash -c "nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv; \
   $PY -c 'import jax, jaxlib, equinox, optax; print(\"jax\", jax.__version__, \"equinox\", equinox.__version__, \"optax\", optax.__version__, jax.devices())'"
-phase render 150 $PY -m benchmarks render --repeats 10
+# (its rows grew: on the H100 of session 35 the renderer tables took 150 s, the pose steps after)
+phase render 300 $PY -m benchmarks render --repeats 10
 # R-DDP's samples of all nodes at once (--rddp-node-batch none: on the CPU one node at a time is
 # faster); then all ten line-search step sizes at once too (DDP.line_search_batch), not yet
 # measured on a GPU (session 22 ran the first command only)
@@ -70,3 +72,7 @@ phase pose 220 $PY -m rsmooth.cli render pose --init-error 80 --problems 100 --s
 # 16 samples per pixel (the default is 8) from 20 and 50 deg, the default-size table's problems
 phase pose-samples 240 $PY -m rsmooth.cli render pose --init-error 20 --init-error 50 --problems 100 --seed 0 \
   --samples 16 --method perturbed-gaussian --method perturbed-cauchy --out "$OUT/pose-samples"
+# render reconstruct's default targets over 8 seeds, the Laplacian weight of the perturbed and
+# the soft renderer (session 35, on an H100: 190 s with compilation, ~16 s per run)
+phase reconstruct-seeds 240 $PY -m benchmarks.reconstruct_seeds --seeds 0 1 2 3 4 5 6 7 --json "$OUT/reconstruct-seeds.json" \
+  --runs perturbed-gaussian:30 perturbed-gaussian:60 perturbed-gaussian:45 soft:30 soft:60
