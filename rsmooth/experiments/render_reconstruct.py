@@ -29,17 +29,16 @@ batched with `jax.vmap` (spread over the devices when there are several, see
 are scored against the targets by 3D IoU (:func:`rsmooth.render.iou_3d`, voxelized) and the
 Chamfer distance of surface samples (:func:`rsmooth.render.chamfer_distance`).
 
-Measured with the defaults (seeds 0 and 1, 2026-11-26; benchmarks/RESULTS.md), 3D IoU on cube /
-torus / Solo upper leg: perturbed 0.79 / 0.68-0.70 / 0.45-0.53, soft 0.78 / 0.70 / 0.67, hard
-0.51 / 0.29 / 0.04 (it does not move: the icosphere's scores). On the thin upper leg the
-perturbed reconstruction keeps a few vertices out as spikes (Monte-Carlo noise): 32 samples
-(0.63) or a Laplacian weight of 120 (0.68-0.71, soft 0.77) hold them back; the stronger
-Laplacian rounds the cube's corners (0.71), so the default stays at 30. Since session 34 the
-default is 32 samples per pixel (the quick profile keeps 8): one target per run, seed 0, 3D IoU
-with 8 / 32 samples: upper leg 0.53 / 0.65 (seeds 0-2 and 0-3: mean 0.53 / 0.60, silhouette IoU
-0.93 / 0.96), torus 0.67 / 0.70, cube 0.77 / 0.76, at 1.6x the time per step (0.22 against 0.14 s
-for two targets, one core; the perturbed renderer draws its samples at the random pixels alone,
-`sample_chunk`).
+Measured with the defaults over 8 seeds (float32 on an H100, 2026-11-27, `python -m
+benchmarks.reconstruct_seeds`; benchmarks/RESULTS.md), 3D IoU on cube / torus / Solo upper leg,
+mean and standard error: perturbed 0.774 +- 0.004 / 0.697 +- 0.003 / 0.634 +- 0.013, soft
+0.769 +- 0.001 / 0.695 +- 0.000 / 0.652 +- 0.007, hard 0.51 / 0.29 / 0.04 (it does not move: the
+icosphere's scores). The thin upper leg's score scatters by +-0.03 between seeds, soft's too
+(rounding alone: the optimization is chaotic there), so compare over seeds. A Laplacian weight
+of 60 helps the leg (perturbed 0.671, soft 0.712) and rounds the cube's corners (0.751, 0.758):
+the default stays at 30. The quick profile's 8 samples per pixel make a step 1.6x faster than
+the default 32 (the perturbed renderer draws its samples at the random pixels alone,
+`sample_chunk`) and fit the leg worse (mean 0.53 against 0.60 over 3-4 seeds, CPU).
 """
 
 from __future__ import annotations
