@@ -2,13 +2,14 @@
 upper leg) for several `--seed` values at once, per method and Laplacian weight.
 
 `python -m benchmarks.reconstruct_seeds [--seeds 0 1 ...] [--runs METHOD:WEIGHT ...]
-[--steps N] [--json FILE]`. Every (seed, target) pair is one problem of one vmapped batch, with
-the keys `rsmooth render reconstruct --seed S` draws for it, so a row reproduces that
-command's scores for its method up to floating-point rounding (the optimization is
-chaotic: even soft rendering, which draws nothing, scatters over seeds at the thin upper leg,
-through rounding alone: on a GPU scatter-adds sum in no fixed order). A quality sweep, not a timing: a GPU takes ~16 s per run of
-8 seeds, two CPU cores ~3 min per seed and run. Prints a row per seed and the mean (with its
-standard error) per target and run. Float32, as the command runs.
+[--steps N] [--samples M] [--baseline B] [--json FILE]`. Every (seed, target) pair is one
+problem of one vmapped batch, with the keys `rsmooth render reconstruct --seed S` draws for it,
+so a row reproduces that command's scores for its method up to floating-point rounding (the
+optimization is chaotic: even soft rendering, which draws nothing, scatters over seeds at the
+thin upper leg through rounding alone; on a GPU scatter-adds sum in no fixed order). A quality
+sweep, not a timing: a GPU takes ~16 s per run of 8 seeds, two CPU cores ~1 min per seed and
+run. Prints a row per seed and the mean (with its standard error) per target and run. Float32,
+as the command runs.
 """
 
 from __future__ import annotations
@@ -27,9 +28,11 @@ from rsmooth import render
 from rsmooth.experiments import render_reconstruct as rr
 
 
-def main(seeds=(0, 1, 2, 3), runs=("perturbed-gaussian:30", "soft:30"), steps: int | None = None, json_path: str | None = None) -> list[dict]:
+def main(seeds=(0, 1, 2, 3), runs=("perturbed-gaussian:30", "soft:30"), steps: int | None = None, json_path: str | None = None,
+         **changes) -> list[dict]:
+    """`changes`: other fields of render_reconstruct.Config (num_samples, baseline, ...)."""
     print(f"machine: {machine()}")
-    base = rr.Config() if steps is None else dataclasses.replace(rr.Config(), steps=steps)
+    base = dataclasses.replace(rr.Config(), **changes, **({} if steps is None else {"steps": steps}))
     names = [rr._name(t) for t in base.targets]
     count = len(names)
     targets = rr.stack_meshes([rr.load_target(t) for t in base.targets])
@@ -43,7 +46,8 @@ def main(seeds=(0, 1, 2, 3), runs=("perturbed-gaussian:30", "soft:30"), steps: i
     target_alpha = jnp.concatenate([images.alpha] * len(seeds))
     target_rgb = jnp.concatenate([images.rgb] * len(seeds))
     silhouettes = jax.jit(jax.vmap(lambda o: rr.render_views(hard, key, rr.deformed(template, o), cams).alpha))
-    print(f"targets {names}, seeds {list(seeds)}, {base.steps} steps, {base.views} views, {base.num_samples} samples per pixel\n")
+    print(f"targets {names}, seeds {list(seeds)}, {base.steps} steps, {base.views} views, {base.num_samples} samples per pixel, "
+          f"baseline {base.baseline!r}\n")
     rows = []
     for run in runs:
         method, weight = run.split(":")
@@ -63,7 +67,8 @@ def main(seeds=(0, 1, 2, 3), runs=("perturbed-gaussian:30", "soft:30"), steps: i
         for i, seed in enumerate(seeds):
             offsets = state[0][i * count:(i + 1) * count]
             scores = rr._scores(config, splits[i][0], names, targets, template, images.alpha, offsets, silhouettes(offsets))
-            row = {"method": method, "laplacian_weight": float(weight), "seed": seed, **scores}
+            row = {"method": method, "laplacian_weight": float(weight), "num_samples": config.num_samples, "baseline": config.baseline,
+                   "seed": seed, **scores}
             rows.append(row)
             print(json.dumps({"run": run, "seed": seed, **{n: round(scores[n]["iou_3d"], 4) for n in names}}))
         means = []
@@ -84,8 +89,11 @@ if __name__ == "__main__":
     parser.add_argument("--runs", nargs="+", default=["perturbed-gaussian:30", "soft:30"], help="METHOD:LAPLACIAN_WEIGHT")
     parser.add_argument("--steps", type=int, help="Adam steps (default: the command's)")
     parser.add_argument("--json", dest="json_path", help="write the rows there, after each run")
+    parser.add_argument("--samples", type=int, help="samples per pixel of the perturbed renderer (default: the command's)")
+    parser.add_argument("--baseline", choices=("hard", "leave-one-out"), help="the perturbed estimator's baseline (default: the command's)")
     args = parser.parse_args()
     from rsmooth import _xla
 
     _xla.apply_cpu_defaults()  # the settings `rsmooth render` runs with, before JAX starts
-    main(tuple(args.seeds), tuple(args.runs), args.steps, args.json_path)
+    changes = {name: value for name, value in (("num_samples", args.samples), ("baseline", args.baseline)) if value is not None}
+    main(tuple(args.seeds), tuple(args.runs), args.steps, args.json_path, **changes)
