@@ -75,10 +75,10 @@ def matmul(a, b):
 
     A float32 product's default precision on NVIDIA GPUs is TF32 (a 10-bit mantissa, relative
     error up to ~5e-4): rescaling a robot mesh of example-robot-data collapsed its smallest faces
-    to zero area on an H100 (session 35), a rotated or projected vertex moves by up to ~5e-4 of
-    its coordinates (a tenth of a pixel at 128 x 128), and the cosine in a rotation-error metric can be
-    off by ~1e-3, which reads as degrees near zero error (estimates, from the mantissa). The
-    geometry's products are 3 x 3 and the estimators' are small: full precision costs nothing
-    there. On CPU, and in float64, this is ``a @ b``.
+    to zero area on an H100 (session 35); a rotated or projected vertex moves by up to ~5e-4 of
+    its coordinates (a tenth of a pixel at 128 x 128), and the cosine in a rotation-error metric
+    can be off by ~1e-3, which reads as degrees near zero error (estimates, from the mantissa).
+    The geometry's products are 3 x 3 and the estimators' are small: full precision costs
+    nothing there. On CPU, and in float64, this is ``a @ b``.
     """
     return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)

@@ -100,6 +100,7 @@ import optax
 from tqdm.auto import tqdm
 
 from rsmooth import noise, parallel, render, schedules, viz
+from rsmooth._xla import matmul
 from rsmooth.estimators import check_baseline
 
 METRICS_DOC = """metrics.json keys: for each method (perturbed-gaussian, perturbed-cauchy, soft, hard),
@@ -314,8 +315,7 @@ def problems(config: Config, key, init_error_deg: float):
     r_true = jax.vmap(lambda k: render.quaternion_to_matrix(normal(k, (4,))))(jax.random.split(k_true, n))
     axis = normal(k_axis, (n, 3))
     axis = axis / jnp.linalg.norm(axis, axis=1, keepdims=True)
-    r_init = render.axis_angle_to_matrix(np.deg2rad(init_error_deg) * axis)
-    r_init = jnp.matmul(r_init, r_true, precision="highest")
+    r_init = matmul(render.axis_angle_to_matrix(np.deg2rad(init_error_deg) * axis), r_true)
     offset = normal(k_trans, (n, 3))
     offset = config.init_translation * offset / jnp.linalg.norm(offset, axis=1, keepdims=True)
     if not config.optimize_translation:
@@ -538,7 +538,7 @@ def _renders_per_step(config: Config, num_samples):
 
 def _rotation(delta, r_init):
     """The pose's rotation: exp([delta]) r_init."""
-    return jnp.matmul(render.axis_angle_to_matrix(delta), r_init, precision="highest")
+    return matmul(render.axis_angle_to_matrix(delta), r_init)
 
 
 def _degrees(r1, r2):

@@ -17,7 +17,6 @@ import jax.numpy as jnp
 from jax import Array
 
 from rsmooth._xla import matmul as _matmul
-
 from rsmooth.render._camera import Camera
 from rsmooth.render._mesh import Mesh, face_normals
 
