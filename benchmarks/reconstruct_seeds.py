@@ -39,14 +39,11 @@ def main(seeds=(0, 1, 2, 3), runs=("perturbed-gaussian:30", "soft:30"), steps: i
     targets = rr.stack_meshes([rr.load_target(t) for t in base.targets])
     template = render.icosphere(base.subdivisions, base.template_radius)
     cams = rr.cameras(base)
-    # as rr.run renders the targets and scores the reconstructions (hard renders draw nothing)
-    target_renderer = render.Renderer(mode="hard", faces_per_pixel=base.faces_per_pixel, faces_per_tile=256, tile_size=4)
-    hard = render.Renderer(mode="hard", faces_per_pixel=base.faces_per_pixel, faces_per_tile=base.faces_per_tile)
-    key = jax.random.key(0)
-    images = jax.jit(jax.vmap(lambda mesh: rr.render_views(target_renderer, key, mesh, cams)))(targets)
+    # as rr.run renders the targets and scores the reconstructions (hard renders draw nothing:
+    # any key)
+    images, silhouettes = rr.target_images_and_silhouettes(base, jax.random.key(0), targets, template, cams)
     target_alpha = jnp.concatenate([images.alpha] * len(seeds))
     target_rgb = jnp.concatenate([images.rgb] * len(seeds))
-    silhouettes = jax.jit(jax.vmap(lambda o: rr.render_views(hard, key, rr.deformed(template, o), cams).alpha))
     print(f"targets {names}, seeds {list(seeds)}, {base.steps} steps, {base.views} views, {base.num_samples} samples per pixel, "
           f"baseline {base.baseline!r}\n")
     rows = []

@@ -294,6 +294,17 @@ def _index(batch: render.Mesh, i: int) -> render.Mesh:
     return jax.tree.map(lambda leaf: leaf[i], batch)
 
 
+def target_images_and_silhouettes(config: Config, key, targets: render.Mesh, template: render.Mesh, cams: render.Camera):
+    """The targets' images (hard, every view; a batch of meshes) and a jitted function from a
+    batch of offsets to the hard silhouettes of the deformed templates, as `run` scores them."""
+    # Targets are rendered once, hard, with room for dense meshes in the culling pass.
+    target_renderer = render.Renderer(mode="hard", faces_per_pixel=config.faces_per_pixel, faces_per_tile=256, tile_size=4)
+    hard = render.Renderer(mode="hard", faces_per_pixel=config.faces_per_pixel, faces_per_tile=config.faces_per_tile)
+    images = jax.jit(jax.vmap(lambda mesh: render_views(target_renderer, key, mesh, cams)))(targets)
+    silhouettes = jax.jit(jax.vmap(lambda offsets: render_views(hard, key, deformed(template, offsets), cams).alpha))
+    return images, silhouettes
+
+
 def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     """Reconstructs every target with every method; writes metrics.json, PNGs and a GIF."""
     out = Path(out)
@@ -315,12 +326,8 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     targets = stack_meshes(meshes)
     template = render.icosphere(config.subdivisions, config.template_radius)
     cams = cameras(config)
-    # Targets are rendered once, hard, with room for dense meshes in the culling pass.
-    target_renderer = render.Renderer(mode="hard", faces_per_pixel=config.faces_per_pixel, faces_per_tile=256, tile_size=4)
-    hard = render.Renderer(mode="hard", faces_per_pixel=config.faces_per_pixel, faces_per_tile=config.faces_per_tile)
-    images = jax.jit(jax.vmap(lambda mesh: render_views(target_renderer, key, mesh, cams)))(targets)
+    images, silhouettes = target_images_and_silhouettes(config, key, targets, template, cams)
     target_alpha, target_rgb = images.alpha, images.rgb  # (T, V, H, W), (T, V, H, W, 3)
-    silhouettes = jax.jit(jax.vmap(lambda offsets: render_views(hard, key, deformed(template, offsets), cams).alpha))
 
     k_metrics, k_run = jax.random.split(key)
     zeros = jnp.zeros((len(names),) + template.vertices.shape, template.vertices.dtype)
