@@ -112,3 +112,55 @@ def check_all_finite(output, checks):
         return output
     failures = jnp.stack([~jnp.all(jnp.isfinite(array)) for array, _ in traced])
     return eqx.branched_error_if(output, jnp.any(failures), jnp.argmax(failures), [m for _, m in traced])
+
+
+def check_all(output, finite=(), conditions=()):
+    """Returns `output`, after checking that every array of `finite` is finite and that no
+    condition of `conditions` holds.
+
+    `finite` is a sequence of `(array, message)`, `conditions` of `(failed, message)` with
+    `failed` a boolean scalar. Concrete ones are checked now (`ValueError(message)` for the
+    first failure); traced ones together by a single `equinox` runtime check tied to `output`:
+    it runs wherever `output` is used, so tie it to a value that every result needs (in a
+    derivative rule, a value that the tangent is computed from).
+    """
+    traced = []
+    for array, message in finite:
+        if is_traced(array):
+            traced.append((~jnp.all(jnp.isfinite(array)), message))
+        else:
+            check_finite(array, message)
+    for failed, message in conditions:
+        if is_traced(failed):
+            traced.append((jnp.asarray(failed), message))
+        elif bool(np.asarray(failed)):
+            raise ValueError(message)
+    if not traced:
+        return output
+    failures = jnp.stack([failed for failed, _ in traced])
+    return eqx.branched_error_if(output, jnp.any(failures), jnp.argmax(failures), [m for _, m in traced])
+
+
+def resolution_failure(x, sigma, name: str = "x"):
+    """`(failed, message)`: whether `sigma` is below the resolution of `x`'s dtype at every
+    coordinate of `x`, :math:`\\sigma < \\epsilon \\min_k |x_k|` (`eps` the dtype's machine
+    epsilon): then `x + sigma * z` rounds to `x` for a typical `|z| <= 1`, and a score-function
+    estimate is zero. (At some coordinates only is allowed: a far coordinate may be a
+    deliberate sentinel, as a renderer's empty slot.) `failed` is a Python bool when `x` and
+    `sigma` are concrete (the message then gives their values), a traced boolean otherwise
+    (for :func:`check_all`)."""
+    dtype = jnp.result_type(x)
+    eps = float(jnp.finfo(dtype).eps)
+    message = (
+        f"sigma is below the resolution of {name}'s dtype {dtype} at every coordinate of {name}: "
+        f"sigma < eps * min|{name}_k| (eps = {eps:.3g}), so {name} + sigma * z rounds to {name} "
+        f"and the zeroth-order estimate is zero; use a larger sigma, a rescaled {name}, "
+        "float64 or the first-order estimator"
+    )
+    if np.size(x) == 0:
+        return False, message
+    if not is_traced(x) and not is_traced(sigma):
+        scale = float(np.min(np.abs(np.asarray(x))))
+        value = float(np.asarray(sigma))
+        return bool(value < eps * scale), f"{message} (sigma = {value:.3g}, min|{name}_k| = {scale:.3g})"
+    return jnp.asarray(sigma, dtype) < eps * jnp.min(jnp.abs(x)), message

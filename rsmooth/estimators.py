@@ -113,6 +113,17 @@ def _flatten(f, x, check: bool = True) -> _Flat:
     return _Flat(flat_x, f_flat, unravel, out.shape)
 
 
+def _flatten_resolved(f, x, sigma) -> _Flat:
+    """:func:`_flatten`, with `x` checked finite and `sigma` checked against the resolution of
+    `x`'s dtype (one runtime check when traced): below it, `x + sigma * z` rounds to `x` and
+    the score-function estimate is zero (:func:`rsmooth._checks.resolution_failure`)."""
+    flat = _flatten(f, x, check=False)
+    checked = _checks.check_all(
+        flat.x, [(flat.x, _NONFINITE_X)], [_checks.resolution_failure(flat.x, sigma)]
+    )
+    return flat._replace(x=checked)
+
+
 def _unflatten_jacobian(flat: _Flat, jacobian: Array):
     """(m, d) -> the structure of x, each leaf of shape out_shape + leaf_shape."""
     tree = jax.vmap(flat.unravel)(jacobian)
@@ -455,6 +466,12 @@ def zeroth_order(
     Returns:
         An :class:`Estimate`.
 
+    Raises:
+        ValueError: for a non-finite `x` or value of `f`, or a `sigma` below the resolution of
+            `x`'s dtype at every coordinate, :math:`\sigma < \epsilon \min_k |x_k|` (then
+            `x + sigma * z` rounds to `x` and the estimate would be zero); at run time (an
+            `equinox` error) where these values are traced.
+
     Example:
         >>> import jax, jax.numpy as jnp, rsmooth
         >>> step = lambda x: jnp.where(x > 0, 1.0, 0.0)
@@ -470,7 +487,7 @@ def zeroth_order(
     _checks.check_key(key)
     sigma, num_samples = _check_options(sigma, num_samples, noise, antithetic=antithetic, needs_score=True)
     check_baseline(baseline, num_samples)
-    flat = _flatten(f, x)
+    flat = _flatten_resolved(f, x, sigma)
     return _package(flat, _zeroth_order_flat(flat, key, sigma, num_samples, noise, baseline, antithetic))
 
 
@@ -490,6 +507,8 @@ def first_order(
     .. math:: \hat g = \frac{1}{M}\sum_{i=1}^M \nabla f(x + \sigma z_i).
 
     Unbiased for continuous, almost-everywhere differentiable `f`; biased (zero) across jumps.
+    A `sigma` below the resolution of `x`'s dtype is allowed (unlike :func:`zeroth_order`): the
+    estimate is then `f`'s derivative at `x`, its limit as `sigma` vanishes.
 
     Args:
         f: function of `x` returning one floating array, differentiable by JAX.
@@ -573,6 +592,10 @@ def alpha_order(
         An :class:`Estimate` whose `stats` hold `alpha`, `alpha_star`, `bias`, `radius`,
         `bias_radius`, `gamma`, `variance_first`, `variance_zeroth`.
 
+    Raises:
+        ValueError: as :func:`zeroth_order` (its zeroth-order half needs `sigma` above the
+            resolution of `x`'s dtype too).
+
     Example:
         >>> import jax, jax.numpy as jnp, rsmooth
         >>> step = lambda x: jnp.where(x > 0, 1.0, 0.0)
@@ -596,7 +619,7 @@ def alpha_order(
         raise ValueError(f"lipschitz must be positive, got {lipschitz}")
     if gamma is not None and not _checks.is_traced(gamma) and not float(gamma) >= 0:
         raise ValueError(f"gamma must be non-negative, got {gamma}")
-    flat = _flatten(f, x)
+    flat = _flatten_resolved(f, x, sigma)
     estimate, extra = _alpha_order_flat(
         flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta
     )

@@ -19,12 +19,19 @@ in :math:`\theta`) has gradient :math:`y_\sigma(\theta) - y`.
 With Gumbel noise over the simplex, :math:`y_\sigma = \mathrm{softmax}(\theta/\sigma)` and
 :math:`F_\sigma = \sigma\,\mathrm{logsumexp}(\theta/\sigma) + \sigma\gamma_E`.
 
-`theta` is one problem (a vector, or any array the oracle takes); use `jax.vmap` over a batch
-with one key per problem.
+Batches: `theta` of shape `(..., n)` holds one problem per vector along its last axis, and
+the oracle takes one such vector. The leading axes are a batch of independent problems, each
+perturbed with its own noise, from its own key: the batch's keys are
+``jax.random.split(key, B)`` for the `B` problems in row-major order, so the result is that of
+`jax.vmap` over the problems with those keys, and each problem's derivatives come from its own
+samples only (one shared noise would let every problem's Monte-Carlo error leak into every
+other's gradient). An oracle of a problem that is not a vector (an assignment problem's cost
+matrix) takes it flattened, and reshapes it itself.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 import jax
@@ -32,8 +39,9 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
+from rsmooth import _checks
 from rsmooth.noise import Gumbel, Noise
-from rsmooth.smooth import smooth
+from rsmooth.smooth import _smooth
 
 __all__ = [
     "simplex_argmax",
@@ -69,6 +77,24 @@ def _oracle_max(oracle: Callable) -> Callable:
     return value
 
 
+def _over_problems(fn: Callable, key: Array, theta: ArrayLike, *others: ArrayLike) -> Array:
+    """`fn(key, theta, *others)` for one problem (a vector `theta`), applied to each problem of a
+    batch `theta` of shape (..., n), with the keys ``jax.random.split(key, B)`` (see the module
+    docstring); `others` have the shape of `theta` and are split with it."""
+    theta = jnp.asarray(theta)
+    _checks.check_floating_tree(theta, "theta")
+    if theta.ndim == 0:
+        raise ValueError("theta must have at least one axis (one problem is a vector), got a scalar")
+    if theta.ndim == 1:
+        return fn(key, theta, *others)
+    batch = theta.shape[:-1]
+    _checks.check_key(key)
+    keys = jax.random.split(key, math.prod(batch))
+    rows = [jnp.reshape(a, (-1, theta.shape[-1])) for a in (theta, *others)]
+    out = jax.vmap(fn)(keys, *rows)
+    return jnp.reshape(out, batch + out.shape[1:])
+
+
 def argmax(
     theta: ArrayLike,
     key: Array,
@@ -77,23 +103,26 @@ def argmax(
     num_samples: int,
     noise: Noise = Gumbel(),
     oracle: Callable = simplex_argmax,
-    baseline: bool = True,
+    baseline: bool | str = True,
 ) -> Array:
     r"""Perturbed argmax :math:`\mathbb{E}\, y^*(\theta + \sigma Z)`, differentiable in `theta`.
 
     Args:
-        theta: the LP's cost vector (one problem).
+        theta: the LP's cost vector (n,), or a batch of them (..., n): each problem is
+            perturbed with its own key, split from `key` (see the module docstring).
         key: a `jax.random` key.
         sigma: noise scale, positive.
-        num_samples: Monte-Carlo samples.
+        num_samples: Monte-Carlo samples per problem.
         noise: noise law (Gumbel or Gaussian are the usual ones).
-        oracle: argmax oracle of the LP; default the simplex (one-hot argmax).
+        oracle: argmax oracle of the LP for one problem; default the simplex (one-hot argmax).
         baseline: subtract `oracle(theta)` in the Jacobian estimator (Berthet et al. use none;
-            it keeps the estimator unbiased and lowers its variance).
+            it keeps the estimator unbiased and lowers its variance); True, False or
+            ``"leave-one-out"`` (see :func:`rsmooth.zeroth_order`).
 
     Returns:
-        The perturbed argmax, the shape of `oracle(theta)`; its Jacobian under `jax.jacobian`
-        is the score-function estimator.
+        The perturbed argmax, of shape ``theta.shape[:-1] + oracle(row).shape``; its Jacobian
+        under `jax.jacobian` is the score-function estimator, and its derivatives of higher
+        order the score-function estimators of the next orders (:func:`rsmooth.smooth`).
 
     Example:
         >>> import jax, jax.numpy as jnp
@@ -106,8 +135,8 @@ def argmax(
     References:
         Berthet et al., "Learning with differentiable perturbed optimizers", NeurIPS 2020.
     """
-    g = smooth(oracle, sigma=sigma, num_samples=num_samples, estimator="zeroth", noise=noise, baseline=baseline)
-    return g(key, jnp.asarray(theta))
+    g = _smooth(oracle, "theta", sigma=sigma, num_samples=num_samples, estimator="zeroth", noise=noise, baseline=baseline)
+    return _over_problems(g, key, theta)
 
 
 def max(  # noqa: A001 - the field's name for it
@@ -119,10 +148,22 @@ def max(  # noqa: A001 - the field's name for it
     noise: Noise = Gumbel(),
     oracle: Callable = simplex_argmax,
 ) -> Array:
-    r"""Perturbed max :math:`F_\sigma(\theta) = \mathbb{E}\max_y\langle y, \theta+\sigma Z\rangle`;
-    its gradient is the perturbed argmax (estimated on the same samples)."""
-    g = smooth(_oracle_max(oracle), sigma=sigma, num_samples=num_samples, estimator="first", noise=noise)
-    return g(key, jnp.asarray(theta))
+    r"""Perturbed max :math:`F_\sigma(\theta) = \mathbb{E}\max_y\langle y, \theta+\sigma Z\rangle`.
+
+    Its gradient is the perturbed argmax (the mean of the sampled maximizers, Danskin) and its
+    Hessian the Jacobian of the perturbed argmax (the score-function estimator on the sampled
+    maximizers, each sample's baseline the mean of the others'): on the same samples, those of
+    :func:`argmax` for the same key and `num_samples`, they equal the value and the Jacobian
+    of ``argmax(..., baseline="leave-one-out")``.
+
+    Args:
+        theta, key, sigma, num_samples, noise, oracle: as in :func:`argmax`.
+
+    Returns:
+        The perturbed max, of shape ``theta.shape[:-1]``.
+    """
+    g = _smooth(_oracle_max(oracle), "theta", sigma=sigma, num_samples=num_samples, estimator="first", noise=noise)
+    return _over_problems(g, key, theta)
 
 
 def argmin(
@@ -133,15 +174,15 @@ def argmin(
     num_samples: int,
     noise: Noise = Gumbel(),
     oracle: Callable = simplex_argmax,
-    baseline: bool = True,
+    baseline: bool | str = True,
 ) -> Array:
     r"""Perturbed argmin :math:`\mathbb{E}\arg\min_y\langle y, \theta + \sigma Z\rangle`.
 
     `oracle` is the LP's *argmax* oracle, as in :func:`argmax`; argmin is taken as argmax of
-    the negated cost, with the noise added to `theta` itself.
+    the negated cost, with the noise added to `theta` itself. Batches as in :func:`argmax`.
     """
-    g = smooth(lambda t: oracle(-t), sigma=sigma, num_samples=num_samples, estimator="zeroth", noise=noise, baseline=baseline)
-    return g(key, jnp.asarray(theta))
+    g = _smooth(lambda t: oracle(-t), "theta", sigma=sigma, num_samples=num_samples, estimator="zeroth", noise=noise, baseline=baseline)
+    return _over_problems(g, key, theta)
 
 
 def min(  # noqa: A001
@@ -153,10 +194,11 @@ def min(  # noqa: A001
     noise: Noise = Gumbel(),
     oracle: Callable = simplex_argmax,
 ) -> Array:
-    r"""Perturbed min :math:`\mathbb{E}\min_y\langle y, \theta + \sigma Z\rangle`."""
+    r"""Perturbed min :math:`\mathbb{E}\min_y\langle y, \theta + \sigma Z\rangle`, of shape
+    ``theta.shape[:-1]`` (batches as in :func:`argmax`)."""
     minimizer = lambda t: oracle(-t)  # noqa: E731
-    g = smooth(_oracle_max(minimizer), sigma=sigma, num_samples=num_samples, estimator="first", noise=noise)
-    return g(key, jnp.asarray(theta))
+    g = _smooth(_oracle_max(minimizer), "theta", sigma=sigma, num_samples=num_samples, estimator="first", noise=noise)
+    return _over_problems(g, key, theta)
 
 
 def fenchel_young_loss(
@@ -173,15 +215,17 @@ def fenchel_young_loss(
     max, up to the term :math:`\Omega(y)` that does not depend on `theta`.
 
     Its gradient in `theta` is :math:`y_\sigma(\theta) - y`: zero exactly when the perturbed
-    argmax reproduces the target `y`. Convex in `theta`.
+    argmax reproduces the target `y`; its Hessian is the Jacobian of the perturbed argmax
+    (see :func:`max`). Convex in `theta`.
 
     Args:
-        theta: predicted cost vector (one problem).
-        y: target solution, a point of the polytope (same shape as `oracle(theta)`).
+        theta: predicted cost vector (n,), or a batch of them (..., n), each problem with its
+            own key (as in :func:`argmax`).
+        y: target solutions, points of the polytope, of the shape of `theta`.
         key, sigma, num_samples, noise, oracle: as in :func:`max`.
 
     Returns:
-        A scalar.
+        The loss of each problem, of shape ``theta.shape[:-1]`` (a scalar for one problem).
 
     References:
         Berthet et al. 2020, Sec. 4; Blondel, Martins, Niculae, "Learning with Fenchel-Young
@@ -191,4 +235,5 @@ def fenchel_young_loss(
     y = jnp.asarray(y, theta.dtype)
     if y.shape != theta.shape:
         raise ValueError(f"y must have the shape of theta {theta.shape}, got {y.shape}")
-    return max(theta, key, sigma=sigma, num_samples=num_samples, noise=noise, oracle=oracle) - jnp.sum(theta * y)
+    g = _smooth(_oracle_max(oracle), "theta", sigma=sigma, num_samples=num_samples, estimator="first", noise=noise)
+    return _over_problems(lambda k, t, target: g(k, t) - jnp.sum(t * target), key, theta, y)

@@ -10,9 +10,39 @@ The zeroth- and first-order rules are matrix-free: a tangent costs one weighted 
 so `f` may map many inputs to many outputs (an image). The alpha-order rule needs both
 estimates' variances, so it forms the Jacobian.
 
+Derivatives of every order. Each rule's tangent is itself a Monte-Carlo estimate, written as
+a function of `x` and `sigma` on the same samples: the points :math:`y_i = x + \sigma z_i` are
+held fixed and their dependence on `(x, sigma)` moved into the likelihood ratio
+:math:`p_{x,\sigma}(y_i) / p(y_i)` (of value 1), so that differentiating a tangent again gives
+the score-function estimator of the next order:
+
+* zeroth order: the :math:`k`-th derivative weighs :math:`f(y_i) - b` by
+  :math:`\nabla^k p_{x,\sigma}(y_i) / p_{x,\sigma}(y_i)`; for Gaussian noise the Hessian is
+  :math:`\mathbb{E}[(f(x + \sigma z) - b)(z z^\top - I)] / \sigma^2`;
+* first order: the first derivative is the mean of `f`'s derivatives at the samples
+  (pathwise), the next ones the score-function estimators on those sampled derivatives
+  (unbiased where `f`'s derivative has jumps: the Hessian of a perturbed max is the Jacobian
+  of the perturbed argmax), each sample's baseline the mean of the other samples' terms;
+* alpha order: first derivatives only (its blend is chosen for the first derivative, from the
+  samples); a second derivative raises `ValueError`.
+
+Derivatives of order two and more of the score-function estimators need the derivative of
+the noise's score: they raise `ValueError` for Laplace noise (whose score jumps at 0), as
+the first-order rule's second derivative does for Uniform noise (which has no score).
+
 Derivatives with respect to `sigma` (when it is traced, e.g. by an outer `jax.grad`) are
 estimated too, with the estimator's own formula; derivatives with respect to values that `f`
 closes over (model parameters) are pathwise: the mean over samples of `f`'s own derivative.
+
+Checks: `x` must be finite, and so must `f`'s values (and `f(x)` where it is the baseline);
+for the zeroth- and alpha-order rules `sigma` must not be below the resolution of `x`'s dtype
+at every coordinate, :math:`\sigma < \epsilon \min_k |x_k|` (there `x + sigma * z` rounds to
+`x` and the estimate would be silently zero; a coordinate far beyond `sigma / eps`, as a
+renderer's sentinel for an empty slot, is allowed, its derivative is not estimated). The
+first-order rule tends to `f`'s derivative as `sigma` vanishes and is not checked. Concrete
+values are checked when `g` is called (`ValueError`); traced ones at run time by one
+`equinox` check tied to the value and to the tangent, so that it runs under
+`jax.jit(jax.grad(g))` too.
 """
 
 from __future__ import annotations
@@ -21,12 +51,13 @@ from typing import Callable
 
 import jax
 import jax.numpy as jnp
+from jax import lax
 from jax.typing import ArrayLike
 
 from rsmooth import _checks
 from rsmooth import estimators as _est
 from rsmooth._xla import matmul as _matmul
-from rsmooth.noise import Gaussian, Noise
+from rsmooth.noise import Gaussian, Laplace, Noise, Uniform
 
 __all__ = ["smooth", "smooth_elementwise", "ESTIMATORS"]
 
@@ -61,7 +92,14 @@ def smooth(
             :func:`rsmooth.alpha_order`).
 
     Returns:
-        `g(key, x)` with the shape of `f(x)`.
+        `g(key, x)` with the shape of `f(x)`; its derivatives of every order are estimates on
+        its samples (see the module docstring; alpha order: first derivatives only).
+
+    Raises:
+        ValueError: when called, for a non-finite `x` or value of `f`, or (zeroth and alpha
+            order) a `sigma` below the resolution of `x`'s dtype; at run time (an `equinox`
+            error) for the same conditions on traced values; when differentiated, for a
+            derivative the estimator or the noise law does not support.
 
     Example:
         >>> import jax, jax.numpy as jnp, rsmooth
@@ -69,12 +107,36 @@ def smooth(
         >>> g = rsmooth.smooth(step, sigma=1.0, num_samples=20000)
         >>> abs(float(jax.grad(g, argnums=1)(jax.random.key(0), 0.0)) - 0.3989) < 0.02
         True
+        >>> # the second derivative of Phi(x): -x phi(x), -0.176 at 0.5
+        >>> abs(float(jax.hessian(g, argnums=1)(jax.random.key(0), 0.5)) + 0.176) < 0.03
+        True
 
     References:
         Berthet et al., "Learning with differentiable perturbed optimizers", NeurIPS 2020;
         Suh, Simchowitz, Zhang, Tedrake, "Do differentiable simulators give better policy
-        gradients?", ICML 2022.
+        gradients?", ICML 2022; Foerster et al., "DiCE: the infinitely differentiable Monte
+        Carlo estimator", ICML 2018 (the likelihood ratio whose derivatives are the weights).
     """
+    return _smooth(
+        f,
+        "x",
+        sigma=sigma,
+        num_samples=num_samples,
+        estimator=estimator,
+        noise=noise,
+        baseline=baseline,
+        antithetic=antithetic,
+        gamma=gamma,
+        lipschitz=lipschitz,
+        delta=delta,
+    )
+
+
+def _smooth(
+    f, name, *, sigma, num_samples, estimator="zeroth", noise=Gaussian(), baseline=True, antithetic=False,
+    gamma=None, lipschitz=None, delta=0.05,
+):
+    """:func:`smooth`, whose errors call the smoothed argument `name`."""
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
     if not callable(f):
@@ -111,13 +173,21 @@ def smooth(
         # Hoist traced values that f closes over into explicit arguments, so that an outer
         # transformation may differentiate through them (custom_jvp forbids closures).
         converted, consts = jax.closure_convert(flat.f, flat.x)
-        rule = _smoothed_flat(converted, len(consts), **options)
+        rule = _smoothed_flat(converted, len(consts), name, **options)
         return jnp.reshape(rule(key, flat.x, sigma_array, *consts), flat.out_shape)
 
     return smoothed
 
 
-def _smoothed_flat(f_converted, num_consts, *, num_samples, estimator, noise, baseline, antithetic, gamma, lipschitz, delta):
+def _smoothed_flat(f_converted, num_consts, name, *, num_samples, estimator, noise, baseline, antithetic, gamma, lipschitz, delta):
+    score = _derivative_score(noise)
+    ratio = _likelihood_ratio(noise, score, elementwise=False)
+    nonfinite_x = f"{name} must be finite (it contains NaN or inf)"
+    without_derivatives = _without_derivatives(
+        "second derivatives are not available with estimator='alpha' (its blend is chosen for "
+        "the first derivative from the samples); use estimator='zeroth' or 'first'"
+    )
+
     def points(key, x, sigma):
         """The perturbed points, the same the estimators use for this key."""
         if estimator == "alpha":
@@ -128,52 +198,208 @@ def _smoothed_flat(f_converted, num_consts, *, num_samples, estimator, noise, ba
             return jnp.concatenate([z0, z1]), jnp.concatenate([p0, p1])
         return _est.perturbed_points(noise, key, x, sigma, num_samples, antithetic)
 
-    def checked(value, x, values):
-        return _checks.check_all_finite(value, [(x, _est._NONFINITE_X), (values, _est._NONFINITE_F)])
+    def checked(output, x, sigma, values, reference=None):
+        """`output`, tied to the checks of `x`, `sigma` against `x`'s resolution and `f`'s values."""
+        finite = [(x, nonfinite_x), (values, _est._NONFINITE_F)]
+        if reference is not None:
+            finite.append((reference, _NONFINITE_BASELINE))
+        conditions = [] if estimator == "first" else [_checks.resolution_failure(x, sigma, name)]
+        return _checks.check_all(output, finite, conditions)
+
+    def first_order_baseline(terms):
+        """The baseline of the derivatives of the first-order tangent (zero where it is used:
+        the tangent's value is not changed): for each sample the mean of the others' terms,
+        independent of its own noise (none with antithetic pairs, which cancel the constant
+        part of an odd score by themselves, or with one sample)."""
+        if antithetic or num_samples < 2:
+            return jnp.zeros_like(terms)
+        return (jnp.sum(terms, axis=0, keepdims=True) - terms) / (num_samples - 1)
+
+    def alpha_jvp(key, x, sigma, consts, x_dot, sigma_dot, consts_dot):
+        x, sigma, *consts = without_derivatives(x, sigma, *consts)
+        x = _checks.check_all(x, [(x, nonfinite_x)], [_checks.resolution_failure(x, sigma, name)])
+        flat = _est._Flat(x, lambda v: f_converted(v, *consts), None, ())
+        estimate, _ = _est._alpha_order_flat(
+            flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta
+        )
+        tangent = _matmul(estimate.jacobian, x_dot) + estimate.sigma_grad * sigma_dot
+        if num_consts:
+            # Pathwise derivative with respect to the values f closes over.
+            _, perturbed = points(key, x, sigma)
+
+            def consts_tangent(v):
+                return jax.jvp(lambda *c: f_converted(v, *c), tuple(consts), tuple(consts_dot))[1]
+
+            tangent = tangent + jnp.mean(jax.vmap(consts_tangent)(perturbed), axis=0)
+        return estimate.value, tangent
 
     @jax.custom_jvp
     def rule(key, x, sigma, *consts):
         _, perturbed = points(key, x, sigma)
         values = jax.vmap(lambda v: f_converted(v, *consts))(perturbed)
-        return checked(jnp.mean(values, axis=0), x, values)
+        return checked(jnp.mean(values, axis=0), x, sigma, values)
 
     @rule.defjvp
     def rule_jvp(primals, tangents):
         key, x, sigma, *consts = primals
         _, x_dot, sigma_dot, *consts_dot = tangents
-        f = lambda v: f_converted(v, *consts)  # noqa: E731
-        z, perturbed = points(key, x, sigma)
+        if estimator == "alpha":
+            return alpha_jvp(key, x, sigma, consts, x_dot, sigma_dot, consts_dot)
+        # The points are held fixed; their dependence on (x, sigma) is carried by the
+        # likelihood ratio `weight` (value 1) and the noise `z_at` (value z), whose derivatives
+        # are those of p_{x,sigma}(y) / p(y) and (y - x) / sigma. The tangent is then itself a
+        # Monte-Carlo estimate differentiable in (x, sigma), and its derivative the estimator of
+        # the next order on the same samples (score-function, as the likelihood ratio's).
+        z, perturbed = points(key, lax.stop_gradient(x), lax.stop_gradient(sigma))
+        z_at = _noise_at(z, x, sigma)
         if estimator == "zeroth":
-            values = jax.vmap(f)(perturbed)
-            score = noise.score(z)
-            centred = values - _est.baseline_values(values, baseline, lambda: f(x))
-            # Linear in (x_dot, sigma_dot); the same weights as zeroth_order's (see there).
-            weights = (-_matmul(score, x_dot) - sigma_dot * (jnp.sum(z * score, axis=-1) + x.shape[0])) / sigma
-            value = checked(jnp.mean(values, axis=0), x, values)
-            tangent = jnp.mean(centred * weights[:, None], axis=0)
-        elif estimator == "first":
-            values, tangents_out = jax.vmap(
-                lambda zi, vi: jax.jvp(f, (vi,), (x_dot + sigma_dot * zi,))
-            )(z, perturbed)
-            value = checked(jnp.mean(values, axis=0), x, values)
-            tangent = jnp.mean(tangents_out, axis=0)
-        else:
-            x = _checks.check_finite(x, _est._NONFINITE_X)
-            flat = _est._Flat(x, f, None, ())
-            estimate, _ = _est._alpha_order_flat(
-                flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta
+            if num_consts:
+                values, consts_terms = jax.vmap(
+                    lambda v: jax.jvp(lambda *c: f_converted(v, *c), tuple(consts), tuple(consts_dot))
+                )(perturbed)
+            else:
+                values, consts_terms = jax.vmap(lambda v: f_converted(v, *consts))(perturbed), None
+            reference = lax.stop_gradient(
+                _est.baseline_values(values, baseline, lambda: f_converted(lax.stop_gradient(x), *consts))
             )
-            value = estimate.value
-            tangent = _matmul(estimate.jacobian, x_dot) + estimate.sigma_grad * sigma_dot
-        if num_consts:
-            # Pathwise derivative with respect to the values f closes over.
-            def consts_tangent(v):
-                return jax.jvp(lambda *c: f_converted(v, *c), tuple(consts), tuple(consts_dot))[1]
+            weight = checked(ratio(z, x, sigma), x, sigma, values, reference)[:, None]
+            centred = values - reference
+            # The zeroth-order weights: -(score(z) . x_dot + sigma_dot (z . score(z) + d)) / sigma.
+            weights = _log_density_tangent(score, z_at, sigma, x_dot, sigma_dot, elementwise=False)[:, None]
+            tangent = jnp.mean(weight * centred * weights, axis=0)
+            if consts_terms is not None:
+                # Pathwise derivative with respect to the values f closes over.
+                tangent = tangent + jnp.mean(weight * consts_terms, axis=0)
+            # The value, written so that its derivatives are the rule's (it equals mean(values)).
+            value = jnp.mean(values + centred * (weight - 1.0), axis=0)
+            return value, tangent
+        # first order: the mean of f's derivatives along x_dot + sigma_dot z, and of its
+        # (pathwise) derivative with respect to the values f closes over.
+        direction = x_dot[None, :] + sigma_dot * z_at
 
-            tangent = tangent + jnp.mean(jax.vmap(consts_tangent)(perturbed), axis=0)
-        return value, tangent
+        def sample_jvp(v, dv):
+            return jax.jvp(lambda u, *c: f_converted(u, *c), (v, *consts), (dv, *consts_dot))
+
+        values, terms = jax.vmap(sample_jvp)(perturbed, direction)
+        anchor = checked(jnp.zeros((), x.dtype), x, sigma, values)
+        weight = (ratio(z, x, sigma) + anchor)[:, None]
+        tangent = jnp.mean(terms, axis=0) + jnp.mean((weight - 1.0) * (terms - first_order_baseline(terms)), axis=0)
+        # A zero term, linear in the tangents, that needs the checks' result: the checks then
+        # run wherever the derivative is used, also where f's own derivative is zero.
+        tangent = tangent + anchor * (jnp.sum(x_dot) + sigma_dot)
+        return rule(key, x, sigma, *consts), tangent
 
     return rule
+
+
+_NONFINITE_BASELINE = "f returned a non-finite value (NaN or inf) at x, the baseline f(x)"
+
+
+def _score_is_differentiable(noise: Noise) -> bool:
+    """Whether `noise`'s score is differentiable (its density twice differentiable), as the
+    derivatives of order two and more of the score-function estimator need. Laplace's score
+    jumps at 0 and Uniform has none; a law built from other laws (a product) is as smooth as
+    its parts; any other law is taken to be smooth."""
+    if isinstance(noise, (Laplace, Uniform)) or not noise.has_score:
+        return False
+    parts = jax.tree.leaves(noise, is_leaf=lambda leaf: isinstance(leaf, Noise) and leaf is not noise)
+    return all(_score_is_differentiable(part) for part in parts if isinstance(part, Noise))
+
+
+def _without_derivatives(message: str) -> Callable:
+    """The identity on its arguments, with a derivative rule that raises `ValueError(message)`
+    (taken only where a tangent flows in: for a value that must not be differentiated)."""
+
+    @jax.custom_jvp
+    def identity(*args):
+        return args
+
+    @identity.defjvp
+    def identity_jvp(primals, tangents):
+        raise ValueError(message)
+
+    return identity
+
+
+@jax.custom_jvp
+def _noise_at(z, x, sigma):
+    """The noise `z` of a point `y = x + sigma z` held fixed, as a function of `x` and `sigma`:
+    its value is `z`, its derivatives those of `(y - x) / sigma` (of every order)."""
+    return z
+
+
+@_noise_at.defjvp
+def _noise_at_jvp(primals, tangents):
+    z, x, sigma = primals
+    _, x_dot, sigma_dot = tangents
+    z_at = _noise_at(z, x, sigma)
+    return z_at, -(x_dot[None] + sigma_dot * z_at) / sigma
+
+
+def _log_density_tangent(score: Callable, z_at, sigma, x_dot, sigma_dot, *, elementwise: bool):
+    r"""The derivative along `(x_dot, sigma_dot)` of the log-density of the points
+    :math:`y = x + \sigma z` under :math:`p_{x,\sigma}(y) = \mu((y - x)/\sigma)/\sigma^d`:
+    :math:`-(\nabla\log\mu(z)\cdot\dot x + \dot\sigma\,(z\cdot\nabla\log\mu(z) + d))/\sigma`,
+    per sample (M,), or per element (M, ...) with `elementwise` (d = 1 for each)."""
+    s = score(z_at)
+    if elementwise:
+        return -(s * x_dot[None] + sigma_dot * (z_at * s + 1.0)) / sigma
+    return -(_matmul(s, x_dot) + sigma_dot * (jnp.sum(z_at * s, axis=-1) + z_at.shape[-1])) / sigma
+
+
+def _derivative_score(noise: Noise) -> Callable:
+    """`noise.score`, or where the score is not differentiable (:func:`_score_is_differentiable`)
+    the score with a derivative rule that raises `ValueError`: the derivatives of the
+    score-function estimators beyond the first would silently miss its jumps."""
+    if _score_is_differentiable(noise):
+        return noise.score
+    return _without_derivative_of(noise.score, (
+        f"derivatives of this order need the derivative of the noise's score, which "
+        f"{type(noise).__name__} lacks (its density is not twice differentiable); use "
+        "Gaussian, Logistic, Gumbel or Cauchy noise"
+    ))
+
+
+def _likelihood_ratio(noise: Noise, score: Callable, *, elementwise: bool) -> Callable:
+    r"""`ratio(z, x, sigma)`: the likelihood ratio :math:`p_{x,\sigma}(y) / p_{x_0,\sigma_0}(y)`
+    of the fixed points :math:`y = x_0 + \sigma_0 z`, at :math:`(x_0, \sigma_0)`: ones (M,)
+    (per element, (M, ...), with `elementwise`), whose derivatives of every order are those of
+    the ratio (Berthet et al. 2020, Prop. 3.1, applied again to each derivative; the
+    construction of "DiCE", Foerster et al., ICML 2018). The weights of the score-function
+    estimators of every order are its derivatives. Its first derivative needs the law's score
+    (`score`: :func:`_derivative_score`), the next ones the score's derivative."""
+
+    @jax.custom_jvp
+    def ratio(z, x, sigma):
+        return jnp.ones(z.shape if elementwise else z.shape[:1], z.dtype)
+
+    @ratio.defjvp
+    def ratio_jvp(primals, tangents):
+        z, x, sigma = primals
+        _, x_dot, sigma_dot = tangents
+        if not noise.has_score:
+            raise ValueError(
+                f"derivatives of this order need a noise law with a differentiable density; "
+                f"{type(noise).__name__} has none"
+            )
+        out = ratio(z, x, sigma)
+        return out, out * _log_density_tangent(score, _noise_at(z, x, sigma), sigma, x_dot, sigma_dot, elementwise=elementwise)
+
+    return ratio
+
+
+def _without_derivative_of(fn: Callable, message: str) -> Callable:
+    """`fn` of one array, with a derivative rule that raises `ValueError(message)`."""
+
+    @jax.custom_jvp
+    def wrapped(z):
+        return fn(z)
+
+    @wrapped.defjvp
+    def wrapped_jvp(primals, tangents):
+        raise ValueError(message)
+
+    return wrapped
 
 
 def smooth_elementwise(
@@ -204,7 +430,8 @@ def smooth_elementwise(
         baseline, antithetic: variance reduction (as in :func:`rsmooth.zeroth_order`).
 
     Returns:
-        `g(key, x)`, an array of the shape of `x`.
+        `g(key, x)`, an array of the shape of `x`; its derivatives of every order are estimated
+        as :func:`smooth`'s (element by element: diagonal), with the same checks.
 
     Example:
         >>> import jax, jax.numpy as jnp, rsmooth
@@ -224,30 +451,48 @@ def smooth_elementwise(
         z = noise.sample(key, shape, x.dtype)
         return jnp.concatenate([z, -z]) if antithetic else z
 
-    def checked(value, x, values):
-        return _checks.check_all_finite(value, [(x, _est._NONFINITE_X), (values, _est._NONFINITE_F)])
+    score = _derivative_score(noise)
+    ratio = _likelihood_ratio(noise, score, elementwise=True)
+
+    def checked(output, x, sigma, values, reference=None):
+        finite = [(x, _est._NONFINITE_X), (values, _est._NONFINITE_F)]
+        if reference is not None:
+            finite.append((reference, _NONFINITE_BASELINE))
+        conditions = [_checks.resolution_failure(x, sigma)] if estimator == "zeroth" else []
+        return _checks.check_all(output, finite, conditions)
 
     @jax.custom_jvp
     def rule(key, x, sigma):
         values = f(x[None] + sigma * samples(key, x))
-        return checked(jnp.mean(values, axis=0), x, values)
+        return checked(jnp.mean(values, axis=0), x, sigma, values)
 
     @rule.defjvp
     def rule_jvp(primals, tangents):
         key, x, sigma = primals
         _, x_dot, sigma_dot = tangents
+        # As in smooth(): fixed points, their dependence on (x, sigma) in the likelihood ratio
+        # (per element) and the noise, so that the tangent is differentiable again.
         z = samples(key, x)
+        perturbed = lax.stop_gradient(x[None] + sigma * z)
+        z_at = _noise_at(z, x, sigma)
         if estimator == "zeroth":
-            values = f(x[None] + sigma * z)
-            score = noise.score(z)
-            centred = values - _est.baseline_values(values, baseline, lambda: f(x))
+            values = f(perturbed)
+            reference = lax.stop_gradient(_est.baseline_values(values, baseline, lambda: f(lax.stop_gradient(x))))
+            weight = checked(ratio(z, x, sigma), x, sigma, values, reference)
+            centred = values - reference
             # Per element: weight -score(z) / sigma for x, -(z score(z) + 1) / sigma for sigma.
-            weights = (-score * x_dot[None] - sigma_dot * (z * score + 1.0)) / sigma
-            tangent = jnp.mean(centred * weights, axis=0)
+            weights = _log_density_tangent(score, z_at, sigma, x_dot, sigma_dot, elementwise=True)
+            return jnp.mean(values + centred * (weight - 1.0), axis=0), jnp.mean(weight * centred * weights, axis=0)
+        values, terms = jax.jvp(f, (perturbed,), (x_dot[None] + sigma_dot * z_at,))
+        anchor = checked(jnp.zeros((), x.dtype), x, sigma, values)
+        weight = ratio(z, x, sigma) + anchor
+        if antithetic or num_samples < 2:
+            others = jnp.zeros_like(terms)
         else:
-            values, tangent_values = jax.jvp(f, (x[None] + sigma * z,), (x_dot[None] + sigma_dot * z,))
-            tangent = jnp.mean(tangent_values, axis=0)
-        return checked(jnp.mean(values, axis=0), x, values), tangent
+            others = (jnp.sum(terms, axis=0, keepdims=True) - terms) / (num_samples - 1)
+        tangent = jnp.mean(terms, axis=0) + jnp.mean((weight - 1.0) * (terms - others), axis=0)
+        # tied to the checks, as in smooth()
+        return rule(key, x, sigma), tangent + anchor * (x_dot + sigma_dot)
 
     def smoothed(key, x):
         _checks.check_key(key)

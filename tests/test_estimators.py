@@ -291,3 +291,20 @@ class TestBadInput:
             rsmooth.zeroth_order(lambda x: (x, x), getkey(), self.x, sigma=0.1, num_samples=4)
         with pytest.raises(TypeError, match="key"):
             rsmooth.zeroth_order(self.f, 0, self.x, sigma=0.1, num_samples=4)
+
+
+def test_sigma_below_the_resolution_of_x_is_refused_by_the_score_function_estimators(getkey):
+    # float32: 1000 + 1e-5 z rounds to 1000, so every f(x + sigma z) is f(x) and the zeroth-order
+    # estimate would be silently 0 (that of 2 x = 2000 by first order).
+    key, x = getkey(), jnp.array([1000.0], jnp.float32)
+    f = lambda v: jnp.sum(v**2)  # noqa: E731
+    for estimator in (rsmooth.zeroth_order, rsmooth.alpha_order):
+        with pytest.raises(ValueError, match=r"sigma is below the resolution of x's dtype float32.*sigma = 1e-05"):
+            estimator(f, key, x, sigma=1e-5, num_samples=8)
+    traced = jax.jit(lambda s: rsmooth.zeroth_order(f, key, x, sigma=s, num_samples=8).grad)
+    with pytest.raises(Exception, match="sigma is below the resolution of x's dtype float32"):
+        jax.block_until_ready(traced(jnp.float32(1e-5)))
+    assert np.all(np.isfinite(traced(jnp.float32(10.0))))
+    # first order tends to f's derivative as sigma vanishes: allowed
+    est = rsmooth.first_order(f, key, x, sigma=1e-5, num_samples=8)
+    np.testing.assert_allclose(est.grad, 2000.0, rtol=1e-6)

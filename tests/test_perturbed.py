@@ -115,3 +115,139 @@ def test_jit_and_vmap(getkey):
     batched = fn(thetas, keys)
     for i in range(3):
         np.testing.assert_allclose(batched[i], perturbed.argmax(thetas[i], keys[i], sigma=0.5, num_samples=8))
+
+
+def mean_within(samples, truth, k=4.5):
+    """The mean of independent estimates (first axis) within k of its standard errors of truth."""
+    samples = np.asarray(samples)
+    error = samples.std(axis=0, ddof=1) / np.sqrt(samples.shape[0])
+    assert np.all(np.abs(samples.mean(axis=0) - np.asarray(truth)) <= k * error + 1e-12)
+
+
+def softmax_jacobian(theta, sigma):
+    p = jax.nn.softmax(theta / sigma)
+    return (jnp.diag(p) - jnp.outer(p, p)) / sigma
+
+
+def test_max_hessian_is_the_argmax_jacobian_is_the_softmax_jacobian(getkey):
+    # Berthet et al. 2020, Prop. 3.1: the Hessian of F_sigma is the Jacobian of y_sigma, for
+    # Gumbel noise the softmax Jacobian. Both are estimated on the same samples (the max's
+    # second derivative with each sample's baseline the mean of the others').
+    sigma, m = 0.7, 2000
+
+    def estimates(key):
+        hessian = jax.hessian(perturbed.max)(THETA, key, sigma=sigma, num_samples=m)
+        loss_hessian = jax.hessian(perturbed.fenchel_young_loss)(THETA, jax.nn.one_hot(1, 5), key, sigma=sigma, num_samples=m)
+        jacobian = jax.jacobian(perturbed.argmax)(THETA, key, sigma=sigma, num_samples=m, baseline="leave-one-out")
+        return hessian, loss_hessian, jacobian
+
+    hessians, loss_hessians, jacobians = jax.jit(jax.vmap(estimates))(jax.random.split(getkey(), 16))
+    np.testing.assert_allclose(hessians, jacobians, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(loss_hessians, hessians, rtol=1e-9, atol=1e-12)
+    mean_within(hessians, softmax_jacobian(THETA, sigma))
+
+
+def test_a_batch_gets_independent_noise_per_problem(getkey):
+    key, b, m, sigma = getkey(), 64, 32, 0.5
+    rows = jnp.tile(THETA, (b, 1))
+    keys = jax.random.split(key, b)
+    y = perturbed.argmax(rows, key, sigma=sigma, num_samples=m)
+    assert y.shape == (b, 5) and not np.allclose(y[0], y[1])  # identical rows, different noise
+    # the documented rule: vmap over the rows with the keys split from key
+    single = jax.vmap(lambda t, k: perturbed.argmax(t, k, sigma=sigma, num_samples=m))(rows, keys)
+    np.testing.assert_allclose(y, single, rtol=1e-12)
+
+    # The gradient of the mean over the batch of <c, y_b>: row b's gradient comes from row b's
+    # samples only, so the rows' gradients spread as one problem's and their mean's error
+    # falls as 1 / sqrt(B) (one noise for all rows would add every row's noise to each).
+    c = jnp.arange(5.0)
+    grads = b * jax.jit(jax.grad(lambda t: jnp.mean(perturbed.argmax(t, key, sigma=sigma, num_samples=m) @ c)))(rows)
+    single_grads = jax.jit(jax.vmap(jax.grad(lambda t, k: perturbed.argmax(t, k, sigma=sigma, num_samples=m) @ c)))(
+        rows, jax.random.split(getkey(), b)
+    )
+    spread, single_spread = np.std(np.asarray(grads), axis=0), np.std(np.asarray(single_grads), axis=0)
+    assert np.all(spread < 1.5 * single_spread) and np.all(spread > single_spread / 1.5)
+    mean_within(grads, softmax_jacobian(THETA, sigma).T @ c)
+
+    # max, argmin, min and the Fenchel-Young loss follow the same rule, over any leading axes
+    targets = jax.nn.one_hot(jnp.arange(6) % 5, 5).reshape(2, 3, 5)
+    thetas = jax.random.normal(getkey(), (2, 3, 5))
+    split = jax.random.split(key, 6)
+    for fn, args in (
+        (perturbed.max, ()), (perturbed.argmin, ()), (perturbed.min, ()), (perturbed.fenchel_young_loss, (targets,))
+    ):
+        batched = fn(thetas, *args, key, sigma=sigma, num_samples=m)
+        one_by_one = jax.vmap(lambda t, *a: fn(t, *a[:-1], a[-1], sigma=sigma, num_samples=m))(
+            thetas.reshape(6, 5), *[a.reshape(6, 5) for a in args], split
+        )
+        np.testing.assert_allclose(batched, one_by_one.reshape(batched.shape), rtol=1e-12)
+    loss_grad = jax.jit(jax.grad(lambda t: jnp.sum(perturbed.fenchel_young_loss(t, targets, key, sigma=sigma, num_samples=m))))(thetas)
+    argmaxes = perturbed.argmax(thetas, key, sigma=sigma, num_samples=m)
+    np.testing.assert_allclose(loss_grad, argmaxes - targets, rtol=1e-10, atol=1e-12)
+    with pytest.raises(ValueError, match="theta must have at least one axis"):
+        perturbed.argmax(jnp.array(1.0), key, sigma=sigma, num_samples=m)
+
+
+def test_non_finite_theta_raises_under_jit_of_grad(getkey):
+    key, theta = getkey(), THETA.at[2].set(jnp.nan)
+    y = jax.nn.one_hot(3, 5)
+    for fn in (
+        jax.jit(jax.grad(lambda t: perturbed.fenchel_young_loss(t, y, key, sigma=0.5, num_samples=8))),
+        jax.jit(jax.jacobian(lambda t: perturbed.argmax(t, key, sigma=0.5, num_samples=8))),
+        jax.jit(lambda t: perturbed.max(t, key, sigma=0.5, num_samples=8)),
+    ):
+        with pytest.raises(Exception, match="theta must be finite"):
+            jax.block_until_ready(fn(theta))
+    with pytest.raises(ValueError, match="theta must be finite"):
+        perturbed.fenchel_young_loss(theta, y, key, sigma=0.5, num_samples=8)
+
+
+def unit_interval_argmax(theta):
+    """The LP oracle over the unit cube [0, 1]^n: 1 where theta > 0."""
+    return jnp.where(theta > 0, 1.0, 0.0)
+
+
+def test_gaussian_perturbed_argmax_and_max_of_a_one_dimensional_problem_are_closed_forms(getkey):
+    # max_{y in [0, 1]} y theta = max(theta, 0); with Gaussian noise: argmax Phi(theta / s),
+    # its derivative phi(theta / s) / s, max theta Phi(theta / s) + s phi(theta / s), whose
+    # gradient is the argmax and Hessian the argmax's derivative.
+    from jax.scipy.stats import norm
+
+    s, m = 0.5, 20_000
+    theta = jnp.array([[-0.6], [0.0], [0.3], [1.2]])  # a batch of four one-dimensional problems
+    gauss = noise.Gaussian()
+    kwargs = dict(sigma=s, num_samples=m, noise=gauss, oracle=unit_interval_argmax)
+    key = getkey()
+    y = perturbed.argmax(theta, key, **kwargs)
+    p = norm.cdf(theta / s)
+    np.testing.assert_array_less(jnp.abs(y - p), 4.5 * jnp.sqrt(p * (1 - p) / m) + 1e-12)
+    # one problem per row: the Jacobian of the batch is diagonal
+    jac = jax.jit(jax.jacobian(lambda t: perturbed.argmax(t, key, **kwargs)))(theta)[:, 0, :, 0]
+    np.testing.assert_array_equal(jac * (1 - np.eye(4)), 0.0)
+    np.testing.assert_allclose(jnp.diag(jac), norm.pdf(theta[:, 0] / s) / s, atol=0.04)
+
+    value, grad = jax.jit(jax.value_and_grad(lambda t: jnp.sum(perturbed.max(t, key, **kwargs))))(theta)
+    closed = theta * p + s * norm.pdf(theta / s)
+    np.testing.assert_allclose(value, jnp.sum(closed), atol=4.5 * 4 * s / np.sqrt(m))
+    np.testing.assert_allclose(grad, y, rtol=1e-12)  # the gradient of the max is the argmax
+    hessian = jax.jit(jax.hessian(lambda t: perturbed.max(t, key, **kwargs)))(theta[0])
+    np.testing.assert_allclose(hessian[0, 0], norm.pdf(theta[0, 0] / s) / s, atol=0.04)
+
+
+def test_fenchel_young_loss_gradient_is_argmax_minus_target_and_loss_is_nonnegative(getkey):
+    key, sigma, m = getkey(), 0.5, 4000
+    gauss = noise.Gaussian()
+    targets = jnp.eye(5)
+    thetas = jnp.tile(THETA, (5, 1))
+    kwargs = dict(sigma=sigma, num_samples=m, noise=gauss)
+    # on the same samples, exactly: grad L(theta; y) = y_sigma(theta) - y
+    grads = jax.jit(jax.grad(lambda t: jnp.sum(perturbed.fenchel_young_loss(t, targets, key, **kwargs))))(thetas)
+    np.testing.assert_allclose(grads, perturbed.argmax(thetas, key, **kwargs) - targets, rtol=1e-12, atol=1e-12)
+    # Jensen: E max_y <y, theta + sigma Z> >= max_y <y, theta> >= <y, theta> for zero-mean noise,
+    # so the loss is >= 0 (up to the Monte-Carlo error of the noise's sample mean) ...
+    losses = perturbed.fenchel_young_loss(thetas, targets, key, **kwargs)
+    assert np.all(np.asarray(losses) > -4.5 * sigma / np.sqrt(m))
+    # ... and as sigma vanishes it tends to max theta - <theta, y>: zero at y = argmax only.
+    small = perturbed.fenchel_young_loss(thetas, targets, key, sigma=1e-4, num_samples=16, noise=gauss)
+    np.testing.assert_allclose(small, jnp.max(THETA) - THETA, atol=1e-3)
+    assert int(jnp.argmin(small)) == int(jnp.argmax(THETA)) and float(jnp.min(small)) < 1e-3
