@@ -2,18 +2,30 @@
 
 Every experiment takes `--out DIR` (default `./rsmooth-out/NAME`), `--seed N` and `--quick`
 (a reduced size that finishes in a couple of minutes on 2 CPU cores), shows a progress bar,
-and writes `DIR/metrics.json` beside its figures.
+and writes `DIR/metrics.json` beside its figures. `DIR/rsmooth-files.json` lists the files a
+run wrote: a run into the folder of an earlier one first removes those (and no other file), and
+a non-empty folder that no run wrote into is refused. Errors of the operating system (a folder
+that cannot be written) end the command with a one-line message and exit code 1; Ctrl-C ends
+it with exit code 130.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import gc
 import importlib
+import math
+import os
+import signal
+import sys
+import threading
 import time
 from pathlib import Path
 from typing import Callable, Optional
 
 import typer
+
+from rsmooth import _files
 
 app = typer.Typer(
     help="rsmooth: randomized smoothing for optimizing non-smooth physical processes (JAX).",
@@ -36,14 +48,28 @@ SeedOption = typer.Option(0, "--seed", help="Seed of the jax.random key.")
 QuickOption = typer.Option(False, "--quick", help="Reduced size: about two minutes on 2 CPU cores.")
 
 
+def _fail(message: str) -> None:
+    """Ends the command with a one-line error on stderr and exit code 1."""
+    typer.echo(f"rsmooth: error: {message}", err=True)
+    raise typer.Exit(1)
+
+
+def _os_error_message(error: OSError) -> str:
+    """``strerror: filename`` (e.g. ``Permission denied: out/metrics.json``), else the error's text."""
+    if error.strerror and error.filename is not None:
+        return f"{error.strerror}: {os.fsdecode(error.filename)}"
+    return str(error) or type(error).__name__
+
+
 def _prepare(name: str, out: Optional[Path], seed: int, x64: bool = True):
+    """The output folder, made ready (:func:`rsmooth._files.prepare_output_folder`: the files of
+    the previous run into it removed), and the key of `seed`."""
     import jax
 
     # One experiment per process: its precision is set once, before any array exists.
     jax.config.update("jax_enable_x64", x64)
     out = Path(out) if out is not None else DEFAULT_ROOT / name
-    out.mkdir(parents=True, exist_ok=True)
-    return out, jax.random.key(seed)
+    return _files.prepare_output_folder(out), jax.random.key(seed)
 
 
 def _report(name: str, out: Path, start: float, summary: dict) -> None:
@@ -76,12 +102,18 @@ def _run(
     # `rsmooth demo` runs several experiments in one process: it keeps float64 throughout
     # rather than switching the precision under arrays that already exist.
     x64 = experiment.x64 or root is not None
-    out, key = _prepare(experiment.name, out if root is None else root / experiment.name, seed, x64)
-    config = module.Config.quick() if quick else module.Config()
-    changes = {name: value for name, value in overrides.items() if value is not None}
-    if changes:
-        config = dataclasses.replace(config, **changes)
-    metrics = module.run(config, out, key)
+    try:
+        out, key = _prepare(experiment.name, out if root is None else root / experiment.name, seed, x64)
+        config = module.Config.quick() if quick else module.Config()
+        changes = {name: value for name, value in overrides.items() if value is not None}
+        if changes:
+            config = dataclasses.replace(config, **changes)
+        with _files.recording_outputs(out):
+            metrics = module.run(config, out, key)
+    except _files.OutputFolderError as error:
+        _fail(str(error))
+    except OSError as error:  # a folder or file that cannot be written: permission denied, disk full...
+        _fail(_os_error_message(error))
     _report(title or experiment.title, out, start, experiment.summary(metrics))
     return metrics
 
@@ -302,6 +334,9 @@ def render_pose_command(
 
     methods = _methods(method, METHODS)
     init_errors_deg = tuple(float(e) for e in init_error) if init_error else None
+    for error in init_errors_deg or ():
+        if not (math.isfinite(error) and 0.0 <= error <= 180.0):
+            raise typer.BadParameter(f"--init-error must be an angle in [0, 180] degrees, got {error}")
     _run(_RENDER_POSE, out, seed, quick, mesh=mesh, init_errors_deg=init_errors_deg, problems=problems, methods=methods,
          steps=steps, num_samples=samples, keep_best=keep_best, pose_noise_deg=pose_noise, pose_noise_until=pose_noise_until,
          restarts=restarts, sample_growth=sample_growth, max_samples=max_samples, pixel_chunk=pixel_chunk,
@@ -485,14 +520,102 @@ def demo(
     typer.echo(f"demo: all artifacts under {out}/")
 
 
+class _Interrupted(BaseException):
+    """Raised in the main thread by the command's SIGINT handler. Not a `KeyboardInterrupt`,
+    which Click turns into an ordinary exit, through the interpreter's shutdown."""
+
+
+def _frame_after_dropping_callbacks(frame):
+    """The frame that a garbage-collection callback or a ``__del__`` method interrupted, where
+    `frame` runs inside one (Python prints an exception raised there and drops it: JAX's gc
+    callback runs during compilation, and a Ctrl-C raised in it was lost); None otherwise."""
+    codes = {getattr(callback, "__code__", None) for callback in gc.callbacks}
+    outside = None
+    while frame is not None:
+        if frame.f_code in codes or frame.f_code.co_name == "__del__":
+            outside = frame.f_back
+        frame = frame.f_back
+    return outside
+
+
+def _trace_no_frame(frame, event, arg):
+    return None
+
+
+class _InterruptHandler:
+    """The command's SIGINT handler: raises :class:`_Interrupted` in the main thread.
+
+    Inside a callback that would drop it, it is raised instead when the interrupted frame runs
+    its next line (a trace function set on that frame). It is also raised again every half
+    second (by sending SIGINT to the process) until :func:`main` has caught it, in case it was
+    lost all the same (e.g. turned into an error of a host callback, and that one handled)."""
+
+    def __init__(self):
+        self.received = threading.Event()
+        self.caught = threading.Event()
+
+    def __call__(self, signum, frame):
+        if not self.received.is_set():
+            self.received.set()
+            threading.Thread(target=self._repeat, name="rsmooth-interrupt", daemon=True).start()
+        outside = _frame_after_dropping_callbacks(frame)
+        if outside is None:
+            raise _Interrupted()
+        outside.f_trace = self._raise_on_next_line
+        if sys.gettrace() is None:  # frames' own trace functions run only while one is set
+            sys.settrace(_trace_no_frame)
+
+    @staticmethod
+    def _raise_on_next_line(frame, event, arg):
+        frame.f_trace = None
+        if sys.gettrace() is _trace_no_frame:
+            sys.settrace(None)
+        raise _Interrupted()
+
+    def _repeat(self):
+        while not self.caught.wait(0.5):
+            os.kill(os.getpid(), signal.SIGINT)
+
+    def exit(self) -> None:
+        """Prints that the run was interrupted and ends the process with code 130 (128 + SIGINT).
+
+        By `os._exit`, without the interpreter's shutdown: an interrupted XLA compilation goes
+        on in a worker thread, and the shutdown destroyed the JAX backend under it (a
+        segmentation fault). Nothing is lost by skipping it: files are written atomically
+        (rsmooth._files), and the `finally` blocks of the interrupted code have already run.
+        """
+        self.caught.set()
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        try:
+            sys.stderr.write("\nrsmooth: interrupted\n")
+            sys.stderr.flush()
+        except (OSError, ValueError):
+            pass
+        os._exit(130)
+
+
 def main():  # the console-script entry point
-    import sys
+    handler = _InterruptHandler()
+    # A shell starts background jobs with SIGINT ignored: keep it so.
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, handler)
 
-    from rsmooth import _xla
+    try:
+        from rsmooth import _xla
 
-    if sys.argv[1:2] == ["render"]:
-        _xla.apply_cpu_defaults()  # before JAX starts its backend (see rsmooth._xla)
-    app()
+        if sys.argv[1:2] == ["render"]:
+            _xla.apply_cpu_defaults()  # before JAX starts its backend (see rsmooth._xla)
+        app()
+    except BaseException:
+        # Whatever ended the run after a Ctrl-C (the interrupt itself, or an error it caused,
+        # e.g. in a host callback) ends it as an interrupt.
+        if handler.received.is_set():
+            handler.exit()
+        raise
 
 
 if __name__ == "__main__":

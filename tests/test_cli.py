@@ -1,8 +1,11 @@
 """The command line's generic experiment runner."""
 
 import dataclasses
+import json
 import sys
 import types
+from pathlib import Path
+from typing import Optional
 
 import pytest
 from typer.testing import CliRunner
@@ -163,3 +166,158 @@ def test_render_baseline_option_reaches_the_config(monkeypatch, tmp_path, comman
     assert calls[-1]["baseline"] is None  # the Config's default
     bad = CliRunner().invoke(cli.app, ["render", command, "--baseline", "mean", "--out", str(tmp_path)])
     assert bad.exit_code != 0 and "--baseline" in bad.output and len(calls) == 3
+
+
+# -- output folders, operating-system errors, interrupts -------------------------------------
+
+
+def _command(experiment):
+    """A one-command app that runs `experiment` through the command line's runner."""
+    import typer
+
+    app = typer.Typer()
+
+    @app.command()
+    def run(out: Optional[Path] = typer.Option(None, "--out"), quick: bool = typer.Option(False, "--quick")):
+        cli._run(experiment, out, 0, quick)
+
+    return app
+
+
+def _writing_experiment(monkeypatch, names):
+    """A fake experiment that writes `names[config.label]` (atomically, as the experiments do)."""
+    from rsmooth._files import atomic_path
+
+    def run(config, out, key):
+        for name in names[config.label]:
+            with atomic_path(out / name) as temporary:
+                temporary.write_text(config.label)
+        return {}
+
+    monkeypatch.setitem(sys.modules, "rsmooth.experiments.writer", types.SimpleNamespace(Config=FakeConfig, run=run))
+    return cli._Experiment("writer", "writer", "writer", lambda metrics: {})
+
+
+def test_rerun_removes_the_previous_runs_files_and_keeps_the_others(monkeypatch, tmp_path):
+    experiment = _writing_experiment(monkeypatch, {"full": ["metrics.json", "a.png", "b.png"], "quick": ["metrics.json", "a.png"]})
+    app, out = _command(experiment), tmp_path / "out"
+    assert CliRunner().invoke(app, ["--out", str(out)]).exit_code == 0
+    (out / "notes.txt").write_text("mine")
+    (out / "folder").mkdir()
+    result = CliRunner().invoke(app, ["--out", str(out), "--quick"])
+    assert result.exit_code == 0, result.output
+    # b.png of the first run is gone; what rsmooth did not write stays
+    assert sorted(p.name for p in out.iterdir()) == ["a.png", "folder", "metrics.json", "notes.txt", "rsmooth-files.json"]
+    assert (out / "a.png").read_text() == "quick" and (out / "notes.txt").read_text() == "mine"
+    assert json.loads((out / "rsmooth-files.json").read_text())["files"] == ["a.png", "metrics.json"]
+
+
+def test_output_folder_errors_are_one_line(monkeypatch, tmp_path):
+    experiment = _writing_experiment(monkeypatch, {"full": ["metrics.json"], "quick": []})
+    app = _command(experiment)
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "thesis.tex").write_text("keep me")
+    a_file = tmp_path / "file.txt"
+    a_file.write_text("")
+    expected = {
+        foreign: f"rsmooth: error: --out {foreign} is not empty (thesis.tex) and holds no previous run of rsmooth "
+        "(no rsmooth-files.json): choose a new or empty folder",
+        a_file: f"rsmooth: error: --out {a_file} is a file, not a folder",
+        a_file / "out": f"rsmooth: error: --out {a_file / 'out'}: a parent of it is a file, not a folder",
+    }
+    for out, line in expected.items():
+        result = CliRunner().invoke(app, ["--out", str(out)])
+        assert result.exit_code == 1 and result.output.strip() == line
+    assert sorted(p.name for p in foreign.iterdir()) == ["thesis.tex"]
+
+
+def test_operating_system_errors_during_a_run_are_one_line(monkeypatch, tmp_path):
+    def run(config, out, key):
+        raise PermissionError(13, "Permission denied", str(out / "metrics.json"))
+
+    monkeypatch.setitem(sys.modules, "rsmooth.experiments.denied", types.SimpleNamespace(Config=FakeConfig, run=run))
+    result = CliRunner().invoke(_command(cli._Experiment("denied", "denied", "denied", None)), ["--out", str(tmp_path)])
+    assert result.exit_code == 1
+    assert result.output.strip() == f"rsmooth: error: Permission denied: {tmp_path / 'metrics.json'}"
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-5", "200"])
+def test_render_pose_rejects_an_initial_error_that_is_not_an_angle(monkeypatch, tmp_path, value):
+    calls = []
+    monkeypatch.setattr(cli, "_run", lambda *args, **overrides: calls.append(overrides))
+    result = CliRunner().invoke(cli.app, ["render", "pose", "--init-error", "20", "--init-error", value, "--out", str(tmp_path)])
+    assert result.exit_code != 0 and "--init-error" in result.output and not calls
+
+
+def test_render_pose_run_rejects_initial_errors_that_are_not_angles(tmp_path):
+    import jax
+
+    from rsmooth.experiments import render_pose
+
+    for errors in ((float("nan"),), (20.0, 181.0), ()):
+        config = dataclasses.replace(render_pose.Config.quick(), init_errors_deg=errors)
+        with pytest.raises(ValueError, match="init_errors_deg must hold"):
+            render_pose.run(config, tmp_path, jax.random.key(0), progress=False)
+    assert not any(tmp_path.iterdir())
+
+
+INTERRUPTED_SCRIPT = """
+import gc, signal, sys, time, types
+from rsmooth import cli
+
+# As in a terminal, whatever started the tests (a background job ignores SIGINT).
+signal.signal(signal.SIGINT, signal.default_int_handler)
+
+def compiling(config, out, key):
+    import jax, jax.numpy as jnp
+
+    print("started", flush=True)
+    for i in range(10**6):  # compile after compile: the interrupt lands in one
+        def f(x, i=i):
+            for j in range(1500):
+                x = jnp.sin(x * (i + j)) + jnp.cos(x)
+            return x
+        jax.jit(f).lower(jnp.ones(3)).compile()
+
+def collecting(config, out, key):
+    # Most of the time in garbage-collection callbacks, which drop the exceptions raised in them.
+    gc.callbacks.append(lambda phase, info: time.sleep(0.2))
+    print("started", flush=True)
+    while True:
+        gc.collect()
+        time.sleep(0.05)
+
+run = compiling if sys.argv[1] == "compiling" else collecting
+sys.modules["rsmooth.experiments.slow"] = types.SimpleNamespace(Config=types.SimpleNamespace, run=run)
+
+@cli.experiment_app.command("slow")
+def slow(out: str):
+    cli._run(cli._Experiment("slow", "slow", "slow", None), out, 0, False)
+
+sys.argv = ["rsmooth", "experiment", "slow", "out"]
+cli.main()
+"""
+
+
+@pytest.mark.parametrize("during", ["compiling", "collecting"])
+def test_ctrl_c_stops_the_command_with_a_message_and_code_130(tmp_path, during):
+    # An interrupt during an XLA compilation used to end in a segmentation fault (the
+    # interpreter's shutdown destroyed the backend under the compiling thread); one that landed
+    # in a garbage-collection callback was dropped, and the run went on.
+    import signal
+    import subprocess
+    import time
+
+    (tmp_path / "script.py").write_text(INTERRUPTED_SCRIPT)
+    process = subprocess.Popen([sys.executable, "script.py", during], cwd=tmp_path, text=True,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert process.stdout.readline() == "started\n"
+        time.sleep(1.0)
+        process.send_signal(signal.SIGINT)
+        _, stderr = process.communicate(timeout=30)
+    finally:
+        process.kill()
+    assert process.returncode == 130, stderr
+    assert stderr.strip() == "rsmooth: interrupted"

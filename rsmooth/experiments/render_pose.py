@@ -569,6 +569,11 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         raise ValueError(f"pose_noise_deg must be a finite number >= 0 (degrees), got {config.pose_noise_deg!r}")
     if not (np.isfinite(config.pose_noise_until) and 0.0 < config.pose_noise_until <= 1.0):
         raise ValueError(f"pose_noise_until must be in (0, 1] (a fraction of the steps), got {config.pose_noise_until!r}")
+    if not config.init_errors_deg:
+        raise ValueError("init_errors_deg must hold at least one initial rotation error (degrees)")
+    for err in config.init_errors_deg:
+        if isinstance(err, bool) or not isinstance(err, (int, float, np.integer, np.floating)) or not 0.0 <= err <= 180.0:
+            raise ValueError(f"init_errors_deg must hold angles in [0, 180] degrees, got {err!r}")
     mesh = load(config.mesh)
     cam = camera(config)
     target_renderer = make_renderer(config, "hard", mesh)

@@ -106,6 +106,54 @@ def random_rotation(key: Array, dtype=float) -> Array:
     return quaternion_to_matrix(jax.random.normal(key, (4,), dtype))
 
 
+_POSE_MESSAGE = "camera rotation and translation must be finite (the camera pose contains NaN or inf)"
+_INTRINSICS_MESSAGE = "camera fov must be in (0, 180) degrees and 0 < near < far"
+
+
+def _is_traced(value) -> bool:
+    return isinstance(value, jax.core.Tracer)
+
+
+def _pose_is_finite(rotation, translation):
+    return jnp.all(jnp.isfinite(rotation)) & jnp.all(jnp.isfinite(translation))
+
+
+def _intrinsics_are_valid(fov, near, far):
+    return jnp.all((fov > 0) & (fov < 180) & (near > 0) & (far > near))
+
+
+def _check_concrete(camera: "Camera") -> None:
+    """The checks of :func:`check_camera` on the arrays that are not traced, now (`ValueError`)."""
+    if not any(_is_traced(a) for a in (camera.rotation, camera.translation)):
+        rotation, translation = np.asarray(camera.rotation), np.asarray(camera.translation)
+        if not np.all(np.isfinite(rotation)):
+            raise ValueError(f"camera rotation must be finite, got {rotation.tolist()}")
+        if not np.all(np.isfinite(translation)):
+            raise ValueError(f"camera translation must be finite, got {translation.tolist()}")
+    if not any(_is_traced(a) for a in (camera.fov, camera.near, camera.far)):
+        fov, near, far = (np.asarray(a) for a in (camera.fov, camera.near, camera.far))
+        if not np.all((fov > 0) & (fov < 180)):
+            raise ValueError(f"camera fov must be in (0, 180) degrees, got {fov}")
+        if not np.all((near > 0) & (far > near)):
+            raise ValueError(f"camera near and far must satisfy 0 < near < far, got near={near}, far={far}")
+
+
+def check_camera(camera: "Camera") -> "Camera":
+    """Returns `camera` after checking that its pose is finite, ``0 < fov < 180`` and
+    ``0 < near < far``: now (`ValueError`) for concrete arrays, when the program runs
+    (`equinox.error_if`) for traced ones (the check is then tied to the returned camera)."""
+    _check_concrete(camera)
+    pose = lambda c: (c.rotation, c.translation)  # noqa: E731
+    intrinsics = lambda c: (c.fov, c.near, c.far)  # noqa: E731
+    if any(_is_traced(a) for a in pose(camera)):
+        checked = eqx.error_if(pose(camera), ~_pose_is_finite(*pose(camera)), _POSE_MESSAGE)
+        camera = eqx.tree_at(pose, camera, checked)
+    if any(_is_traced(a) for a in intrinsics(camera)):
+        checked = eqx.error_if(intrinsics(camera), ~_intrinsics_are_valid(*intrinsics(camera)), _INTRINSICS_MESSAGE)
+        camera = eqx.tree_at(intrinsics, camera, checked)
+    return camera
+
+
 class Camera(eqx.Module):
     """A pinhole camera.
 
@@ -130,11 +178,15 @@ class Camera(eqx.Module):
     image_size: tuple[int, int] = eqx.field(static=True)
 
     def __init__(self, rotation, translation, *, fov=45.0, near=0.1, far=100.0, image_size=(64, 64)):
-        self.rotation = jnp.asarray(rotation, float)
-        self.translation = jnp.asarray(translation, self.rotation.dtype)
-        self.fov = jnp.asarray(fov, self.rotation.dtype)
-        self.near = jnp.asarray(near, self.rotation.dtype)
-        self.far = jnp.asarray(far, self.rotation.dtype)
+        rotation = jnp.asarray(rotation, float)
+        translation = jnp.asarray(translation, rotation.dtype)
+        fov, near, far = (jnp.asarray(a, rotation.dtype) for a in (fov, near, far))
+        # Traced values are checked when the program runs; concrete ones in __check_init__.
+        if _is_traced(rotation) or _is_traced(translation):
+            rotation, translation = eqx.error_if((rotation, translation), ~_pose_is_finite(rotation, translation), _POSE_MESSAGE)
+        if any(_is_traced(a) for a in (fov, near, far)):
+            fov, near, far = eqx.error_if((fov, near, far), ~_intrinsics_are_valid(fov, near, far), _INTRINSICS_MESSAGE)
+        self.rotation, self.translation, self.fov, self.near, self.far = rotation, translation, fov, near, far
         if len(image_size) != 2 or any(int(s) != s or s < 1 for s in image_size):
             raise ValueError(f"image_size must be (height, width), two positive ints, got {image_size}")
         self.image_size = (int(image_size[0]), int(image_size[1]))
@@ -144,13 +196,7 @@ class Camera(eqx.Module):
             raise ValueError(
                 f"rotation must be (3, 3) and translation (3,), got {self.rotation.shape} and {self.translation.shape}"
             )
-        concrete = not any(isinstance(a, jax.core.Tracer) for a in (self.fov, self.near, self.far))
-        if concrete:
-            fov, near, far = np.asarray(self.fov), np.asarray(self.near), np.asarray(self.far)
-            if not np.all((fov > 0) & (fov < 180)):
-                raise ValueError(f"fov must be in (0, 180) degrees, got {fov}")
-            if not np.all((near > 0) & (far > near)):
-                raise ValueError(f"need 0 < near < far, got near={near}, far={far}")
+        _check_concrete(self)
 
     @classmethod
     def from_pose(
@@ -198,11 +244,15 @@ def look_at(
     """A camera at `eye` looking at `target`, with world `up` pointing up in the image.
 
     Raises:
-        ValueError: `eye` equals `target`, or `up` is parallel to the viewing direction.
+        ValueError: `eye`, `target` or `up` is not finite, `eye` equals `target`, or `up` is
+            parallel to the viewing direction.
     """
     eye = jnp.asarray(eye, float)
     target = jnp.asarray(target, eye.dtype)
     up = jnp.asarray(up, eye.dtype)
+    for name, value in (("eye", eye), ("target", target), ("up", up)):
+        if not _is_traced(value) and not np.all(np.isfinite(np.asarray(value))):
+            raise ValueError(f"look_at: {name} must be finite, got {np.asarray(value).tolist()}")
     forward = target - eye
     if not isinstance(forward, jax.core.Tracer):
         norm = float(np.linalg.norm(np.asarray(forward)))

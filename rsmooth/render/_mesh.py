@@ -19,6 +19,8 @@ Example:
 
 from __future__ import annotations
 
+import codecs
+import io
 import os
 from pathlib import Path
 
@@ -180,6 +182,54 @@ def _from_trimesh(tm, name: str) -> Mesh:
         raise ValueError(f"{name}: {error}") from None
 
 
+# Mesh formats that are text throughout: read and decoded here (see _load_trimesh).
+_TEXT_FORMATS = ("obj", "off")
+
+
+class _Unparseable(Exception):
+    """A mesh file that is not what its suffix says (the message says why)."""
+
+
+def _looks_binary(data: bytes) -> bool:
+    """Whether `data` is binary rather than text: a NUL byte, or more than 10 % of control
+    bytes other than whitespace, in its first 8 KiB."""
+    head = data[:8192]
+    if b"\0" in head:
+        return True
+    control = sum(byte < 32 and byte not in b"\t\n\r\f\v" for byte in head)
+    return control > 0.1 * max(len(head), 1)
+
+
+def _load_trimesh(trimesh, path: Path):
+    """``trimesh.load`` of the file, with the text formats (OBJ, OFF) decoded here: trimesh
+    guesses the encoding of text that is not UTF-8 with the optional `charset_normalizer`,
+    and without it fails on a valid file with, say, a Latin-1 comment. Such a file is read as
+    UTF-16 if it starts with its byte-order mark, else as Latin-1 (every byte is a character;
+    the numbers and keywords are ASCII in any 8-bit encoding)."""
+    file_type = path.suffix.lower().lstrip(".")
+    if file_type not in _TEXT_FORMATS:
+        return trimesh.load(path, force="mesh", process=True)
+    data = path.read_bytes()
+    try:
+        data.decode("utf-8")
+    except UnicodeDecodeError:
+        pass
+    else:
+        return trimesh.load(path, force="mesh", process=True)
+    if data.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
+        try:
+            text = data.decode("utf-16")
+        except UnicodeDecodeError:
+            raise _Unparseable(f"it is not {file_type.upper()} text (it starts as UTF-16 but does not decode)") from None
+    elif _looks_binary(data):
+        raise _Unparseable(f"it holds binary data, not {file_type.upper()} text")
+    else:
+        text = data.decode("latin-1")
+    # The resolver finds the files the mesh refers to (an OBJ's materials) beside it.
+    resolver = trimesh.resolvers.FilePathResolver(path)
+    return trimesh.load(io.BytesIO(text.encode("utf-8")), file_type=file_type, resolver=resolver, force="mesh", process=True)
+
+
 def load_mesh(path: str | os.PathLike, *, normalize: bool = False) -> Mesh:
     """Reads a triangle mesh (OBJ, STL, PLY, OFF, GLB; DAE when `pycollada` is installed).
 
@@ -203,9 +253,16 @@ def load_mesh(path: str | os.PathLike, *, normalize: bool = False) -> Mesh:
     if not path.is_file():
         raise ValueError(f"mesh file not found: {path}")
     try:
-        tm = trimesh.load(path, force="mesh", process=True)
+        tm = _load_trimesh(trimesh, path)
+    except _Unparseable as error:
+        raise ValueError(f"cannot parse mesh file {path}: {error}") from None
+    except ImportError as error:
+        if error.name != "charset_normalizer":  # a reader's own package (pycollada for DAE): say which
+            raise ValueError(f"cannot parse mesh file {path}: {type(error).__name__}: {error}") from None
+        # trimesh's last resort on bytes that are neither its binary format nor UTF-8 text
+        raise ValueError(f"cannot parse mesh file {path}: not a valid {path.suffix.upper()[1:]} file (nor UTF-8 text)") from None
     except Exception as error:  # trimesh raises many types for bad files
-        raise ValueError(f"could not read mesh file {path}: {type(error).__name__}: {error}") from None
+        raise ValueError(f"cannot parse mesh file {path}: {type(error).__name__}: {error}") from None
     if not isinstance(tm, trimesh.Trimesh) or len(tm.faces) == 0:
         raise ValueError(f"mesh file {path} holds no triangles")
     tm.update_faces(tm.nondegenerate_faces())

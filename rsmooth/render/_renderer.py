@@ -30,9 +30,12 @@ Example:
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
@@ -41,7 +44,7 @@ from rsmooth._unrolled import sum_last
 from rsmooth.estimators import check_baseline as _check_baseline
 from rsmooth.noise import Gaussian, Gumbel, Noise
 from rsmooth.render._aggregate import change_probability, hard_aggregate, perturbed_aggregate, soft_aggregate
-from rsmooth.render._camera import Camera
+from rsmooth.render._camera import Camera, check_camera
 from rsmooth.render._mesh import Mesh
 from rsmooth.render._raster import (
     Fragments, check_pixels, pixel_centres, rasterize, triangle_fragments_at, triangle_geometry,
@@ -59,6 +62,21 @@ NEGLIGIBLE = 1e-12
 
 # Signed distance given to empty candidate slots: never covered, whatever the noise.
 _NEVER = 1e20
+
+
+def _noise_level(value: ArrayLike, name: str, dtype) -> Array:
+    """A per-call sigma or gamma as an array of `dtype`, checked to be a positive, finite scalar:
+    now (`ValueError`) when it is concrete, when the program runs (`equinox.error_if`) when it
+    is traced (a NaN would otherwise surface as a non-finite point of the estimator)."""
+    if np.ndim(value) != 0:
+        raise ValueError(f"{name} must be a scalar, got shape {np.shape(value)}")
+    if _checks.is_traced(value):
+        array = jnp.asarray(value, dtype)
+        return eqx.error_if(array, ~(jnp.isfinite(array) & (array > 0)), f"{name} must be positive and finite")
+    number = float(np.asarray(value))
+    if not (math.isfinite(number) and number > 0):
+        raise ValueError(f"{name} must be positive and finite, got {number}")
+    return jnp.asarray(value, dtype)
 
 
 def _slots(fragments: Fragments) -> tuple[Array, Array]:
@@ -252,14 +270,18 @@ class Renderer(eqx.Module):
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
         for name in ("sigma", "gamma"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and value > 0):
-                raise ValueError(f"{name} must be a positive number, got {value!r}")
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive, finite number, got {value!r}")
         for name in ("num_samples", "faces_per_pixel", "faces_per_tile", "tile_size"):
             _checks.check_num_samples(getattr(self, name), name)
         if not 0.0 < self.sample_chunk <= 1.0:
             raise ValueError(f"sample_chunk must be in (0, 1] (a fraction of the pixels), got {self.sample_chunk}")
-        if not self.dilation >= 0:
-            raise ValueError(f"dilation must be >= 0, got {self.dilation}")
+        if not (math.isfinite(self.dilation) and self.dilation >= 0):
+            raise ValueError(f"dilation must be a finite number >= 0, got {self.dilation}")
+        if not math.isfinite(self.background_depth):
+            raise ValueError(f"background_depth must be finite, got {self.background_depth}")
+        if not all(math.isfinite(c) for c in self.background):
+            raise ValueError(f"background must be a finite RGB colour, got {self.background}")
         if self.faces_per_tile < self.faces_per_pixel:
             raise ValueError(
                 f"faces_per_tile ({self.faces_per_tile}) must be >= faces_per_pixel ({self.faces_per_pixel})"
@@ -309,6 +331,7 @@ class Renderer(eqx.Module):
             if key is None:
                 raise ValueError("the perturbed renderer needs a PRNG key")
             _checks.check_key(key)
+        camera = check_camera(camera)
         sigma, gamma = self._levels(mesh, sigma, gamma)
         if self.mode == "perturbed" and self.sample_chunk < 1.0:
             return self._sampled_at_random_pixels(key, mesh, camera, sigma, gamma, pixels)
@@ -360,7 +383,7 @@ class Renderer(eqx.Module):
         barycentric weights and colours are not computed there)."""
         height, width = camera.image_size
         dtype = mesh.vertices.dtype
-        fragments = self.fragments(mesh, camera, sigma=sigma, gamma=gamma, pixels=pixels)
+        fragments = self._rasterize(mesh, camera, sigma, gamma, pixels, self.faces_per_pixel)
         k = fragments.face_index.shape[-1]
         shape = fragments.face_index.shape[:-1]  # (H, W), or (P,)
         slots = [a.reshape(-1, k) for a in _slots(fragments)]
@@ -415,11 +438,12 @@ class Renderer(eqx.Module):
         return Image(rgb=rgba[..., :3], alpha=rgba[..., 3])
 
     def _levels(self, mesh: Mesh, sigma: ArrayLike | None, gamma: ArrayLike | None) -> tuple[Array, Array]:
-        """sigma and gamma of a call (the configured ones where None), in the mesh's dtype."""
+        """sigma and gamma of a call (the configured ones where None), in the mesh's dtype; those
+        given are checked to be positive, finite scalars."""
         dtype = mesh.vertices.dtype
         return (
-            jnp.asarray(self.sigma if sigma is None else sigma, dtype),
-            jnp.asarray(self.gamma if gamma is None else gamma, dtype),
+            jnp.asarray(self.sigma, dtype) if sigma is None else _noise_level(sigma, "sigma", dtype),
+            jnp.asarray(self.gamma, dtype) if gamma is None else _noise_level(gamma, "gamma", dtype),
         )
 
     def fragments(
@@ -447,10 +471,11 @@ class Renderer(eqx.Module):
             16
             0
         """
-        return self._rasterize(mesh, camera, sigma, gamma, pixels, self.faces_per_pixel)
+        sigma, gamma = self._levels(mesh, sigma, gamma)
+        return self._rasterize(mesh, check_camera(camera), sigma, gamma, pixels, self.faces_per_pixel)
 
     def _rasterize(self, mesh, camera, sigma, gamma, pixels, faces_per_pixel) -> Fragments:
-        sigma, gamma = self._levels(mesh, sigma, gamma)
+        """`rasterize` with this renderer's options, at the levels of :meth:`_levels`."""
         hard = self.mode == "hard"
         return rasterize(
             mesh,
@@ -491,7 +516,7 @@ class Renderer(eqx.Module):
         if self.mode != "perturbed":
             raise ValueError(f"uncertainty is the perturbed renderer's (mode 'perturbed'), got mode {self.mode!r}")
         sigma, gamma = self._levels(mesh, sigma, gamma)
-        fragments = jax.lax.stop_gradient(self.fragments(mesh, camera, sigma=sigma, gamma=gamma))
+        fragments = jax.lax.stop_gradient(self._rasterize(mesh, check_camera(camera), sigma, gamma, None, self.faces_per_pixel))
         return change_probability(
             *_slots(fragments), sigma=sigma, gamma=gamma, coverage_noise=self.coverage_noise, depth_noise=self.depth_noise,
             background_depth=self.background_depth,

@@ -62,3 +62,23 @@ def test_camera_from_pose_matches_look_at():
     reference = render.look_at(jnp.array([0.0, 0.0, 4.0]), up=jnp.array([0.0, -1.0, 0.0]), image_size=(8, 8))
     points = jnp.array([[0.3, -0.2, 0.1], [0.0, 0.5, -0.5]])
     np.testing.assert_allclose(camera.project(points)[0], reference.project(points)[0], atol=1e-9)
+
+
+def test_camera_pose_must_be_finite():
+    eye = jnp.array([0.0, 0.0, 4.0])
+    with pytest.raises(ValueError, match="camera rotation must be finite"):
+        render.Camera(jnp.full((3, 3), jnp.nan), jnp.zeros(3))
+    with pytest.raises(ValueError, match="camera translation must be finite"):
+        render.Camera(jnp.eye(3), jnp.array([0.0, jnp.inf, 0.0]))
+    with pytest.raises(ValueError, match="look_at: eye must be finite"):
+        render.look_at(eye.at[0].set(jnp.nan))
+    with pytest.raises(ValueError, match="look_at: target must be finite"):
+        render.look_at(eye, target=(0.0, jnp.nan, 0.0))
+    with pytest.raises(ValueError, match="camera fov"):
+        render.look_at(eye, fov=float("nan"))
+    with pytest.raises(ValueError, match="near and far"):
+        render.look_at(eye, near=float("nan"))
+    # traced: checked when the program runs
+    with pytest.raises(Exception, match="camera rotation and translation must be finite"):
+        jax.jit(lambda t: render.Camera(jnp.eye(3), t).translation)(jnp.array([0.0, jnp.nan, 0.0])).block_until_ready()
+    assert render.Camera.from_pose(jnp.zeros(3), jnp.array([0.0, 0.0, 4.0]), far=float("inf")).far == float("inf")

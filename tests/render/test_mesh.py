@@ -72,6 +72,33 @@ def test_load_mesh_errors_name_the_path(tmp_path):
         render.load_mesh(empty)
 
 
+LATIN1_OBJ = b"# mod\xe8le de test (Latin-1)\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"
+
+
+@pytest.mark.parametrize("charset_normalizer", ["installed", "missing"])
+def test_load_mesh_reads_text_that_is_not_utf8(tmp_path, monkeypatch, charset_normalizer):
+    if charset_normalizer == "missing":  # trimesh's encoding guess: the loader must not need it
+        monkeypatch.setitem(__import__("sys").modules, "charset_normalizer", None)
+    path = tmp_path / "latin1.obj"
+    path.write_bytes(LATIN1_OBJ)
+    mesh = render.load_mesh(path)
+    assert mesh.faces.shape == (1, 3) and mesh.vertices.shape == (3, 3)
+    utf16 = tmp_path / "utf16.obj"
+    utf16.write_bytes(LATIN1_OBJ.decode("latin-1").encode("utf-16"))
+    assert render.load_mesh(utf16).faces.shape == (1, 3)
+
+
+def test_load_mesh_says_it_cannot_parse_a_garbage_file(tmp_path, monkeypatch):
+    monkeypatch.setitem(__import__("sys").modules, "charset_normalizer", None)
+    garbage = bytes(range(256)) * 4
+    for suffix in ("obj", "off", "stl"):
+        path = tmp_path / f"garbage.{suffix}"
+        path.write_bytes(garbage)
+        with pytest.raises(ValueError, match=rf"^cannot parse mesh file .*garbage\.{suffix}") as error:
+            render.load_mesh(path)
+        assert "charset" not in str(error.value) and "No module" not in str(error.value)
+
+
 def test_regularizers():
     # A flat grid: no bending, so the normal-consistency term is zero; bending it makes it positive.
     tm = trimesh.creation.box(extents=(1.0, 1.0, 1.0))

@@ -197,6 +197,45 @@ def test_bad_renderer_inputs():
         render.Renderer(mode="hard")(None, np.zeros((3, 3)), CAMERA)
 
 
+@pytest.mark.parametrize("name, value", [("sigma", np.inf), ("gamma", np.inf), ("sigma", np.nan), ("dilation", np.inf)])
+def test_renderer_settings_must_be_finite(name, value):
+    with pytest.raises(ValueError, match=f"^{name} must be"):
+        render.Renderer(**{name: value})
+
+
+@pytest.mark.parametrize("mode", ["soft", "perturbed"])
+@pytest.mark.parametrize("name, value", [("sigma", -1.0), ("sigma", 0.0), ("sigma", np.nan), ("gamma", np.inf), ("gamma", -0.01)])
+def test_per_call_noise_levels_must_be_positive_and_finite(mode, name, value):
+    # Checked on the host before anything is traced; a NaN sigma was reported as a non-finite x.
+    renderer = render.Renderer(mode=mode)
+    with pytest.raises(ValueError, match=rf"^{name} must be positive and finite, got {value}"):
+        renderer(jax.random.key(0), render.cube(), CAMERA, **{name: value})
+    with pytest.raises(ValueError, match=f"^{name} must be positive and finite"):
+        renderer.fragments(render.cube(), CAMERA, **{name: value})
+    with pytest.raises(ValueError, match=f"^{name} must be a scalar"):
+        renderer(jax.random.key(0), render.cube(), CAMERA, **{name: np.ones(2)})
+
+
+def test_traced_noise_level_and_camera_pose_are_checked_when_the_program_runs():
+    renderer = render.Renderer(mode="soft", faces_per_pixel=2, faces_per_tile=12)
+    camera = render.look_at(jnp.array([0.0, 0.0, 4.0]), image_size=(8, 8))
+    draw = eqx.filter_jit(lambda sigma, translation: renderer(
+        None, render.cube(), eqx.tree_at(lambda c: c.translation, camera, translation), sigma=sigma).alpha)
+    assert float(jnp.sum(draw(jnp.asarray(1.0), camera.translation))) > 0
+    with pytest.raises(Exception, match="sigma must be positive and finite"):
+        draw(jnp.asarray(-1.0), camera.translation).block_until_ready()
+    with pytest.raises(Exception, match="camera rotation and translation must be finite"):
+        draw(jnp.asarray(1.0), camera.translation.at[1].set(jnp.nan)).block_until_ready()
+
+
+def test_renderer_rejects_a_camera_with_a_nan_pose():
+    # A camera changed after it was made (its constructor checks it): the renderer checks again.
+    camera = eqx.tree_at(lambda c: c.rotation, CAMERA, CAMERA.rotation.at[0, 0].set(jnp.nan))
+    for mode in ("hard", "perturbed"):
+        with pytest.raises(ValueError, match="camera rotation must be finite"):
+            render.Renderer(mode=mode)(jax.random.key(0), render.cube(), camera)
+
+
 @pytest.mark.parametrize(
     "name, mesh",
     [("cube", render.cube(1.2)), ("icosphere", render.icosphere(1)), ("torus", render.torus(0.7, 0.3, 12, 6))],
