@@ -127,6 +127,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
 
     xs, infos = simulate(x0, perturbations)
     xs = jax.block_until_ready(xs)
+    sim.check_steps(infos, what=f"solo12 ({config.torques} torques)")
     bar.update()
     feet = np.asarray(jax.vmap(lambda x: sim.solo12_foot_positions(system, x))(xs))
     slip = np.max(np.linalg.norm(feet[:, :, :2] - feet[:1, :, :2], axis=-1))

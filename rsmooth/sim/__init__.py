@@ -47,8 +47,13 @@ from rsmooth.sim._model import (
     solo12_urdf_path as solo12_urdf_path,
 )
 from rsmooth.sim._simulator import (
+    SEPARATED as SEPARATED,
+    SLIDING as SLIDING,
+    STICKING as STICKING,
     RigidBodySystem as RigidBodySystem,
+    SimulationWarning as SimulationWarning,
     StepInfo as StepInfo,
+    check_steps as check_steps,
     energy as energy,
 )
 from rsmooth.sim._systems import (
@@ -59,7 +64,9 @@ from rsmooth.sim._systems import (
     SOLO12_FOOT_RADIUS as SOLO12_FOOT_RADIUS,
     SOLO12_JOINT_DAMPING as SOLO12_JOINT_DAMPING,
     SOLO12_TORQUE_LIMIT as SOLO12_TORQUE_LIMIT,
+    ball as ball,
     ball_wall as ball_wall,
+    box as box,
     pusher as pusher,
     pusher_start_state as pusher_start_state,
     cube as cube,

@@ -199,7 +199,8 @@ def corrected_free_velocity(
     makes a contact detected at a positive distance act only if the gap would close within
     the step (speculative contact: no force at a distance), and pushes a penetration out at
     the Baumgarte rate ``beta / h`` (``beta = 1`` removes it in one step, which injects
-    energy; smaller values spread it).
+    energy; smaller values spread it). At ``phi = 0`` the derivative is the one-sided
+    derivative of ``phi <= 0`` (``beta / h``).
 
     Args:
         free_velocity: contact-frame free velocities, flat ``(3 n,)`` ordered
@@ -221,7 +222,10 @@ def corrected_free_velocity(
             f"free_velocity must have shape (3 n,) and distance (n,), got "
             f"{free_velocity.shape} and {distance.shape}."
         )
-    correction = (jnp.maximum(distance, 0.0) + baumgarte * jnp.minimum(distance, 0.0)) / time_step
+    # phi = 0 counts as touching: its derivative is the penetration side's, beta / h (that of
+    # the resting states a simulation reaches, which sit at phi <= 0 while the Baumgarte term
+    # decays), not the mean of the two sides that max/min's derivatives would give.
+    correction = jnp.where(distance > 0, distance, baumgarte * distance) / time_step
     return free_velocity.reshape(-1, 3).at[:, 2].add(correction).reshape(-1)
 
 
@@ -320,7 +324,9 @@ class NCPInfo(eqx.Module):
 class NCPState(eqx.Module):
     """ADMM iterate: ``x`` (unconstrained impulse), ``z`` (impulse in the cone), ``y``
     (scaled multiplier, ``-c~`` at convergence), penalty ``rho``, the eigendecomposition of
-    ``G`` used for every ``(G + rho I)^{-1}``, and the residuals of ``z``."""
+    ``G`` used for every ``(G + rho I)^{-1}``, the residuals of ``z``, and the best impulse so
+    far (the start included: the smallest largest residual) with its residuals, which the
+    solve returns."""
 
     x: Array
     z: Array
@@ -332,6 +338,8 @@ class NCPState(eqx.Module):
     primal_feasibility: Array
     dual_feasibility: Array
     complementarity: Array
+    best: Array
+    best_residuals: Array  # (3,): primal, dual, complementarity of best
 
 
 def fixed_point_step_sizes(G: Array, n: int) -> Array:
@@ -611,7 +619,9 @@ class NCPSolver(eqx.Module):
 
     Attributes:
         max_iterations: iteration cap of the ``lax.while_loop``.
-        tolerance: absolute tolerance on the residuals. In float32 use about ``1e-5``.
+        tolerance: absolute tolerance on the residuals; ``None`` (the default) is one that
+            the dtype of the problem can reach, ``1e-10`` in float64 and ``1e-5`` in float32
+            (rounding alone leaves residuals of about ``1e-7`` there).
         rho: initial ADMM penalty; ``None`` uses the spectral value.
         adaptive_rho: multiply/divide ``rho`` by a factor when the primal/dual ADMM
             residuals are more than 10 times apart.
@@ -711,7 +721,7 @@ class NCPSolver(eqx.Module):
     """
 
     max_iterations: int = eqx.field(static=True, default=500)
-    tolerance: float = eqx.field(static=True, default=1e-10)
+    tolerance: float | None = eqx.field(static=True, default=None)
     rho: float | None = eqx.field(static=True, default=None)
     adaptive_rho: bool = eqx.field(static=True, default=True)
     rho_update_power: float | None = eqx.field(static=True, default=None)
@@ -735,7 +745,7 @@ class NCPSolver(eqx.Module):
             raise ValueError(f"chunk_size must be an int >= 1 or 'auto', got {chunk!r}.")
         if not (isinstance(self.max_iterations, int) and self.max_iterations >= 1):
             raise ValueError(f"max_iterations must be an int >= 1, got {self.max_iterations}.")
-        if not self.tolerance > 0:
+        if self.tolerance is not None and not self.tolerance > 0:
             raise ValueError(f"tolerance must be positive, got {self.tolerance}.")
         if self.rho is not None and not self.rho > 0:
             raise ValueError(f"rho must be positive or None, got {self.rho}.")
@@ -833,6 +843,8 @@ class NCPSolver(eqx.Module):
             primal_feasibility=primal,
             dual_feasibility=dual,
             complementarity=complementarity,
+            best=z,
+            best_residuals=jnp.stack([primal, dual, complementarity]),
         )
 
     def step(self, G: Array, g: Array, mu: Array, state: NCPState) -> NCPState:
@@ -847,7 +859,12 @@ class NCPSolver(eqx.Module):
         rhs = rho * z - y - g - correction.reshape(-1)
         Q, eigenvalues = state.eigenvectors, state.eigenvalues
         x_next = Q @ ((Q.T @ rhs) / (eigenvalues + rho))
-        x_relaxed = self.relaxation * x_next + (1.0 - self.relaxation) * z
+        # Over-relaxation speeds up most problems, but with the De Saxce correction (not a
+        # convex problem) it can cycle where the impulses are not unique and friction is high
+        # (a box sliding on four corners at mu = 0.8): the second half of the iterations runs
+        # plain ADMM, which converges there.
+        relaxation = jnp.where(state.iteration < self.max_iterations // 2, self.relaxation, 1.0).astype(z.dtype)
+        x_relaxed = relaxation * x_next + (1.0 - relaxation) * z
         z_next = project_to_friction_cone((x_relaxed + y / rho).reshape(n, 3), mu).reshape(-1)
         y_next = y + rho * (x_relaxed - z_next)
 
@@ -873,6 +890,8 @@ class NCPSolver(eqx.Module):
             rho_next = rho
 
         primal, dual, complementarity = ncp_residuals(G, g, mu, z_next)
+        residuals = jnp.stack([primal, dual, complementarity])
+        better = jnp.max(residuals) < jnp.max(state.best_residuals)  # False for NaN
         return NCPState(
             x=x_next,
             z=z_next,
@@ -884,11 +903,20 @@ class NCPSolver(eqx.Module):
             primal_feasibility=primal,
             dual_feasibility=dual,
             complementarity=complementarity,
+            best=jnp.where(better, z_next, state.best),
+            best_residuals=jnp.where(better, residuals, state.best_residuals),
         )
 
     def _within_tolerance(self, primal: Array, dual: Array, complementarity: Array) -> Array:
         # A NaN residual compares False, so it never counts as converged.
-        return (primal <= self.tolerance) & (dual <= self.tolerance) & (complementarity <= self.tolerance)
+        tolerance = self.tolerance_for(primal.dtype)
+        return (primal <= tolerance) & (dual <= tolerance) & (complementarity <= tolerance)
+
+    def tolerance_for(self, dtype) -> float:
+        """The tolerance on the residuals of a problem in ``dtype`` (see ``tolerance``)."""
+        if self.tolerance is not None:
+            return self.tolerance
+        return 1e-10 if jnp.finfo(dtype).bits >= 64 else 1e-5
 
     def polished(self, G: Array, g: Array, mu: Array, impulse: Array) -> tuple[Array, Array, Array, Array, Array]:
         """The polish (:func:`_polish`) of ``impulse``, or ``impulse`` where it is not finite,
@@ -900,23 +928,25 @@ class NCPSolver(eqx.Module):
         return candidate, primal, dual, complementarity, self._within_tolerance(primal, dual, complementarity)
 
     def _residuals_within_tolerance(self, state: NCPState) -> Array:
-        return self._within_tolerance(state.primal_feasibility, state.dual_feasibility, state.complementarity)
+        return self._within_tolerance(*state.best_residuals)
 
     def terminate(self, state: NCPState) -> Array:
         """True once converged or at the iteration cap."""
         return self._residuals_within_tolerance(state) | (state.iteration >= self.max_iterations)
 
     def postprocess(self, state: NCPState) -> tuple[Array, NCPInfo]:
-        """The impulse ``z`` and the diagnostics."""
+        """The best impulse (never worse than the one the iterations started from) and the
+        diagnostics at it."""
+        primal, dual, complementarity = state.best_residuals
         info = NCPInfo(
             iterations=state.iteration,
-            primal_feasibility=state.primal_feasibility,
-            dual_feasibility=state.dual_feasibility,
-            complementarity=state.complementarity,
+            primal_feasibility=primal,
+            dual_feasibility=dual,
+            complementarity=complementarity,
             converged=self._residuals_within_tolerance(state),
             rho=state.rho,
         )
-        return state.z, info
+        return state.best, info
 
     def solve(
         self, G: ArrayLike, g: ArrayLike, mu: ArrayLike, *, warm_start: ArrayLike | None = None

@@ -4,8 +4,10 @@
 the configuration ``q``, of the step's two equations at the solution ``(v+, lambda)`` (see
 ``_simulator._step_residuals``):
 
-* momentum ``E = h (ID(q, v, a) + armature a + D v+ - tau) - J(q)^T lambda`` with
-  ``a = (v+ - v) / h``;
+* momentum ``E = h (ID(q, v, a) - r(v) + armature a + D v+ - tau) - J(q)^T lambda`` with
+  ``a = (v+ - s(v)) / h``, ``(s, r)`` the free flyers' start velocity and the bias it accounts
+  for (:func:`rsmooth.sim._dynamics._free_flyer_start`: ``s = v``, ``r = 0`` without free
+  flyers; both independent of ``q``);
 * contact velocity ``c = J(q) v+ + correction(phi(q))``.
 
 Forward-mode autodiff pushes ``nq`` tangents through the kinematics, the body inertias, the
@@ -148,7 +150,10 @@ def tangent_jacobian(system, update, v: Array) -> tuple[Array, Array, Array]:
     above = tree.dof_ancestor & ~tree.dof_ancestor.T
     v_next = jax.lax.stop_gradient(update.v_next)
     impulse = jax.lax.stop_gradient(update.impulse)
-    acceleration = (v_next - v) / h
+    # the velocity the step's forces act from, and the bias it accounts for: both depend on v
+    # alone (_dynamics._free_flyer_start)
+    v_start, _ = _dynamics._free_flyer_start(model, v, h)
+    acceleration = (v_next - v_start) / h
 
     # ----- inverse dynamics: the world-frame RNEA quantities (as in _dynamics._rnea)
     twists = S * v[:, None]
@@ -216,9 +221,11 @@ def tangent_jacobian(system, update, v: Array) -> tuple[Array, Array, Array]:
     d_distance = jnp.einsum("ci,cki->ck", rotations[:, :, 2], u)  # (n, nv): normal . u
     correction = jax.jacfwd(lambda d: _corrected(system, jnp.zeros(3 * n, d.dtype), d))(update.distance)  # (3 n, n)
     d_velocity = d_contact_velocity.reshape(3 * n, model.nv) + correction @ d_distance
-    # dE/dv at fixed (v+, lambda): h (dRNEA/dv - M / h) - armature = h dRNEA/dv - (W - h D),
-    # with W = M + armature + h D the update's matrix and the acceleration a = (v+ - v) / h
-    by_v = h * d_inverse_dynamics_v - (update.mass - jnp.diag(h * system.damping()))
+    # dE/dv at fixed (v+, lambda): h dRNEA/dv - (M + armature) ds/dv - h dr/dv, with
+    # M + armature = W - h D (W the update's matrix) and a = (v+ - s(v)) / h
+    start_v, removed_v = jax.jacfwd(lambda v_: _dynamics._free_flyer_start(model, v_, h))(v)
+    inertia = update.mass - jnp.diag(h * system.damping())
+    by_v = h * d_inverse_dynamics_v - inertia @ start_v - h * removed_v
     return h * d_inverse_dynamics - d_contact_forces, d_velocity, by_v
 
 

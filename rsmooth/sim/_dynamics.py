@@ -646,3 +646,87 @@ def difference(model: Model, q0: ArrayLike, q1: ArrayLike) -> jax.Array:
         linear = spatial.left_jacobian_so3_inverse_apply(angular, relative_position)
         result = result.at[start_v : start_v + 6].set(jnp.concatenate([linear, angular]))
     return result
+
+
+
+# --------------------------------------------------------------------------------------
+# Time stepping of free flyers
+# --------------------------------------------------------------------------------------
+
+
+def _free_flyer_transport(model: Model, v: jax.Array) -> jax.Array:
+    """``omega x v_lin`` on every free flyer's linear dofs, zeros elsewhere; shape ``(nv,)``.
+
+    A free flyer's velocity is its body twist ``[v_lin, omega]`` (body axes), whose time
+    derivative is the spatial acceleration ``a``; the acceleration of the body origin in a
+    frame that does not rotate is ``a_lin + omega x v_lin``. A time step that writes the
+    end-of-step velocity in the body axes of the step's start (a frame frozen for the step)
+    therefore uses ``a = (v+ - v) / h - omega x v_lin``, and turns ``v+`` into the new body axes
+    afterwards (:func:`_free_flyer_new_axes`): the frame's rotation is then exact, where the
+    explicit ``-h omega x v_lin`` followed by the rotation of the frame scales the velocity
+    across the spin axis by ``sqrt(1 + (h omega)^2)`` every step.
+    """
+    tree = _tree(model)
+    result = jnp.zeros_like(v)
+    for joint in tree.free_flyer:
+        start = model.idx_v[joint]
+        linear, angular = v[start : start + 3], v[start + 3 : start + 6]
+        result = result.at[start : start + 3].set(jnp.cross(angular, linear))
+    return result
+
+
+def _lone_free_flyers(model: Model) -> tuple[int, ...]:
+    """The free-flyer joints that carry a single body (no joint below them): free objects."""
+    below = set(model.parents[1:])
+    return tuple(int(j) for j in _tree(model).free_flyer if int(j) not in below)
+
+
+def _free_body_rotation(model: Model, v: jax.Array, dt: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``(v', gyroscopic)``: the torque-free rotation of every free object
+    (:func:`_lone_free_flyers`) over ``dt``, and the gyroscopic torques ``omega x I omega`` it
+    replaces in the bias forces, both ``(nv,)`` (zeros and ``v`` elsewhere).
+
+    Euler's equation ``I domega/dt + omega x I omega = 0`` (``I`` about the centre of mass,
+    body axes) by the implicit midpoint rule, ``I (omega' - omega) + dt m x I m = 0`` with
+    ``m = (omega + omega') / 2``, which keeps ``omega . I omega`` exactly (a quadratic
+    invariant): an explicit gyroscopic term gains energy in every tumble (4.6 % in 3 s through a
+    flip about the intermediate axis at 5 rad/s, ``h = 10 ms``). Solved by Newton's method
+    (quadratic convergence from ``omega``: four iterations reach rounding for ``dt |omega|``
+    up to about 1). Bodies with joints below keep the explicit term (their coupling to the
+    joints is not a rigid body's).
+    """
+    gyroscopic = jnp.zeros_like(v)
+    for joint in _lone_free_flyers(model):
+        start = model.idx_v[joint] + 3
+        omega, inertia = v[start : start + 3], model.body_inertia[joint]
+        gyroscopic = gyroscopic.at[start : start + 3].set(jnp.cross(omega, inertia @ omega))
+        rotated = omega
+        for _ in range(4):
+            middle = 0.5 * (omega + rotated)
+            momentum = inertia @ middle
+            residual = inertia @ (rotated - omega) + dt * jnp.cross(middle, momentum)
+            jacobian = inertia + 0.5 * dt * (spatial.skew(middle) @ inertia - spatial.skew(momentum))
+            rotated = rotated - jnp.linalg.solve(jacobian, residual)
+        v = v.at[start : start + 3].set(rotated)
+    return v, gyroscopic
+
+
+def _free_flyer_start(model: Model, v: jax.Array, dt: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``(v_start, removed_bias)`` of a time step: the velocity the step's forces act from
+    (free objects rotated torque-free, :func:`_free_body_rotation`, and every free flyer's
+    linear velocity transported, :func:`_free_flyer_transport`) and the bias forces that this
+    accounts for, to subtract from RNEA's. The step's acceleration is ``(v+ - v_start) / dt``."""
+    rotated, gyroscopic = _free_body_rotation(model, v, dt)
+    return rotated + dt * _free_flyer_transport(model, v), gyroscopic
+
+
+def _free_flyer_new_axes(model: Model, v: jax.Array, dt: jax.Array) -> jax.Array:
+    """``v`` with every free flyer's linear velocity turned from its body axes at the start of
+    a step to those at its end, ``exp(dt omega)^T v_lin`` (its angular velocity is unchanged by
+    a rotation about itself): the same world velocity in the state's convention, body axes."""
+    tree = _tree(model)
+    for joint in tree.free_flyer:
+        start = model.idx_v[joint]
+        linear, angular = v[start : start + 3], v[start + 3 : start + 6]
+        v = v.at[start : start + 3].set(spatial.rotate_inverse(spatial.exp3(dt * angular), linear))
+    return v

@@ -126,6 +126,33 @@ class Model(eqx.Module):
         for f, parent in enumerate(self.frame_parents):
             if not 0 <= parent < njoints:
                 raise ValueError(f"frame {self.frame_names[f]!r} is attached to unknown joint {parent}")
+        self._check_values()
+
+    def _check_values(self) -> None:
+        """Rejects impossible values (non-finite geometry or inertia, negative mass or
+        armature) in the fields that are concrete; traced fields are the caller's."""
+
+        def concrete(name):
+            value = getattr(self, name)
+            return None if isinstance(value, jax.core.Tracer) else np.asarray(value)
+
+        for name in ("joint_axes", "joint_placement_rotation", "joint_placement_translation", "body_com",
+                     "body_inertia", "frame_placement_rotation", "frame_placement_translation", "gravity"):
+            value = concrete(name)
+            if value is not None and not np.all(np.isfinite(value)):
+                raise ValueError(f"{name} must be finite, got NaN or inf at index {_first_bad(value)}")
+        mass = concrete("body_mass")
+        if mass is not None:
+            for i, m in enumerate(mass):
+                if not (np.isfinite(m) and m >= 0):
+                    raise ValueError(f"the body of joint {self.joint_names[i]!r} has mass {m}: it must be finite and >= 0")
+        armature = concrete("armature")
+        if armature is not None and not np.all(np.isfinite(armature) & (armature >= 0)):
+            raise ValueError(f"armature must be finite and >= 0, got {armature.tolist()}")
+        for name in ("lower_position_limit", "upper_position_limit", "velocity_limit", "effort_limit"):
+            value = concrete(name)
+            if value is not None and np.any(np.isnan(value)):
+                raise ValueError(f"{name} must not be NaN (inf means unlimited), got {value.tolist()}")
 
     @property
     def njoints(self) -> int:
@@ -186,6 +213,83 @@ class Model(eqx.Module):
         return tuple(reversed(chain))
 
 
+def _first_bad(values: np.ndarray) -> tuple[int, ...]:
+    return tuple(int(i) for i in np.argwhere(~np.isfinite(values))[0])
+
+
+# Tolerance of the inertia checks: relative to the largest principal moment, plus an absolute
+# floor for point masses (zero inertia, whose computed moments are rounding noise ~1e-20).
+_INERTIA_RTOL, _INERTIA_ATOL = 1e-6, 1e-12
+
+
+def _inertia_violation(inertia: np.ndarray) -> str | None:
+    """Why a rotational inertia (3, 3) about the centre of mass is not that of a rigid body, or
+    None: its principal moments must be >= 0 and satisfy the triangle inequality
+    ``I1 + I2 >= I3`` (each principal moment is the sum of two of the three second moments of
+    mass ``sum m x_i^2``), within a tolerance."""
+    moments = np.linalg.eigvalsh(0.5 * (inertia + inertia.T))  # ascending
+    tolerance = _INERTIA_RTOL * float(np.max(np.abs(moments))) + _INERTIA_ATOL
+    shown = ", ".join(f"{m:.6g}" for m in moments)
+    if not np.allclose(inertia, inertia.T, rtol=_INERTIA_RTOL, atol=_INERTIA_ATOL):
+        return "it is not symmetric"
+    if moments[0] < -tolerance:
+        return f"its principal moments ({shown}) are not all >= 0"
+    if moments[0] + moments[1] < moments[2] - tolerance:
+        return f"its principal moments ({shown}) violate the triangle inequality I1 + I2 >= I3"
+    return None
+
+
+def _urdf_number(text: str | None, what: str, path: pathlib.Path) -> float:
+    try:
+        return float(text if text is not None else "0")
+    except ValueError:
+        raise ValueError(f"{path}: {what} is {text!r}, not a number") from None
+
+
+def _check_urdf_inertials(root: ElementTree.Element, path: pathlib.Path) -> None:
+    """Rejects the links whose mass is negative or not finite, or whose inertia is not finite
+    (Pinocchio loads them, and the dynamics then give NaN). A zero mass is legal: URDF files
+    use massless links for frames."""
+    for link in root.iter("link"):
+        name = link.get("name")
+        inertial = link.find("inertial")
+        if inertial is None:
+            continue
+        mass_element = inertial.find("mass")
+        if mass_element is not None:
+            mass = _urdf_number(mass_element.get("value"), f"the mass of link {name!r}", path)
+            if not (np.isfinite(mass) and mass >= 0):
+                raise ValueError(f"{path}: link {name!r} has mass {mass}: a mass must be finite and >= 0")
+        inertia = inertial.find("inertia")
+        if inertia is not None:
+            for key in ("ixx", "ixy", "ixz", "iyy", "iyz", "izz"):
+                value = _urdf_number(inertia.get(key), f"the inertia {key} of link {name!r}", path)
+                if not np.isfinite(value):
+                    raise ValueError(f"{path}: link {name!r} has inertia {key} = {value}: it must be finite")
+        origin = inertial.find("origin")
+        if origin is not None:
+            for key in ("xyz", "rpy"):
+                for value in (origin.get(key) or "").split():
+                    if not np.isfinite(_urdf_number(value, f"the inertial origin {key} of link {name!r}", path)):
+                        raise ValueError(f"{path}: link {name!r} has inertial origin {key}={origin.get(key)!r}: it must be finite")
+
+
+def _check_body_inertias(pin: Any, pin_model: Any, path: pathlib.Path) -> None:
+    """Rejects the bodies (a joint's link with the links fixed to it, merged by Pinocchio) whose
+    rotational inertia is not that of a rigid body (:func:`_inertia_violation`)."""
+    for i in range(1, pin_model.njoints):
+        inertia = pin_model.inertias[i]
+        problem = _inertia_violation(np.asarray(inertia.inertia, dtype=np.float64))
+        if problem is None:
+            continue
+        links = [str(f.name) for f in pin_model.frames if int(f.parentJoint) == i and f.type == pin.FrameType.BODY]
+        body = f"link {links[0]!r}" + (" with the links fixed to it" if len(links) > 1 else "") if links else "body"
+        raise ValueError(
+            f"{path}: the inertia of the {body}, moved by joint {str(pin_model.names[i])!r}, is not that of a "
+            f"rigid body: {problem} (mass {inertia.mass:.6g}); load_urdf(..., check_inertia=False) skips this check"
+        )
+
+
 def _limits_to_inf(values: np.ndarray) -> np.ndarray:
     """Pinocchio marks "no limit" with the largest double; an infinity says it plainly."""
     values = np.array(values, dtype=np.float64)
@@ -227,7 +331,8 @@ def from_pinocchio(pin_model: Any) -> Model:
         The equivalent model; joint and frame indices are Pinocchio's.
 
     Raises:
-        ValueError: if a joint type is not supported (the error names the joint).
+        ValueError: if a joint type is not supported (the error names the joint), or a body
+            has a negative or non-finite mass, or a value is not finite.
     """
     njoints = pin_model.njoints
     names = tuple(str(name) for name in pin_model.names)
@@ -280,41 +385,60 @@ def _import_pinocchio() -> Any:
     return pinocchio
 
 
-def load_urdf(path: str | pathlib.Path, *, floating_base: bool = True) -> Model:
-    """Loads a URDF file (kinematics and inertias only; meshes are not read).
+def load_urdf(urdf: str | pathlib.Path, *, floating_base: bool = True, check_inertia: bool = True) -> Model:
+    """Loads a URDF model (kinematics and inertias only; meshes are not read).
 
     Args:
-        path: path to the ``.urdf`` file.
+        urdf: path to the ``.urdf`` file, or the URDF's XML text itself (a string whose first
+            non-blank character is ``<``), e.g. a model written by a script.
         floating_base: if true the root link is attached to the world by a free-flyer joint
             named ``"root_joint"`` (as ``pin.buildModelFromUrdf(path, JointModelFreeFlyer())``);
             otherwise it is fixed to the world.
+        check_inertia: reject a body (a link with the links fixed to it) whose rotational
+            inertia has a negative principal moment or violates the triangle inequality
+            ``I1 + I2 >= I3`` (relative tolerance 1e-6), as MuJoCo does. Negative or
+            non-finite masses and non-finite inertias are rejected either way.
 
     Returns:
         The model.
 
     Raises:
         FileNotFoundError: if the file does not exist.
-        ValueError: if the file is not a valid URDF, or has an unsupported joint type.
+        ValueError: if the file or text is not a valid URDF, has an unsupported joint type, or
+            describes impossible inertia (the message names the link and the value).
+
+    Example:
+        >>> model = load_urdf('''<robot name="pendulum">
+        ...   <link name="base"/>
+        ...   <link name="arm"><inertial><mass value="1"/><origin xyz="0 0 -0.5"/>
+        ...     <inertia ixx="0.1" ixy="0" ixz="0" iyy="0.1" iyz="0" izz="0.01"/></inertial></link>
+        ...   <joint name="hinge" type="revolute"><parent link="base"/><child link="arm"/>
+        ...     <axis xyz="0 1 0"/><limit effort="1" lower="-3" upper="3" velocity="10"/></joint>
+        ... </robot>''', floating_base=False)
+        >>> model.nq, model.joint_names
+        (1, ('universe', 'hinge'))
     """
-    path = pathlib.Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"URDF file not found: {path}")
+    text = isinstance(urdf, str) and urdf.lstrip().startswith("<")
+    source = "the URDF text" if text else pathlib.Path(urdf)
+    if not text and not source.is_file():
+        raise FileNotFoundError(f"URDF file not found: {source}")
     # Checked here first so that a malformed file gives a Python error naming the path,
     # not urdfdom's messages on stderr followed by Pinocchio's generic exception.
     try:
-        root = ElementTree.parse(path).getroot()
+        root = ElementTree.fromstring(urdf) if text else ElementTree.parse(source).getroot()
     except ElementTree.ParseError as error:
-        raise ValueError(f"{path} is not well-formed XML: {error}") from None
+        raise ValueError(f"{source} is not well-formed XML: {error}") from None
     if root.tag != "robot":
-        raise ValueError(f"{path} is not a URDF file: its root element is <{root.tag}>, not <robot>")
+        raise ValueError(f"{source} is not a URDF file: its root element is <{root.tag}>, not <robot>")
+    _check_urdf_inertials(root, source)
     pin = _import_pinocchio()
+    build = (lambda *a: pin.buildModelFromXML(urdf, *a)) if text else (lambda *a: pin.buildModelFromUrdf(str(source), *a))
     try:
-        if floating_base:
-            pin_model = pin.buildModelFromUrdf(str(path), pin.JointModelFreeFlyer())
-        else:
-            pin_model = pin.buildModelFromUrdf(str(path))
+        pin_model = build(pin.JointModelFreeFlyer()) if floating_base else build()
     except Exception as error:  # Pinocchio raises ValueError/RuntimeError from C++
-        raise ValueError(f"Pinocchio could not build a model from {path}: {error}") from None
+        raise ValueError(f"Pinocchio could not build a model from {source}: {error}") from None
+    if check_inertia:
+        _check_body_inertias(pin, pin_model, source)
     return from_pinocchio(pin_model)
 
 
@@ -513,15 +637,17 @@ def free_body(mass: float, inertia: Any, *, name: str = "body", gravity=(0.0, 0.
         >>> model.nq, model.nv, model.frame_names
         (7, 6, ('universe', 'root_joint', 'body'))
     """
+    if isinstance(mass, bool) or np.ndim(mass) != 0 or not (np.isfinite(mass) and mass > 0):
+        raise ValueError(f"mass must be a positive, finite number, got {mass!r}")
     inertia = np.asarray(inertia, dtype=np.float64)
     if inertia.shape == (3,):
         inertia = np.diag(inertia)
     if inertia.shape != (3, 3):
         raise ValueError(f"inertia must have shape (3, 3) or (3,), got {inertia.shape}")
+    if not np.all(np.isfinite(inertia)):
+        raise ValueError(f"inertia must be finite, got {inertia.tolist()}")
     if not (np.allclose(inertia, inertia.T) and np.all(np.linalg.eigvalsh(inertia) > 0)):
-        raise ValueError("inertia must be symmetric positive definite")
-    if not (np.isfinite(mass) and mass > 0):
-        raise ValueError(f"mass must be positive, got {mass}")
+        raise ValueError(f"inertia must be symmetric positive definite, got {inertia.tolist()}")
     eye = np.eye(3)
     return Model(
         joint_names=("universe", "root_joint"),

@@ -5,10 +5,17 @@ A :class:`RigidBodySystem` is a pure, frozen pytree with ``step(x, u) -> x_next`
 state ``x = [q, v]``:
 
 1. Free motion (semi-implicit Euler on velocities):
-   ``v_f = v + h W^-1 (tau(q, u) - C(q, v) v - g(q) - D v)`` with ``W = M(q) + h D``: the
+   ``v_f = s + h W^-1 (tau(q, u) - C(q, v) v - g(q) - D s)`` with ``W = M(q) + h D``: the
    joint damping ``D`` (:attr:`RigidBodySystem.joint_damping`, zero by default) is implicit,
    ``D v+``, so it dissipates at any ``h``. ``M`` includes the rotor inertia
-   (``model.armature``); the rest of the system below uses ``W`` where it says ``M``.
+   (``model.armature``); the rest of the system below uses ``W`` where it says ``M``. The
+   step's velocities are written in the body axes of the step's start, a frame frozen for
+   the step: ``s`` is ``v`` with every free flyer's linear velocity transported by the
+   frame's rotation (``+ h omega x v_lin``, removed from ``C v``) and every free object (a
+   free flyer with no joint below it) rotated torque-free by the implicit midpoint rule
+   (its gyroscopic term removed from ``C v``). In free flight a body's world velocity is
+   then constant and its kinetic energy exact, where explicit velocity-product terms gained
+   energy at every step of a spinning or tumbling body.
 2. Contacts between the system's spheres (a point is a sphere of radius 0) and the world's
    half-spaces, with signed distance ``phi``, contact frame ``R`` and contact Jacobian
    ``J = R^T J_p(q)`` (``3 n x nv``, rows ``[t1, t2, n]`` per contact).
@@ -24,11 +31,18 @@ state ``x = [q, v]``:
 
 4. ``v+ = v_f + M^-1 J^T lambda`` and ``q+ = q (+) h v+``. A free-flyer base is integrated
    on ``R^3 x SO(3)``: its origin moves by ``h`` times its world velocity and its orientation
-   by ``exp(h omega)``. The SE(3) screw motion of :func:`~rsmooth.sim.integrate` is the
+   by ``exp(h omega)``; its linear velocity is then written in the new body axes,
+   ``exp(h omega)^T v_lin`` (the state's convention, below). The SE(3) screw motion of :func:`~rsmooth.sim.integrate` is the
    exact flow of a constant body twist, but with a velocity-level contact it makes a ball
    rolling along a wall orbit its contact point and sink ``r (1 - cos(omega h))`` into the
    wall every step; with the decoupled update the velocity constraint on a sphere's centre
    holds exactly at the position level.
+
+The state is ``x = [q, v]`` in Pinocchio's conventions: a free flyer's configuration is
+``[x, y, z, qx, qy, qz, qw]`` (position in the world, unit quaternion) and its velocity
+``[v_lin, omega]`` is its body twist, *both in body axes*: the velocity of the body frame's
+origin and the angular velocity, expressed in the body frame (``R v_lin`` is the world
+velocity). Joint velocities are the joints' rates.
 
 Derivatives of ``step`` (hard contact) come from the implicit function theorem applied to the
 whole velocity update, the momentum balance together with the NCP's natural map (see
@@ -45,6 +59,7 @@ References:
 
 from __future__ import annotations
 
+import warnings
 from typing import Literal, NamedTuple, Union
 
 import equinox as eqx
@@ -76,7 +91,10 @@ from rsmooth.sim._model import Model
 Array = jax.Array
 ContactLaw = Union[Literal["hard"], SpringDamper, LogBarrier]
 
-__all__ = ["RigidBodySystem", "StepInfo", "energy"]
+__all__ = ["RigidBodySystem", "SimulationWarning", "StepInfo", "check_steps", "energy"]
+
+
+SEPARATED, STICKING, SLIDING = 0, 1, 2  # StepInfo.mode
 
 
 class StepInfo(eqx.Module):
@@ -88,6 +106,11 @@ class StepInfo(eqx.Module):
         ncp: the :class:`~rsmooth.sim.NCPInfo` of the contact solve (hard contact; for a
             compliant law it reports zero iterations and ``converged = True``).
         torque_clipped: whether an input was beyond its limit and was clipped.
+        force: the contact forces in world axes, ``(n, 3)``: the impulses over the step, divided
+            by ``h`` (the force on the sphere's body).
+        mode: each contact's mode, ``(n,)``: :data:`SEPARATED` (0, no normal impulse),
+            :data:`STICKING` (1) or :data:`SLIDING` (2, its end-of-step tangential velocity
+            above the square root of the solver's tolerance).
         diverged: whether the step left the range where it means anything: a non-finite
             next state, or a velocity component with ``|v+| h`` above
             :attr:`RigidBodySystem.max_motion_per_step` (default 1: more than a radian or a
@@ -101,6 +124,8 @@ class StepInfo(eqx.Module):
     ncp: NCPInfo
     torque_clipped: Array
     diverged: Array
+    force: Array
+    mode: Array
 
 
 class _VelocityUpdate(NamedTuple):
@@ -120,8 +145,11 @@ class _VelocityUpdate(NamedTuple):
     inertias: spatial.SpatialInertia  # world-frame body inertias at q
     mass: Array  # W = M + diag(armature + h damping), the matrix of mass_factor
 
-    def public(self) -> tuple[Array, Array, Array, NCPInfo, Array]:
-        return self.v_next, self.impulse, self.distance, self.ncp, self.clipped
+    frames: Array  # contact frames (n, 3, 3), columns [t1, t2, n] in world axes
+
+    def public(self) -> tuple[Array, Array, Array, NCPInfo, Array, tuple[Array, Array]]:
+        # the contact frames and end-of-step contact velocities J v+ for the diagnostics
+        return self.v_next, self.impulse, self.distance, self.ncp, self.clipped, (self.frames, self.jacobian @ self.v_next)
 
 
 class RigidBodySystem(eqx.Module):
@@ -222,6 +250,7 @@ class RigidBodySystem(eqx.Module):
             raise ValueError("plane_normals must have shape (P, 3) and plane_offsets (P,)")
         if self.friction.shape != (num_planes,):
             raise ValueError(f"friction must have shape ({num_planes},), got {self.friction.shape}")
+        _check_physical(self)
         if self.derivative not in ("implicit", "autodiff"):
             raise ValueError(f"derivative must be 'implicit' or 'autodiff', got {self.derivative!r}")
         if self.actuation not in ("joints", "wrench"):
@@ -270,7 +299,12 @@ class RigidBodySystem(eqx.Module):
         return x[..., : self.model.nq], x[..., self.model.nq :]
 
     def state(self, q: ArrayLike, v: ArrayLike | None = None) -> Array:
-        """The state ``[q, v]`` (``v = 0`` by default)."""
+        """The state ``[q, v]`` (``v = 0`` by default).
+
+        A free flyer's velocity in ``v`` is ``[v_lin, omega]`` in its body axes (Pinocchio's
+        ``LOCAL`` twist): for a body at rotation ``R`` moving at world velocity ``u`` and
+        spinning at world angular velocity ``w``, ``v_lin = R^T u`` and ``omega = R^T w``.
+        """
         q = jnp.asarray(q)
         v = jnp.zeros(q.shape[:-1] + (self.model.nv,), q.dtype) if v is None else jnp.asarray(v)
         return jnp.concatenate([q, v], axis=-1)
@@ -441,15 +475,31 @@ class RigidBodySystem(eqx.Module):
         x, u = self._check(x, u)
         q, v = self.split(x)
         if isinstance(self.contact, str) and self.derivative == "implicit":
-            v_next, impulse, distance, ncp, clipped = _implicit_velocity_update(self, q, v, u, warm_start)
+            v_next, impulse, distance, ncp, clipped, contact = _implicit_velocity_update(self, q, v, u, warm_start)
         else:
             update = self._velocity_update(q, v, u, warm_start)
-            v_next, impulse, distance, ncp, clipped = update.public()
+            v_next, impulse, distance, ncp, clipped, contact = update.public()
         q_next = _integrate_decoupled(self.model, q, v_next, self.time_step)
+        v_next = _dynamics._free_flyer_new_axes(self.model, v_next, self.time_step)
         x_next = jnp.concatenate([q_next, v_next])
         diverged = ~jnp.all(jnp.isfinite(x_next)) | ~(jnp.max(jnp.abs(v_next)) * self.time_step <= self.max_motion_per_step)
-        info = StepInfo(distance=distance, impulse=impulse, ncp=ncp, torque_clipped=clipped, diverged=diverged)
+        force, mode = self._contact_diagnostics(impulse, *lax.stop_gradient(contact))
+        info = StepInfo(
+            distance=distance, impulse=impulse, ncp=ncp, torque_clipped=clipped, diverged=diverged, force=force, mode=mode
+        )
         return x_next, info
+
+    def _contact_diagnostics(self, impulse: Array, frames: Array, velocity: Array) -> tuple[Array, Array]:
+        """World-frame contact forces ``(n, 3)`` and contact modes ``(n,)`` (:class:`StepInfo`)."""
+        n = frames.shape[0]
+        local = lax.stop_gradient(impulse).reshape(n, 3)
+        force = jnp.einsum("cab,cb->ca", frames, local) / self.time_step
+        slip = jnp.sqrt(jnp.sum(velocity.reshape(n, 3)[:, :2] ** 2, axis=-1))
+        # sliding: a contact slips faster than the contact solve's tolerance resolves (in
+        # velocity units, sqrt(tolerance): 1e-5 m/s in float64)
+        threshold = self.solver.tolerance_for(impulse.dtype) ** 0.5
+        mode = jnp.where(~(local[:, 2] > 0), SEPARATED, jnp.where(slip > threshold, SLIDING, STICKING))
+        return force, mode.astype(jnp.int32)
 
     def damping(self) -> Array:
         """The joint damping ``(nv,)`` (zeros when :attr:`joint_damping` is ``None``)."""
@@ -472,11 +522,15 @@ class RigidBodySystem(eqx.Module):
         damping = self.damping()
         # W = M + h D: the damping force D v+ is implicit (see the module docstring)
         mass = _dynamics._crba(model, kinematics, inertias) + jnp.diag(model.armature + h * damping)
-        bias = _dynamics._rnea(model, kinematics, inertias, v, None, model.gravity) + damping * v
+        # v+ in the body axes of the step's start: a free flyer's linear velocity moves with
+        # the frame's rotation exactly, and a free object rotates torque-free, energy-conserving
+        # (_dynamics._free_flyer_start), not by explicit velocity-product terms
+        v_start, removed = _dynamics._free_flyer_start(model, v, h)
+        bias = _dynamics._rnea(model, kinematics, inertias, v, None, model.gravity) - removed + damping * v_start
         tau, clipped = self.generalized_forces(q, u, kinematics)
         factor = jax.scipy.linalg.cho_factor(mass, lower=True)
-        v_free = v + h * jax.scipy.linalg.cho_solve(factor, tau - bias)
-        distance, _, jacobian = self.contacts(q, kinematics)
+        v_free = v_start + h * jax.scipy.linalg.cho_solve(factor, tau - bias)
+        distance, frames, jacobian = self.contacts(q, kinematics)
         mu = self.contact_friction()
         # X = L^-1 Jᵀ: G = Xᵀ X (symmetric by construction) and M^-1 Jᵀ lambda = L^-T (X lambda),
         # one triangular solve with 3 n columns where M^-1 Jᵀ took two (batched, ~2 us each)
@@ -495,6 +549,7 @@ class RigidBodySystem(eqx.Module):
                 jnp.where(broken, 0.0, free_velocity), mu, solver=self.solver, warm_start=warm_start,
             )
             impulse = jnp.where(broken, jnp.nan, impulse)
+            ncp = eqx.tree_at(lambda info: info.converged, ncp, ncp.converged & ~broken)
         else:
             free_velocity = jacobian @ v_free
             impulse = self._compliant_impulse(distance, free_velocity, delassus, h)
@@ -503,7 +558,7 @@ class RigidBodySystem(eqx.Module):
         v_next = v_free + jax.scipy.linalg.solve_triangular(factor[0], half @ impulse, lower=True, trans="T")
         return _VelocityUpdate(
             v_next, impulse, distance, ncp, clipped, factor, jacobian, delassus, free_velocity, mu, kinematics, inertias,
-            mass,
+            mass, frames,
         )
 
     def _compliant_impulse(self, distance: Array, free_velocity: Array, delassus: Array, h: Array) -> Array:
@@ -527,8 +582,18 @@ class RigidBodySystem(eqx.Module):
         return jnp.linalg.solve(system, h * force.reshape(-1))
 
     def step(self, x: ArrayLike, u: ArrayLike) -> Array:
-        """One time step: ``x_next = step(x, u)`` (see :meth:`step_with_info`)."""
-        return self.step_with_info(x, u)[0]
+        """One time step: ``x_next = step(x, u)`` (see :meth:`step_with_info`).
+
+        Raises:
+            ValueError: as :meth:`step_with_info`; and (``equinox`` runtime error) where the
+                next state is not finite: the step diverged (:meth:`step_with_info` reports
+                it in ``info.diverged`` instead, and :meth:`rollout` holds the last finite state).
+        """
+        x_next = self.step_with_info(x, u)[0]
+        return eqx.error_if(
+            x_next, ~jnp.all(jnp.isfinite(x_next)),
+            "the step diverged: the next state is not finite (step_with_info reports it as info.diverged)",
+        )
 
     def step_and_jacobians(self, x: ArrayLike, u: ArrayLike) -> tuple[Array, Array, Array]:
         """``(x_next, f_x, f_u)``: one step and its Jacobians ``(nx, nx)``, ``(nx, nu)``.
@@ -554,7 +619,7 @@ class RigidBodySystem(eqx.Module):
         q, v = self.split(x)
         return _step_and_jacobians(self, q, v, u)
 
-    def rollout(self, x0: ArrayLike, us: ArrayLike, feedback=None) -> tuple[Array, StepInfo]:
+    def rollout(self, x0: ArrayLike, us: ArrayLike, feedback=None, *, throw: bool = False) -> tuple[Array, StepInfo]:
         """States ``(T + 1, nx)`` from ``x0`` under inputs ``us`` ``(T, nu)``, warm-starting
         each contact solve from the previous impulses, and the per-step diagnostics.
 
@@ -564,7 +629,12 @@ class RigidBodySystem(eqx.Module):
 
         From the first step whose ``info.diverged`` is set, the state is held at the last
         valid one (and ``diverged`` stays set), so a diverging sample of a batch stays
-        finite instead of turning into NaN (or a runtime error) several steps later."""
+        finite instead of turning into NaN (or a runtime error) several steps later.
+
+        Every step's contact solve and divergence are in the returned ``infos``
+        (``infos.ncp.converged``, ``infos.diverged``): :func:`check_steps` counts them and warns;
+        ``throw=True`` raises (an ``equinox`` runtime error) where any step diverged or left its
+        contact solve unconverged."""
         x0, us = jnp.asarray(x0), jnp.asarray(us)
         if us.ndim != 2 or us.shape[1] != self.nu:
             raise ValueError(f"us must have shape (T, nu) = (T, {self.nu}), got {us.shape}")
@@ -582,7 +652,37 @@ class RigidBodySystem(eqx.Module):
 
         impulse0 = jnp.zeros(3 * self.num_contacts, jnp.result_type(x0, float))
         _, (xs, infos) = jax.lax.scan(body, (x0, impulse0, jnp.zeros((), bool)), us)
-        return jnp.concatenate([x0[None], xs]), infos
+        xs = jnp.concatenate([x0[None], xs])
+        if throw:
+            xs = eqx.error_if(
+                xs, jnp.any(infos.diverged) | ~jnp.all(infos.ncp.converged),
+                "the rollout has a diverged step or an unconverged contact solve (infos.diverged, infos.ncp.converged)",
+            )
+        return xs, infos
+
+
+def _check_physical(system: RigidBodySystem) -> None:
+    """Host checks of the values that make a system physical (those not traced)."""
+
+    def concrete(name, value, positive=False, allow_inf=False):
+        if value is None or _checks.is_traced(value):
+            return
+        array = np.asarray(value, dtype=float)
+        bad = np.isnan(array) | (np.isinf(array) & (not allow_inf or array < 0))
+        bad |= array <= 0 if positive else array < 0
+        if np.any(bad):
+            bound = "positive" if positive else "non-negative"
+            raise ValueError(f"{name} must be {bound}{'' if allow_inf else ' and finite'}, got {array}")
+
+    if not _checks.is_traced(system.time_step) and np.shape(system.time_step) != ():
+        raise ValueError(f"time_step must be a scalar (s), got shape {np.shape(system.time_step)}")
+    concrete("time_step", system.time_step, positive=True)
+    concrete("sphere_radii", system.sphere_radii)
+    concrete("friction", system.friction)
+    concrete("box_friction", system.box_friction)
+    concrete("box_half_extents", system.box_half_extents, positive=True)
+    concrete("input_limit", system.input_limit, positive=True, allow_inf=True)
+    concrete("max_motion_per_step", system.max_motion_per_step, positive=True, allow_inf=True)
 
 
 @eqx.filter_custom_jvp
@@ -614,7 +714,7 @@ def _implicit_velocity_update_jvp(primals, tangents):
     )
     v_next_dot, impulse_dot = _velocity_update_tangent(system, update, momentum_dot, velocity_dot, mu_dot)
     no_tangent = jax.tree.map(lambda _: None, update.ncp)  # diagnostics: symbolic zeros
-    return update.public(), (v_next_dot, impulse_dot, distance_dot, no_tangent, None)
+    return update.public(), (v_next_dot, impulse_dot, distance_dot, no_tangent, None, (None, None))
 
 
 def _step_residuals(update: _VelocityUpdate):
@@ -634,9 +734,11 @@ def _step_residuals(update: _VelocityUpdate):
             distance, _, jacobian = system.contacts(q, kinematics)
         else:
             kinematics, inertias, distance, jacobian = geometry
-        acceleration = (v_next - v) / h
+        v_start, removed = _dynamics._free_flyer_start(model, v, h)
+        acceleration = (v_next - v_start) / h
         inverse_dynamics = (
             _dynamics._rnea(model, kinematics, inertias, v, acceleration, model.gravity)
+            - removed
             + model.armature * acceleration
             + system.damping() * v_next  # implicit damping: dE/dv+ = M + h D, the factored W
         )
@@ -699,8 +801,10 @@ def _step_and_jacobians(system: RigidBodySystem, q: Array, v: Array, u: Array) -
     q_next = _integrate_decoupled(model, q, v_next, h)
     integrate_q, integrate_v = jax.jacfwd(lambda a, b: _integrate_decoupled(model, a, b, h), argnums=(0, 1))(q, v_next)
     q_next_dot = integrate_v @ v_next_dot + jnp.pad(integrate_q, ((0, 0), (0, columns - model.nq)))
-    jacobian = jnp.concatenate([q_next_dot, v_next_dot])
+    new_axes = jax.jacfwd(lambda b: _dynamics._free_flyer_new_axes(model, b, h))(v_next)
+    jacobian = jnp.concatenate([q_next_dot, new_axes @ v_next_dot])
     nx = model.nq + model.nv
+    v_next = _dynamics._free_flyer_new_axes(model, v_next, h)
     return jnp.concatenate([q_next, v_next]), jacobian[:, :nx], jacobian[:, nx:]
 
 
@@ -735,6 +839,42 @@ def _point_jacobian(model: Model, kinematics, joint: int, point: Array) -> Array
 def _angular_jacobian(model: Model, kinematics, joint: int) -> Array:
     """Jacobian ``(3, nv)`` of body ``joint``'s angular velocity in world axes."""
     return _dynamics._support_columns(model, kinematics, joint)[:, 3:].T
+
+
+class SimulationWarning(UserWarning):
+    """A simulation had unconverged contact solves or diverged steps (:func:`check_steps`)."""
+
+
+def check_steps(infos: StepInfo, *, what: str = "the simulation") -> dict[str, int]:
+    """Counts the steps whose contact solve did not converge and those that diverged, and
+    warns (:class:`SimulationWarning`) if there is any.
+
+    Host-side, on concrete diagnostics (e.g. the ``infos`` of :meth:`RigidBodySystem.rollout`,
+    any batch shape): the experiments call it on their rollouts, so that such steps are never
+    silent. Use ``warnings.simplefilter("error", SimulationWarning)`` to make them errors.
+
+    Args:
+        infos: a :class:`StepInfo` with leading axes (steps, samples, ...).
+        what: the name of the simulation, for the message.
+
+    Returns:
+        ``{"steps", "unconverged_steps", "diverged_steps"}``.
+    """
+    converged = np.asarray(infos.ncp.converged)
+    diverged = np.asarray(infos.diverged)
+    counts = {
+        "steps": int(converged.size),
+        "unconverged_steps": int(np.sum(~converged)),
+        "diverged_steps": int(np.sum(diverged)),
+    }
+    if counts["unconverged_steps"] or counts["diverged_steps"]:
+        warnings.warn(
+            f"{what}: {counts['unconverged_steps']} of {counts['steps']} steps left the contact solve "
+            f"unconverged and {counts['diverged_steps']} diverged (StepInfo.ncp, StepInfo.diverged)",
+            SimulationWarning,
+            stacklevel=2,
+        )
+    return counts
 
 
 def energy(system: RigidBodySystem, x: ArrayLike) -> Array:

@@ -26,7 +26,9 @@ __all__ = [
     "SOLO12_FOOT_RADIUS",
     "SOLO12_JOINT_DAMPING",
     "SOLO12_TORQUE_LIMIT",
+    "ball",
     "ball_wall",
+    "box",
     "cube",
     "pusher",
     "pusher_start_state",
@@ -72,6 +74,23 @@ SOLO12_ARMATURE = 4.5e-6 * 9.0**2
 SOLO12_JOINT_DAMPING = 0.01
 
 
+def _number(name: str, value, *, zero: bool = False, infinite: bool = False) -> float:
+    """A factory's physical parameter as a float, checked: positive (or zero, where `zero`)
+    and finite (or ``+inf``, "unlimited", where `infinite`); else a `ValueError` naming it."""
+    sign = "non-negative" if zero else "positive"
+    allowed = f"{sign} (inf: unlimited)" if infinite else f"{sign} and finite"
+    if isinstance(value, bool) or np.ndim(value) != 0:
+        raise ValueError(f"{name} must be a {sign} number, got {value!r}")
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a {sign} number, got {value!r}") from None
+    in_range = number >= 0 if zero else number > 0
+    if not (in_range and (np.isfinite(number) or (infinite and number == np.inf))):
+        raise ValueError(f"{name} must be {allowed}, got {number}")
+    return number
+
+
 def _as_contact(contact: ContactLaw | str, friction: float) -> ContactLaw:
     """``"hard"``, a compliant law, or the names ``"spring_damper"``/``"log_barrier"`` with
     default parameters."""
@@ -87,10 +106,153 @@ def _as_contact(contact: ContactLaw | str, friction: float) -> ContactLaw:
 
 
 def _planes(planes, friction) -> tuple[jax.Array, jax.Array, jax.Array]:
-    normals = np.array([p[0] for p in planes], dtype=np.float64)
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    offsets = np.array([p[1] for p in planes], dtype=np.float64)
-    return jnp.asarray(normals), jnp.asarray(offsets), jnp.full(len(planes), float(friction))
+    """Normals (unit), offsets and friction per plane from ``((normal, offset), ...)`` and a
+    friction coefficient or one per plane; checked."""
+    try:
+        normals = np.array([p[0] for p in planes], dtype=np.float64).reshape(len(planes), 3)
+        offsets = np.array([p[1] for p in planes], dtype=np.float64).reshape(len(planes))
+    except (TypeError, ValueError, IndexError):
+        raise ValueError(f"planes must be a sequence of (normal (3,), offset) pairs, got {planes!r}") from None
+    if len(planes) == 0:
+        raise ValueError("planes must hold at least one (normal, offset) pair")
+    lengths = np.linalg.norm(normals, axis=1)
+    if not (np.all(np.isfinite(normals)) and np.all(np.isfinite(offsets)) and np.all(lengths > 0)):
+        raise ValueError(f"planes must have finite, non-zero normals and finite offsets, got {planes!r}")
+    if np.ndim(friction) == 0:
+        mu = np.full(len(planes), _number("friction", friction, zero=True))
+    else:
+        mu = np.array([_number("friction", f, zero=True) for f in friction])
+        if mu.shape != (len(planes),):
+            raise ValueError(f"friction must be a number or one per plane ({len(planes)}), got {friction!r}")
+    return jnp.asarray(normals / lengths[:, None]), jnp.asarray(offsets), jnp.asarray(mu)
+
+
+def _gravity(gravity) -> np.ndarray:
+    vector = np.asarray(gravity, dtype=np.float64)
+    if vector.shape != (3,) or not np.all(np.isfinite(vector)):
+        raise ValueError(f"gravity must be a finite vector (3,) in m/s^2, got {gravity!r}")
+    return vector
+
+
+def _free_body_system(model, name, offsets, radii, planes, friction, time_step, contact, solver, baumgarte, wrench_components):
+    """A free body whose spheres (``offsets`` in its frame, ``radii``) touch half-spaces, driven by
+    a wrench at its centre of mass."""
+    normals, plane_offsets, mu = _planes(planes, friction)
+    if not isinstance(contact, str) or contact == "hard":
+        law = _as_contact(contact, 0.0)
+    elif np.ndim(friction) == 0:
+        law = _as_contact(contact, float(friction))
+    else:
+        raise ValueError("one friction coefficient per plane needs contact='hard' or a contact law instance")
+    return RigidBodySystem(
+        model=model,
+        sphere_frames=(model.frame_id(name),) * len(radii),
+        sphere_offsets=jnp.asarray(np.asarray(offsets, dtype=np.float64)),
+        sphere_radii=jnp.asarray(np.asarray(radii, dtype=np.float64)),
+        plane_normals=normals,
+        plane_offsets=plane_offsets,
+        friction=mu,
+        time_step=jnp.asarray(_number("time_step", time_step)),
+        contact=law,
+        solver=solver,
+        baumgarte=baumgarte,
+        actuation="wrench",
+        actuated_dofs=(),
+        wrench_frame=model.frame_id(name),
+        wrench_components=tuple(int(c) for c in wrench_components),
+        input_limit=jnp.full(len(wrench_components), jnp.inf),
+    )
+
+
+def box(
+    *,
+    half_extents=(0.1, 0.1, 0.1),
+    mass: float = 1.0,
+    friction=0.5,
+    planes=(FLOOR,),
+    gravity=(0.0, 0.0, -9.81),
+    time_step: float = 0.01,
+    contact: ContactLaw | str = "hard",
+    solver: NCPSolver = NCPSolver(sticking_guess=True, rank_deficient=True, polish=True),
+    baumgarte: float = 0.2,
+    wrench_components: tuple[int, ...] = (0, 1, 2, 3, 4, 5),
+    name: str = "box",
+) -> RigidBodySystem:
+    """A box among half-spaces (a floor, an incline, walls), pushed by a wrench.
+
+    Its eight corners are point contacts with every half-space ``{p : n . p >= offset}``. The
+    input is a wrench ``u = [fx, fy, fz, tx, ty, tz]`` in world axes at the centre of mass, or
+    the components listed in ``wrench_components``; ``nx = 13``.
+
+    Args:
+        half_extents: half side lengths ``(3,)`` (m), positive.
+        mass: mass (kg); a uniform box, ``I_x = m (b^2 + c^2) / 3`` from half extents.
+        friction: Coulomb coefficient, one for all half-spaces or one per half-space.
+        planes: the half-spaces, ``((normal, offset), ...)``; the normal need not be unit.
+        gravity: gravity in world axes (m/s^2), e.g. tilted for an incline.
+        time_step: ``h`` (s).
+        contact: ``"hard"`` (NCP), ``"spring_damper"``, ``"log_barrier"`` or a law instance.
+        solver: NCP solver configuration (hard contact): the sticking guess by the
+            pseudo-inverse (``NCPSolver.rank_deficient``: four coplanar corners make the
+            Delassus matrix singular), then the active-set polish (from the previous step's
+            impulses in a rollout: it keeps a sliding box's non-unique impulses where they
+            were), then ADMM.
+        baumgarte: penetration correction rate (hard contact).
+        wrench_components: indices into ``[fx, fy, fz, tx, ty, tz]`` of the inputs.
+        name: the body's frame name.
+
+    Returns:
+        The system.
+
+    Example:
+        >>> import rsmooth.sim as sim
+        >>> slab = sim.box(half_extents=(0.2, 0.1, 0.05), mass=2.0, friction=0.8)
+        >>> slab.nx, slab.nu, slab.num_contacts
+        (13, 6, 8)
+    """
+    extents = np.array([_number("half_extents", e) for e in np.ravel(half_extents)])
+    if extents.shape != (3,):
+        raise ValueError(f"half_extents must have shape (3,), got {np.shape(half_extents)}")
+    mass = _number("mass", mass)
+    squares = extents**2
+    inertia = mass / 3.0 * np.array([squares[1] + squares[2], squares[0] + squares[2], squares[0] + squares[1]])
+    model = free_body(mass, inertia, name=name, gravity=_gravity(gravity))
+    corners = np.array(list(itertools.product((-1.0, 1.0), repeat=3))) * extents
+    return _free_body_system(
+        model, name, corners, np.zeros(8), planes, friction, time_step, contact, solver, baumgarte, wrench_components
+    )
+
+
+def ball(
+    *,
+    radius: float = 0.05,
+    mass: float = 0.1,
+    friction=0.3,
+    planes=(FLOOR,),
+    gravity=(0.0, 0.0, -9.81),
+    time_step: float = 0.01,
+    contact: ContactLaw | str = "hard",
+    solver: NCPSolver = NCPSolver(),
+    baumgarte: float = 0.2,
+    name: str = "ball",
+) -> RigidBodySystem:
+    """A solid ball among half-spaces, pushed by a force ``u = [fx, fy, fz]`` (world axes) at its
+    centre; ``nx = 13``, ``nu = 3``.
+
+    Args:
+        radius: radius (m).
+        mass: mass (kg); a solid ball, inertia ``2 m r^2 / 5``.
+        friction, planes, gravity, time_step, contact, solver, baumgarte, name: as in
+            :func:`box`.
+
+    Returns:
+        The system.
+    """
+    radius, mass = _number("radius", radius), _number("mass", mass)
+    model = free_body(mass, np.full(3, 0.4 * mass * radius**2), name=name, gravity=_gravity(gravity))
+    return _free_body_system(
+        model, name, np.zeros((1, 3)), np.array([radius]), planes, friction, time_step, contact, solver, baumgarte, (0, 1, 2)
+    )
 
 
 def cube(
@@ -100,7 +262,7 @@ def cube(
     friction: float = 0.5,
     time_step: float = 0.01,
     contact: ContactLaw | str = "hard",
-    solver: NCPSolver = NCPSolver(sticking_guess=True, rank_deficient=True),
+    solver: NCPSolver = NCPSolver(sticking_guess=True, rank_deficient=True, polish=True),
     baumgarte: float = 0.2,
     wrench_components: tuple[int, ...] = (0, 1, 2, 3, 4, 5),
 ) -> RigidBodySystem:
@@ -120,39 +282,27 @@ def cube(
         contact: ``"hard"`` (NCP), ``"spring_damper"``, ``"log_barrier"`` or a law instance.
         solver: NCP solver configuration (hard contact); by default the sticking guess by
             the pseudo-inverse (``NCPSolver.rank_deficient``: four coplanar corners make the
-            Delassus matrix singular), then ADMM.
+            Delassus matrix singular), then the active-set polish (from the previous step's
+            impulses in a rollout: it keeps a sliding box's non-unique impulses where they
+            were), then ADMM.
         baumgarte: penetration correction rate (hard contact).
         wrench_components: indices into ``[fx, fy, fz, tx, ty, tz]`` of the inputs.
 
     Returns:
         The system; :func:`cube_rest_state` gives its resting state.
 
+    Raises:
+        ValueError: ``side``, ``mass`` or ``time_step`` is not positive and finite, or
+            ``friction`` is negative or not finite.
+
     References:
         Q. Le Lidec, L. Montaut, C. Schmid, I. Laptev, J. Carpentier, "Augmenting
         differentiable physics with randomized smoothing", 2022.
     """
-    if not side > 0:
-        raise ValueError(f"side must be positive, got {side}")
-    model = free_body(mass, np.full(3, mass * side**2 / 6.0), name="cube")
-    corners = np.array(list(itertools.product((-0.5, 0.5), repeat=3))) * side
-    normals, offsets, mu = _planes([FLOOR], friction)
-    return RigidBodySystem(
-        model=model,
-        sphere_frames=(model.frame_id("cube"),) * 8,
-        sphere_offsets=jnp.asarray(corners),
-        sphere_radii=jnp.zeros(8),
-        plane_normals=normals,
-        plane_offsets=offsets,
-        friction=mu,
-        time_step=jnp.asarray(float(time_step)),
-        contact=_as_contact(contact, friction),
-        solver=solver,
-        baumgarte=baumgarte,
-        actuation="wrench",
-        actuated_dofs=(),
-        wrench_frame=model.frame_id("cube"),
-        wrench_components=tuple(int(c) for c in wrench_components),
-        input_limit=jnp.full(len(wrench_components), jnp.inf),
+    side = _number("side", side)
+    return box(
+        half_extents=(side / 2,) * 3, mass=mass, friction=friction, time_step=time_step, contact=contact,
+        solver=solver, baumgarte=baumgarte, wrench_components=wrench_components, name="cube",
     )
 
 
@@ -193,28 +343,16 @@ def ball_wall(
 
     Returns:
         The system.
+
+    Raises:
+        ValueError: ``radius``, ``mass`` or ``time_step`` is not positive and finite,
+            ``wall_distance`` is not finite, or ``friction`` is negative or not finite.
     """
-    if not radius > 0:
-        raise ValueError(f"radius must be positive, got {radius}")
-    model = free_body(mass, np.full(3, 0.4 * mass * radius**2), name="ball")
-    normals, offsets, mu = _planes([FLOOR, ((-1.0, 0.0, 0.0), -float(wall_distance))], friction)
-    return RigidBodySystem(
-        model=model,
-        sphere_frames=(model.frame_id("ball"),),
-        sphere_offsets=jnp.zeros((1, 3)),
-        sphere_radii=jnp.array([float(radius)]),
-        plane_normals=normals,
-        plane_offsets=offsets,
-        friction=mu,
-        time_step=jnp.asarray(float(time_step)),
-        contact=_as_contact(contact, friction),
-        solver=solver,
-        baumgarte=baumgarte,
-        actuation="wrench",
-        actuated_dofs=(),
-        wrench_frame=model.frame_id("ball"),
-        wrench_components=(0, 1, 2),
-        input_limit=jnp.full(3, jnp.inf),
+    if not (isinstance(wall_distance, (int, float, np.integer, np.floating)) and np.isfinite(wall_distance)) or isinstance(wall_distance, bool):
+        raise ValueError(f"wall_distance must be a finite number, got {wall_distance!r}")
+    return ball(
+        radius=radius, mass=mass, friction=friction, planes=[FLOOR, ((-1.0, 0.0, 0.0), -float(wall_distance))],
+        time_step=time_step, contact=contact, solver=solver, baumgarte=baumgarte,
     )
 
 
@@ -278,11 +416,11 @@ def pusher(
     Args:
         box_side: edge of the cubic box (m).
         box_mass: box mass (kg).
-        finger_radius: finger sphere radius (m).
+        finger_radius: finger sphere radius (m); 0 for a point finger.
         finger_mass: finger mass (kg).
         floor_friction: box-floor Coulomb coefficient.
         finger_friction: finger-box Coulomb coefficient.
-        force_limit: bound on each input force (N).
+        force_limit: bound on each input force (N); ``inf`` for none.
         time_step: ``h`` (s).
         contact: ``"hard"`` (NCP), ``"spring_damper"``, ``"log_barrier"`` or a law instance.
         solver: NCP solver configuration (hard contact); by default the sticking guess by
@@ -292,7 +430,18 @@ def pusher(
 
     Returns:
         The system; :func:`pusher_start_state` places the finger behind the box.
+
+    Raises:
+        ValueError: a size or mass is not positive and finite, a friction coefficient is
+            negative, ``force_limit`` is not positive, or ``time_step`` is not positive and
+            finite.
     """
+    box_side, box_mass = _number("box_side", box_side), _number("box_mass", box_mass)
+    finger_radius = _number("finger_radius", finger_radius, zero=True)
+    finger_mass = _number("finger_mass", finger_mass)
+    floor_friction = _number("floor_friction", floor_friction, zero=True)
+    finger_friction = _number("finger_friction", finger_friction, zero=True)
+    force_limit, time_step = _number("force_limit", force_limit, infinite=True), _number("time_step", time_step)
     model = _pusher_model(box_side, box_mass, finger_mass, box_side / 2)
     corners = np.array(list(itertools.product((-0.5, 0.5), repeat=3))) * box_side
     normals, offsets, mu = _planes([FLOOR], floor_friction)
@@ -381,11 +530,18 @@ def solo12(
     Returns:
         The system; :func:`solo12_standing_state` and :func:`solo12_standing_torques` give a
         posture that holds still.
+
+    Raises:
+        ValueError: ``time_step`` is not positive and finite, ``torque_limit`` is not
+            positive, or ``friction``, ``armature`` or ``joint_damping`` is negative or not
+            finite.
     """
+    friction, time_step = _number("friction", friction, zero=True), _number("time_step", time_step)
+    torque_limit = _number("torque_limit", torque_limit, infinite=True)
+    armature = _number("armature", armature, zero=True)
+    joint_damping = _number("joint_damping", joint_damping, zero=True)
     if model is None:
         model = load_urdf(solo12_urdf_path())
-    if armature < 0 or joint_damping < 0:
-        raise ValueError(f"armature and joint_damping must be non-negative, got {armature} and {joint_damping}")
     model = eqx.tree_at(lambda m: m.armature, model, model.armature.at[6:].set(float(armature)))
     frames = [model.frame_id(name) for name in SOLO12_FEET]
     centres = [np.zeros(3)] * 4

@@ -58,7 +58,7 @@ def test_resting_cube_stays_at_rest():
     admm = sim.NCPSolver()
     x_admm, info_admm = step(x, jnp.zeros(6), admm)
     assert bool(info_admm.ncp.converged) and int(info_admm.ncp.iterations) > 0
-    velocity_bound = 4.0 * admm.tolerance / (GRAVITY * 1.0 * 0.01)
+    velocity_bound = 4.0 * admm.tolerance_for(jnp.float64) / (GRAVITY * 1.0 * 0.01)
     np.testing.assert_allclose(cube.split(x_admm)[1], v, atol=velocity_bound)
     np.testing.assert_allclose(x_admm[:7], q, atol=0.01 * velocity_bound)
     # The four bottom corners carry the weight, the top ones nothing.
