@@ -615,7 +615,9 @@ class NCPSolver(eqx.Module):
 
     Termination: all three residuals of :func:`ncp_residuals` at ``z`` are below
     ``tolerance`` (absolute: impulse, velocity and impulse x velocity units), or
-    ``max_iterations`` is reached. The returned impulse is ``z``, exactly in the cone.
+    ``max_iterations`` is reached. The returned impulse is the best ``z`` met (the smallest
+    largest residual, the starting impulse included), exactly in the cone: a capped solve never
+    returns worse than its warm start, and ``NCPInfo.converged`` says whether it is a solution.
 
     Attributes:
         max_iterations: iteration cap of the ``lax.while_loop``.
@@ -637,7 +639,9 @@ class NCPSolver(eqx.Module):
             next states differ (1e-3 m/s for the pusher test's box), and there only the
             factor 2's agrees with the implicit derivative to the finite-difference tests'
             5e-5 (statically indeterminate contact has no unique derivative).
-        relaxation: over-relaxation ``alpha`` in ``(0, 2)``.
+        relaxation: over-relaxation ``alpha`` in ``(0, 2)`` for the first half of the
+            iterations; the second half runs plain ADMM (``alpha = 1``), which converges where
+            over-relaxation cycles (non-unique impulses at high friction).
         implicit_regularization: ``eps`` of the damped least-squares solve of the implicit
             derivative (see :func:`solve_ncp`).
         throw: raise (``equinox.error_if``) when the solve does not converge. Off by default:
@@ -705,7 +709,8 @@ class NCPSolver(eqx.Module):
             unconverged (49 with plain ADMM). :func:`rsmooth.sim.cube` and
             :func:`rsmooth.sim.pusher` turn it on with ``sticking_guess`` (where the cube slides
             or flies the eigendecomposition is wasted: its batched step 73 -> 82 us per env).
-            The polish does not help there: it starts from the guess's failure, zero.
+            With a warm start (a rollout) the polish (``polish``) solves most sliding steps from
+            the previous impulses: :func:`rsmooth.sim.cube` and :func:`rsmooth.sim.box` turn it on.
 
     References:
         J. Carpentier, Q. Le Lidec, L. Montaut, "From compliant to rigid contact simulation:
