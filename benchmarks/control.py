@@ -78,11 +78,11 @@ FOOT = "FL"
 DDP_NODE_BATCH = None
 RDDP_NODE_BATCH = "auto"
 # Crocoddyl releases and the Pinocchio each was built against (a different one segfaults or
-# gives wrong dynamics: FIELD-NOTES).
+# gave wrong dynamics beside pin 4.1.0).
 CROCODDYL_PINOCCHIO = {"3.2.1": "4.0.0"}
 ENABLE_CROCODDYL = (
-    "python3 -m venv /work/bench-venv && /work/bench-venv/bin/pip install -e '.[all]' 'pin==4.0.0' crocoddyl, "
-    "then /work/bench-venv/bin/python -m benchmarks control"
+    "python3 -m venv ../bench-venv && ../bench-venv/bin/pip install -e '.[all]' 'pin==4.0.0' crocoddyl, "
+    "then ../bench-venv/bin/python -m benchmarks control"
 )
 
 
