@@ -710,7 +710,7 @@ class NCPSolver(eqx.Module):
             :func:`rsmooth.sim.pusher` turn it on with ``sticking_guess`` (where the cube slides
             or flies the eigendecomposition is wasted: its batched step 73 -> 82 us per env).
             With a warm start (a rollout) the polish (``polish``) solves most sliding steps from
-            the previous impulses: :func:`rsmooth.sim.cube` and :func:`rsmooth.sim.box` turn it on.
+            the previous impulses: :func:`rsmooth.sim.box` turns it on.
 
     References:
         J. Carpentier, Q. Le Lidec, L. Montaut, "From compliant to rigid contact simulation:

@@ -116,7 +116,7 @@ def test_box_slides_without_rocking_and_stops_where_coulomb_says(friction):
     # velocity drops by mu g h per step and the box moves h v+ each step, so it travels
     # v0^2 / (2 mu g) - h v0 / 2 to within one step's h v0.
     v0, h = 2.0, 0.01
-    system = sim.cube(friction=friction)
+    system = sim.box(friction=friction)
     x0 = sim.cube_rest_state(system).at[7].set(v0)
     steps = 120 if friction > 0.2 else 10
     xs, infos = _rollout(system, x0, jnp.zeros((steps, 6)))
@@ -151,7 +151,7 @@ def test_box_slides_without_rocking_and_stops_where_coulomb_says(friction):
 
 @pytest.mark.parametrize("friction", [0.5, 0.8, 1.0])
 def test_box_sticks_below_the_coulomb_threshold_and_slides_above(friction):
-    system = sim.cube(friction=friction)
+    system = sim.box(friction=friction)
     x0 = sim.cube_rest_state(system)
     threshold = friction * GRAVITY  # 1 kg
     step = jax.jit(lambda x, u: system.step_with_info(x, u))
@@ -198,7 +198,7 @@ def test_derivative_at_zero_distance_is_the_touching_side():
 def test_contact_solve_never_returns_worse_than_its_start():
     # A sliding box's contact problem on four corners, its impulses not unique: from a warm
     # start, a capped solve returns the best impulse it saw, never a worse one.
-    system = sim.cube(friction=0.8)
+    system = sim.box(friction=0.8)
     x = sim.cube_rest_state(system).at[7].set(2.0)
     G, g, mu = _contact_problem(system, x)
     exact, info = sim.solve_ncp(G, g, mu, solver=system.solver)
@@ -240,7 +240,7 @@ def test_unconverged_solves_and_divergence_are_reported():
     with pytest.raises(Exception, match="unconverged contact solve"):
         eqx.filter_jit(lambda s, a, b: s.rollout(a, b, throw=True))(capped, x0, jnp.zeros((3, 6)))
     # a well-solved rollout is silent
-    good = sim.cube(friction=0.8)
+    good = sim.box(friction=0.8)
     _, infos = _rollout(good, x0, jnp.zeros((3, 6)))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
