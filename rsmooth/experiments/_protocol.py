@@ -1,0 +1,137 @@
+"""What every experiment is: a `Config`, a `run`, a summary, registered once.
+
+An experiment module defines
+
+- ``Config``: a frozen dataclass whose fields are declared with :func:`option` (default, help
+  text, command-line flag, allowed values or range) and a ``quick()`` classmethod (the reduced
+  size of ``--quick``); its ``__post_init__`` calls :func:`check_options` and then checks what
+  ties several fields together, raising ``ValueError`` that names the field;
+- ``run(config, out, key, progress=True) -> metrics``: writes its figures and
+  ``out/metrics.json``, returns the metrics;
+- ``EXPERIMENT``: an :class:`Experiment` that names its command and its printed summary.
+
+The command line (`rsmooth.cli`) builds each command's options from the ``Config`` fields:
+adding an option is one field in one file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from typing import Any, Callable, Optional
+
+_MISSING = dataclasses.MISSING
+
+
+def option(
+    default: Any,
+    help: str,
+    *,
+    flag: Optional[str] = None,
+    choices: Optional[tuple] = None,
+    min: Optional[float] = None,
+    max: Optional[float] = None,
+    cli: bool = True,
+) -> Any:
+    """A `Config` field with its help text and the values it accepts.
+
+    Args:
+      default: the default value (a tuple for a repeatable option: immutable, shared safely).
+      help: one or two sentences: what the field sets and its unit.
+      flag: the command-line name without ``--`` (default: the field's name, ``_`` -> ``-``).
+      choices: the allowed values (of each element, for a tuple field).
+      min, max: the allowed closed range (of each element, for a tuple field).
+      cli: False keeps the field out of the command line (set in code only).
+
+    Returns:
+      A `dataclasses.field` carrying these as metadata.
+    """
+    metadata = {"help": " ".join(help.split()), "flag": flag, "choices": choices, "min": min, "max": max, "cli": cli}
+    return dataclasses.field(default=default, metadata=metadata)
+
+
+def flag(field: dataclasses.Field) -> str:
+    """The command-line flag of a `Config` field, with its ``--``."""
+    return "--" + (field.metadata.get("flag") or field.name.replace("_", "-"))
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def check_options(config) -> None:
+    """Checks every field declared with `choices`, `min` or `max` (each element of a tuple).
+
+    Raises:
+      ValueError: naming the field, its flag, the value and what is allowed.
+    """
+    for field in dataclasses.fields(config):
+        meta = field.metadata
+        if not meta:
+            continue
+        value = getattr(config, field.name)
+        values = value if isinstance(value, tuple) else (value,)
+        where = f"{field.name} ({flag(field)})"
+        for item in values:
+            if meta.get("choices") is not None and item not in meta["choices"]:
+                allowed = ", ".join(map(str, meta["choices"]))
+                raise ValueError(f"{where} must be one of {allowed}, got {item!r}")
+            low, high = meta.get("min"), meta.get("max")
+            if low is None and high is None or item is None:
+                continue
+            if not _is_number(item) or not math.isfinite(item):
+                raise ValueError(f"{where} must be a finite number, got {item!r}")
+            if low is not None and item < low or high is not None and item > high:
+                bounds = f"[{low if low is not None else '-inf'}, {high if high is not None else 'inf'}]"
+                raise ValueError(f"{where} must be in {bounds}, got {item!r}")
+
+
+def field_type(config_class, field: dataclasses.Field):
+    """The field's annotation, resolved (``from __future__ import annotations`` keeps strings)."""
+    hints = typing.get_type_hints(config_class)
+    return hints[field.name]
+
+
+def element_type(annotation):
+    """``(kind, element)``: ``("tuple", T)`` for ``tuple[T, ...]``, ``("optional", T)`` for
+    ``T | None``, else ``("plain", annotation)``."""
+    origin = typing.get_origin(annotation)
+    if origin is tuple:
+        return "tuple", typing.get_args(annotation)[0]
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(annotation) if a is not type(None)]
+        if len(args) == 1:
+            return "optional", args[0]
+    return "plain", annotation
+
+
+@dataclasses.dataclass(frozen=True)
+class Experiment:
+    """One experiment as the command line and the report see it.
+
+    Attributes:
+      command: the words after ``rsmooth``, e.g. ``("control", "cube-lift")``.
+      name: the output sub-folder, ``./rsmooth-out/NAME``.
+      config: the experiment's `Config` class.
+      run: ``run(config, out, key, progress=True) -> metrics``.
+      summary: metrics -> the lines printed after a run (label -> value).
+      help: what the experiment shows, in a sentence or two.
+      metrics_doc: the keys of ``metrics.json``.
+      x64: float64 (contact solves and DDP need it); rendering runs in float32, which halves its
+        time on CPU and is what GPUs are fast at.
+    """
+
+    command: tuple[str, ...]
+    name: str
+    config: type
+    run: Callable[..., dict]
+    summary: Callable[[dict], dict]
+    help: str
+    metrics_doc: str
+    x64: bool = True
+
+    @property
+    def title(self) -> str:
+        return " ".join(self.command)
