@@ -95,25 +95,6 @@ def check_finite(array, message: str):
     return array
 
 
-def check_all_finite(output, checks):
-    """Returns `output`, after checking that every array in `checks` is finite.
-
-    `checks` is a sequence of `(array, message)`. Concrete arrays are checked now
-    (`ValueError(message)` for the first failure); traced ones are checked together by a single
-    `equinox` runtime check tied to `output`, since each runtime check costs a host callback.
-    """
-    traced = []
-    for array, message in checks:
-        if is_traced(array):
-            traced.append((array, message))
-        else:
-            check_finite(array, message)
-    if not traced:
-        return output
-    failures = jnp.stack([~jnp.all(jnp.isfinite(array)) for array, _ in traced])
-    return eqx.branched_error_if(output, jnp.any(failures), jnp.argmax(failures), [m for _, m in traced])
-
-
 def check_all(output, finite=(), conditions=()):
     """Returns `output`, after checking that every array of `finite` is finite and that no
     condition of `conditions` holds.

@@ -2,9 +2,9 @@
 
 jaxlib 0.10's CPU backend hands reductions (``jnp.sum``, ``jnp.min``, ...) to YNNPACK
 kernels that are slow when the reduced axis is short (2 to a few dozen) and the batch large:
-the simulator's step Jacobian and the renderer's per-pixel sums over edges and vertices were
-measured several times slower that way than as a chain of additions, which XLA fuses with
-their producers into one loop. ``XLA_FLAGS=--xla_cpu_experimental_ynn_fusion_type=`` turns
+the simulator's step Jacobian and the renderer's per-pixel sums over edges and vertices run
+several times slower that way than as a chain of additions, which XLA fuses with their
+producers into one loop. ``XLA_FLAGS=--xla_cpu_experimental_ynn_fusion_type=`` turns
 the kernels off globally (see README); these helpers avoid them where it matters without a
 flag. Use them only for short static axes (the chain is unrolled at trace time).
 
@@ -38,24 +38,13 @@ def sum_last(values: jax.Array, keepdims: bool = False) -> jax.Array:
     return _reduce_last(values, operator.add, keepdims)
 
 
-def min_last(values: jax.Array, keepdims: bool = False) -> jax.Array:
-    """``jnp.min(values, axis=-1)`` for a short last axis."""
-    return _reduce_last(values, jnp.minimum, keepdims)
-
-
-def all_last(values: jax.Array, keepdims: bool = False) -> jax.Array:
-    """``jnp.all(values, axis=-1)`` for a short last axis of booleans."""
-    return _reduce_last(values, operator.and_, keepdims)
-
-
 @jax.custom_jvp
 def log_sigmoid(values: jax.Array) -> jax.Array:
     """``jax.nn.log_sigmoid`` as ``min(x, 0) - log(1 + exp(-|x|))``: ``log`` instead of
-    ``log1p`` (see the module's docstring; the renderer's candidate ranking, fused with the
-    per-pixel edge distances, took 8 ms of a 128 x 128 pose step with ``log1p``, about 1 with
-    ``log``). The absolute error is the rounding of ``1 + exp(-|x|)``: below 1.2e-7 in float32,
-    2.3e-16 in float64. The derivative, ``sigmoid(-x)``, is given by hand (autodiff through
-    ``min`` and ``abs`` gives 1 at 0 instead of 1/2)."""
+    ``log1p`` (see the module's docstring; the renderer fuses it with per-pixel edge
+    distances). The absolute error is the rounding of ``1 + exp(-|x|)``: below 1.2e-7 in
+    float32, 2.3e-16 in float64. The derivative, ``sigmoid(-x)``, is given by hand (autodiff
+    through ``min`` and ``abs`` gives 1 at 0 instead of 1/2)."""
     return jnp.minimum(values, 0.0) - jnp.log(1.0 + jnp.exp(-jnp.abs(values)))
 
 

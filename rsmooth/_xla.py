@@ -4,16 +4,15 @@ jaxlib 0.10's CPU backend hands reductions over short axes to YNNPACK kernels th
 for rsmooth's per-pixel and per-contact sums (see :mod:`rsmooth._unrolled`). The forward
 code unrolls its own sums, but the sums that autodiff inserts (transposes of broadcasts) still
 go there; ``--xla_cpu_experimental_ynn_fusion_type=`` (an empty list of fusion types) turns
-the kernels off: a batched pose-optimization step ran 1.3x faster with it and the hard
-renderer's forward+backward 3.5x (measured on the 2-core CI machine, see benchmarks/RESULTS.md).
+the kernels off, which speeds up the renderer's batched forward and backward passes
+(benchmarks/RESULTS.md).
 
 XLA aborts the process on a flag it does not know, so the flag is added only for the jaxlib
-versions where it was measured, only when the user has not set it, and never by merely
-importing rsmooth (a library must not change its host's XLA configuration): the console entry
-point calls :func:`apply_cpu_defaults` for the ``rsmooth render`` commands only, before JAX
-creates its backend. Not for the simulator: its batched step Jacobian measured 1.2-1.9x slower
-with the flag (vmap 64: 273-406 us per env against 219-235 without, same day).
-``RSMOOTH_XLA_DEFAULTS=0`` leaves ``XLA_FLAGS`` alone.
+versions known to have it (:data:`KNOWN_JAXLIB`), only when the user has not set it, and never
+by merely importing rsmooth (a library must not change its host's XLA configuration): the
+console entry point calls :func:`apply_cpu_defaults` for the ``rsmooth render`` commands only,
+before JAX creates its backend. Not for the simulator, whose batched step Jacobian is slower
+with the flag. ``RSMOOTH_XLA_DEFAULTS=0`` leaves ``XLA_FLAGS`` alone.
 
 :func:`on_accelerator` is what the solvers' ``"auto"`` batch sizes ask (``NCPSolver.chunk_size``,
 ``DDP.line_search_batch``, ``RDDP.sample_node_batch_size``): on a CPU a batch costs its
@@ -30,7 +29,7 @@ import jax
 import jax.numpy as jnp
 
 YNN_FLAG = "--xla_cpu_experimental_ynn_fusion_type"
-# jaxlib versions on which the flag exists and was measured to help (see the module docstring)
+# jaxlib versions on which the flag exists and helps (see the module docstring)
 KNOWN_JAXLIB = ("0.10.",)
 
 
@@ -74,10 +73,10 @@ def matmul(a, b):
     """``a @ b`` in full float32 precision on every backend.
 
     A float32 product's default precision on NVIDIA GPUs is TF32 (a 10-bit mantissa, relative
-    error up to ~5e-4): rescaling a robot mesh of example-robot-data collapsed its smallest faces
-    to zero area on an H100 (session 35); a rotated or projected vertex moves by up to ~5e-4 of
-    its coordinates (a tenth of a pixel at 128 x 128), and the cosine in a rotation-error metric
-    can be off by ~1e-3, which reads as degrees near zero error (estimates, from the mantissa).
+    error up to ~5e-4): rescaling a robot mesh can collapse its smallest faces to zero area, a
+    rotated or projected vertex moves by up to ~5e-4 of its coordinates (a tenth of a pixel at
+    128 x 128), and the cosine in a rotation-error metric can be off by ~1e-3, which reads as
+    degrees near zero error.
     The geometry's products are 3 x 3 and the estimators' are small: full precision costs
     nothing there. On CPU, and in float64, this is ``a @ b``.
     """

@@ -340,9 +340,9 @@ def _alpha_blend(zeroth: _FlatEstimate, first: _FlatEstimate, n_zeroth, n_first,
         # Default (our documented choice, scale-free): trust the first-order estimate, with
         # the variance-optimal alpha*, unless its gap to the unbiased zeroth-order estimate is
         # larger than sampling noise explains at level 1 - delta; then alpha = 0. This is the
-        # trust region of Suh et al. with gamma = radius + bias_radius, made all-or-nothing.
-        # (An MSE-optimal alpha with a plug-in estimate of the squared bias was tried: on
-        # smooth functions its noise lowered alpha by half in 2 runs out of 10.)
+        # trust region of Suh et al. with gamma = radius + bias_radius, made all-or-nothing
+        # (an MSE-optimal alpha with a plug-in estimate of the squared bias is itself too noisy
+        # on smooth functions).
         gamma_used = radius + bias_radius
         alpha = jnp.where(bias <= bias_radius, alpha_star, 0.0)
     else:
@@ -374,9 +374,6 @@ def _alpha_blend(zeroth: _FlatEstimate, first: _FlatEstimate, n_zeroth, n_first,
         "variance_zeroth": var_zeroth,
     }
     return estimate, extra
-
-
-SHARED_SAMPLE_ESTIMATORS = ("first", "zeroth", "alpha")
 
 
 def _shared_sample_estimate(index, z, values, jacobians, reference, sigma, noise, gamma, lipschitz, delta, baseline=True):

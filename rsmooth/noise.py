@@ -60,22 +60,18 @@ def _uniform(key: Array, shape, dtype, minval: float = 0.0, maxval: float = 1.0)
 
     For float32 and a threefry key, from 32 random bits per number, counted in row-major order:
     the threefry-2x32 block of counters (i, i + n/2) gives numbers i and i + n/2 (n the size,
-    rounded up to even), as JAX's random bits did before `jax_threefry_partitionable` (its
-    default since 0.5), which keeps one of the two words. Half the blocks, and XLA on CPU
-    compiles this flat counter better than the partitionable one: measured with jaxlib 0.10 on
-    one core, 2.4 million uniforms 5.5 ms against 17 ms, the perturbed renderer's forward pass
-    with 32 samples per pixel 1.4x faster, a pose-optimization step 10-15 % (benchmarks/RESULTS.md).
-    The price: a draw sharded across devices is not generated in place on each shard. rsmooth
-    shards batches of keys (one per problem, :mod:`rsmooth.parallel`), each drawn whole where
-    it lies. Other key implementations and dtypes: `jax.random.uniform` (float64's 64 bits per
-    number gained only 20 % this way).
+    rounded up to even), both output words used, where `jax.random` with
+    `jax_threefry_partitionable` keeps one of the two. Half the blocks, and XLA on CPU
+    compiles this flat counter better than the partitionable one: several times faster
+    (benchmarks/RESULTS.md). The price: a draw sharded across devices is not generated in place
+    on each shard; rsmooth shards batches of keys (one per problem, :mod:`rsmooth.parallel`),
+    each drawn whole where it lies. Other key implementations and dtypes: `jax.random.uniform`.
     """
     shape = tuple(shape)
     dtype = jax.dtypes.canonicalize_dtype(dtype)
     size = math.prod(shape)
     if not _fast_bits(key, dtype):
-        # drawn flat: XLA on CPU generated some multi-dimensional shapes several times slower
-        # (jaxlib 0.10: uniform (16384, 8, 9) 20 ms, the same numbers flat 5 ms)
+        # drawn flat: XLA on CPU generates some multi-dimensional shapes several times slower
         u = jax.random.uniform(key, (size,), dtype, minval=minval, maxval=maxval)
         return u.reshape(shape)
     data = jax.random.key_data(key)

@@ -6,8 +6,8 @@ each device its share of the batch, and reductions over it become cross-device s
 changes with one device, which is the default on CPU: the same code runs on a laptop, a GPU,
 or several. `rsmooth render pose` and `rsmooth render reconstruct` spread their problems this way.
 
-Not yet used by the estimators: sharding the samples of a first-order estimate through the
-contact simulator over two forced CPU devices hung XLA (no progress, no CPU use), although
+The estimators do not use it: sharding the samples of a first-order estimate through the
+contact simulator over two forced CPU devices hangs XLA (no progress, no CPU use), although
 the simulator's step and ``step_and_jacobians`` alone shard and run.
 
 On CPU, XLA exposes one device unless told otherwise; to use several cores as devices (each

@@ -17,10 +17,9 @@ def test_log_sigmoid_equals_jax_within_the_rounding_of_one_plus_exp(dtype, atol)
     assert bool(jnp.all(jnp.isfinite(grad)))
 
 
-def test_short_reductions_equal_numpy():
+def test_short_sum_equals_numpy():
     x = jax.random.normal(jax.random.key(0), (5, 7, 3))
     np.testing.assert_allclose(_unrolled.sum_last(x), np.sum(x, axis=-1), rtol=1e-14)
-    np.testing.assert_array_equal(_unrolled.min_last(x, keepdims=True), np.min(x, axis=-1, keepdims=True))
-    np.testing.assert_array_equal(_unrolled.all_last(x > -1.0), np.all(x > -1.0, axis=-1))
+    np.testing.assert_allclose(_unrolled.sum_last(x, keepdims=True), np.sum(x, axis=-1, keepdims=True), rtol=1e-14)
     with pytest.raises(ValueError, match="empty last axis"):
         _unrolled.sum_last(jnp.zeros((2, 0)))

@@ -24,7 +24,7 @@ def test_flag_added_once_on_a_known_jaxlib(monkeypatch):
 @pytest.mark.parametrize(
     "version, env",
     [
-        ("0.9.1", {}),  # a jaxlib where the flag was not measured (XLA aborts on unknown flags)
+        ("0.9.1", {}),  # a jaxlib not known to have the flag (XLA aborts on unknown flags)
         ("0.11.0", {}),
         ("0.10.2", {"RSMOOTH_XLA_DEFAULTS": "0"}),  # the opt-out
         ("0.10.2", {"XLA_FLAGS": f"{_xla.YNN_FLAG}=reduce"}),  # the user's own choice

@@ -324,21 +324,14 @@ class DDP(eqx.Module):
             same step, up to the rounding of the batched rollouts); 1: one at a time, as
             Crocoddyl. ``"auto"`` (the default): 1 on the CPU, all ``num_step_sizes`` at once
             on a GPU or TPU (decided when the solve is traced). A batch pays where the search
-            often backtracks (non-smooth dynamics) and where a rollout is latency-bound (a
-            GPU: ``num_step_sizes`` at once cost about one trial). On one CPU core, Solo-12
-            lifting a foot (T = 50, from R-DDP's controls; iterations taking 1 to 10 trials,
-            same steps for all): 17.1 ms per iteration one at a time, 14.8 two at a time, 14.4
-            all ten at once; but an iteration that takes the full step costs ~9-11 ms alone and
-            ~14 ms with all ten. On an H200 GPU, the same task (T = 50): R-DDP M = 32 (3.8
-            trials per iteration) 85 ms one at a time, 50-56 ms all at once; DDP (one trial)
-            37-39 against 45-52 ms (benchmarks/RESULTS.md).
+            often backtracks (non-smooth dynamics) and where a rollout is latency-bound (on a
+            GPU ``num_step_sizes`` rollouts at once cost about one); an iteration that takes
+            the full step pays for the whole batch (benchmarks/RESULTS.md).
         box_qp_iterations: iteration cap of the box QP (Box-DDP).
         node_batch_size: the Jacobians of the dynamics are computed this many nodes at a
             time (`lax.map` over batches, `vmap` within one); ``None`` (the default): all
-            nodes at once. On Solo-12 (T = 50, one CPU core) all nodes at once took 2.2-2.6
-            ms against 4.4-4.6 ms one node at a time on trajectories whose contacts stick, and
-            the same (4.1-4.2 ms) where some nodes' contact solves run ADMM (the batch waits
-            for the slowest). R-DDP's sampled Jacobians have their own
+            nodes at once (on a CPU too: though the batch waits for its slowest node, it is
+            not slower than one node at a time on Solo-12). R-DDP's sampled Jacobians have their own
             ``sample_node_batch_size``.
         throw: raise a ``RuntimeError`` with the result's message when the solve does not
             succeed (otherwise inspect ``solution.result``).

@@ -211,13 +211,10 @@ class RDDP(DDP):
         sample_node_batch_size: the smoothed Jacobians are estimated this many nodes at a
             time (``None``: all at once); ``node_batch_size`` applies to the exact Jacobians
             of the eps = 0 iterations. ``"auto"`` (the default): 1 on the CPU, ``None`` on a
-            GPU or TPU (decided when the solve is traced). On one CPU core the ``num_samples``
+            GPU or TPU (decided when the solve is traced). On a CPU the ``num_samples``
             samples of a node are already one batch, and batching the nodes too makes every
-            contact solve wait for the slowest of ``T x num_samples`` (Solo-12, T = 50, M =
-            32: 236 ms per iteration with all nodes at once against 129 ms one node at a
-            time); on a GPU one node at a time is ``T`` launches of a small batch (an H200,
-            the same task: 376 ms per iteration one node at a time, 56 ms all at once with
-            ``line_search_batch`` at its GPU value too, 85 ms with it at 1; benchmarks/RESULTS.md).
+            contact solve wait for the slowest of ``T x num_samples``; on a GPU one node at a
+            time is ``T`` launches of a small batch (benchmarks/RESULTS.md).
     """
 
     eps: float = eqx.field(static=True, default=1.0)

@@ -446,9 +446,8 @@ def implicit_impulse_tangent(
 def many_column_solver(factor, rhs: Array):
     """``b -> A^-1 b`` for a Cholesky ``factor`` of ``A`` (n x n) and right-hand sides shaped
     like ``rhs``. With more than ``n`` columns (the Jacobian columns of a step), ``A^-1`` is
-    formed once (:func:`cholesky_inverse`) and applied by matrix products: XLA's batched
-    triangular solve on CPU costs per column, and under ``vmap`` it was the largest part of the
-    implicit derivative's algebra. Otherwise (a JVP's vector) it solves directly."""
+    formed once (:func:`cholesky_inverse`) and applied by matrix products, since XLA's batched
+    triangular solve on CPU costs per column. Otherwise (a JVP's vector) it solves directly."""
     n = factor[0].shape[0]
     if rhs.ndim == 2 and rhs.shape[1] > n:
         inverse = cholesky_inverse(factor)
@@ -460,7 +459,7 @@ def cholesky_inverse(factor) -> Array:
     """``A^-1`` from a Cholesky ``factor`` of ``A`` (``jax.scipy.linalg.cho_factor``): one
     triangular solve for ``L^-1`` and the product ``L^-T L^-1``, where ``cho_solve`` with the
     identity takes two solves (on the CPU a batched triangular solve costs several times the
-    product: ~2 us against ~0.5 us per 18 x 18 matrix under ``vmap``)."""
+    product)."""
     c, lower = factor
     inverse = jax.scipy.linalg.solve_triangular(c, jnp.eye(c.shape[0], dtype=c.dtype), lower=lower)
     return inverse.T @ inverse if lower else inverse @ inverse.T
@@ -492,8 +491,8 @@ def _mode_equations(x: Array, direction: Array, mode: Array, G: Array, g: Array,
     ``R`` of its ``c`` plus terms of its own unknowns."""
     n = mu.shape[0]
     dtype = G.dtype
-    # The direction as a unit vector rather than an angle: cos and sin inside the fused loops
-    # of the Jacobian were recomputed per element (1.6 against 1.2 us per problem under vmap).
+    # The direction as a unit vector rather than an angle: XLA recomputes cos and sin per
+    # element inside the fused loops of the Jacobian.
     cos, sin = direction[:, 0], direction[:, 1]
     zero, one = jnp.zeros_like(cos), jnp.ones_like(cos)
     separated, sticking = (mode == _SEPARATED)[:, None, None], (mode == _STICKING)[:, None, None]
@@ -541,9 +540,9 @@ def _solve_unpivoted(A: Array, b: Array) -> Array:
     """``A^{-1} b`` by Gauss-Jordan elimination without pivoting, one row per iteration of a
     ``fori_loop``. For the polish's small systems (12 x 12 for four contacts) under ``vmap``
     on CPU, ``jnp.linalg.solve`` (LAPACK's LU per matrix, then a loop turning its pivots
-    into a permutation) cost more than the rest of a Newton step; unrolled, XLA fused the
-    elimination steps into loops that recomputed the earlier ones. A zero pivot gives a
-    non-finite result, which the polish rejects like any other failure."""
+    into a permutation) costs more than the rest of a Newton step, and an unrolled
+    elimination makes XLA fuse the steps into loops that recompute the earlier ones. A zero
+    pivot gives a non-finite result, which the polish rejects like any other failure."""
     n = A.shape[-1]
     eye = jnp.eye(n, dtype=A.dtype)
 
@@ -591,7 +590,7 @@ CPU_CHUNK_SIZE = 4
 class NCPSolver(eqx.Module):
     """ADMM for the frictional contact NCP with the De Saxcé correction.
 
-    Find impulses ``lambda`` (``3 n``, per contact ``[t1, t2, n]``) with
+    Finds impulses ``lambda`` (``3 n``, per contact ``[t1, t2, n]``) with
 
     .. math::
         K_\\mu \\ni \\lambda \\perp \\tilde c \\in K_\\mu^*, \\quad
@@ -607,38 +606,37 @@ class NCPSolver(eqx.Module):
         z^+ &= P_K(\\alpha x^+ + (1 - \\alpha) z + y / \\rho), \\\\
         y^+ &= y + \\rho(\\alpha x^+ + (1 - \\alpha) z - z^+),
 
-    and updates ``s`` from ``-y`` (whose tangential part converges to ``c_T``; computing it
-    from ``z`` instead stalled on about 10% of random problems in our trials). ``rho`` starts
-    at ``sqrt(lambda_min lambda_max)`` of ``G`` and is adapted by residual balancing with a
-    step tied to the conditioning of ``G`` (see ``rho_update_power``). The
-    linear solves reuse one eigendecomposition of ``G``, so ``rho`` changes for free.
+    and updates ``s`` from ``-y``, whose tangential part converges to ``c_T``. ``rho`` starts at
+    ``sqrt(lambda_min lambda_max)`` of ``G`` and is adapted by residual balancing; the linear
+    solves reuse one eigendecomposition of ``G``. Before ADMM a solve tries a starting impulse
+    (the warm start or zero, or ``sticking_guess``) and ``polish``; ADMM runs only where they
+    do not solve the problem.
 
-    Termination: all three residuals of :func:`ncp_residuals` at ``z`` are below
-    ``tolerance`` (absolute: impulse, velocity and impulse x velocity units), or
-    ``max_iterations`` is reached. The returned impulse is the best ``z`` met (the smallest
-    largest residual, the starting impulse included), exactly in the cone: a capped solve never
-    returns worse than its warm start, and ``NCPInfo.converged`` says whether it is a solution.
+    Termination: all three residuals of :func:`ncp_residuals` are at most ``tolerance``
+    (absolute: impulse, velocity and impulse x velocity units), or ADMM reaches
+    ``max_iterations``. ADMM returns the best iterate ``z`` it met (the smallest largest
+    residual, the starting impulse included; every ``z`` is exactly in the cone): a capped
+    solve is never worse than its start, and ``NCPInfo.converged`` says whether the result is
+    a solution.
+
+    Where ``G`` is singular (more contact rows than the degrees of freedom they constrain: a
+    box on four coplanar corners) the impulses are not unique and the start decides which
+    solution is found: ``sticking_guess``, ``polish`` and ``rho_update_power`` are therefore off
+    by default, and the factories of :mod:`rsmooth.sim` turn them on per system (timings in
+    benchmarks/RESULTS.md).
 
     Attributes:
-        max_iterations: iteration cap of the ``lax.while_loop``.
-        tolerance: absolute tolerance on the residuals; ``None`` (the default) is one that
-            the dtype of the problem can reach, ``1e-10`` in float64 and ``1e-5`` in float32
-            (rounding alone leaves residuals of about ``1e-7`` there).
+        max_iterations: ADMM iteration cap.
+        tolerance: absolute tolerance on the residuals; ``None``: one the problem's dtype can
+            reach, ``1e-10`` in float64 and ``1e-5`` in float32 (rounding alone leaves
+            residuals of about ``1e-7`` there).
         rho: initial ADMM penalty; ``None`` uses the spectral value.
-        adaptive_rho: multiply/divide ``rho`` by a factor when the primal/dual ADMM
+        adaptive_rho: multiply or divide ``rho`` by a factor when the primal and dual ADMM
             residuals are more than 10 times apart.
-        rho_update_power: ``None``: the factor is 2; a number ``p``: the factor is
-            ``cond(G)^p`` (a spectral step). :func:`rsmooth.sim.solo12` uses ``p = 0.05``,
-            chosen on a mix of problems (R-DDP samples of a standing Solo-12, Solo-12 falling
-            on its body contacts, random problems of 1 to 8 contacts): against the factor 2,
-            the mean iteration count dropped 2x and the worst 4x on the R-DDP samples (which,
-            batched with ``vmap``, all wait for the slowest), was no worse elsewhere, and
-            random 8-contact problems reached the tolerance within the cap 8x more often.
-            It is not the default because where the impulses are not unique (a box sliding
-            on four coplanar corners) the two rules converge to different solutions whose
-            next states differ (1e-3 m/s for the pusher test's box), and there only the
-            factor 2's agrees with the implicit derivative to the finite-difference tests'
-            5e-5 (statically indeterminate contact has no unique derivative).
+        rho_update_power: ``None``: the factor is 2; a number ``p``: ``cond(G)^p``, large
+            for the ill-conditioned ``G`` where ``rho`` matters (fewer iterations). Where the
+            impulses are not unique the factor 2 reaches the solution whose next states match
+            the finite differences of the implicit derivative; ``cond(G)^p`` another one.
         relaxation: over-relaxation ``alpha`` in ``(0, 2)`` for the first half of the
             iterations; the second half runs plain ADMM (``alpha = 1``), which converges where
             over-relaxation cycles (non-unique impulses at high friction).
@@ -650,67 +648,31 @@ class NCPSolver(eqx.Module):
         sticking_guess: where the warm start (or zero) is not already a solution, try the
             impulse that makes every contact whose free normal velocity closes (``g_N < 0``)
             stick and leaves the others without impulse, ``P_K(-G_AA^{-1} g_A)`` on that active
-            set (one Cholesky factorization): where it solves the NCP to the tolerance (a robot
-            standing, or walking on sticking feet), the solve ends there, without ADMM or its
-            eigendecomposition. Otherwise ADMM starts from the warm start or, without one,
-            from the guess (on perturbed Solo-12 states, a third fewer iterations for the
-            slowest member of a batch than from zero; with ``rank_deficient``, from zero).
-            :func:`rsmooth.sim.solo12` turns it on, and :func:`rsmooth.sim.cube` and
-            :func:`rsmooth.sim.pusher` with ``rank_deficient``; it is off by default because
-            where ``G`` is singular (a box on four coplanar corners) the impulses are not
-            unique and the start decides which one is found (see ``rank_deficient``).
-        polish: active-set Newton polish (in the spirit of OSQP's solution polishing, here
+            set (one Cholesky factorization); where it solves the problem (a robot standing on
+            sticking feet) the solve ends there. Otherwise ADMM starts from the warm start or,
+            without one, from the guess (from zero with ``rank_deficient``).
+        polish: an active-set Newton polish (in the spirit of OSQP's solution polishing, here
             with the nonlinear sliding modes), tried after the start and before ADMM: read
             each contact's mode (separated, sticking, sliding) from the start impulse, solve
             that mode's equations (``lambda = 0``; ``c = 0``; ``c_N = 0`` with the impulse on
             the cone's boundary opposite the slip) by ``polish_steps`` Newton iterations, and
-            keep the result where it satisfies the tolerance (the same residual test as
-            ADMM's, so a polished impulse is a solution). Where it does not, the next round
-            takes one step of the natural map from the polished impulse (which corrects the
-            modes it assumed) and polishes again, up to ``polish_rounds`` rounds; ADMM runs
-            only where all of them fail. On R-DDP samples of a standing Solo-12 (eps = 1,
-            78 % of the problems with a sliding foot) the first round solved 97 % of the
-            problems and the second all of them; the batched solve took 12 against 27 us per
-            problem with ADMM (whose batches of 32 ran 88 iterations on average for their
-            slowest member). :func:`rsmooth.sim.solo12` turns it on; off by default for the
-            same reason as ``sticking_guess`` (a singular ``G``: the start decides the
-            solution found).
+            keep the result where it passes the tolerance test. A failed round is followed by
+            one projected fixed-point step (correcting the modes it assumed) and another.
         polish_rounds: rounds of the polish before ADMM (``polish`` only).
-        polish_steps: Newton iterations of a round.
+        polish_steps: Newton iterations per round.
         chunk_size: under ``vmap``, the problems that the start did not solve go through the
-            polish and ADMM in chunks of this many (:func:`rsmooth._batching.run_where_needed`),
-            not as the whole batch: a batch pays for the members that need the work only, and
-            each loop runs as long as the slowest problem of its chunk, not of the batch (one
-            problem of 64 needing a second round of the polish, or ADMM, costs one chunk's
-            work). ``"auto"`` (the default): 4 on the CPU, the whole batch (no chunks) on a GPU
-            or TPU, where a chunk costs about what the whole batch does. On one CPU core 4 was
-            the fastest of 2, 4, 8, 16 on perturbed Solo-12 batches of 32 and 64 (perturbed
-            batched step 24.7 -> 13.4 us per problem against the whole batch at once, same
-            run); on an H200 GPU, a perturbed batch of 64: 164 / 83 / 39 us per problem with
-            chunks of 4 / 16 / 64, the step and Jacobians 181 / 85 / 38 us (same run). An int
-            fixes it. Results do not depend on it.
+            polish and ADMM in chunks of this many (:func:`rsmooth._batching.run_where_needed`):
+            a batch pays only for the members that need the work, and each loop runs as long
+            as the slowest problem of its chunk, not of the batch. ``"auto"`` (the default):
+            4 on the CPU, the whole batch on a GPU or TPU, where a chunk costs about what the
+            whole batch does; an int fixes it. Results do not depend on it.
         rank_deficient: the sticking guess solves its active set by the pseudo-inverse of
             ``G_AA`` (an eigendecomposition; eigenvalues below 1e-9 of the largest dropped),
-            i.e. the minimum-norm sticking impulse, rather than by a Cholesky factorization.
-            For systems whose ``G`` is singular because contacts outnumber the degrees of
-            freedom they constrain (a box on four coplanar corners): there the Cholesky
-            guess's diagonal shift can amplify rounding in ``G``'s null space (on the 1,280
-            pusher problems below it solved 792, the pseudo-inverse 1,081; the failures'
-            median residual 40 against 0.1). A resting cube stays at rest to 1e-14 m/s
-            (ADMM alone: to its tolerance, ~1e-9 m/s). Where the guess fails (a sliding box), ADMM
-            starts from the warm start or zero, not from the guess: from the guess it took
-            422 instead of 176 iterations on a cube sliding under a 5 N push, and converged
-            to other solutions (the impulses, and with sliding friction the velocities, are
-            not unique there). On 1,280 pusher problems (32 rollouts of 40 steps under random
-            finger forces) the guess solved 84 % without ADMM (the box sticking); velocities
-            agree with plain ADMM's to 7e-9 wherever both converge, 35 instead of 49 problems
-            ended unconverged, and over rollouts of the pusher under the same forces (whose
-            states differ from these once the box moves) no solve of 1,280 was left
-            unconverged (49 with plain ADMM). :func:`rsmooth.sim.cube` and
-            :func:`rsmooth.sim.pusher` turn it on with ``sticking_guess`` (where the cube slides
-            or flies the eigendecomposition is wasted: its batched step 73 -> 82 us per env).
-            With a warm start (a rollout) the polish (``polish``) solves most sliding steps from
-            the previous impulses: :func:`rsmooth.sim.box` turns it on.
+            the minimum-norm sticking impulse, instead of a Cholesky factorization, whose
+            diagonal shift amplifies rounding in the null space of a singular ``G``. A resting
+            box then stays at rest to rounding. Where the guess fails (a sliding box), ADMM
+            starts from the warm start or zero: from the guess it is slower and reaches other
+            solutions.
 
     References:
         J. Carpentier, Q. Le Lidec, L. Montaut, "From compliant to rigid contact simulation:

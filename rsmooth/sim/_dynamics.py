@@ -272,8 +272,7 @@ def _world_inertias(model: Model, kinematics: _Kinematics) -> spatial.SpatialIne
 
 # The public functions are jitted: called eagerly (tests, set-up code such as standing
 # torques), each of their few hundred small operations would otherwise be compiled and
-# dispatched one by one (measured: ~15 s of one-operation compilations to set up Solo-12).
-# Inside a caller's jit they are inlined as before.
+# dispatched one by one (seconds to set up Solo-12). Inside a caller's jit they are inlined.
 
 
 @jax.jit

@@ -14,7 +14,7 @@ state ``x = [q, v]``:
    frame's rotation (``+ h omega x v_lin``, removed from ``C v``) and every free object (a
    free flyer with no joint below it) rotated torque-free by the implicit midpoint rule
    (its gyroscopic term removed from ``C v``). In free flight a body's world velocity is
-   then constant and its kinetic energy exact, where explicit velocity-product terms gained
+   then constant and its kinetic energy exact; explicit velocity-product terms would gain
    energy at every step of a spinning or tumbling body.
 2. Contacts between the system's spheres (a point is a sphere of radius 0) and the world's
    half-spaces, with signed distance ``phi``, contact frame ``R`` and contact Jacobian
@@ -533,7 +533,7 @@ class RigidBodySystem(eqx.Module):
         distance, frames, jacobian = self.contacts(q, kinematics)
         mu = self.contact_friction()
         # X = L^-1 Jᵀ: G = Xᵀ X (symmetric by construction) and M^-1 Jᵀ lambda = L^-T (X lambda),
-        # one triangular solve with 3 n columns where M^-1 Jᵀ took two (batched, ~2 us each)
+        # one triangular solve with 3 n columns where M^-1 Jᵀ takes two
         half = jax.scipy.linalg.solve_triangular(factor[0], jacobian.T, lower=True)  # (nv, 3n)
         delassus = half.T @ half
         if isinstance(self.contact, str):

@@ -16,7 +16,7 @@ spatial cross products and ``inertia_apply`` also broadcast over leading axes). 
 under ``vmap``/``jacfwd`` to thousands of tiny matrix products (about 10x slower on CPU).
 For the same reason short sums are unrolled (:func:`dot3`, ``rsmooth._unrolled.sum_last``):
 jaxlib 0.10's CPU backend hands a reduction over a length-3 axis of a large batch to YNNPACK,
-which was measured 6x slower than the unrolled sum inside the batched step Jacobian of Solo-12.
+several times slower than the unrolled sum inside the batched step Jacobian of Solo-12.
 
 Every function is branch-free (``jnp.where`` instead of Python ``if`` on values), so it jits
 once, vmaps, and is differentiable everywhere, including at zero rotation, where the usual
@@ -452,41 +452,6 @@ def transform_motion(rotation: jax.Array, translation: jax.Array, motion: jax.Ar
     return jnp.concatenate([linear, angular])
 
 
-def inverse_transform_motion(rotation: jax.Array, translation: jax.Array, motion: jax.Array) -> jax.Array:
-    """Expresses in frame B a twist given in frame A, with ``aMb = (rotation, translation)``.
-
-    Args:
-        rotation: shape ``(3, 3)``.
-        translation: shape ``(3,)``.
-        motion: twist, shape ``(6,)``.
-
-    Returns:
-        Twist, shape ``(6,)``.
-    """
-    angular = motion[3:]
-    linear = rotate_inverse(rotation, motion[:3] - jnp.cross(translation, angular))
-    return jnp.concatenate([linear, rotate_inverse(rotation, angular)])
-
-
-def transform_force(rotation: jax.Array, translation: jax.Array, force: jax.Array) -> jax.Array:
-    """Expresses in frame A a wrench given in frame B, with ``aMb = (rotation, translation)``.
-
-    The force transform of Featherstone (2008, Sec. 2.8): ``f_A = R f_B``,
-    ``n_A = R n_B + p x f_A``.
-
-    Args:
-        rotation: shape ``(3, 3)``.
-        translation: shape ``(3,)``.
-        force: wrench, shape ``(6,)``.
-
-    Returns:
-        Wrench, shape ``(6,)``.
-    """
-    linear = rotate(rotation, force[:3])
-    angular = rotate(rotation, force[3:]) + jnp.cross(translation, linear)
-    return jnp.concatenate([linear, angular])
-
-
 def motion_cross_motion(motion: jax.Array, other: jax.Array) -> jax.Array:
     """Spatial cross product ``m x m'`` of two twists (Featherstone 2008, Sec. 2.9).
 
@@ -616,27 +581,3 @@ def transform_inertia(rotation: jax.Array, translation: jax.Array, inertia: Spat
         - inertia.mass * skew_square(p)
     )
     return SpatialInertia(inertia.mass, h_rotated + inertia.mass * translation, rotational)
-
-
-def add_inertias(first: SpatialInertia, second: SpatialInertia) -> SpatialInertia:
-    """Inertia of two rigid bodies welded together (both expressed in the same frame)."""
-    return SpatialInertia(
-        first.mass + second.mass,
-        first.first_moment + second.first_moment,
-        first.rotational_inertia + second.rotational_inertia,
-    )
-
-
-def inertia_matrix(inertia: SpatialInertia) -> jax.Array:
-    """The 6x6 matrix of a spatial inertia (for tests and for dense algorithms).
-
-    Args:
-        inertia: spatial inertia.
-
-    Returns:
-        Array of shape ``(6, 6)`` acting on ``[linear, angular]`` twists.
-    """
-    h_hat = skew(inertia.first_moment)
-    top = jnp.concatenate([inertia.mass * jnp.eye(3, dtype=h_hat.dtype), -h_hat], axis=1)
-    bottom = jnp.concatenate([h_hat, inertia.rotational_inertia], axis=1)
-    return jnp.concatenate([top, bottom], axis=0)

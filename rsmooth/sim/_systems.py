@@ -1,4 +1,5 @@
-"""The canonical systems: a cube on a floor, a ball and a wall, the Solo-12 quadruped.
+"""The canonical systems: a box or a cube among half-spaces, a ball (and a wall), a finger
+pushing a box, the Solo-12 quadruped.
 
 Each factory returns a :class:`~rsmooth.sim.RigidBodySystem` (a ``Dynamics``: ``step(x, u)``,
 ``nx``, ``nu``) and each system has a resting state to start from.
@@ -66,11 +67,10 @@ SOLO12_TORQUE_LIMIT = 2.7
 # that of the ODRI actuator module (open_robot_actuator_hardware, actuator_module_v1). The URDF
 # has none. It is 0.67 of the knee's own inertia about its axis (5.4e-4 kg m^2 standing).
 SOLO12_ARMATURE = 4.5e-6 * 9.0**2
-# Viscous joint damping (N m s/rad). NOT identified on the hardware: the smallest round value
-# with which open-loop random torques (up to the torque limit) never made the 10 ms step
-# diverge in our trials (0.003 still diverged in 4 of 15). It is small next to the damping
-# of a voltage-driven motor, (Kt N)^2 / R = (0.025 x 9)^2 / 0.23 = 0.22 N m s/rad, and gives
-# 0.27 N m (10% of the torque limit) at 27 rad/s.
+# Viscous joint damping (N m s/rad), not identified on the hardware: a small round value that
+# keeps the 10 ms step from diverging under open-loop random torques up to the torque limit.
+# It is small next to the damping of a voltage-driven motor, (Kt N)^2 / R =
+# (0.025 x 9)^2 / 0.23 = 0.22 N m s/rad, and gives 0.27 N m (10% of the torque limit) at 27 rad/s.
 SOLO12_JOINT_DAMPING = 0.01
 
 
@@ -283,9 +283,9 @@ def cube(
         solver: NCP solver configuration (hard contact); by default the sticking guess by
             the pseudo-inverse (``NCPSolver.rank_deficient``: four coplanar corners make the
             Delassus matrix singular), then ADMM. For a cube sliding at a friction of about
-            0.8 or more, add ``polish=True`` (:func:`box`'s default): without it a few steps
-            end unconverged (reported, residuals about 1e-9), with it none; it costs
-            compilation and, from a cold start, time.
+            0.8 or more, add ``polish=True`` (:func:`box`'s default), without which a few
+            steps end unconverged (reported in the step's diagnostics); it costs compilation
+            and, from a cold start, time.
         baumgarte: penetration correction rate (hard contact).
         wrench_components: indices into ``[fx, fy, fz, tx, ty, tz]`` of the inputs.
 
@@ -511,12 +511,11 @@ def solo12(
         time_step: ``h`` (s).
         contact: ``"hard"`` (NCP), ``"spring_damper"``, ``"log_barrier"`` or a law instance.
         solver: NCP solver configuration (hard contact); by default with the spectral
-            penalty update (``rho_update_power=0.05``, see :class:`NCPSolver`), which halves
-            the solver's iterations on the perturbed states of R-DDP, and the sticking guess
-            (``sticking_guess=True``), which solves the steps where the feet on the floor
-            stick without ADMM (2.4x faster batched steps standing), and the active-set
-            Newton polish (``polish=True``), which solves those where feet slide or lift
-            without ADMM too.
+            penalty update (``rho_update_power=0.05``, see :class:`NCPSolver`: fewer ADMM
+            iterations on the perturbed states of R-DDP), the sticking guess
+            (``sticking_guess=True``: the steps where the feet on the floor stick are solved
+            without ADMM) and the active-set Newton polish (``polish=True``: so are most of
+            those where feet slide or lift); see benchmarks/RESULTS.md.
         baumgarte: penetration correction rate (hard contact).
         torque_limit: joint torque bound (N m).
         model: an already loaded Solo-12 model (default: loaded from the URDF).
