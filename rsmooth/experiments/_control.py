@@ -3,8 +3,11 @@ seeds with one progress bar, the summary of the runs, and the cost / noise figur
 
 A *method* is a name: ``ddp`` (Box-DDP on the true dynamics), ``rddp`` (randomized DDP with the
 adaptive noise schedule) or ``rddp-geometric-D`` (randomized DDP whose noise is multiplied by
-``D`` at every iteration, for the comparison of schedules the control issue asks for).
-Every method starts from the same initial controls; seeds change the R-DDP samples.
+``D`` at every iteration, to compare the schedules). Every method starts from the same initial
+controls; seeds change the R-DDP samples.
+
+The ``*_option`` functions declare the ``Config`` fields that every DDP experiment has, with
+their help text and allowed values (:func:`rsmooth.experiments._protocol.option`).
 """
 
 from __future__ import annotations
@@ -18,8 +21,47 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from rsmooth import control, viz
+from rsmooth.experiments import _protocol
 
 METHOD_CHOICES = ("ddp", "rddp", "all")
+ESTIMATOR_CHOICES = ("first", "zeroth", "alpha")
+
+
+def method_option():
+    return _protocol.option(
+        "all", "ddp, rddp, or all (ddp, rddp and R-DDP with geometric noise decays).", choices=METHOD_CHOICES)
+
+
+def seeds_option(default: int):
+    return _protocol.option(default, "R-DDP runs per method, keys fold_in(seed, i); DDP runs once.", min=1)
+
+
+def horizon_option(default: int):
+    return _protocol.option(default, "Time steps of 10 ms.", min=2)
+
+
+def estimator_option():
+    return _protocol.option(
+        "first", "R-DDP's estimate of the smoothed dynamics' Jacobians: first, zeroth or alpha order (alpha: half the "
+        "samples to each estimate).", choices=ESTIMATOR_CHOICES)
+
+
+def samples_option(default: int):
+    return _protocol.option(default, "R-DDP's samples per node.", flag="samples", min=1)
+
+
+def eps_option():
+    return _protocol.option(1.0, "R-DDP's initial noise level; each noise scale below is multiplied by it.", min=0.0)
+
+
+def max_iterations_option(default: int):
+    return _protocol.option(default, "Iterations of DDP and R-DDP at most.", min=1)
+
+
+def geometric_decays_option(default: tuple[float, ...]):
+    return _protocol.option(
+        default, "With --method all, the decays D of the R-DDP runs whose noise is multiplied by D at every iteration.",
+        flag="geometric-decay", min=0.0, max=1.0)
 
 
 def method_names(method: str, geometric_decays: tuple[float, ...]) -> tuple[str, ...]:
@@ -52,27 +94,22 @@ def make_solvers(config) -> dict[str, control.DDP]:
 
 
 def check_config(config) -> None:
-    """The checks every control experiment's ``Config`` shares: its ``method`` (with its
-    ``geometric_decays``), ``horizon`` and ``seeds``. Raises ``ValueError``."""
-    method_names(config.method, config.geometric_decays)
-    if config.horizon < 2:
-        raise ValueError(f"horizon must be >= 2, got {config.horizon}")
-    if config.seeds < 1:
-        raise ValueError(f"seeds must be >= 1, got {config.seeds}")
+    """The checks every control experiment's ``Config`` shares: its options' choices and ranges
+    (:func:`rsmooth.experiments._protocol.check_options`), and ``num_samples >= 4`` with the
+    alpha-order estimator. Raises ``ValueError``."""
+    _protocol.check_options(config)
+    if config.estimator == "alpha" and config.num_samples < 4:
+        raise ValueError(
+            f"num_samples must be >= 4 with estimator alpha (half to each estimate), got {config.num_samples}")
 
 
 def free_body_state_noise(position: float, rest: tuple[float, ...]) -> tuple[float, ...]:
     """Noise scales of a state that starts with a free body's position (3) and unit quaternion
     (4), then ``rest``; the quaternion's four coordinates get the position's noise. R-DDP
     projects each perturbed quaternion back to unit norm (``RigidBodySystem.project_state``),
-    so this is noise on the orientation, about ``2 position`` radians per axis.
-
-    Until session 13 the quaternion's noise was 1e-6 (perturbed quaternions were not projected
-    then). That starved the zeroth- and alpha-order estimators: the score-function column of a
-    coordinate has an error inversely proportional to its noise, and the quaternion's columns
-    reached 3.5e6 against 309 for the exact Jacobian (Solo-12 lift-foot, T = 50, M = 32; 640
-    with 0.01). Solo-12 lift-foot HR, 2 seeds, 30 iterations: alpha order lifted the foot in 0
-    of 2 runs with 1e-6 and in 2 of 2 with 0.01; first order in 2 of 2 either way.
+    so this is noise on the orientation, about ``2 position`` radians per axis. A far smaller
+    noise on the quaternion would starve the zeroth- and alpha-order estimators: the
+    score-function column of a coordinate has an error inversely proportional to its noise.
 
     Example:
         >>> free_body_state_noise(0.01, (0.1,) * 2)
@@ -180,6 +217,20 @@ def plot_histories(axes, solutions: dict[str, control.Solution]) -> None:
     ax_eps.set_ylabel("noise level eps")
     if ax_eps.lines:
         ax_eps.legend(fontsize=8)
+
+
+def summary(columns: str, row: Callable[[dict], str]) -> Callable[[dict], dict]:
+    """A control experiment's printed summary: per method, its success rate then ``row(its metrics)``.
+
+    Example:
+        >>> lines = summary("height (mm)", lambda m: f"{1000 * m['height']:.1f}")
+        >>> lines({"methods": ["ddp"], "ddp": {"success_rate": 0.5, "height": 0.0123}})
+        {'ddp: success rate, height (mm)': '50 %, 12.3'}
+    """
+    return lambda metrics: {
+        f"{name}: success rate, {columns}": f"{100 * metrics[name]['success_rate']:.0f} %, {row(metrics[name])}"
+        for name in metrics["methods"]
+    }
 
 
 def top_level(metrics: dict, names: tuple[str, ...]) -> dict:

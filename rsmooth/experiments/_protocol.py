@@ -8,7 +8,8 @@ An experiment module defines
   ties several fields together, raising ``ValueError`` that names the field;
 - ``run(config, out, key, progress=True) -> metrics``: writes its figures and
   ``out/metrics.json``, returns the metrics;
-- ``EXPERIMENT``: an :class:`Experiment` that names its command and its printed summary.
+- ``summary(metrics) -> dict``: the lines printed after a run (label -> value);
+- ``EXPERIMENT``: an :class:`Experiment` that names its command, its summary and its help.
 
 The command line (`rsmooth.cli`) builds each command's options from the ``Config`` fields:
 adding an option is one field in one file.
@@ -20,7 +21,7 @@ import dataclasses
 import math
 import types
 import typing
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Optional, Sequence
 
 _MISSING = dataclasses.MISSING
 
@@ -40,7 +41,9 @@ def option(
     Args:
       default: the default value (a tuple for a repeatable option: immutable, shared safely).
       help: one or two sentences: what the field sets and its unit.
-      flag: the command-line name without ``--`` (default: the field's name, ``_`` -> ``-``).
+      flag: the command-line name without ``--`` (default: the field's name, ``_`` -> ``-``);
+        for a bool, ``"on/off"`` names both switches (e.g. ``"keep-best/last"``; default
+        ``"NAME/no-NAME"``).
       choices: the allowed values (of each element, for a tuple field).
       min, max: the allowed closed range (of each element, for a tuple field).
       cli: False keeps the field out of the command line (set in code only).
@@ -53,8 +56,16 @@ def option(
 
 
 def flag(field: dataclasses.Field) -> str:
-    """The command-line flag of a `Config` field, with its ``--``."""
-    return "--" + (field.metadata.get("flag") or field.name.replace("_", "-"))
+    """The command-line flag of a `Config` field, with its ``--`` (a bool's "on" switch)."""
+    return "--" + (field.metadata.get("flag") or field.name.replace("_", "-")).split("/")[0]
+
+
+def switches(field: dataclasses.Field) -> tuple[str, str]:
+    """The two flags of a bool field, ``("--NAME", "--no-NAME")`` unless its ``flag`` names
+    them (``"on/off"``)."""
+    names = (field.metadata.get("flag") or field.name.replace("_", "-")).split("/")
+    on = names[0]
+    return "--" + on, "--" + (names[1] if len(names) > 1 else f"no-{on}")
 
 
 def _is_number(value) -> bool:
@@ -95,11 +106,20 @@ def field_type(config_class, field: dataclasses.Field):
 
 
 def element_type(annotation):
-    """``(kind, element)``: ``("tuple", T)`` for ``tuple[T, ...]``, ``("optional", T)`` for
-    ``T | None``, else ``("plain", annotation)``."""
+    """``(kind, element)``: ``("tuple", T)`` for ``tuple[T, ...]``, ``("fixed", (A, B, ...))``
+    for a tuple of fixed length, ``("optional", T)`` for ``T | None``, else ``("plain",
+    annotation)``.
+
+    Example:
+        >>> element_type(tuple[float, ...]), element_type(tuple[float, int]), element_type(int | None)
+        (('tuple', <class 'float'>), ('fixed', (<class 'float'>, <class 'int'>)), ('optional', <class 'int'>))
+    """
     origin = typing.get_origin(annotation)
     if origin is tuple:
-        return "tuple", typing.get_args(annotation)[0]
+        args = typing.get_args(annotation)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return "tuple", args[0]
+        return "fixed", args
     if origin in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(annotation) if a is not type(None)]
         if len(args) == 1:
@@ -121,6 +141,9 @@ class Experiment:
       metrics_doc: the keys of ``metrics.json``.
       x64: float64 (contact solves and DDP need it); rendering runs in float32, which halves its
         time on CPU and is what GPUs are fast at.
+      expand: ``config -> None`` (one run into the output folder) or ``[(name, config), ...]``:
+        one run per entry, into ``OUT/name`` (e.g. ``control solo-lift --foot all``).
+      combine: for an expanded command, ``{name: metrics}`` -> the lines printed after its runs.
     """
 
     command: tuple[str, ...]
@@ -131,7 +154,10 @@ class Experiment:
     help: str
     metrics_doc: str
     x64: bool = True
+    expand: Optional[Callable[[Any], Optional[Sequence[tuple[str, Any]]]]] = None
+    combine: Optional[Callable[[dict], dict]] = None
 
     @property
     def title(self) -> str:
+        """The command's words, e.g. ``"control cube-lift"``: names its runs in the output."""
         return " ".join(self.command)

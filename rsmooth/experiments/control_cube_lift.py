@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rsmooth import control, sim, viz
-from rsmooth.experiments import _control
+from rsmooth.experiments import _control, _protocol
 
 METRICS_DOC = """metrics.json keys: task, methods, seeds, target_height (m above the rest height),
 tolerance (m), and per method (ddp, rddp, rddp-geometric-D): success (first seed), final_cost,
@@ -38,19 +38,19 @@ that method are also at the top level."""
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    method: str = "all"  # ddp, rddp or all (ddp, rddp and the geometric schedules)
-    height: float = 0.1  # m, target height above the rest height
-    tolerance: float = 0.01  # m, success when |final height - target| is below it
-    horizon: int = 20  # steps of 10 ms
-    seeds: int = 10
-    num_samples: int = 16
-    eps: float = 1.0
-    force_noise: float = 10.0  # N, the noise on the force is eps * force_noise * w
-    position_noise: float = 1e-2  # m, on the position (x eps)
-    velocity_noise: float = 1e-1  # m/s and rad/s, on the velocities (x eps)
-    estimator: str = "first"
-    max_iterations: int = 40
-    geometric_decays: tuple[float, ...] = (0.5, 0.8)
+    method: str = _control.method_option()
+    height: float = _protocol.option(0.1, "Target height above rest, m.", min=0.0)
+    tolerance: float = _protocol.option(0.01, "A run succeeds when |final height - target| is below it, m.")
+    horizon: int = _control.horizon_option(20)
+    seeds: int = _control.seeds_option(10)
+    num_samples: int = _control.samples_option(16)
+    eps: float = _control.eps_option()
+    force_noise: float = _protocol.option(10.0, "Noise scale of the force, N (times eps).", min=0.0)
+    position_noise: float = _protocol.option(1e-2, "Noise scale of the position and orientation, m (times eps).", min=0.0)
+    velocity_noise: float = _protocol.option(1e-1, "Noise scale of the velocities, m/s and rad/s (times eps).", min=0.0)
+    estimator: str = _control.estimator_option()
+    max_iterations: int = _control.max_iterations_option(40)
+    geometric_decays: tuple[float, ...] = _control.geometric_decays_option((0.5, 0.8))
 
     @classmethod
     def quick(cls, **changes) -> "Config":
@@ -60,6 +60,8 @@ class Config:
         _control.check_config(self)
         if not self.height > 0:
             raise ValueError(f"height must be positive (m), got {self.height}")
+        if not self.tolerance > 0:
+            raise ValueError(f"tolerance must be positive (m), got {self.tolerance}")
 
     def solver(self) -> control.RDDP:
         # State: position (3), quaternion (4), linear and angular velocities (6).
@@ -167,3 +169,18 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     metrics["wall_time_s"] = time.perf_counter() - start
     viz.write_metrics(out / "metrics.json", metrics)
     return metrics
+
+
+summary = _control.summary(
+    "final height (mm), iterations", lambda metrics: f"{1000 * metrics['final_height']:.1f}, {metrics['iterations']}")
+
+EXPERIMENT = _protocol.Experiment(
+    command=("control", "cube-lift"),
+    name="cube-lift",
+    config=Config,
+    run=run,
+    summary=summary,
+    help="Lift a cube resting on the floor to a target height with a vertical force, from zero force: DDP sees a "
+    "zero gradient and stays put, R-DDP lifts it.",
+    metrics_doc=METRICS_DOC,
+)

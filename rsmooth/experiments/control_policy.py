@@ -43,6 +43,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from rsmooth import control, schedules, viz
+from rsmooth.experiments import _control, _protocol
 
 METHOD_CHOICES = ("first", "zeroth", "alpha", "all")
 
@@ -107,35 +108,35 @@ class Throw(eqx.Module):
         return magnitude * jnp.stack([jnp.cos(theta), jnp.sin(theta)])
 
 
+def method_option():
+    return _protocol.option("all", "first, zeroth, alpha, or all (the three estimators).", choices=METHOD_CHOICES)
+
+
 @dataclasses.dataclass(frozen=True)
 class Config:
-    method: str = "all"  # first, zeroth, alpha, or all
-    seeds: int = 10
-    speed: float = 5.0  # m/s
-    wall_distance: float = 1.0  # m
-    wall_height: float = 0.8  # m
-    theta0_deg: float = 70.0  # the initial throw, over the wall
-    horizon: int = 120  # steps of 10 ms: every throw has landed by then
-    sigma: float = 0.1  # rad, the initial noise on theta
-    sigma_decay: float = 0.98  # per iteration (rsmooth.schedules.Geometric)
-    sigma_floor: float = 0.01  # rad
-    num_samples: int = 64  # rollouts per iteration (alpha: half to each estimate)
-    learning_rate: float = 0.02  # Adam, rad
-    iterations: int = 100
+    method: str = method_option()
+    seeds: int = _protocol.option(10, "Runs per method, keys fold_in(seed, i).", min=1)
+    speed: float = _protocol.option(5.0, "Speed of the throw, m/s.")
+    wall_distance: float = _protocol.option(1.0, "Distance of the wall from the thrower, m.")
+    wall_height: float = _protocol.option(0.8, "Height of the wall, m.")
+    theta0_deg: float = _protocol.option(70.0, "The initial throw's angle, degrees (over the wall).", min=0.0, max=90.0)
+    horizon: int = _protocol.option(120, "Time steps of 10 ms: every throw has landed by then.", min=2)
+    sigma: float = _protocol.option(0.1, "Initial noise on the throw's angle, rad.")
+    sigma_decay: float = _protocol.option(0.98, "Factor of the noise at every iteration.", min=0.0, max=1.0)
+    sigma_floor: float = _protocol.option(0.01, "The noise's floor, rad.", min=0.0)
+    num_samples: int = _protocol.option(64, "Rollouts per gradient estimate (alpha: half to each estimate).", flag="samples", min=4)
+    learning_rate: float = _protocol.option(0.02, "Adam's learning rate, rad.")
+    iterations: int = _protocol.option(100, "Adam steps per run.", min=1)
 
     @classmethod
     def quick(cls, **changes) -> "Config":
         return dataclasses.replace(cls(seeds=4), **changes)
 
     def __post_init__(self):
-        if self.method not in METHOD_CHOICES:
-            raise ValueError(f"method must be one of {METHOD_CHOICES}, got {self.method!r}")
-        if self.seeds < 1:
-            raise ValueError(f"seeds must be >= 1, got {self.seeds}")
-        if not (self.speed > 0 and self.wall_distance > 0 and self.wall_height > 0):
-            raise ValueError("speed, wall_distance and wall_height must be positive")
-        if self.horizon < 2:
-            raise ValueError(f"horizon must be >= 2, got {self.horizon}")
+        _protocol.check_options(self)
+        for name in ("speed", "wall_distance", "wall_height", "sigma", "learning_rate"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
     def methods(self) -> tuple[str, ...]:
         return ("first", "zeroth", "alpha") if self.method == "all" else (self.method,)
@@ -360,3 +361,21 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     metrics["wall_time_s"] = time.perf_counter() - start
     viz.write_metrics(out / "metrics.json", metrics)
     return metrics
+
+
+summary = _control.summary(
+    "final cost mean +- std (m), final angle (deg), mean alpha, median gradient variance",
+    lambda metrics: f"{metrics['final_cost_mean']:.3f} +- {metrics['final_cost_std']:.3f}, "
+    f"{metrics['final_angle_deg_mean']:.1f}, {metrics['mean_alpha']:.2f}, {metrics['gradient_variance_median']:.2g}")
+
+EXPERIMENT = _protocol.Experiment(
+    command=("control", "policy"),
+    name="policy",
+    config=Config,
+    run=run,
+    summary=summary,
+    help="Policy optimization by Adam on first-, zeroth- and alpha-order estimates of the smoothed policy gradient "
+    "(Suh et al., ICML 2022): throw a ball over a wall of finite height as far as possible; the first-order "
+    "estimate misses the jump at the wall's top and the ball ends at the wall, zeroth and alpha order clear it.",
+    metrics_doc=METRICS_DOC,
+)

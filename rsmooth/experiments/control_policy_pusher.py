@@ -1,5 +1,5 @@
 r"""Experiment: policy gradients on the simulator's pusher, a box pushed by a finger through
-hard frictional contact, from zero force (``rsmooth control policy --task pusher``).
+hard frictional contact, from zero force (``rsmooth control policy-pusher``).
 
 The system and the costs are those of ``rsmooth control pusher`` (:mod:`.control_pusher`):
 ``rsmooth.sim.pusher`` (a 20 cm, 1 kg box on the floor, friction 0.4; a 0.1 kg finger moving in
@@ -21,7 +21,7 @@ Every method runs Adam for ``iterations`` steps with the noise ``sigma`` on ever
 zero force, over ``seeds`` keys. At the default ``sigma = 0.2 N`` the samples' fingers spread by
 about 1 cm by the end of the horizon: none reaches the box 5 cm ahead, and the smoothed cost is,
 to many digits, the control cost plus a constant. What happened (8 seeds, 150 iterations,
-``rsmooth control policy --task pusher``, key 0):
+``rsmooth control policy-pusher``, key 0):
 
 * first order, 1 of 8 runs succeeded: the estimate is the control cost's gradient plus a little
   noise, and Adam holds the forces near zero; the box never moved in 7 runs. In the other one,
@@ -65,11 +65,11 @@ from pathlib import Path
 import numpy as np
 
 from rsmooth import control, viz
-from rsmooth.experiments import control_policy, control_pusher
+from rsmooth.experiments import _control, _protocol, control_policy, control_pusher
 
-METHOD_CHOICES = ("first", "zeroth", "alpha", "all")
+METHOD_CHOICES = control_policy.METHOD_CHOICES
 
-METRICS_DOC = """metrics.json keys (--task pusher): task, methods, seeds, success_criterion, target_x
+METRICS_DOC = """metrics.json keys: task, methods, seeds, success_criterion, target_x
 (m; the box starts at x = 0), finger_gap (m), horizon (steps of 10 ms), at_rest (whether the box's final velocities are
 costed), position_tolerance (m), sigma
 (N, the noise on every force), num_samples, iterations, learning_rate, initial_cost (the zero-force
@@ -92,37 +92,30 @@ PUSH_DROP = 0.01
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    method: str = "all"  # first, zeroth, alpha, or all
-    seeds: int = 8
-    target_x: float = 0.1  # m, the target of the box centre (it starts at the origin)
-    finger_gap: float = 0.05  # m between the finger and the box's -x face at the start
-    horizon: int = 20  # steps of 10 ms
-    sigma: float = 0.2  # N, the noise on every force
-    num_samples: int = 16  # rollouts per iteration (alpha: half to each estimate)
-    learning_rate: float = 0.5  # Adam, N
-    iterations: int = 150
-    position_tolerance: float = 0.02  # m
-    at_rest: bool = False  # whether the terminal cost includes the box's velocities (at rest)
+    method: str = control_policy.method_option()
+    seeds: int = _protocol.option(8, "Runs per method, keys fold_in(seed, i).", min=1)
+    target_x: float = _protocol.option(0.1, "Target box centre x, m (the box starts at 0).")
+    finger_gap: float = _protocol.option(0.05, "Gap between the finger and the box's -x face at the start, m.", min=0.0)
+    horizon: int = _protocol.option(20, "Time steps of 10 ms.", min=2)
+    sigma: float = _protocol.option(0.2, "Noise on every force of the open-loop policy, N.")
+    num_samples: int = _protocol.option(
+        16, "Rollouts per gradient estimate, even (alpha: half to each estimate).", flag="samples", min=4)
+    learning_rate: float = _protocol.option(0.5, "Adam's learning rate, N.")
+    iterations: int = _protocol.option(150, "Adam steps per run.", min=1)
+    position_tolerance: float = _protocol.option(0.02, "A run succeeds when the box centre ends within it of the target, m.")
+    at_rest: bool = _protocol.option(False, "Whether the terminal cost also has the box's velocities (the box at rest).")
 
     @classmethod
     def quick(cls, **changes) -> "Config":
         return dataclasses.replace(cls(seeds=3, iterations=40), **changes)
 
     def __post_init__(self):
-        if self.method not in METHOD_CHOICES:
-            raise ValueError(f"method must be one of {METHOD_CHOICES}, got {self.method!r}")
-        if self.seeds < 1:
-            raise ValueError(f"seeds must be >= 1, got {self.seeds}")
-        if self.horizon < 2:
-            raise ValueError(f"horizon must be >= 2, got {self.horizon}")
-        if not self.finger_gap >= 0:
-            raise ValueError(f"finger_gap must be >= 0 (m), got {self.finger_gap}")
-        if self.num_samples < 4 or self.num_samples % 2:
-            raise ValueError(f"num_samples must be even and >= 4 (alpha order halves them), got {self.num_samples}")
-        if not self.sigma > 0:
-            raise ValueError(f"sigma must be positive (N), got {self.sigma}")
-        if not self.position_tolerance > 0:
-            raise ValueError(f"position_tolerance must be positive, got {self.position_tolerance}")
+        _protocol.check_options(self)
+        if self.num_samples % 2:
+            raise ValueError(f"num_samples must be even (alpha order halves them), got {self.num_samples}")
+        for name in ("sigma", "learning_rate", "position_tolerance"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
     def methods(self) -> tuple[str, ...]:
         return ("first", "zeroth", "alpha") if self.method == "all" else (self.method,)
@@ -241,3 +234,22 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     metrics["wall_time_s"] = time.perf_counter() - start
     viz.write_metrics(out / "metrics.json", metrics)
     return metrics
+
+
+summary = _control.summary(
+    "runs that pushed the box, final cost mean +- std, position error (mm), mean alpha, median gradient variance",
+    lambda metrics: f"{100 * metrics['push_rate']:.0f} %, {metrics['final_cost_mean']:.3f} +- {metrics['final_cost_std']:.3f}, "
+    f"{1000 * metrics['position_error_mean']:.1f}, {metrics['mean_alpha']:.2f}, {metrics['gradient_variance_median']:.2g}")
+
+EXPERIMENT = _protocol.Experiment(
+    command=("control", "policy-pusher"),
+    name="policy-pusher",
+    config=Config,
+    run=run,
+    summary=summary,
+    help="Policy gradients (first, zeroth, alpha order) on the pusher: open-loop finger forces push the simulator's "
+    "box (hard frictional contact) to a target from zero force, the finger 5 cm behind it; the exact gradient of the "
+    "box's pose is zero and no sample touches the box: first and alpha order mostly leave the box where it is, zeroth "
+    "order's variance makes Adam's steps explore until it pushes.",
+    metrics_doc=METRICS_DOC,
+)

@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rsmooth import control, sim, viz
-from rsmooth.experiments import _control
+from rsmooth.experiments import _control, _protocol
 
 METRICS_DOC = """metrics.json keys: task, methods, seeds, target (x m, y m, yaw deg; the box starts
 at the origin with yaw 0), finger_gap (m), finger_y (m), position_tolerance (m),
@@ -61,27 +61,31 @@ VELOCITY_WEIGHT = 1.0
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    method: str = "all"  # ddp, rddp or all (ddp, rddp and the geometric schedules)
-    target_x: float = 0.10  # m, target of the box centre (it starts at the origin)
-    target_y: float = 0.0  # m
-    target_yaw: float = 15.0  # degrees, counter-clockwise seen from above
-    finger_gap: float = 0.03  # m between the finger and the box's -x face at the start
-    finger_y: float = 0.0  # m, the finger's start off the box's centre line
-    horizon: int = 40  # steps of 10 ms
-    seeds: int = 10
-    num_samples: int = 16
-    eps: float = 1.0
-    force_noise: float = 10.0  # N, the noise on the forces is eps * force_noise * w
-    box_position_noise: float = 1e-2  # m (x eps)
-    finger_position_noise: float = 3e-2  # m (x eps): of the order of the gap
-    box_velocity_noise: float = 1e-1  # m/s and rad/s (x eps)
-    finger_velocity_noise: float = 5e-1  # m/s (x eps)
-    estimator: str = "first"
-    max_iterations: int = 20
-    geometric_decays: tuple[float, ...] = (0.5, 0.8)
-    position_tolerance: float = 0.02  # m
-    yaw_tolerance: float = 5.0  # degrees
-    speed_tolerance: float = 0.05  # m/s
+    method: str = _control.method_option()
+    target_x: float = _protocol.option(0.10, "Target box centre x, m (the box starts at 0).")
+    target_y: float = _protocol.option(0.0, "Target box centre y, m.")
+    target_yaw: float = _protocol.option(15.0, "Target yaw, degrees counter-clockwise seen from above.", min=-89.0, max=89.0)
+    finger_gap: float = _protocol.option(0.03, "Gap between the finger and the box's -x face at the start, m.", min=0.0)
+    finger_y: float = _protocol.option(
+        0.0, "The finger's start off the box's centre line, m, within the box's half side (0.1 m).")
+    horizon: int = _control.horizon_option(40)
+    seeds: int = _control.seeds_option(10)
+    num_samples: int = _control.samples_option(16)
+    eps: float = _control.eps_option()
+    force_noise: float = _protocol.option(10.0, "Noise scale of the finger forces, N (times eps).", min=0.0)
+    box_position_noise: float = _protocol.option(
+        1e-2, "Noise scale of the box's position and orientation, m (times eps).", min=0.0)
+    finger_position_noise: float = _protocol.option(
+        3e-2, "Noise scale of the finger's position, m (times eps): of the order of the gap.", min=0.0)
+    box_velocity_noise: float = _protocol.option(
+        1e-1, "Noise scale of the box's velocities, m/s and rad/s (times eps).", min=0.0)
+    finger_velocity_noise: float = _protocol.option(5e-1, "Noise scale of the finger's velocity, m/s (times eps).", min=0.0)
+    estimator: str = _control.estimator_option()
+    max_iterations: int = _control.max_iterations_option(20)
+    geometric_decays: tuple[float, ...] = _control.geometric_decays_option((0.5, 0.8))
+    position_tolerance: float = _protocol.option(0.02, "A run succeeds when the box centre ends within it of the target, m.")
+    yaw_tolerance: float = _protocol.option(5.0, "A run succeeds only if the box's yaw ends within it of the target's, degrees.")
+    speed_tolerance: float = _protocol.option(0.05, "A run succeeds only if the box's final speed is below it, m/s.")
 
     @classmethod
     def quick(cls, **changes) -> "Config":
@@ -89,12 +93,8 @@ class Config:
 
     def __post_init__(self):
         _control.check_config(self)
-        if not self.finger_gap >= 0:
-            raise ValueError(f"finger_gap must be >= 0 (m), got {self.finger_gap}")
         if not abs(self.finger_y) < 0.1:
             raise ValueError(f"finger_y must be within the box's half side, |finger_y| < 0.1 m, got {self.finger_y}")
-        if not abs(self.target_yaw) < 90:
-            raise ValueError(f"target_yaw must be in (-90, 90) degrees, got {self.target_yaw}")
         for name in ("position_tolerance", "yaw_tolerance", "speed_tolerance"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
@@ -306,3 +306,19 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     metrics["wall_time_s"] = time.perf_counter() - start_time
     viz.write_metrics(out / "metrics.json", metrics)
     return metrics
+
+
+summary = _control.summary(
+    "position error (mm), yaw error (deg), iterations",
+    lambda metrics: f"{1000 * metrics['position_error']:.1f}, {metrics['yaw_error_deg']:.1f}, {metrics['iterations']}")
+
+EXPERIMENT = _protocol.Experiment(
+    command=("control", "pusher"),
+    name="pusher",
+    config=Config,
+    run=run,
+    summary=summary,
+    help="Push a box to a target pose (position and yaw) with a finger that starts 3 cm behind it, through sticking "
+    "and sliding friction, from zero force: DDP sees a zero gradient and leaves the box, R-DDP pushes it.",
+    metrics_doc=METRICS_DOC,
+)

@@ -22,28 +22,29 @@ A run succeeds when the lifted foot ends within ``tolerance`` of the target heig
 feet never rise more than ``max_other_height`` above the floor and slip less than
 ``max_other_slip``.
 
-Measured with the defaults (5 seeds per foot, 5 cm, ``--foot all --seed 14``, 2026-11-24):
-DDP 0 % on every foot (one iteration, the foot does not move); first-order R-DDP 100 % on
-every foot with the adaptive schedule and with the geometric 0.5 decay (foot at 41-48 mm, the
-other feet up < 0.4 mm, slipping < 0.7 mm, base tilt 2.2 deg; 23 iterations, median);
-alpha-order R-DDP 100 % on FL, FR and HL, 60 % on HR (40 % geometric: runs that stall at
-32 mm or never leave the floor).
+With the defaults (5 seeds per foot, 5 cm, ``--foot all --seed 14``): DDP 0 % on every foot
+(one iteration, the foot does not move); first-order R-DDP 100 % on every foot with the
+adaptive schedule and with the geometric 0.5 decay (foot at 41-48 mm, the other feet up
+< 0.4 mm, slipping < 0.7 mm, base tilt 2.2 deg; 23 iterations, median); alpha-order R-DDP
+100 % on FL, FR and HL, 60 % on HR (40 % geometric: runs that stall at 32 mm or never leave
+the floor).
 
 Zeroth-order R-DDP (``--estimator zeroth``) fails here: on FL, seed 0, with 32, 256 and 2,048
 samples per node, no forward pass is accepted (the cost stays at 2.5, the noise decays to 0 in
-11 iterations; 2026-11-26). Its Jacobian estimates are not the reason alone: at the first node,
-against first order with 2,048 samples, the relative (Frobenius) error of the state Jacobian
-is 2.0 / 0.70 / 0.25 / 0.10 with 32 / 256 / 2,048 / 16,384 zeroth-order samples, and 0.22
-with 32 first-order ones, which succeed. A first-order error is a mean of exact Jacobians:
-the integration's identity blocks are exact in every sample, only the physical terms vary; the
-score-function error, of size ``sqrt(d / M)`` over all ``d = 49`` inputs, lands on every entry,
-so the linearization couples coordinates that the physics does not. The error is not that of
-the identity blocks: subtracting the zero-acceleration integration's Jacobian as a control
-variate (zeroth order on ``f(x, u) - A0 (x - x0)``, ``A0`` added back) left it unchanged (1.71
-/ 0.72 / 0.25 at 32 / 256 / 2,048 samples). The state Jacobian's norm, 641, is almost all
-``d v+ / d q`` (641, against 7.5 for ``d q+ / d q`` and 13 for ``d v+ / d v``): the contact's
-position correction answers the 1 cm position noise with velocities of order 1 / h, and a
-control variate for that needs the contact's derivatives, i.e. first order (session 24).
+11 iterations). At the first node, against first order with 2,048 samples, the relative
+(Frobenius) error of its state Jacobian is 2.0 / 0.70 / 0.25 / 0.10 with 32 / 256 / 2,048 /
+16,384 samples, and 0.22 with 32 first-order ones, which succeed. A first-order error is a
+mean of exact Jacobians: the integration's identity blocks are exact in every sample, only the
+physical terms vary; the score-function error, of size ``sqrt(d / M)`` over all ``d = 49``
+inputs, lands on every entry, so the linearization couples coordinates that the physics does
+not. A control variate for the identity blocks (zeroth order on ``f(x, u) - A0 (x - x0)``)
+leaves it unchanged: the state Jacobian's norm, 641, is almost all ``d v+ / d q`` (against 7.5
+for ``d q+ / d q`` and 13 for ``d v+ / d v``), the contact's position correction answering the
+1 cm position noise with velocities of order 1 / h, and a control variate for that needs the
+contact's derivatives, i.e. first order.
+
+``--foot all`` runs each foot in turn into ``OUT/FOOT`` (:func:`expand`): the foot and the
+target height are traced cost parameters, so the four share one compilation.
 """
 
 from __future__ import annotations
@@ -57,7 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rsmooth import control, sim, viz
-from rsmooth.experiments import _control
+from rsmooth.experiments import _control, _protocol
 from rsmooth.experiments.solo12_sim import stick_figure
 
 FEET = ("FL", "FR", "HL", "HR")
@@ -75,22 +76,25 @@ of that method are also at the top level."""
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    foot: str = "FL"
-    height: float = 0.05  # m
-    method: str = "all"  # ddp, rddp or all (ddp, rddp and the geometric schedules)
-    horizon: int = 20  # steps of 10 ms
-    seeds: int = 5
-    num_samples: int = 8
-    eps: float = 1.0
-    torque_noise: float = 1.0  # N m (x eps)
-    position_noise: float = 1e-2  # m and rad, base position and joint angles (x eps)
-    velocity_noise: float = 1e-1  # m/s and rad/s (x eps)
-    estimator: str = "first"
-    max_iterations: int = 40
-    geometric_decays: tuple[float, ...] = (0.5,)
-    tolerance: float = 0.01  # m on the lifted foot's height
-    max_other_height: float = 0.005  # m
-    max_other_slip: float = 0.01  # m
+    foot: str = _protocol.option(
+        "FL", "The foot to lift; all: each foot in turn, into OUT/FOOT (compiled once).", choices=FEET + ("all",))
+    height: float = _protocol.option(0.05, "Target height of the foot above its start, m, in (0, 0.15].", max=0.15)
+    method: str = _control.method_option()
+    horizon: int = _control.horizon_option(20)
+    seeds: int = _control.seeds_option(5)
+    num_samples: int = _control.samples_option(8)
+    eps: float = _control.eps_option()
+    torque_noise: float = _protocol.option(1.0, "Noise scale of the joint torques, N m (times eps).", min=0.0)
+    position_noise: float = _protocol.option(
+        1e-2, "Noise scale of the base position and orientation and the joint angles, m and rad (times eps).", min=0.0)
+    velocity_noise: float = _protocol.option(1e-1, "Noise scale of the velocities, m/s and rad/s (times eps).", min=0.0)
+    estimator: str = _control.estimator_option()
+    max_iterations: int = _control.max_iterations_option(40)
+    geometric_decays: tuple[float, ...] = _control.geometric_decays_option((0.5,))
+    tolerance: float = _protocol.option(0.01, "A run succeeds when the lifted foot ends within it of the target, m.")
+    max_other_height: float = _protocol.option(
+        0.005, "A run succeeds only if the other feet never rise more than this above the floor, m.")
+    max_other_slip: float = _protocol.option(0.01, "A run succeeds only if the other feet slip less than this, m.")
 
     @classmethod
     def quick(cls, **changes) -> "Config":
@@ -98,10 +102,11 @@ class Config:
 
     def __post_init__(self):
         _control.check_config(self)
-        if self.foot not in FEET:
-            raise ValueError(f"foot must be one of {FEET}, got {self.foot!r}")
         if not 0 < self.height <= 0.15:
             raise ValueError(f"height must be in (0, 0.15] m, got {self.height}")
+        for name in ("tolerance", "max_other_height", "max_other_slip"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive (m), got {getattr(self, name)}")
 
     def solver(self) -> control.RDDP:
         # State: base position (3), quaternion (4), joints (12); then velocities (18).
@@ -190,7 +195,13 @@ def trajectory_metrics(system, xs, foot: str, config: Config) -> dict:
 
 
 def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
-    """Solves with each method and seed; writes metrics.json, solo_lift.png, solo_lift.gif."""
+    """Solves with each method and seed; writes metrics.json, solo_lift.png, solo_lift.gif.
+
+    Raises:
+      ValueError: ``config.foot`` is ``"all"``: :func:`expand` gives one config per foot.
+    """
+    if config.foot not in FEET:
+        raise ValueError(f"run lifts one foot of {FEET}, got {config.foot!r}: expand(config) gives one config per foot")
     out = Path(out)
     start = time.perf_counter()
     system, problem, u0 = build_problem(config)
@@ -247,3 +258,44 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     metrics["wall_time_s"] = time.perf_counter() - start
     viz.write_metrics(out / "metrics.json", metrics)
     return metrics
+
+
+def expand(config: Config) -> list[tuple[str, Config]] | None:
+    """``--foot all``: one config per foot, each run into ``OUT/FOOT``; None for one foot."""
+    if config.foot != "all":
+        return None
+    return [(foot, dataclasses.replace(config, foot=foot)) for foot in FEET]
+
+
+def combine(results: dict[str, dict]) -> dict:
+    """The line printed after ``--foot all``: each foot's success rate per method."""
+    rates = "; ".join(
+        f"{foot}: " + ", ".join(f"{m} {100 * metrics[m]['success_rate']:.0f} %" for m in metrics["methods"])
+        for foot, metrics in results.items()
+    )
+    return {"success rate per foot": rates}
+
+
+_method_summary = _control.summary(
+    "foot height (mm), other feet max height (mm), iterations",
+    lambda metrics: f"{1000 * metrics['foot_height']:.1f}, {1000 * metrics['other_feet_max_height']:.1f}, "
+    f"{metrics['iterations']}")
+
+
+def summary(metrics: dict) -> dict:
+    """The lines printed after a run: the foot and its target, then each method's results."""
+    return {"foot, target height (mm)": f"{metrics['foot']}, {1000 * metrics['target_height']:.0f}", **_method_summary(metrics)}
+
+
+EXPERIMENT = _protocol.Experiment(
+    command=("control", "solo-lift"),
+    name="solo-lift",
+    config=Config,
+    run=run,
+    summary=summary,
+    help="Solo-12 standing on its four feet lifts one foot to a target height while the others stay on the floor, "
+    "from the gravity-compensating torques: DDP sees a zero gradient, R-DDP breaks the contact.",
+    metrics_doc=METRICS_DOC,
+    expand=expand,
+    combine=combine,
+)

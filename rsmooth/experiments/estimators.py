@@ -23,6 +23,7 @@ from tqdm.auto import tqdm
 
 import rsmooth
 from rsmooth import viz
+from rsmooth.experiments import _protocol
 
 METRICS_DOC = """metrics.json keys: for each function F in heaviside, abs, stiff_sigmoid, coulomb and each
 estimator E in zeroth, first, alpha: F.E.rmse / bias / std (lists over num_samples at x0),
@@ -34,17 +35,28 @@ num_samples, x0, sigma."""
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    sigma: float = 0.3
-    x0: float = 0.1
-    x_grid: tuple[float, float, int] = (-1.2, 1.2, 49)
-    num_samples_grid: tuple[int, ...] = (4, 16, 64, 256, 1024)
-    num_samples_curve: int = 256
-    num_trials: int = 100
-    stiffness: float = 100.0
+    sigma: float = _protocol.option(0.3, "Standard deviation of the Gaussian smoothing noise.")
+    x0: float = _protocol.option(0.1, "The point where the error against the number of samples is measured.")
+    x_grid: tuple[float, float, int] = _protocol.option(
+        (-1.2, 1.2, 49), "The x grid of the mean and spread curves: start, stop, number of points.")
+    num_samples_grid: tuple[int, ...] = _protocol.option(
+        (4, 16, 64, 256, 1024), "Numbers of samples of the error curves at x0.", flag="samples", min=1)
+    num_samples_curve: int = _protocol.option(256, "Samples per estimate on the x grid.", min=1)
+    num_trials: int = _protocol.option(100, "Independent estimates per point (their mean and spread).", min=2)
+    stiffness: float = _protocol.option(100.0, "Slope factor k of the stiff sigmoid 1 / (1 + exp(-k x)).")
 
     @classmethod
     def quick(cls) -> "Config":
         return cls(x_grid=(-1.2, 1.2, 25), num_samples_grid=(4, 16, 64, 256), num_trials=40)
+
+    def __post_init__(self):
+        _protocol.check_options(self)
+        if not self.sigma > 0:
+            raise ValueError(f"sigma must be positive, got {self.sigma}")
+        if not self.x_grid[2] >= 2:
+            raise ValueError(f"x_grid needs at least 2 points, got {self.x_grid[2]}")
+        if not self.num_samples_grid:
+            raise ValueError("num_samples_grid needs at least one number of samples")
 
 
 def _gaussian_smoothing_by_quadrature(f: Callable, xs, sigma: float, num_nodes: int = 20001):
@@ -176,3 +188,25 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     viz.save_figure(fig, out / "estimators.png")
     viz.write_metrics(out / "metrics.json", metrics)
     return metrics
+
+
+def summary(metrics: dict) -> dict:
+    """The lines printed after a run: the first-order Heaviside gradient and each estimator's error."""
+    return {
+        "first-order gradient of the Heaviside (max |.|)": metrics["heaviside_first_order_grad_max_abs"],
+        "Heaviside: max |mean gradient - truth| (first, zeroth, alpha)": ", ".join(
+            f"{metrics[f'heaviside_{e}_max_abs_error']:.3f}" for e in ("first", "zeroth", "alpha")
+        ),
+    }
+
+
+EXPERIMENT = _protocol.Experiment(
+    command=("experiment", "estimators"),
+    name="estimators",
+    config=Config,
+    run=run,
+    summary=summary,
+    help="Zeroth-, first- and alpha-order gradient estimates on the Heaviside, |x|, a stiff sigmoid and Coulomb "
+    "friction: means, spread and error against the number of samples.",
+    metrics_doc=METRICS_DOC,
+)

@@ -24,6 +24,7 @@ from tqdm.auto import tqdm
 
 import rsmooth
 from rsmooth import sim, viz
+from rsmooth.experiments import _protocol
 
 METRICS_DOC = """metrics.json keys: forces (the grid of upward forces, N), weight (m g, N),
 final_height (z_T on the grid), exact_gradient (d z_T / d F by implicit differentiation),
@@ -37,15 +38,23 @@ first_order_at_rest and zeroth_order_at_rest (mean estimate at F = 0: non-zero, 
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    steps: int = 10
-    force_grid: tuple[float, float, int] = (0.0, 20.0, 41)
-    sigmas: tuple[float, ...] = (1.0, 2.0, 4.0)
-    num_samples: int = 64
-    num_trials: int = 8
+    steps: int = _protocol.option(10, "Time steps of 10 ms under the constant upward force.", min=1)
+    force_grid: tuple[float, float, int] = _protocol.option(
+        (0.0, 20.0, 41), "The grid of upward forces: start (N), stop (N), number of points.")
+    sigmas: tuple[float, ...] = _protocol.option((1.0, 2.0, 4.0), "Noise scales of the smoothing, N.", flag="sigma")
+    num_samples: int = _protocol.option(64, "Samples per gradient estimate.", flag="samples", min=1)
+    num_trials: int = _protocol.option(8, "Independent estimates per force (their mean and spread).", min=1)
 
     @classmethod
     def quick(cls) -> "Config":
         return cls(force_grid=(0.0, 20.0, 11), num_samples=32, num_trials=4)
+
+    def __post_init__(self):
+        _protocol.check_options(self)
+        if not (self.sigmas and all(sigma > 0 for sigma in self.sigmas)):
+            raise ValueError(f"sigmas must be positive (at least one), got {self.sigmas}")
+        if not self.force_grid[2] >= 2:
+            raise ValueError(f"force_grid needs at least 2 points, got {self.force_grid[2]}")
 
 
 def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
@@ -145,3 +154,27 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
 def _smoothed_ramp(x, sigma):
     """``E[max(x + sigma Z, 0)] = x Phi(x / sigma) + sigma phi(x / sigma)`` for Gaussian Z."""
     return x * norm.cdf(x / sigma) + sigma * norm.pdf(x / sigma)
+
+
+def summary(metrics: dict) -> dict:
+    """The lines printed after a run: the exact gradient below m g, the smoothed ones' errors."""
+    return {
+        "exact gradient below m g (max |.|)": metrics["exact_gradient_max_abs_below_weight"],
+        "smoothed gradients, max |mean - closed form| (first, zeroth) per sigma": "; ".join(
+            f"sigma={s:g}: {metrics[f'sigma={s:g}']['first_order_max_abs_error']:.1e}, "
+            f"{metrics[f'sigma={s:g}']['zeroth_order_max_abs_error']:.1e}"
+            for s in metrics["sigmas"]
+        ),
+    }
+
+
+EXPERIMENT = _protocol.Experiment(
+    command=("experiment", "null-gradients"),
+    name="null-gradients",
+    config=Config,
+    run=run,
+    summary=summary,
+    help="A cube resting on the floor under an upward force: the exact gradient of its final height is zero below "
+    "m g; first- and zeroth-order smoothed gradients against their closed form.",
+    metrics_doc=METRICS_DOC,
+)

@@ -21,6 +21,7 @@ import optax
 from tqdm.auto import tqdm
 
 from rsmooth import noise, perturbed, viz
+from rsmooth.experiments import _protocol
 
 METRICS_DOC = """metrics.json keys: softmax_error (dict sigma -> list over num_samples of the max
 |perturbed argmax - softmax|), softmax_max_abs_error (at the largest num_samples),
@@ -31,23 +32,35 @@ held-out queries), ranking_test_exact_final (fraction of held-out rankings exact
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    num_items: int = 6
-    sigmas: tuple[float, ...] = (0.25, 0.5, 1.0, 2.0)
-    num_samples_grid: tuple[int, ...] = (10, 100, 1000, 10000)
-    rank_items: int = 8
-    rank_features: int = 5
-    rank_label_noise: float = 0.1
-    rank_train_queries: int = 256
-    rank_test_queries: int = 256
-    rank_batch: int = 32
-    rank_steps: int = 300
-    rank_sigma: float = 0.5
-    rank_num_samples: int = 32
-    learning_rate: float = 0.05
+    num_items: int = _protocol.option(6, "Size of the simplex of the softmax comparison.", min=2)
+    sigmas: tuple[float, ...] = _protocol.option(
+        (0.25, 0.5, 1.0, 2.0), "Temperatures of the softmax comparison (Gumbel noise scales).", flag="sigma")
+    num_samples_grid: tuple[int, ...] = _protocol.option(
+        (10, 100, 1000, 10000), "Numbers of samples of the perturbed argmax in the softmax comparison.", flag="samples", min=1)
+    rank_items: int = _protocol.option(8, "Items ranked per query.", min=2)
+    rank_features: int = _protocol.option(5, "Features per item of the linear scoring model.", min=1)
+    rank_label_noise: float = _protocol.option(0.1, "Std of the noise on the true scores that make the target rankings.", min=0.0)
+    rank_train_queries: int = _protocol.option(256, "Training queries.", min=1)
+    rank_test_queries: int = _protocol.option(256, "Held-out queries.", min=1)
+    rank_batch: int = _protocol.option(32, "Queries per Adam step.", min=1)
+    rank_steps: int = _protocol.option(300, "Adam steps of the ranking model.", min=1)
+    rank_sigma: float = _protocol.option(0.5, "Noise scale of the perturbed ranking (Fenchel-Young loss).")
+    rank_num_samples: int = _protocol.option(32, "Samples per perturbed ranking.", min=1)
+    learning_rate: float = _protocol.option(0.05, "Adam's learning rate for the ranking model.")
 
     @classmethod
     def quick(cls) -> "Config":
         return cls(num_samples_grid=(10, 100, 1000), rank_steps=120)
+
+    def __post_init__(self):
+        _protocol.check_options(self)
+        for name in ("rank_sigma", "learning_rate"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if not (self.sigmas and all(sigma > 0 for sigma in self.sigmas)):
+            raise ValueError(f"sigmas must be positive (at least one), got {self.sigmas}")
+        if not self.num_samples_grid:
+            raise ValueError("num_samples_grid needs at least one number of samples")
 
 
 def spearman(a, b):
@@ -179,3 +192,24 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     }
     viz.write_metrics(out / "metrics.json", metrics)
     return metrics
+
+
+def summary(metrics: dict) -> dict:
+    """The lines printed after a run: the softmax error and the held-out rank correlation."""
+    return {
+        "max |perturbed argmax - softmax|": round(metrics["softmax_max_abs_error"], 4),
+        "held-out Spearman correlation, before -> after": (
+            f"{metrics['ranking_test_spearman_initial']:.3f} -> {metrics['ranking_test_spearman_final']:.3f}"
+        ),
+    }
+
+
+EXPERIMENT = _protocol.Experiment(
+    command=("experiment", "perturbed-argmax"),
+    name="perturbed-argmax",
+    config=Config,
+    run=run,
+    summary=summary,
+    help="Gumbel-perturbed argmax against the softmax, and learning to rank with the perturbed Fenchel-Young loss.",
+    metrics_doc=METRICS_DOC,
+)

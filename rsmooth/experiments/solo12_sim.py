@@ -10,8 +10,8 @@ and to a joint PD controller that holds the standing posture: the robot shakes, 
 or leave the floor, and the simulation must stay sane (contact solver converged, no
 penetration, no diverged step). The base and the knees collide with the floor as well (unless
 ``body_contacts`` is off). The PD term keeps the robot up, so the animation shows it
-shaking rather than falling; with ``stiffness = damping = 0`` the torques are open loop and
-the robot falls, which the simulator integrates too (the model's rotor inertia and joint
+shaking rather than falling; with ``open_loop`` (or ``stiffness = damping = 0``) the torques
+are open loop and the robot falls, which the simulator integrates too (the model's rotor inertia and joint
 damping keep the lifted legs from spinning up, see :func:`rsmooth.sim.solo12`). The
 animation is a stick figure drawn with matplotlib.
 """
@@ -28,6 +28,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from rsmooth import sim, viz
+from rsmooth.experiments import _protocol
 
 METRICS_DOC = """metrics.json keys: torques ('standing' or 'random'), steps, time_step,
 base_height_initial, base_height_final, base_height_min, base_drift (|final - initial base
@@ -40,26 +41,34 @@ the state is held from the first one on), wall_time_s (compile included)."""
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    torques: str = "standing"
-    steps: int = 200
-    random_scale: float = 0.1  # N m, uniform in [-scale, scale] on top of the standing torques
-    hold: int = 1  # steps between random torque draws
-    stiffness: float = 1.0  # N m / rad, PD gains of the posture controller (random torques)
-    damping: float = 0.02  # N m s / rad
-    frames: int = 50
-    body_contacts: bool = True  # base and knees collide with the floor too (sim.solo12)
+    torques: str = _protocol.option(
+        "standing", "The gravity-compensating torques alone, or with random torques and a posture PD on top.",
+        choices=("standing", "random"))
+    steps: int = _protocol.option(200, "Time steps of 10 ms.", min=1)
+    random_scale: float = _protocol.option(
+        0.1, "Amplitude of the random torques, N m (uniform in -scale, scale on each joint).", min=0.0)
+    hold: int = _protocol.option(1, "Steps between two draws of the random torques.", min=1)
+    stiffness: float = _protocol.option(1.0, "Stiffness of the posture PD under random torques, N m / rad.", min=0.0)
+    damping: float = _protocol.option(0.02, "Damping of the posture PD under random torques, N m s / rad.", min=0.0)
+    open_loop: bool = _protocol.option(
+        False, "No posture PD under random torques (stiffness and damping 0): the robot falls.")
+    frames: int = _protocol.option(50, "Frames of the animation.", min=2)
+    body_contacts: bool = _protocol.option(
+        True, "Whether the base and knees collide with the floor too (sim.solo12), or the feet only.",
+        flag="body-contacts/feet-only")
 
     @classmethod
     def quick(cls, **changes) -> "Config":
         return dataclasses.replace(cls(steps=100, frames=25), **changes)
 
     def __post_init__(self):
-        if self.torques not in ("standing", "random"):
-            raise ValueError(f"torques must be 'standing' or 'random', got {self.torques!r}")
-        if self.stiffness < 0 or self.damping < 0:
-            raise ValueError(f"stiffness and damping must be non-negative, got {self.stiffness} and {self.damping}")
-        if self.steps < 1:
-            raise ValueError(f"steps must be >= 1, got {self.steps}")
+        _protocol.check_options(self)
+
+    def gains(self) -> tuple[float, float]:
+        """The posture PD's ``(stiffness, damping)``: zero for standing torques or open loop."""
+        if self.torques != "random" or self.open_loop:
+            return 0.0, 0.0
+        return self.stiffness, self.damping
 
 
 def _skeleton(system, x) -> tuple[np.ndarray, list[tuple[int, int]]]:
@@ -108,12 +117,11 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     x0 = sim.solo12_standing_state(system)
     standing = sim.solo12_standing_torques(system, x0)
     perturbations = jnp.zeros((config.steps, system.nu))
-    gains = (0.0, 0.0)
+    gains = config.gains()
     if config.torques == "random":
         draws = -(-config.steps // config.hold)
         noise = jax.random.uniform(key, (draws, system.nu), minval=-1.0, maxval=1.0) * config.random_scale
         perturbations = jnp.repeat(noise, config.hold, axis=0)[: config.steps]
-        gains = (config.stiffness, config.damping)
     posture = system.split(x0)[0][7:]
     bar = tqdm(total=2 + config.frames, desc=f"solo12 ({config.torques})", disable=not progress)
 
@@ -173,3 +181,25 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     metrics["wall_time_s"] = time.perf_counter() - start
     viz.write_metrics(out / "metrics.json", metrics)
     return metrics
+
+
+def summary(metrics: dict) -> dict:
+    """The lines printed after a run: drift, slip, the contact solver, diverged steps."""
+    return {
+        "base drift (m)": f"{metrics['base_drift']:.2e} (height {metrics['base_height_drift']:.2e})",
+        "max foot slip (m)": f"{metrics['max_foot_slip']:.2e}",
+        "contact solves converged": f"{100 * metrics['ncp_converged_fraction']:.1f} %",
+        "diverged steps": metrics["diverged_steps"],
+    }
+
+
+EXPERIMENT = _protocol.Experiment(
+    command=("sim", "solo12"),
+    name="solo12",
+    config=Config,
+    run=run,
+    summary=summary,
+    help="Simulate Solo-12 on the floor under standing (gravity-compensating) or random torques and write a "
+    "stick-figure animation.",
+    metrics_doc=METRICS_DOC,
+)

@@ -17,7 +17,7 @@ def test_solver_takes_the_configs_options_and_noises_the_quaternion_as_the_posit
     assert (solver.eps, solver.num_samples, solver.estimator, solver.max_iterations) == (0.5, 4, "zeroth", 3)
     assert solver.control_noise_scale == getattr(config, control_noise)
     # The free body's quaternion gets its position's noise (R-DDP projects it back to unit
-    # norm); before session 13 it had 1e-6, which starved the zeroth- and alpha-order columns.
+    # norm): a far smaller one would starve the zeroth- and alpha-order columns.
     noise = solver.state_noise_scale
     assert len(noise) == nx and noise[3:7] == (noise[0],) * 4 and noise[0] >= 1e-3
 
@@ -32,7 +32,10 @@ def test_make_solvers_gives_one_solver_per_method(module):
 
 
 @pytest.mark.parametrize("module", [module for module, *_ in EXPERIMENTS])
-@pytest.mark.parametrize("changes, match", [({"method": "sgd"}, "method"), ({"horizon": 1}, "horizon"), ({"seeds": 0}, "seeds")])
+@pytest.mark.parametrize("changes, match", [
+    ({"method": "sgd"}, "method"), ({"horizon": 1}, "horizon"), ({"seeds": 0}, "seeds"), ({"estimator": "second"}, "estimator"),
+    ({"estimator": "alpha", "num_samples": 2}, "num_samples"), ({"geometric_decays": (1.5,)}, "geometric_decays"),
+])
 def test_configs_reject_what_every_control_experiment_rejects(module, changes, match):
     with pytest.raises(ValueError, match=match):
         module.Config(**changes)
