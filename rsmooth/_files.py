@@ -75,6 +75,12 @@ def _read_manifest(folder: Path) -> list[str] | None:
     return [name for name in data["files"] if isinstance(name, str)]
 
 
+def listed_files(folder: str | os.PathLike) -> list[str]:
+    """The files, relative to `folder`, that the last run into it wrote and that exist."""
+    folder = Path(folder)
+    return [name for name in _read_manifest(folder) or () if (path := _inside(folder, name)) is not None and path.is_file()]
+
+
 def _write_manifest(folder: Path, files: list[str]) -> None:
     text = json.dumps({"format": _MANIFEST_FORMAT, "files": sorted(set(files))}, indent=2)
     # Written by hand rather than through atomic_path, whose listeners would record it.

@@ -26,6 +26,7 @@ import signal
 import sys
 import threading
 import time
+import traceback
 from pathlib import Path
 from typing import Any, Iterable, Optional
 
@@ -50,16 +51,6 @@ GROUPS = {
     "render": "Differentiable perturbed rendering tasks.",
     "control": "Optimal control through contact: DDP, randomized DDP, and policy gradients (first, zeroth, alpha order).",
 }
-
-# `rsmooth demo`: the quick profile of these, in this order.
-DEMO = (
-    ("experiment", "estimators"),
-    ("experiment", "perturbed-argmax"),
-    ("experiment", "null-gradients"),
-    ("sim", "solo12"),
-    ("render", "pose"),
-    ("control", "cube-lift"),
-)
 
 # The options every experiment takes, before its Config's.
 COMMON = ("out", "seed", "quick")
@@ -95,6 +86,18 @@ def _report(name: str, out: Path, start: float, summary: dict) -> None:
         typer.echo(f"  {key}: {value}")
 
 
+def _execute(experiment: _protocol.Experiment, config, out: Optional[Path], seed: int, root: Optional[Path] = None):
+    """Runs `experiment` with `config` into `out` (default ``./rsmooth-out/NAME``, or
+    ``root/NAME``), recording the files it writes; returns the folder and the metrics."""
+    # `rsmooth demo` and `rsmooth report` run several experiments in one process: they keep
+    # float64 throughout rather than switching the precision under arrays that already exist.
+    x64 = experiment.x64 or root is not None
+    out, key = _prepare(experiment.name, out if root is None else root / experiment.name, seed, x64)
+    with _files.recording_outputs(out):
+        metrics = experiment.run(config, out, key)
+    return out, metrics
+
+
 def _run(
     experiment: _protocol.Experiment, config, out: Optional[Path], seed: int, root: Optional[Path] = None,
     title: Optional[str] = None,
@@ -102,19 +105,52 @@ def _run(
     """Runs `experiment` with `config` into `out` (default ``./rsmooth-out/NAME``, or
     ``root/NAME``) and prints its summary; returns its metrics."""
     start = time.perf_counter()
-    # `rsmooth demo` runs several experiments in one process: it keeps float64 throughout
-    # rather than switching the precision under arrays that already exist.
-    x64 = experiment.x64 or root is not None
     try:
-        out, key = _prepare(experiment.name, out if root is None else root / experiment.name, seed, x64)
-        with _files.recording_outputs(out):
-            metrics = experiment.run(config, out, key)
+        out, metrics = _execute(experiment, config, out, seed, root)
     except _files.OutputFolderError as error:
         _fail(str(error))
     except OSError as error:  # a folder or file that cannot be written: permission denied, disk full...
         _fail(_os_error_message(error))
     _report(title or experiment.title, out, start, experiment.summary(metrics))
     return metrics
+
+
+def _error_text(error: BaseException) -> str:
+    """An error as the report shows it: its type and message, then the last frames."""
+    frames = traceback.format_exception(error)
+    return "".join(frames[-1:] + ["\n"] + frames[-4:-1]).rstrip()
+
+
+def run_report(experiments: Iterable[_protocol.Experiment], out: Path, seed: int, quick: bool) -> Path:
+    """Runs `experiments` (their quick or default Config) into ``out/NAME`` each, then writes
+    ``out/index.html`` (:mod:`rsmooth.report`). An experiment that raises is shown with its
+    error, and the others still run; returns the page's path."""
+    from rsmooth import report
+
+    out = _files.prepare_output_folder(out)
+    entries = []
+    for experiment in experiments:
+        config = experiment.config.quick() if quick else experiment.config()
+        folder = out / experiment.name
+        command = f"rsmooth {experiment.title}{' --quick' if quick else ''} --seed {seed} --out {folder}"
+        start = time.perf_counter()
+        metrics, error = None, None
+        try:
+            folder, metrics = _execute(experiment, config, None, seed, root=out)
+        except Exception as caught:  # shown on the page; the other experiments still run
+            error = _error_text(caught)
+            typer.echo(f"{experiment.title}: failed: {type(caught).__name__}: {caught}", err=True)
+        else:
+            _report(experiment.title, folder, start, experiment.summary(metrics))
+        files = tuple(_files.listed_files(folder)) if folder.is_dir() else ()
+        entries.append(report.Entry(
+            title=experiment.title, folder=experiment.name, command=command, help=" ".join(experiment.help.split()),
+            settings=dataclasses.asdict(config), metrics=metrics, error=error,
+            wall_time_s=time.perf_counter() - start, files=files,
+        ))
+    with _files.recording_outputs(out):
+        page = report.write_page(out, entries, report.machine(), profile="quick" if quick else "default")
+    return page
 
 
 # -- options from Config fields ---------------------------------------------------------------
@@ -252,7 +288,7 @@ def _command(experiment: _protocol.Experiment):
 
 def build_app(experiments: Iterable[_protocol.Experiment]) -> typer.Typer:
     """The `rsmooth` application: a group per first word of the commands (help from
-    :data:`GROUPS`), a command per experiment, and `demo` (:data:`DEMO`, those registered)."""
+    :data:`GROUPS`), a command per experiment, `report` and `demo` (the quick report)."""
     experiments = list(experiments)
     app = typer.Typer(
         help="rsmooth: randomized smoothing for optimizing non-smooth physical processes (JAX).",
@@ -271,19 +307,33 @@ def build_app(experiments: Iterable[_protocol.Experiment]) -> typer.Typer:
             parent = groups[words]
         parent.command(name, help=_doc(experiment.help, experiment.metrics_doc))(_command(experiment))
 
-    by_command = {experiment.command: experiment for experiment in experiments}
-    demo_experiments = [by_command[command] for command in DEMO if command in by_command]
+    def report_pages(out: Path, seed: int, quick: bool) -> None:
+        try:
+            page = run_report(experiments, out, seed, quick)
+        except _files.OutputFolderError as error:
+            _fail(str(error))
+        except OSError as error:
+            _fail(_os_error_message(error))
+        typer.echo(f"report: {page}")
 
     @app.command(help=(
-        "Runs the quick profile of the experiments into ./rsmooth-out/ (or --out): "
-        + ", ".join(experiment.title.removeprefix("experiment ") for experiment in demo_experiments) + "."))
+        "Runs every experiment into OUT/NAME and writes OUT/index.html: a static page that works "
+        "offline, with each experiment's figures, animations, metrics, settings and the command that "
+        "reproduces it (a failed experiment shows its error). --quick: the reduced sizes, about "
+        "10 minutes on 2 CPU cores; otherwise the experiments' default (paper) sizes: hours."))
+    def report(
+        out: Path = typer.Option(..., "--out", help="Root folder: index.html and one sub-folder per experiment."),
+        seed: int = typer.Option(0, "--seed", help="Seed of the jax.random key of every experiment."),
+        quick: bool = typer.Option(False, "--quick", help="The experiments' reduced sizes."),
+    ):
+        report_pages(out, seed, quick)
+
+    @app.command(help="The quick report (`rsmooth report --quick`) into ./rsmooth-out/ (or --out).")
     def demo(
-        out: Path = typer.Option(DEFAULT_ROOT, "--out", help="Root folder; one sub-folder per experiment."),
+        out: Path = typer.Option(DEFAULT_ROOT, "--out", help="Root folder: index.html and one sub-folder per experiment."),
         seed: int = typer.Option(0, "--seed", help="Seed of the jax.random key."),
     ):
-        for experiment in demo_experiments:
-            _run(experiment, experiment.config.quick(), None, seed, root=out)
-        typer.echo(f"demo: all artifacts under {out}/")
+        report_pages(out, seed, True)
 
     return app
 
