@@ -77,10 +77,17 @@ def _oracle_max(oracle: Callable) -> Callable:
     return value
 
 
+def _check_not_key(theta) -> None:
+    dtype = getattr(theta, "dtype", None)
+    if dtype is not None and jax.dtypes.issubdtype(dtype, jax.dtypes.prng_key):
+        raise TypeError("theta is a PRNG key: the key comes first, as in perturbed.argmax(key, theta, ...)")
+
+
 def _over_problems(fn: Callable, key: Array, theta: ArrayLike, *others: ArrayLike) -> Array:
     """`fn(key, theta, *others)` for one problem (a vector `theta`), applied to each problem of a
     batch `theta` of shape (..., n), with the keys ``jax.random.split(key, B)`` (see the module
     docstring); `others` have the shape of `theta` and are split with it."""
+    _check_not_key(theta)
     theta = jnp.asarray(theta)
     _checks.check_floating_tree(theta, "theta")
     if theta.ndim == 0:
@@ -96,8 +103,8 @@ def _over_problems(fn: Callable, key: Array, theta: ArrayLike, *others: ArrayLik
 
 
 def argmax(
-    theta: ArrayLike,
     key: Array,
+    theta: ArrayLike,
     *,
     sigma: ArrayLike,
     num_samples: int,
@@ -128,7 +135,7 @@ def argmax(
         >>> import jax, jax.numpy as jnp
         >>> from rsmooth import perturbed
         >>> theta = jnp.array([1.0, 0.0, -1.0])
-        >>> y = perturbed.argmax(theta, jax.random.key(0), sigma=1.0, num_samples=20000)
+        >>> y = perturbed.argmax(jax.random.key(0), theta, sigma=1.0, num_samples=20000)
         >>> bool(jnp.allclose(y, jax.nn.softmax(theta), atol=0.02))
         True
 
@@ -140,8 +147,8 @@ def argmax(
 
 
 def max(  # noqa: A001 - the field's name for it
-    theta: ArrayLike,
     key: Array,
+    theta: ArrayLike,
     *,
     sigma: ArrayLike,
     num_samples: int,
@@ -167,8 +174,8 @@ def max(  # noqa: A001 - the field's name for it
 
 
 def argmin(
-    theta: ArrayLike,
     key: Array,
+    theta: ArrayLike,
     *,
     sigma: ArrayLike,
     num_samples: int,
@@ -186,8 +193,8 @@ def argmin(
 
 
 def min(  # noqa: A001
-    theta: ArrayLike,
     key: Array,
+    theta: ArrayLike,
     *,
     sigma: ArrayLike,
     num_samples: int,
@@ -202,9 +209,9 @@ def min(  # noqa: A001
 
 
 def fenchel_young_loss(
+    key: Array,
     theta: ArrayLike,
     y: ArrayLike,
-    key: Array,
     *,
     sigma: ArrayLike,
     num_samples: int,
@@ -231,6 +238,7 @@ def fenchel_young_loss(
         Berthet et al. 2020, Sec. 4; Blondel, Martins, Niculae, "Learning with Fenchel-Young
         losses", JMLR 2020.
     """
+    _check_not_key(theta)
     theta = jnp.asarray(theta)
     y = jnp.asarray(y, theta.dtype)
     if y.shape != theta.shape:

@@ -76,11 +76,11 @@ def _softmax_part(config: Config, key, bar) -> dict:
         errors[str(sigma)] = []
         for m in config.num_samples_grid:
             key, sub = jax.random.split(key)
-            y = perturbed.argmax(theta, sub, sigma=sigma, num_samples=m, noise=noise.Gumbel())
+            y = perturbed.argmax(sub, theta, sigma=sigma, num_samples=m, noise=noise.Gumbel())
             errors[str(sigma)].append(float(jnp.max(jnp.abs(y - jax.nn.softmax(theta / sigma)))))
             bar.update()
     sigma_show = config.sigmas[len(config.sigmas) // 2]
-    y_show = perturbed.argmax(theta, key, sigma=sigma_show, num_samples=config.num_samples_grid[-1])
+    y_show = perturbed.argmax(key, theta, sigma=sigma_show, num_samples=config.num_samples_grid[-1])
     return {"errors": errors, "theta": theta, "y_show": y_show, "sigma_show": sigma_show}
 
 
@@ -107,7 +107,7 @@ def _ranking_part(config: Config, key, bar) -> dict:
         keys = jax.random.split(k, xb.shape[0])
         losses = jax.vmap(
             lambda x, y, kk: perturbed.fenchel_young_loss(
-                x @ w, y, kk, sigma=config.rank_sigma, num_samples=config.rank_num_samples,
+                kk, x @ w, y, sigma=config.rank_sigma, num_samples=config.rank_num_samples,
                 noise=noise.Gaussian(), oracle=perturbed.ranking_argmax,
             )
         )(xb, yb, keys)
