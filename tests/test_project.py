@@ -82,3 +82,12 @@ def test_importing_rsmooth_starts_no_jax_backend():
     assert result.returncode == 0, result.stderr
     count, started = result.stdout.strip().split(" ", 1)
     assert int(count) >= 40 and started == "[]", result.stdout  # every module, experiments included
+
+
+def test_readme_lists_every_command_once():
+    """One line per command in the README's table: a command added to the registry must be added there."""
+    from rsmooth.experiments import registry
+
+    text = (ROOT / "README.md").read_text()
+    for experiment in registry().values():
+        assert text.count(f"| `rsmooth {experiment.title}` |") == 1, experiment.title
