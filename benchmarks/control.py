@@ -67,13 +67,13 @@ QUICK_HORIZONS = (10,)
 QUICK_SAMPLES = (4,)
 QUICK_ITERATIONS = 3
 FOOT = "FL"
-# DDP.node_batch_size and RDDP.sample_node_batch_size, the solvers' defaults. Session 18 (sticking
-# guess, closed-form step derivatives), one core, T = 50: DDP's node Jacobians 2.2-2.6 ms all nodes
+# DDP.node_batch_size and RDDP.sample_node_batch_size, the solvers' defaults. Measured with the
+# sticking guess and closed-form step derivatives, one core, T = 50: DDP's node Jacobians 2.2-2.6 ms all nodes
 # at once against 4.4-4.6 ms one at a time where every contact sticks, 4.2 against 4.1 ms on this
 # benchmark's first DDP state; R-DDP M = 32 236 ms per iteration all at once against 129 ms (M
 # samples per node are already a batch). Earlier (jacfwd through the contact solver) batching nodes was no faster: DDP
 # 91 ms (1), 85 ms (10), 148 ms (all); R-DDP M = 8 760 ms (1), 790 ms (4), 1.37 s (all).
-# On a GPU (an H200, session 24) R-DDP M = 32 took 376 ms per iteration one node at a time and
+# On a GPU (an H200) R-DDP M = 32 took 376 ms per iteration one node at a time and
 # 56 ms all at once (with all line-search step sizes at once too): RDDP's "auto" picks by backend.
 DDP_NODE_BATCH = None
 RDDP_NODE_BATCH = "auto"
@@ -81,8 +81,8 @@ RDDP_NODE_BATCH = "auto"
 # gave wrong dynamics beside pin 4.1.0).
 CROCODDYL_PINOCCHIO = {"3.2.1": "4.0.0"}
 ENABLE_CROCODDYL = (
-    "python3 -m venv ../bench-venv && ../bench-venv/bin/pip install -e '.[all]' 'pin==4.0.0' crocoddyl, "
-    "then ../bench-venv/bin/python -m benchmarks control"
+    "run this benchmark from a virtual environment that has rsmooth (pip install -e '.[all]') with "
+    "pin==4.0.0 and crocoddyl installed"
 )
 
 
@@ -417,7 +417,12 @@ def main(
     setup = time.perf_counter()
     system = solo12()
     base_config = control_solo_lift.Config(foot=FOOT, horizon=max(horizons))
-    results: dict = {"ours": {}, "crocoddyl": {}, "notes": []}
+    results: dict = {"ours": {}, "crocoddyl": {}, "notes": [], "crocoddyl_status": croc_note}
+    results["settings"] = {
+        "horizons": list(horizons), "samples": list(samples), "iterations": iterations, "foot": FOOT, "cpus": cpus,
+        "ddp_node_batch": ddp_node_batch, "rddp_node_batch": _auto(rddp_node_batch, None),
+        "line_search_batch": _auto(line_search_batch, "all"), "breakdown": breakdown,
+    }
     key = jax.random.key(0)
     lifted = control_solo_lift.FEET.index(FOOT)
     feet0 = np.asarray(sim.solo12_foot_positions(system, sim.solo12_standing_state(system)))
@@ -495,6 +500,28 @@ def main(
     report(results, horizons, samples, breakdown)
     sys.stdout.flush()
     return results
+
+
+def json_results(results: dict) -> dict:
+    """`main`'s results as JSON-ready lists: ``ours`` and ``crocoddyl`` a row per (solver, T)
+    (without the control trajectories), ``crocoddyl_status`` (its version, or why it was skipped),
+    ``dynamics_error``, ``settings``, ``ratios`` and ``notes``."""
+
+    def rows(source: dict) -> list[dict]:
+        return [
+            {"solver": name, "T": T, **{k: v for k, v in r.items() if k != "us"}}
+            for (name, T), r in sorted(((k, v) for k, v in source.items() if isinstance(k, tuple)), key=lambda kv: (kv[0][1], kv[0][0]))
+        ]
+
+    return {
+        "ours": rows(results["ours"]),
+        "crocoddyl": rows(results["crocoddyl"]),
+        "crocoddyl_status": results.get("crocoddyl_status"),
+        "dynamics_error": results["crocoddyl"].get("dynamics_error"),
+        "settings": results.get("settings", {}),
+        "ratios": results.get("ratios", {}),
+        "notes": results["notes"],
+    }
 
 
 def report(results: dict, horizons, samples, breakdown: bool) -> None:
@@ -597,8 +624,11 @@ if __name__ == "__main__":
     )
     parser.add_argument("--all-cpus", action="store_true", help="do not pin the process to one CPU")
     parser.add_argument("--no-breakdown", action="store_true")
+    parser.add_argument("--json", metavar="DIR", help="also write the results to DIR/control.json (benchmarks._record)")
     args = parser.parse_args()
-    main(
+    from benchmarks import _record
+
+    options = dict(
         repeats=args.repeats,
         quick=args.quick,
         horizons=tuple(args.horizons) if args.horizons else None,
@@ -610,3 +640,5 @@ if __name__ == "__main__":
         all_cpus=args.all_cpus,
         breakdown=not args.no_breakdown,
     )
+    _record.run_and_record("control", main, command=_record.command_line(), options=options, directory=args.json,
+                           transform=json_results)

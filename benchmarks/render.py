@@ -32,6 +32,9 @@ MESHES = ((3, 8, 64), (5, 4, 128))
 VARIANTS = (("hard", 1, False), ("hard", 1, True), ("soft", 1, False), ("perturbed", 1, False), ("perturbed", 8, False),
             ("perturbed", 32, False))
 MAX_REPEATS = 10
+# The Renderer's field that draws the samples at the random pixels alone, in chunks of this
+# fraction of the pixels (named sample_chunk before)
+CHUNK_FIELD = "pixel_chunk" if "pixel_chunk" in render.Renderer.__dataclass_fields__ else "sample_chunk"
 
 
 def _peak_mb(fn, *args) -> float:
@@ -61,21 +64,36 @@ def _pose_step_time(repeats: int, problems: int = 8, at_cap: bool = False, **cha
     config = dataclasses.replace(render_pose.Config(), problems=problems, **changes)
     mesh = render_pose.load(config.mesh)
     cam = render_pose.camera(config)
-    _, init, step = render_pose.make_solver(config, "perturbed-gaussian", mesh, cam)
     r_true, r_init, offset = render_pose.problems(config, jax.random.key(0), 20.0)
     target = jax.vmap(lambda r: render.Renderer(mode="hard")(None, render.transform_mesh(mesh, r), cam).rgb)(r_true)
-    state = init(offset)
-    if at_cap:
-        schedule = state[2]
-        cap = max(config.max_samples, config.num_samples)
-        growths = math.ceil(math.log(cap / config.num_samples) / math.log(config.sample_growth)) if config.sample_growth > 1 else 0
-        capped = (jnp.full_like(schedule.sigma, config.decay_factor ** -growths), jnp.full_like(schedule.num_samples, cap))
-        state = (*state[:2], eqx.tree_at(lambda s: (s.sigma, s.num_samples), schedule, capped), *state[3:])
+    cap = max(config.max_samples, config.num_samples)
+    growths = math.ceil(math.log(cap / config.num_samples) / math.log(config.sample_growth)) if config.sample_growth > 1 else 0
+
+    def capped(schedule):
+        return eqx.tree_at(lambda s: (s.sigma, s.num_samples), schedule,
+                           (jnp.full_like(schedule.sigma, config.decay_factor ** -growths), jnp.full_like(schedule.num_samples, cap)))
+
+    if hasattr(render_pose, "make_fit"):  # the experiment's render.PoseFit, vmapped over problems as render.fit_poses does
+        fit = render_pose.make_fit(config, "perturbed-gaussian", mesh)
+        state = jax.jit(jax.vmap(fit.init))(offset)
+        step = jax.jit(jax.vmap(lambda s, k, t, r: fit.step(s, k, mesh, cam, t, r)))
+        if at_cap:
+            state = eqx.tree_at(lambda s: s.schedule, state, capped(state.schedule))
+    else:  # the experiment's earlier solver: a tuple state, the schedule third
+        _, init, step = render_pose.make_solver(config, "perturbed-gaussian", mesh, cam)
+        state = init(offset)
+        if at_cap:
+            state = (*state[:2], capped(state[2]), *state[3:])
     keys = jax.random.split(jax.random.key(1), config.problems)
     return median_time(step, state, keys, target, r_init, repeats=repeats), config
 
 
-def main(repeats: int = 5) -> list[dict]:
+def main(repeats: int = 5) -> dict:
+    """Prints the tables; returns ``{"image_size", "meshes", "pose"}``, times in seconds: per mesh
+    its faces, tile settings, a row per renderer (label, mode, num_samples, clip_near, forward,
+    forward_backward, peak_mb_forward, peak_mb_forward_backward) and the back-face-culled runs
+    (hard_forward, random_pixels, a row per pixel chunk); per pose-step variant its label, the
+    seconds per Adam step and the number of problems."""
     repeats = min(repeats, MAX_REPEATS)
     print(f"machine: {machine()}")
     print(f"image {SIZE} x {SIZE}, sigma = 1 px, gamma = 0.01, faces_per_pixel = 8; median of {repeats} jitted calls "
@@ -84,6 +102,7 @@ def main(repeats: int = 5) -> list[dict]:
     key = jax.random.key(0)
     t0 = jnp.zeros(3)
     rows = []
+    meshes, pose = [], []
     for subdivisions, tile_size, faces_per_tile in MESHES:
         mesh = render.position_colors(render.icosphere(subdivisions))
         fragments = render.rasterize(mesh, camera, margin=3.0, sigma=1.0, gamma=0.01, tile_size=tile_size, faces_per_tile=faces_per_tile)
@@ -96,6 +115,7 @@ def main(repeats: int = 5) -> list[dict]:
         print(header)
         print("-" * len(header))
         hard_forward = None
+        first = len(rows)
         for mode, samples, clip_near in VARIANTS:
             renderer = render.Renderer(
                 mode=mode, sigma=1.0, gamma=0.01, num_samples=samples, faces_per_pixel=8,
@@ -110,28 +130,34 @@ def main(repeats: int = 5) -> list[dict]:
             name += ", clip near" if clip_near else ""
             print(f"{name:>16} | {fmt(t_forward):>11} | {fmt(t_backward):>11} | {t_forward / hard_forward:>14.2f} | {t_backward / hard_forward:>18.2f} "
                   f"| {m_forward:>11.1f} | {m_backward:>15.1f}")
-            rows.append({"faces": mesh.num_faces, "mode": mode, "num_samples": samples, "clip_near": clip_near, "forward": t_forward, "forward_backward": t_backward,
+            rows.append({"label": name, "faces": mesh.num_faces, "mode": mode, "num_samples": samples, "clip_near": clip_near,
+                         "forward": t_forward, "forward_backward": t_backward,
                          "peak_mb_forward": m_forward, "peak_mb_forward_backward": m_backward})
         ratio = next(r["forward_backward"] for r in rows if r["faces"] == mesh.num_faces and r["num_samples"] == 8) / hard_forward
         print(f"perturbed (M=8) forward+backward / hard forward: {ratio:.2f}")
         # The sphere is closed: culling its back faces leaves the hard image as it is, and the
         # perturbed renderer's samples are then random only near the silhouette (the back faces'
-        # depth noise made every pixel of the sphere random), which sample_chunk draws alone.
+        # depth noise made every pixel of the sphere random), which the pixel chunks draw alone.
         common = dict(sigma=1.0, gamma=0.01, faces_per_pixel=8, faces_per_tile=faces_per_tile, tile_size=tile_size, cull_backfaces=True)
         hard_culled = median_time(_functions(mesh, camera, render.Renderer(mode="hard", **common))[0], key, t0, repeats=repeats)
         uncertainty = render.Renderer(mode="perturbed", **common).uncertainty(mesh, camera)
         random = float(jnp.mean(uncertainty > render.NEGLIGIBLE))
         line = []
+        renderers = rows[first:]
         for chunk in (1.0, 0.125):
-            renderer = render.Renderer(mode="perturbed", num_samples=8, sample_chunk=chunk, **common)
+            renderer = render.Renderer(mode="perturbed", num_samples=8, **{CHUNK_FIELD: chunk}, **common)
             forward, backward = _functions(mesh, camera, renderer)
             t_forward, t_backward = median_time(forward, key, t0, repeats=repeats), median_time(backward, key, t0, repeats=repeats)
-            line.append(f"sample_chunk {chunk:g}: forward {fmt(t_forward)}, fwd+bwd {fmt(t_backward)}, "
+            line.append(f"{CHUNK_FIELD} {chunk:g}: forward {fmt(t_forward)}, fwd+bwd {fmt(t_backward)}, "
                         f"{t_backward / hard_culled:.2f}x the hard forward")
-            rows.append({"faces": mesh.num_faces, "mode": "perturbed", "num_samples": 8, "cull_backfaces": True,
-                         "sample_chunk": chunk, "forward": t_forward, "forward_backward": t_backward, "hard_forward": hard_culled})
+            rows.append({"label": f"perturbed M=8, back faces culled, {CHUNK_FIELD} {chunk:g}", "faces": mesh.num_faces,
+                         "mode": "perturbed", "num_samples": 8, "cull_backfaces": True,
+                         "pixel_chunk": chunk, "forward": t_forward, "forward_backward": t_backward, "hard_forward": hard_culled})
         print(f"back faces culled: hard forward {fmt(hard_culled)}; {random:.1%} of the pixels random; perturbed M=8 "
               + "; ".join(line) + "\n")
+        meshes.append({"faces": mesh.num_faces, "subdivisions": subdivisions, "tile_size": tile_size, "faces_per_tile": faces_per_tile,
+                       "tile_overflow": overflow, "renderers": renderers,
+                       "culled": {"hard_forward": hard_culled, "random_pixels": random, "rows": rows[first + len(renderers):]}})
     # the defaults (4 faces per pixel, keep_best on, 16 samples at the first steps) and one change at a time
     default = render_pose.Config()
     variants = ({}, {"faces_per_pixel": 8}, {"keep_best": False}, {"num_samples": 8})
@@ -143,6 +169,7 @@ def main(repeats: int = 5) -> list[dict]:
               f"{change}): {fmt(t_one)} per Adam step (goal: under 50 ms per iteration)")
         rows.append({"pose_step": t_one, "problems": 1, "faces_per_pixel": config.faces_per_pixel,
                      "keep_best": config.keep_best, "num_samples": config.num_samples})
+        pose.append({"label": f"one problem, {change}", "seconds": t_one, "problems": 1})
         if not changes:
             t_first = t_one
     # with sample growth (on by default), the steps after the noise has decreased average up to
@@ -154,17 +181,21 @@ def main(repeats: int = 5) -> list[dict]:
     print(f"pose optimization, one problem, the defaults with whole perturbed renders (pixel_chunk 1): {fmt(t_whole)} per Adam "
           f"step, {t_whole / t_first:.2f}x the defaults'")
     rows.append({"pose_step": t_whole, "problems": 1, "pixel_chunk": 1.0})
+    pose.append({"label": "one problem, whole perturbed renders (pixel_chunk 1)", "seconds": t_whole, "problems": 1})
     for pixel_chunk in (default.pixel_chunk, 1.0):
         t_cap, config = _pose_step_time(repeats, problems=1, at_cap=True, pixel_chunk=pixel_chunk)
         print(f"pose optimization, one problem, the defaults at the sample cap (sample growth {config.sample_growth} up to "
               f"{config.max_samples} samples per pixel, {config.max_samples // config.num_samples} renders per step, "
               f"pixel_chunk {pixel_chunk:g}): {fmt(t_cap)} per Adam step, {t_cap / t_first:.2f}x the first steps' of the defaults")
         rows.append({"pose_step_at_cap": t_cap, "problems": 1, "max_samples": config.max_samples, "pixel_chunk": pixel_chunk})
+        pose.append({"label": f"one problem at the sample cap ({config.max_samples} samples per pixel, pixel_chunk {pixel_chunk:g})",
+                     "seconds": t_cap, "problems": 1})
     t_step, config = _pose_step_time(repeats)
     print(f"pose optimization (render-pose defaults: cube, {SIZE} x {SIZE}, perturbed-gaussian M = {default.num_samples}, "
           f"{config.problems} problems vmapped): {fmt(t_step)} per Adam step, {fmt(t_step / config.problems)} per problem")
     rows.append({"pose_step": t_step, "problems": config.problems, "num_samples": default.num_samples})
-    return rows
+    pose.append({"label": f"the defaults, {config.problems} problems vmapped", "seconds": t_step, "problems": config.problems})
+    return {"image_size": SIZE, "meshes": meshes, "pose": pose}
 
 
 if __name__ == "__main__":

@@ -430,6 +430,15 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0, ch
     for label, value, goal in ratios:
         print(f"{label:<{width}} | {value:7.2f}" + (f"   (goal {goal})" if goal else ""))
     results["ratios"] = {label: value for label, value, _ in ratios}
+    results["batch"] = BATCH
+    results["jac_batch_method"] = "vmap" if ok else "lax.map (sequential)"
+    results["sanity"] = {"ours_base_drift_m": ours_drift, "ours_joint_drift_rad": ours_joint}
+    if mj_ok:
+        results["sanity"].update(mujoco_base_drift_m=mj_drift, mujoco_joint_drift_rad=mj_joint, mujoco_contacts=mj_ncon)
+    if mjx_ok:
+        results["sanity"]["mjx_base_drift_m"] = mjx_drift
+    results["admm_iterations"] = {name.strip(" ,"): {"mean": float(c.mean()), "max": int(c.max())} for name, c in iterations.items()}
+    results["notes"] = notes
     if notes:
         print("\nnotes:")
         for note in notes:
@@ -443,10 +452,14 @@ if __name__ == "__main__":
     parser.add_argument("--repeats", type=int, default=30)
     parser.add_argument("--quick", action="store_true", help="at most 5 repeats")
     parser.add_argument("--probe-timeout", type=float, default=90.0)
+    parser.add_argument("--json", metavar="DIR", help="also write the results to DIR/sim.json (benchmarks._record)")
     parser.add_argument(
         "--chunk-sizes", type=int, nargs="+", default=[],
         help="also time the perturbed batch with these NCPSolver.chunk_size values (default: only the solver's own, "
         "'auto': 4 on the CPU, the whole batch on a GPU)",
     )
     args = parser.parse_args()
-    main(repeats=args.repeats, quick=args.quick, probe_timeout=args.probe_timeout, chunk_sizes=tuple(args.chunk_sizes))
+    from benchmarks import _record
+
+    options = dict(repeats=args.repeats, quick=args.quick, probe_timeout=args.probe_timeout, chunk_sizes=tuple(args.chunk_sizes))
+    _record.run_and_record("sim", main, command=_record.command_line(), options=options, directory=args.json)

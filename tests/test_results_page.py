@@ -1,0 +1,184 @@
+"""The results page (`python -m benchmarks render-results`) and the benchmarks' JSON records:
+no benchmark runs here and nothing is compiled."""
+
+import json
+import math
+import pathlib
+import sys
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:  # `benchmarks` is a folder of the repository, not an installed package
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks import _record, experiments, results_page  # noqa: E402
+
+MACHINE = {"cpu": "Test CPU 9000", "cores": 4, "system": "Linux x86_64", "platform": "cpu", "devices": ["cpu: cpu"], "gpu": None,
+           "xla_flags": ""}
+VERSIONS = {"python": "3.11.0", "jax": "0.1.0", "jaxlib": "0.1.0", "mujoco": "4.0.0", "pin": None, "crocoddyl": None,
+            "rsmooth": {"commit": "0123456789abcdef", "modified": False}}
+
+
+def _record_of(area, results, command, date="2026-01-02"):
+    return {"schema": 1, "area": area, "command": command, "date": date, "duration_s": 12.0, "machine": MACHINE,
+            "versions": VERSIONS, "options": {}, "results": results}
+
+
+@pytest.fixture
+def records():
+    core = _record_of("core", {"dim": 8, "sigma": 0.1, "plain_grad": 1e-6, "rows": [
+        {"M": 1, "optax": 2e-5, "smooth_zeroth": 1e-5, "ratio": 999.0, "zeroth_order": 1e-5, "first_order": 1e-5, "alpha_order": None},
+        {"M": 16, "optax": 1e-4, "smooth_zeroth": 3e-4, "zeroth_order": 1e-4, "first_order": 1e-4, "alpha_order": 2e-4},
+    ]}, "python -m benchmarks core --json DIR")
+    sim = _record_of("sim", {"ours_step_batch": 15e-6, "mj_step": 10e-6, "ours_step_jac": 1e-4, "mjd_transitionFD": 6e-4,
+                             "notes": ["a note"]}, "python -m benchmarks sim --quick --json DIR")
+    control = _record_of("control", {
+        "ours": [{"solver": "ddp", "T": 50, "per_iteration": 0.02, "timed": 7, "foot_height": 0.05},
+                 {"solver": "rddp32", "T": 50, "per_iteration": 0.1, "timed": 7}],
+        "crocoddyl": [], "crocoddyl_status": "Crocoddyl skipped: cannot import it",
+        "settings": {"horizons": [50], "samples": [32], "iterations": 8},
+    }, "python -m benchmarks control --json DIR")
+    pose = {"methods": ["perturbed-gaussian"], "problems": 4, "mesh": "cube", "success_deg": 5,
+            "perturbed-gaussian": {"20": {"solved_pct": 75.0, "median_error_deg": 1.25}, "80": {"solved_pct": 25.0, "median_error_deg": 30.0}}}
+    exps = _record_of("experiments", {"profile": "quick", "experiments": {
+        "render-pose": {"metrics": pose, "date": "2026-01-01"},
+        "solo-lift": {"metrics": {"methods": ["rddp"], "seeds": [0, 1],
+                                  "rddp": {"success_rate": 0.5, "per_seed": [{"foot_height": 0.05}, {"foot_height": 0.01}]}},
+                      "date": "2026-01-01"},
+        "estimators": None,
+    }}, "python -m benchmarks experiments --metrics rsmooth-out --profile quick --json DIR")
+    return {"cpu": {"core": core, "sim": sim, "control": control, "experiments": exps}, "gpu": {}}
+
+
+def _lines_with(page, *words):
+    return [line for line in page.splitlines() if all(w in line for w in words)]
+
+
+def test_page_states_how_it_is_generated(records):
+    page = results_page.render(records)
+    first = page.splitlines()[0]
+    assert "Generated" in first and "python -m benchmarks render-results" in first
+    assert "session" not in page.lower()
+
+
+def test_core_ratios_are_computed_from_the_times(records):
+    page = results_page.render(records)
+    (m1,) = _lines_with(page, "| 1 |", "us")
+    assert "| 0.50 |" in m1 and "met" in m1 and "not met" not in m1  # 1e-5 / 2e-5, not the recorded 999
+    (m16,) = _lines_with(page, "| 16 |", "us")
+    assert "| 3.00 |" in m16 and "not met" in m16
+    assert "(M < 4)" in m1
+    assert "3.00 (not met)" in page  # the summary
+
+
+def test_sim_ratios_and_missing_references(records):
+    page = results_page.render(records)
+    (step,) = _lines_with(page, "| step, vmap 64, per env |", "`mj_step`")
+    assert "rsmooth / MuJoCo = 1.50" in step and "≤ 2: met" in step
+    (jac,) = _lines_with(page, "| `step_and_jacobians`, batch 1 |")
+    assert "MuJoCo / rsmooth = 6.00" in jac and "≥ 5: met" in jac
+    mjx = _lines_with(page, "MJX `jit(step)`")
+    assert mjx and "not measured" in mjx[0]
+    assert "- a note" in page
+
+
+def test_machine_command_and_date_are_shown(records):
+    page = results_page.render(records)
+    assert "Command: `python -m benchmarks core --json DIR`" in page
+    assert "Test CPU 9000, 4 cores; date 2026-01-02" in page
+    assert "jax 0.1.0, jaxlib 0.1.0, mujoco 4.0.0" in page
+    assert "0123456789" not in page  # the commit stays in the record
+
+
+def test_missing_areas_are_not_measured(records):
+    page = results_page.render(records)
+    render_section = page.split("### render:")[1].split("###")[0]
+    assert "Not measured: no record" in render_section
+    assert "python -m benchmarks render --json benchmarks/results/cpu" in render_section
+    gpu = page.split("## GPU")[1].split("## Experiments")[0]
+    assert "No GPU results are recorded yet" in gpu and "bash benchmarks/gpu.sh" in gpu
+
+
+def test_control_without_crocoddyl(records):
+    page = results_page.render(records)
+    assert "Crocoddyl: not measured (Crocoddyl skipped: cannot import it)." in page
+    (fddp,) = _lines_with(page, "| our DDP / Crocoddyl FDDP, T = 50 |")
+    assert "not measured" in fddp
+    (rddp,) = _lines_with(page, "| R-DDP M = 32 / our DDP, T = 50 |")
+    assert "5.00" in rddp and "≤ 4: not met" in rddp
+    assert "foot +5.0 cm" in page
+
+
+def test_experiments_tables(records):
+    page = results_page.render(records)
+    exp = page.split("## Experiments")[1]
+    assert "Profile: **quick**" in exp
+    (ours,) = _lines_with(exp, "| perturbed-gaussian |")
+    cells = [c.strip() for c in ours.strip("|").split("|")]
+    assert cells[1:4] == ["75 % (median error 1.2 deg)", "not measured", "25 % (median error 30.0 deg)"]  # 50 deg was not run
+    (paper,) = _lines_with(exp, "Le Lidec et al. 2021, perturbed renderer")
+    assert "93 %" in paper and "84 %" in paper and "67 %" in paper
+    assert "+5.0, +1.0" in exp  # the foot heights over seeds, cm
+    estimators = exp.split("#### estimators")[1].split("####")[0]
+    assert "Not measured." in estimators
+    policy = exp.split("#### policy:")[1].split("####")[0]
+    assert "Not measured." in policy
+
+
+def test_committed_page_matches_the_committed_records():
+    page = results_page.render(results_page.load(results_page.RESULTS))
+    assert results_page.PAGE.read_text() == page, "run `python -m benchmarks render-results`"
+
+
+def test_committed_records_have_the_required_keys():
+    paths = sorted(results_page.RESULTS.glob("*/*.json"))
+    for path in paths:
+        record = json.loads(path.read_text())
+        assert set(_record.REQUIRED_KEYS) <= set(record), path
+        assert path.parent.name in results_page.KINDS and record["area"] == path.stem
+
+
+def test_writer_record_has_the_required_keys(tmp_path):
+    def measure(repeats):
+        return {"rows": [{"M": 1, "seconds": 0.5 * repeats, "missing": math.nan}], "pair": (1, 2), "note": f"failed in {ROOT}/x.py"}
+
+    record = _record.run_and_record("demo", measure, command="python -m benchmarks demo", options={"repeats": 2}, directory=tmp_path)
+    written = json.loads((tmp_path / "demo.json").read_text())
+    assert written == record
+    assert set(_record.REQUIRED_KEYS) <= set(written)
+    assert written["area"] == "demo" and written["command"] == "python -m benchmarks demo"
+    assert written["results"] == {"rows": [{"M": 1, "seconds": 1.0, "missing": None}], "pair": [1, 2], "note": "failed in x.py"}
+    assert written["options"] == {"repeats": 2}
+    assert written["machine"]["cpu"] and written["machine"]["cores"] >= 1
+    assert {"jax", "jaxlib", "mujoco", "pin", "crocoddyl", "python"} <= set(written["versions"])
+    assert set(written["versions"]["rsmooth"]) == {"commit", "modified"}
+    assert len(written["date"]) == 10 and written["duration_s"] >= 0
+
+
+def test_command_line_names_the_module_and_relative_paths():
+    main = str(ROOT / "benchmarks" / "__main__.py")
+    assert _record.command_line([main, "sim", "--json", str(ROOT / "benchmarks/results/cpu")]) == (
+        "python -m benchmarks sim --json benchmarks/results/cpu"
+    )
+    assert _record.command_line([str(ROOT / "benchmarks" / "control.py"), "--quick"]) == "python -m benchmarks.control --quick"
+    assert _record.command_line([main, "core", "--json", "/somewhere/else/results"]) == "python -m benchmarks core --json .../results"
+
+
+def test_experiments_collects_metrics_and_marks_the_missing(tmp_path):
+    (tmp_path / "render-pose").mkdir()
+    (tmp_path / "render-pose" / "metrics.json").write_text(json.dumps({"soft": {"20": {"solved_pct": 50.0}}}))
+    record = experiments.main(str(tmp_path), str(tmp_path / "out"), "quick")
+    written = json.loads((tmp_path / "out" / "experiments.json").read_text())
+    assert written == record and written["area"] == "experiments"
+    found = written["results"]["experiments"]
+    assert written["results"]["profile"] == "quick"
+    assert set(found) == set(experiments.EXPERIMENTS)
+    assert found["render-pose"]["metrics"] == {"soft": {"20": {"solved_pct": 50.0}}}
+    assert all(found[name] is None for name in experiments.EXPERIMENTS if name != "render-pose")
+
+
+def test_docstring_examples():
+    import doctest
+
+    assert doctest.testmod(results_page).failed == 0
