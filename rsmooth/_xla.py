@@ -4,8 +4,7 @@ jaxlib 0.10's CPU backend hands reductions over short axes to YNNPACK kernels th
 for rsmooth's per-pixel and per-contact sums (see :mod:`rsmooth._unrolled`). The forward
 code unrolls its own sums, but the sums that autodiff inserts (transposes of broadcasts) still
 go there; ``--xla_cpu_experimental_ynn_fusion_type=`` (an empty list of fusion types) turns
-the kernels off, which speeds up the renderer's batched forward and backward passes
-(benchmarks/RESULTS.md).
+the kernels off, which speeds up the renderer's batched forward and backward passes.
 
 XLA aborts the process on a flag it does not know, so the flag is added only for the jaxlib
 versions known to have it (:data:`KNOWN_JAXLIB`), only when the user has not set it, and never
@@ -17,7 +16,7 @@ with the flag. ``RSMOOTH_XLA_DEFAULTS=0`` leaves ``XLA_FLAGS`` alone.
 :func:`on_accelerator` is what the solvers' ``"auto"`` batch sizes ask (``NCPSolver.chunk_size``,
 ``DDP.line_search_batch``, ``RDDP.sample_node_batch_size``): on a CPU a batch costs its
 members' work, on a GPU it costs about one member's (kernel launches), so the best batch sizes
-differ by an order of magnitude (benchmarks/RESULTS.md, the GPU sections).
+differ by an order of magnitude.
 """
 
 from __future__ import annotations

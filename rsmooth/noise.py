@@ -62,8 +62,8 @@ def _uniform(key: Array, shape, dtype, minval: float = 0.0, maxval: float = 1.0)
     the threefry-2x32 block of counters (i, i + n/2) gives numbers i and i + n/2 (n the size,
     rounded up to even), both output words used, where `jax.random` with
     `jax_threefry_partitionable` keeps one of the two. Half the blocks, and XLA on CPU
-    compiles this flat counter better than the partitionable one: several times faster
-    (benchmarks/RESULTS.md). The price: a draw sharded across devices is not generated in place
+    compiles this flat counter better than the partitionable one: several times faster.
+    The price: a draw sharded across devices is not generated in place
     on each shard; rsmooth shards batches of keys (one per problem, :mod:`rsmooth.parallel`),
     each drawn whole where it lies. Other key implementations and dtypes: `jax.random.uniform`.
     """
