@@ -32,9 +32,6 @@ MESHES = ((3, 8, 64), (5, 4, 128))
 VARIANTS = (("hard", 1, False), ("hard", 1, True), ("soft", 1, False), ("perturbed", 1, False), ("perturbed", 8, False),
             ("perturbed", 32, False))
 MAX_REPEATS = 10
-# The Renderer's field that draws the samples at the random pixels alone, in chunks of this
-# fraction of the pixels (named sample_chunk before)
-CHUNK_FIELD = "pixel_chunk" if "pixel_chunk" in render.Renderer.__dataclass_fields__ else "sample_chunk"
 
 
 def _peak_mb(fn, *args) -> float:
@@ -73,17 +70,11 @@ def _pose_step_time(repeats: int, problems: int = 8, at_cap: bool = False, **cha
         return eqx.tree_at(lambda s: (s.sigma, s.num_samples), schedule,
                            (jnp.full_like(schedule.sigma, config.decay_factor ** -growths), jnp.full_like(schedule.num_samples, cap)))
 
-    if hasattr(render_pose, "make_fit"):  # the experiment's render.PoseFit, vmapped over problems as render.fit_poses does
-        fit = render_pose.make_fit(config, "perturbed-gaussian", mesh)
-        state = jax.jit(jax.vmap(fit.init))(offset)
-        step = jax.jit(jax.vmap(lambda s, k, t, r: fit.step(s, k, mesh, cam, t, r)))
-        if at_cap:
-            state = eqx.tree_at(lambda s: s.schedule, state, capped(state.schedule))
-    else:  # the experiment's earlier solver: a tuple state, the schedule third
-        _, init, step = render_pose.make_solver(config, "perturbed-gaussian", mesh, cam)
-        state = init(offset)
-        if at_cap:
-            state = (*state[:2], capped(state[2]), *state[3:])
+    fit = render_pose.make_fit(config, "perturbed-gaussian", mesh)  # vmapped over problems, as render.fit_poses does
+    state = jax.jit(jax.vmap(fit.init))(offset)
+    step = jax.jit(jax.vmap(lambda s, k, t, r: fit.step(s, k, mesh, cam, t, r)))
+    if at_cap:
+        state = eqx.tree_at(lambda s: s.schedule, state, capped(state.schedule))
     keys = jax.random.split(jax.random.key(1), config.problems)
     return median_time(step, state, keys, target, r_init, repeats=repeats), config
 
@@ -145,12 +136,12 @@ def main(repeats: int = 5) -> dict:
         line = []
         renderers = rows[first:]
         for chunk in (1.0, 0.125):
-            renderer = render.Renderer(mode="perturbed", num_samples=8, **{CHUNK_FIELD: chunk}, **common)
+            renderer = render.Renderer(mode="perturbed", num_samples=8, pixel_chunk=chunk, **common)
             forward, backward = _functions(mesh, camera, renderer)
             t_forward, t_backward = median_time(forward, key, t0, repeats=repeats), median_time(backward, key, t0, repeats=repeats)
-            line.append(f"{CHUNK_FIELD} {chunk:g}: forward {fmt(t_forward)}, fwd+bwd {fmt(t_backward)}, "
+            line.append(f"pixel_chunk {chunk:g}: forward {fmt(t_forward)}, fwd+bwd {fmt(t_backward)}, "
                         f"{t_backward / hard_culled:.2f}x the hard forward")
-            rows.append({"label": f"perturbed M=8, back faces culled, {CHUNK_FIELD} {chunk:g}", "faces": mesh.num_faces,
+            rows.append({"label": f"perturbed M=8, back faces culled, pixel_chunk {chunk:g}", "faces": mesh.num_faces,
                          "mode": "perturbed", "num_samples": 8, "cull_backfaces": True,
                          "pixel_chunk": chunk, "forward": t_forward, "forward_backward": t_backward, "hard_forward": hard_culled})
         print(f"back faces culled: hard forward {fmt(hard_culled)}; {random:.1%} of the pixels random; perturbed M=8 "

@@ -29,16 +29,8 @@ batched with `jax.vmap` (spread over the devices when there are several, see
 are scored against the targets by 3D IoU (:func:`rsmooth.render.iou_3d`, voxelized) and the
 Chamfer distance of surface samples (:func:`rsmooth.render.chamfer_distance`).
 
-Measured with the defaults over 8 seeds (float32 on an H100, 2026-11-27, `python -m
-benchmarks.reconstruct_seeds`; benchmarks/RESULTS.md), 3D IoU on cube / torus / Solo upper leg,
-mean and standard error: perturbed 0.774 +- 0.004 / 0.697 +- 0.003 / 0.634 +- 0.013, soft
-0.769 +- 0.001 / 0.695 +- 0.000 / 0.652 +- 0.007, hard 0.51 / 0.29 / 0.04 (it does not move: the
-icosphere's scores). The thin upper leg's score scatters by +-0.03 between seeds, soft's too
-(rounding alone: the optimization is chaotic there), so compare over seeds. A Laplacian weight
-of 60 helps the leg (perturbed 0.671, soft 0.712) and rounds the cube's corners (0.751, 0.758):
-the default stays at 30. The quick profile's 8 samples per pixel make a step 1.6x faster than
-the default 32 (the perturbed renderer draws its samples at the random pixels alone,
-`sample_chunk`) and fit the leg worse (mean 0.53 against 0.60 over 3-4 seeds, CPU).
+Scores over seeds, and the effect of the Laplacian weight and of the samples per pixel: see
+benchmarks/RESULTS.md.
 """
 
 from __future__ import annotations
@@ -56,6 +48,8 @@ from tqdm.auto import tqdm
 
 from rsmooth import noise, parallel, render, schedules, viz
 from rsmooth.estimators import check_baseline
+from rsmooth.experiments import _protocol
+from rsmooth.experiments._protocol import option
 
 METRICS_DOC = """metrics.json keys: for each method (perturbed-gaussian, soft, hard), a dict keyed by
 target name holding iou_3d (voxelized IoU of the reconstruction with the target, on a
@@ -68,9 +62,10 @@ first_gradient_norm (norm of the silhouette loss' gradient with respect to the o
 first step: exactly 0 for hard) and seconds_per_step (wall time of one Adam step of the batch of
 all targets); 'initial', the same scores for the undeformed icosphere; also methods, targets,
 views, steps, image_size, subdivisions, num_vertices, num_faces, voxel_resolution,
-chamfer_points, num_samples, sample_chunk and baseline (perturbed), laplacian_weight, flatten_weight, target_faces."""
+chamfer_points, num_samples, pixel_chunk and baseline (perturbed), laplacian_weight, flatten_weight, target_faces."""
 
 METHODS = ("perturbed-gaussian", "soft", "hard")
+BASELINES = ("hard", "leave-one-out")
 
 # Meshes of the Solo-12 quadruped shipped by example-robot-data, under
 # robots/solo_description/meshes/stl/.
@@ -86,52 +81,83 @@ PRIMITIVES = ("cube", "box", "cylinder", "torus")
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    targets: tuple[str, ...] = ("cube", "torus", "solo-upper-leg")  # names (PRIMITIVES, ROBOT_MESHES) or files
-    methods: tuple[str, ...] = METHODS
-    views: int = 8
-    image_size: int = 64
-    subdivisions: int = 2  # of the icosphere template: 162 vertices, 320 faces
-    template_radius: float = 0.5  # the sphere inscribed in the unit box
-    steps: int = 200
-    learning_rate: float = 0.02
-    final_learning_rate: float = 0.1  # fraction of learning_rate reached at the end (cosine decay)
-    laplacian_weight: float = 30.0  # on the Laplacian of the offsets (the icosphere is the rest shape)
-    flatten_weight: float = 0.01
-    rgb_weight: float = 0.0  # > 0 adds the MSE of grey shaded images (shape from shading)
-    # Coverage noise scale in pixels at image_size 64 (scaled with the size). Well below the
-    # faces' size: with independent noise on each face, a pixel on an edge shared by two faces
-    # is missed by both with probability 1/4, and the smoothed silhouette gets holes.
-    sigma: float = 0.6
-    gamma: float = 0.02  # depth temperature (normalized inverse depth)
-    num_samples: int = 32  # 8 is 1.6x faster and fits thin parts worse (module docstring)
-    # the perturbed estimator's baseline (rsmooth.render.Renderer): True, the hard pixel (Le
-    # Lidec et al.'s); "leave-one-out", the mean of the pixel's other samples
-    baseline: bool | str = True
-    faces_per_pixel: int = 8
-    faces_per_tile: int = 64
-    # the perturbed renderer draws its samples at the random pixels alone (a quarter of a view's
-    # at the start, fewer as the noise decreases), in chunks of this fraction of a view's pixels
-    # (rsmooth.render.Renderer.sample_chunk; 1: every pixel): the same images and gradients.
-    # Cube and upper leg, 8 views at 64 x 64, M = 8, one core: 0.22 s per step against 0.37 (session 33;
-    # 0.14 since session 34's renderer)
-    sample_chunk: float = 0.125
-    decay_factor: float = 2.0
-    momentum: float = 0.9
-    noise_floor: float = 0.1  # smallest noise scale factor
-    patience: int = 20  # least number of steps between two noise decreases
-    camera_distance: float = 2.8  # the unit box's circumscribed sphere stays in the field of view
-    fov: float = 40.0
-    elevation_deg: float = 30.0  # views alternate between +elevation and -elevation
-    voxel_resolution: int = 64
-    chamfer_points: int = 4096
-    gif_every: int = 5
+    targets: tuple[str, ...] = option(
+        ("cube", "torus", "solo-upper-leg"), "Target meshes (repeatable): cube, box, cylinder, torus, solo-upper-leg, "
+        "solo-lower-leg, solo-hip, solo-foot, solo-base (example-robot-data), or a mesh file.", flag="mesh")
+    methods: tuple[str, ...] = option(METHODS, "Renderers compared (repeatable).", flag="method", choices=METHODS)
+    views: int = option(8, "Cameras around the target.", min=1)
+    image_size: int = option(64, "Image side, pixels.", min=1)
+    subdivisions: int = option(2, "Subdivisions of the icosphere template (2: 162 vertices, 320 faces).", min=0)
+    template_radius: float = option(0.5, "Radius of the icosphere template, unit-box units.", min=0.0)
+    steps: int = option(200, "Adam steps.", min=1)
+    learning_rate: float = option(0.02, "Adam's initial learning rate (cosine decay).", min=0.0)
+    final_learning_rate: float = option(0.1, "Fraction of learning_rate reached at the last step.", min=0.0)
+    laplacian_weight: float = option(
+        30.0, "Weight of the Laplacian of the vertex offsets (the icosphere is the rest shape): thin parts gain "
+        "from more, sharp corners lose.", min=0.0)
+    flatten_weight: float = option(0.01, "Weight of the normal consistency (flattening) regularizer.", min=0.0)
+    rgb_weight: float = option(0.0, "Weight of the mean squared error of grey shaded images (0: silhouettes only).",
+                               min=0.0)
+    # Well below the faces' size: with independent noise on each face, a pixel on an edge shared
+    # by two faces is missed by both with probability 1/4, and the smoothed silhouette gets holes.
+    sigma: float = option(0.6, "Coverage noise scale, pixels at a 64-pixel image (scaled with the image size).",
+                          min=0.0)
+    gamma: float = option(0.02, "Depth temperature, normalized inverse depth.", min=0.0)
+    num_samples: int = option(32, "Monte-Carlo samples per pixel of the perturbed renderer.", flag="samples", min=1)
+    baseline: str = option(
+        "hard", "The perturbed estimator's baseline: the hard pixel (the paper's) or the mean of the pixel's "
+        "other samples (lower variance at edges).", choices=BASELINES)
+    faces_per_pixel: int = option(8, "Candidate faces per pixel.", min=1)
+    faces_per_tile: int = option(64, "Candidate faces per tile in the culling pass.", min=1)
+    pixel_chunk: float = option(
+        0.125, "The perturbed renderer draws its samples only at the pixels its noise may change, in chunks of "
+        "this fraction of a view (the same images and gradients); 1: every pixel.", min=0.0, max=1.0)
+    decay_factor: float = option(2.0, "The noise scale is divided by this at each decrease.", min=1.0)
+    momentum: float = option(0.9, "Momentum of the schedule's average of d loss / d noise scale.", min=0.0, max=1.0)
+    noise_floor: float = option(0.1, "Smallest noise scale factor.", min=0.0)
+    patience: int = option(20, "Least number of steps between two noise decreases.", min=1)
+    camera_distance: float = option(2.8, "Camera distance to the origin, unit-box units.", min=0.0)
+    fov: float = option(40.0, "Camera field of view, degrees.", min=0.0, max=180.0)
+    elevation_deg: float = option(30.0, "Camera elevation, degrees; views alternate between + and -.",
+                                  min=-90.0, max=90.0)
+    voxel_resolution: int = option(64, "Voxels per side of the 3D IoU's grid.", min=1)
+    chamfer_points: int = option(4096, "Surface samples per mesh of the Chamfer distance.", min=1)
+    gif_every: int = option(5, "Steps between two frames of the optimization GIF.", min=1)
 
     @classmethod
-    def quick(cls) -> "Config":
-        return cls(
+    def quick(cls, **changes) -> "Config":
+        """A short look: fewer views, smaller images, fewer steps and samples."""
+        small = cls(
             views=4, image_size=40, steps=60, learning_rate=0.03, patience=10, num_samples=8, voxel_resolution=40,
             chamfer_points=2048, gif_every=3,
         )
+        return dataclasses.replace(small, **changes)
+
+    def __post_init__(self):
+        _protocol.check_options(self)
+        if not self.targets:
+            raise ValueError("targets (--mesh) must name at least one mesh")
+        if not self.methods:
+            raise ValueError("methods (--method) must name at least one renderer")
+        if not self.pixel_chunk > 0:
+            raise ValueError(f"pixel_chunk (--pixel-chunk) must be in (0, 1] (a fraction of a view), got {self.pixel_chunk!r}")
+        for name in ("sigma", "gamma", "learning_rate", "final_learning_rate", "camera_distance", "template_radius"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
+        if not self.decay_factor > 1:
+            raise ValueError(f"decay_factor must be > 1, got {self.decay_factor!r}")
+        if not self.momentum < 1:
+            raise ValueError(f"momentum must be in [0, 1), got {self.momentum!r}")
+        if "perturbed-gaussian" in self.methods:
+            check_baseline(renderer_baseline(self.baseline), self.num_samples)
+        names = [_name(t) for t in self.targets]
+        if len(set(names)) != len(names):
+            raise ValueError(f"targets (--mesh) must have distinct names, got {names}")
+
+
+def renderer_baseline(baseline: str) -> bool | str:
+    """The `baseline` option as :class:`rsmooth.render.Renderer` takes it."""
+    return True if baseline == "hard" else baseline
 
 
 def _robot_mesh_path(name: str) -> Path:
@@ -200,8 +226,8 @@ def make_renderer(config: Config, method: str) -> render.Renderer:
         return render.Renderer(mode="soft", dilation=6.0, **common)
     if method == "perturbed-gaussian":
         return render.Renderer(
-            mode="perturbed", num_samples=config.num_samples, coverage_noise=noise.Gaussian(), baseline=config.baseline,
-            sample_chunk=config.sample_chunk, **common,
+            mode="perturbed", num_samples=config.num_samples, coverage_noise=noise.Gaussian(),
+            baseline=renderer_baseline(config.baseline), pixel_chunk=config.pixel_chunk, **common,
         )
     raise ValueError(f"unknown method {method!r}; choose from {METHODS}")
 
@@ -308,20 +334,7 @@ def target_images_and_silhouettes(config: Config, key, targets: render.Mesh, tem
 def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     """Reconstructs every target with every method; writes metrics.json, PNGs and a GIF."""
     out = Path(out)
-    for method in config.methods:
-        if method not in METHODS:
-            raise ValueError(f"unknown method {method!r}; choose from {METHODS}")
-    if not config.targets:
-        raise ValueError("targets must name at least one mesh")
-    if "perturbed-gaussian" in config.methods:
-        check_baseline(config.baseline, config.num_samples)
-    for name in ("laplacian_weight", "flatten_weight", "rgb_weight"):
-        weight = getattr(config, name)
-        if not (np.isfinite(weight) and weight >= 0):
-            raise ValueError(f"{name} must be finite and >= 0, got {weight!r}")
     names = [_name(t) for t in config.targets]
-    if len(set(names)) != len(names):
-        raise ValueError(f"target names must be distinct, got {names}")
     meshes = [load_target(t) for t in config.targets]
     targets = stack_meshes(meshes)
     template = render.icosphere(config.subdivisions, config.template_radius)
@@ -394,7 +407,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "voxel_resolution": config.voxel_resolution,
         "chamfer_points": config.chamfer_points,
         "num_samples": config.num_samples,
-        "sample_chunk": config.sample_chunk,
+        "pixel_chunk": config.pixel_chunk,
         "baseline": config.baseline,
         "laplacian_weight": config.laplacian_weight,
         "flatten_weight": config.flatten_weight,
@@ -508,3 +521,27 @@ def _figures(config, out, names, targets, template, target_alpha, curves, finals
     fig.suptitle("reconstructions seen from between the training views (3D IoU, Chamfer)")
     fig.tight_layout()
     viz.save_figure(fig, out / "reconstructions.png")
+
+
+def summary(metrics: dict) -> dict:
+    """The lines printed after a run: per method, the 3D IoU and Chamfer distance of each target."""
+    return {
+        f"{method}: 3D IoU / Chamfer ({', '.join(metrics['targets'])})": ", ".join(
+            f"{metrics[method][t]['iou_3d']:.2f} / {metrics[method][t]['chamfer']:.4f}" for t in metrics["targets"]
+        )
+        for method in metrics["methods"]
+    }
+
+
+EXPERIMENT = _protocol.Experiment(
+    command=("render", "reconstruct"),
+    name="render-reconstruct",
+    config=Config,
+    run=run,
+    summary=summary,
+    help="Reconstruct meshes from multi-view silhouettes by deforming an icosphere (Laplacian and "
+    "flattening regularizers) with the perturbed renderer, a SoftRas-like one and the hard "
+    "z-buffer; 3D IoU and Chamfer distance to the targets.",
+    metrics_doc=METRICS_DOC,
+    x64=False,
+)

@@ -8,7 +8,8 @@ of :mod:`rsmooth.smooth`. Hard and SoftRas-like renderers are given for comparis
 Parts: meshes (:class:`Mesh`, primitives, file loading, regularizers), cameras
 (:class:`Camera`, :func:`look_at`, rotations), rasterization (signed distances, coverage,
 per-pixel culling: :func:`rasterize`), aggregation (hard, soft, perturbed), shading
-(:class:`DirectionalLight`), the :class:`Renderer`, and shape metrics for reconstruction
+(:class:`DirectionalLight`), the :class:`Renderer`, pose fitting by analysis-by-synthesis
+(:class:`PoseFit`, :func:`fit_poses`), and shape metrics for reconstruction
 (:func:`sample_surface`, :func:`chamfer_distance`, :func:`voxelize`, :func:`iou_3d`,
 :func:`silhouette_iou`).
 """
@@ -39,6 +40,7 @@ from rsmooth.render._mesh import (
     transform_mesh,
 )
 from rsmooth.render._metrics import chamfer_distance, iou_3d, sample_surface, silhouette_iou, voxelize
+from rsmooth.render._pose import PoseFit, PoseFitResult, PoseFitState, fit_poses, image_loss, pose_rotation
 from rsmooth.render._raster import (
     COVERAGE_MODES,
     Fragments,
@@ -64,6 +66,9 @@ __all__ = [
     "Fragments",
     "Image",
     "Mesh",
+    "PoseFit",
+    "PoseFitResult",
+    "PoseFitState",
     "ProductNoise",
     "Renderer",
     "axis_angle_to_matrix",
@@ -76,9 +81,11 @@ __all__ = [
     "edge_length_loss",
     "edge_neighbors",
     "face_normals",
+    "fit_poses",
     "hard_aggregate",
     "heaviside",
     "icosphere",
+    "image_loss",
     "is_closed_outward",
     "iou_3d",
     "laplacian_loss",
@@ -87,6 +94,7 @@ __all__ = [
     "normal_consistency_loss",
     "perturbed_aggregate",
     "change_probability",
+    "pose_rotation",
     "position_colors",
     "project_faces",
     "quaternion_to_matrix",

@@ -665,7 +665,7 @@ def triangle_fragments_at(geometry, edges, face_index, qx, qy) -> tuple[Array, A
     """Signed distance, depth and perspective-correct weights of the faces `face_index` at the
     pixel centres (qx, qy) (broadcast against it), from :func:`triangle_geometry`'s output: the
     fragments of :func:`rasterize` (without `clip_near`), recomputed where wanted (the renderer's
-    `sample_chunk` differentiates them at the sampled pixels alone)."""
+    `pixel_chunk` differentiates them at the sampled pixels alone)."""
     screen, depth_vertices, z_faces = geometry
     return _fragment_geometry(screen, depth_vertices, z_faces, edges, face_index, qx, qy)
 
@@ -734,8 +734,7 @@ def _fragment_geometry(screen, depth_vertices, z_faces, edges, face_index, qx, q
     Differentiable in `screen`, `depth_vertices` and `z_faces` by a hand-written forward mode
     (`_fragment_geometry_jvp`), which JAX transposes for reverse mode: JAX's own derivative of
     these formulas left XLA on CPU, in reverse mode, six fusions (the cotangents of the six
-    vertex coordinates) that each recomputed the shared part of the others, 2 ms each on a
-    128 x 128 x 8 image, a third of a perturbed render's backward pass. Its results are
+    vertex coordinates) that each recomputed the shared part of the others. Its results are
     autodiff's of `_fragment_values` up to rounding (tests/render/test_raster.py)."""
     return _fragment_values(screen, depth_vertices, z_faces, edges, face_index, qx, qy)
 
@@ -938,7 +937,7 @@ def _clipped_geometry(polygon, vertices, lens, flags, face_index, qx, qy, cx, cy
 
     Differentiable in `polygon`, `vertices` and `lens` by a hand-written forward mode
     (`_clipped_geometry_jvp`), which JAX transposes for reverse mode, for the reason given at
-    `_fragment_geometry` (here JAX's own derivative was nine fusions of 3-6 ms, the
+    `_fragment_geometry` (here JAX's own derivative is nine fusions, the
     cotangents of the nine vertex coordinates, each recomputing the others' shared part). Its
     results are autodiff's of `_clipped_values` up to rounding (tests/render/test_near_clip.py)."""
     return _clipped_values(polygon, vertices, lens, flags, face_index, qx, qy, cx, cy)
@@ -1137,8 +1136,7 @@ def rasterize(
     y = (jnp.arange(ty, dtype=dtype)[:, None] * ts + offsets[None, :])[:, None, :, None, None]  # (ty, 1, ts, 1, 1)
     # one (ty, tx, ts, ts, Kt) array per edge line, each coefficient gathered on its own: a
     # trailing axis of 3 (edges or coefficients) in these per-pixel arrays read strided in
-    # XLA's CPU loops (the depth clipping below took 3.7 ms that way, 0.4 ms this way, on a
-    # 12-face cube at 128 x 128)
+    # XLA's CPU loops, several times slower than these
     def gathered(form):  # (F,) -> (ty, tx, 1, 1, Kt)
         return form[tile_faces][:, :, None, None, :]
 
@@ -1170,9 +1168,8 @@ def rasterize(
         # faces in front rank by how likely the noise makes them cover (they may occlude),
         # faces behind by how likely the depth noise lets them through. The visible face
         # (log-probability above log 1/2, no gap) always ranks first. (A SoftRas-like
-        # log sigmoid(d / sigma) + z / gamma let nearer faces that do not cover the pixel fill
-        # the slots on a torus: with K = 8 the visible face was missing at 60 % of its pixels
-        # with a 9-px margin, at all of them with 18 px.) Where no face covers the pixel,
+        # log sigmoid(d / sigma) + z / gamma lets nearer faces that do not cover the pixel fill
+        # the slots, and the visible face drops out of them.) Where no face covers the pixel,
         # front is -inf and the gap term is 0.
         front = jnp.max(jnp.where(ok & (dist >= 0), depth, -jnp.inf), axis=-1, keepdims=True)
         weight = log_sigmoid(dist / sigma) + jnp.minimum(depth - front, 0.0) / gamma

@@ -57,7 +57,7 @@ MODES = ("hard", "soft", "perturbed")
 
 # A pixel whose perturbed samples differ from its hard value with probability at most this (per
 # sample, :meth:`Renderer.uncertainty`) is treated as certain: rendered hard, with no samples
-# (`Renderer.sample_chunk`; the render-pose experiment's `pixel_chunk`).
+# (`Renderer.pixel_chunk`, :meth:`rsmooth.render.PoseFit.estimate`).
 NEGLIGIBLE = 1e-12
 
 # Signed distance given to empty candidate slots: never covered, whatever the noise.
@@ -93,8 +93,7 @@ def random_pixel_chunks(uncertainty: Array, chunk: int) -> tuple[Array, Array]:
     """(order, num_chunks): the (N,) pixels whose `uncertainty` (:meth:`Renderer.uncertainty`,
     flattened) exceeds :data:`NEGLIGIBLE` first, then the others, each in image order; and how
     many chunks of `chunk` of them hold every such pixel (see :func:`chunk_rows`). A stable
-    partition, by counts and one scatter (a sort of the pixels by uncertainty cost 1.7 ms on
-    128 x 128, a tenth of a perturbed render)."""
+    partition, by counts and one scatter (cheaper than a sort of the pixels by uncertainty)."""
     random = uncertainty > NEGLIGIBLE
     count = jnp.sum(random)
     rank = jnp.where(random, jnp.cumsum(random) - 1, count + jnp.cumsum(~random) - 1)
@@ -224,7 +223,7 @@ class Renderer(eqx.Module):
             along the edges shared by two faces of a continuous surface; False (the default)
             smooths only the silhouette and boundary edges, where the image is discontinuous
             (see :func:`rsmooth.render.rasterize`). Hard rendering is the same either way.
-        sample_chunk: the perturbed renderer draws its samples only at the pixels whose change
+        pixel_chunk: the perturbed renderer draws its samples only at the pixels whose change
             probability (:meth:`uncertainty`) exceeds :data:`NEGLIGIBLE`, in chunks of this
             fraction of the pixels (of the image, or of `pixels`), as many chunks as they fill
             (static; 1, the default: every pixel draws samples, no selection). The other
@@ -233,9 +232,8 @@ class Renderer(eqx.Module):
             derivatives, at a cost about proportional to the random pixels. The random pixels'
             fragments and colours are computed (and differentiated) in the chunks alone; the
             others' from their hard winner's fragment alone (with `clip_near`, the fragments of
-            every pixel are differentiated). Use 1/8 for gradients: on a closed 1,280-face
-            sphere at 128 x 128 (back faces culled, M = 8, 15 % of the pixels random) it cut
-            forward + backward from 44 to 18.5 ms (2 cores; benchmarks/RESULTS.md). A loop of a traced number of
+            every pixel are differentiated). 1/8 suits gradients of closed meshes whose back
+            faces are culled (timings: benchmarks/RESULTS.md). A loop of a traced number of
             chunks under a custom VJP: reverse mode, `jit` and `vmap` (which runs the most
             chunks of the batch) work, forward mode (`jax.jvp`, `jacfwd`) does not.
         dilation: candidate faces lie within `dilation * sigma` pixels of the pixel centre
@@ -260,7 +258,7 @@ class Renderer(eqx.Module):
     clip_near: bool = eqx.field(static=True, default=False)
     interior_edges: bool = eqx.field(static=True, default=False)
     dilation: float = eqx.field(static=True, default=3.0, converter=float)
-    sample_chunk: float = eqx.field(static=True, default=1.0, converter=float)
+    pixel_chunk: float = eqx.field(static=True, default=1.0, converter=float)
     light: DirectionalLight = DirectionalLight()
     background: tuple[float, float, float] = eqx.field(static=True, default=(0.0, 0.0, 0.0), converter=_triple)
     background_depth: float = eqx.field(static=True, default=0.0, converter=float)
@@ -274,8 +272,8 @@ class Renderer(eqx.Module):
                 raise ValueError(f"{name} must be a positive, finite number, got {value!r}")
         for name in ("num_samples", "faces_per_pixel", "faces_per_tile", "tile_size"):
             _checks.check_num_samples(getattr(self, name), name)
-        if not 0.0 < self.sample_chunk <= 1.0:
-            raise ValueError(f"sample_chunk must be in (0, 1] (a fraction of the pixels), got {self.sample_chunk}")
+        if not 0.0 < self.pixel_chunk <= 1.0:
+            raise ValueError(f"pixel_chunk must be in (0, 1] (a fraction of the pixels), got {self.pixel_chunk}")
         if not (math.isfinite(self.dilation) and self.dilation >= 0):
             raise ValueError(f"dilation must be a finite number >= 0, got {self.dilation}")
         if not math.isfinite(self.background_depth):
@@ -333,7 +331,7 @@ class Renderer(eqx.Module):
             _checks.check_key(key)
         camera = check_camera(camera)
         sigma, gamma = self._levels(mesh, sigma, gamma)
-        if self.mode == "perturbed" and self.sample_chunk < 1.0:
+        if self.mode == "perturbed" and self.pixel_chunk < 1.0:
             return self._sampled_at_random_pixels(key, mesh, camera, sigma, gamma, pixels)
         fragments = self._rasterize(mesh, camera, sigma, gamma, pixels, 1 if self.mode == "hard" else self.faces_per_pixel)
         k = fragments.face_index.shape[-1]
@@ -375,7 +373,7 @@ class Renderer(eqx.Module):
         return pixel
 
     def _sampled_at_random_pixels(self, key, mesh, camera, sigma, gamma, pixels) -> Image:
-        """The perturbed image with samples at the random pixels alone (`sample_chunk`): the
+        """The perturbed image with samples at the random pixels alone (`pixel_chunk`): the
         candidates' distances and depths of every pixel, values only, rank the pixels; the
         random ones are drawn in chunks (`_random_pixel_outputs`), each chunk's fragments
         recomputed there, with their derivatives; the others take their hard winner's colour,
@@ -393,7 +391,7 @@ class Renderer(eqx.Module):
             *fixed, sigma=sigma, gamma=gamma, coverage_noise=self.coverage_noise, depth_noise=self.depth_noise,
             background_depth=self.background_depth,
         )
-        chunk = min(num_pixels, max(1, round(self.sample_chunk * num_pixels)))
+        chunk = min(num_pixels, max(1, round(self.pixel_chunk * num_pixels)))
         order, chunks = random_pixel_chunks(uncertainty, chunk)
         hard_weights = hard_aggregate(*fixed, self.background_depth)  # (N, K + 1), one-hot
         keys = self._pixel_keys(key, camera, pixels)

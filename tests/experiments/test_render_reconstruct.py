@@ -8,7 +8,7 @@ import jax
 import numpy as np
 import pytest
 
-from rsmooth.experiments import render_reconstruct
+from rsmooth.experiments import _protocol, render_reconstruct
 
 TINY = dict(
     targets=("cube",), methods=("perturbed-gaussian", "hard"), views=3, image_size=24, steps=20,
@@ -18,7 +18,7 @@ TINY = dict(
 
 @pytest.mark.slow
 def test_perturbed_reconstruction_of_a_cube_improves_and_hard_does_not_move(tmp_path):
-    config = dataclasses.replace(render_reconstruct.Config.quick(), **TINY)
+    config = render_reconstruct.Config.quick(**TINY)
     metrics = render_reconstruct.run(config, tmp_path, jax.random.key(0), progress=False)
     initial, perturbed, hard = (metrics[k]["cube"] for k in ("initial", "perturbed-gaussian", "hard"))
     # (Seeds 0 to 3: 3D IoU 0.51 -> 0.65 to 0.71, silhouette IoU 0.47 -> 0.84 to 0.88, Chamfer
@@ -36,7 +36,7 @@ def test_perturbed_reconstruction_of_a_cube_improves_and_hard_does_not_move(tmp_
     assert set(keys) <= set(saved["perturbed-gaussian"]["cube"]) and set(keys) <= set(saved["hard"]["cube"])
     assert saved["targets"] == ["cube"] and saved["num_faces"] == 320
     assert (saved["num_samples"], saved["laplacian_weight"]) == (config.num_samples, config.laplacian_weight)
-    assert saved["baseline"] is True
+    assert saved["baseline"] == "hard" and saved["pixel_chunk"] == config.pixel_chunk
     for name in ("losses.png", "silhouettes_cube.png", "reconstructions.png", "optimization.gif"):
         assert (tmp_path / name).stat().st_size > 0
     assert not list(tmp_path.glob(".*"))
@@ -55,11 +55,21 @@ def test_unknown_targets_and_methods_are_rejected(tmp_path):
         render_reconstruct.load_target("blob")
     with pytest.raises(ValueError, match="not found"):
         render_reconstruct.load_target(str(tmp_path / "missing.stl"))
-    config = dataclasses.replace(render_reconstruct.Config.quick(), methods=("blurry",))
     with pytest.raises(ValueError, match="blurry"):
-        render_reconstruct.run(config, tmp_path, jax.random.key(0), progress=False)
-    for name, value in (("laplacian_weight", -1.0), ("flatten_weight", float("nan")), ("baseline", "mean")):
-        config = dataclasses.replace(render_reconstruct.Config.quick(), **{name: value})
+        render_reconstruct.Config.quick(methods=("blurry",))
+    for name, value in (
+        ("laplacian_weight", -1.0), ("flatten_weight", float("nan")), ("baseline", "mean"), ("pixel_chunk", 0.0),
+        ("targets", ()), ("targets", ("cube", "cube")),
+    ):
         with pytest.raises(ValueError, match=name):
-            render_reconstruct.run(config, tmp_path, jax.random.key(0), progress=False)
-    assert not any(tmp_path.iterdir())  # nothing written
+            render_reconstruct.Config.quick(**{name: value})
+
+
+def test_the_experiment_is_registered_with_its_options():
+    experiment = render_reconstruct.EXPERIMENT
+    assert experiment.command == ("render", "reconstruct") and experiment.name == "render-reconstruct"
+    flags = {_protocol.flag(f) for f in dataclasses.fields(render_reconstruct.Config)}
+    for flag in ("--mesh", "--views", "--method", "--steps", "--samples", "--pixel-chunk", "--laplacian-weight", "--baseline"):
+        assert flag in flags, flag
+    metrics = {"methods": ["soft"], "targets": ["cube"], "soft": {"cube": {"iou_3d": 0.5, "chamfer": 0.01}}}
+    assert render_reconstruct.summary(metrics) == {"soft: 3D IoU / Chamfer (cube)": "0.50 / 0.0100"}

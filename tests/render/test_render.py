@@ -377,7 +377,7 @@ def test_random_pixel_chunks_cover_each_random_pixel_once():
         assert fresh_rows == np.asarray(order).tolist()
 
 
-def test_sample_chunk_gives_the_image_and_derivatives_of_samples_everywhere(getkey):
+def test_pixel_chunk_gives_the_image_and_derivatives_of_samples_everywhere(getkey):
     # The pixels the noise cannot change take their hard value with no samples: the image and its
     # derivatives are those of every pixel drawing samples (the same key per pixel), in chunks of
     # 0.6 of the pixels (2 chunks, the second overlapping the first: the image has 1024 pixels),
@@ -405,7 +405,7 @@ def test_sample_chunk_gives_the_image_and_derivatives_of_samples_everywhere(getk
     weights = jax.random.normal(jax.random.key(1), (SIZE, SIZE, 4))  # a random direction of the image
 
     def image_and_gradient(chunk, **changes):
-        renderer = render.Renderer(**{**options, **changes}, sample_chunk=chunk)
+        renderer = render.Renderer(**{**options, **changes}, pixel_chunk=chunk)
 
         def projected(t):
             out = renderer(key, render.transform_mesh(mesh, r0, t), camera)
@@ -437,11 +437,11 @@ def test_sample_chunk_gives_the_image_and_derivatives_of_samples_everywhere(getk
         check(b, gb, a, ga)
     # some pixels alone: the same values
     pixels = jnp.arange(0, SIZE * SIZE, 3)
-    renderer = render.Renderer(**{**options, "sigma": 0.5}, sample_chunk=0.1)
+    renderer = render.Renderer(**{**options, "sigma": 0.5}, pixel_chunk=0.1)
     some = jax.jit(lambda t: renderer(key, render.transform_mesh(mesh, r0, t), camera, pixels=pixels))(t)
     np.testing.assert_allclose(np.asarray(some.rgba()), b.reshape(-1, 4)[pixels], rtol=1e-12, atol=1e-12)
-    with pytest.raises(ValueError, match=r"sample_chunk must be in \(0, 1\]"):
-        render.Renderer(sample_chunk=0.0)
+    with pytest.raises(ValueError, match=r"pixel_chunk must be in \(0, 1\]"):
+        render.Renderer(pixel_chunk=0.0)
 
 
 def test_bad_pixel_indices_are_named():
@@ -529,7 +529,7 @@ def _dot_precisions(jaxpr, found):
 
 
 @pytest.mark.parametrize(
-    "options", [dict(mode="hard"), dict(mode="soft"), dict(mode="perturbed", num_samples=2), dict(mode="perturbed", sample_chunk=0.5)]
+    "options", [dict(mode="hard"), dict(mode="soft"), dict(mode="perturbed", num_samples=2), dict(mode="perturbed", pixel_chunk=0.5)]
 )
 def test_float32_products_ask_for_full_precision(options):
     # On NVIDIA GPUs a float32 product defaults to TF32 (a 10-bit mantissa): on an H100 it
