@@ -425,7 +425,7 @@ def main(
     }
     key = jax.random.key(0)
     lifted = control_solo_lift.FEET.index(FOOT)
-    feet0 = np.asarray(sim.solo12_foot_positions(system, sim.solo12_standing_state(system)))
+    feet0 = np.asarray(sim.solo12_foot_positions(system, system.initial_state()))
     print(f"  (Solo-12 loaded in {time.perf_counter() - setup:.1f} s)", flush=True)
 
     # ----- Crocoddyl first: it is fast, and a broken build fails before the long part

@@ -128,7 +128,7 @@ def _probe_vmap_jacobian(batch: int, queue) -> None:  # runs in a child process
     try:
         jax.config.update("jax_enable_x64", True)
         system = solo12()
-        x0 = sim.solo12_standing_state(system)
+        x0 = system.initial_state()
         u0 = sim.solo12_standing_torques(system, x0)
         jac = jax.jacfwd(lambda x, u: system.step(x, u), argnums=(0, 1))
         fn = jax.jit(jax.vmap(jac))
@@ -174,7 +174,7 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0, ch
 
     # ----- ours
     system = solo12(friction=FRICTION, time_step=DT)
-    x0 = sim.solo12_standing_state(system)
+    x0 = system.initial_state()
     u0 = sim.solo12_standing_torques(system, x0)
     nq = system.model.nq
     step = jax.jit(lambda x, u: system.step(x, u))

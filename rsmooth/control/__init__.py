@@ -7,8 +7,8 @@
   Monte-Carlo derivatives of the smoothed dynamics, with an adaptive noise schedule.
 
 Both return a :class:`Solution`: a :class:`Trajectory` (states, controls, feedback gains),
-a :class:`RESULTS` item, statistics (cost, noise, step-size histories, timings) and the final
-:class:`DDPState`.
+a :class:`~rsmooth.RESULTS` item (also exported here as ``control.RESULTS``), statistics
+(cost, noise, step-size histories, timings) and the final :class:`DDPState`.
 
 Policy optimization (Suh, Simchowitz, Zhang, Tedrake, ICML 2022):
 
@@ -20,10 +20,12 @@ Policy optimization (Suh, Simchowitz, Zhang, Tedrake, ICML 2022):
   first-, zeroth- or alpha-order estimator of :mod:`rsmooth.estimators`;
 * :func:`optimize_policy` (configured by :class:`PolicyGradient`): Adam on those estimates,
   sigma owned by a :mod:`rsmooth.schedules` schedule; returns a :class:`PolicySolution` with
-  the parameter, cost, sigma, alpha and gradient-variance histories.
+  the parameter, cost, sigma, alpha and gradient-variance histories and a
+  :class:`~rsmooth.RESULTS` item.
 """
 
-from rsmooth.control._ddp import DDP, RESULTS, DDPState, Solution, Trajectory, box_qp, ddp
+from rsmooth._results import RESULTS
+from rsmooth.control._ddp import DDP, DDPState, Solution, Trajectory, box_qp, ddp
 from rsmooth.control._policy import (
     LinearFeedback,
     OpenLoop,

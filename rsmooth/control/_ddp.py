@@ -77,6 +77,7 @@ import numpy as np
 from jax import Array, lax
 
 from rsmooth import _xla
+from rsmooth._results import RESULTS
 from rsmooth.control._problem import ShootingProblem
 
 __all__ = ["RESULTS", "DDP", "DDPState", "Trajectory", "Solution", "ddp"]
@@ -85,19 +86,20 @@ APPROXIMATIONS = ("gauss_newton", "full")
 _HISTORY = ("cost", "noise", "step_size", "regularization", "expected_improvement")
 
 
-class RESULTS(eqx.Enumeration):
-    """Outcome of a solve; each item carries its message."""
+# DDP's context for the shared messages of RESULTS, added when `throw` raises.
+_CONTEXT = {
+    "max_iterations_reached": "the expected improvement stayed above max(th_stop, th_stop_relative * |cost|), "
+    "the tolerance; pass throw=False to get the last iterate",
+    "regularization_exceeded": "the backward pass: Quu + reg I is not positive definite at reg = reg_max",
+    "nonfinite": "the derivatives of the dynamics or of the costs along the trajectory are not finite",
+}
 
-    successful = ""
-    max_iterations_reached = (
-        "the solver did not converge within max_iterations (the expected improvement stayed "
-        "above th_stop and th_stop_relative * |cost|); raise max_iterations, th_stop or "
-        "th_stop_relative, or pass throw=False"
-    )
-    regularization_exceeded = (
-        "the backward pass failed: Quu + reg I is not positive definite even with reg = reg_max"
-    )
-    nonfinite = "the derivatives of the dynamics or of the costs are not finite (NaN or inf)"
+
+def _failure_message(description: str, result: RESULTS) -> str:
+    """The error of a failed solve: the result's message and DDP's context for it."""
+    context = next((text for name, text in _CONTEXT.items() if bool(result == getattr(RESULTS, name))), None)
+    message = f"{description}: {RESULTS[result]}"
+    return message if context is None else f"{message} ({context})"
 
 
 class Trajectory(eqx.Module):
@@ -137,7 +139,9 @@ class Solution(eqx.Module):
 
     Attributes:
         value: the :class:`Trajectory` (states, controls, feedback gains).
-        result: a :class:`RESULTS` item (``RESULTS[solution.result]`` is its message).
+        result: a :class:`~rsmooth.RESULTS` item: ``successful``, ``max_iterations_reached``,
+            ``regularization_exceeded`` (the backward pass) or ``nonfinite`` (the derivatives);
+            ``RESULTS[solution.result]`` is its message.
         stats: ``iterations`` (int), ``converged`` (bool), ``cost`` (the true cost before the
             first and after each iteration, ``iterations + 1``), ``noise`` (the smoothing
             ``eps``: ``noise[i]`` is the one iteration ``i + 1`` uses; zeros for DDP),
@@ -726,7 +730,7 @@ def solve(
             bar.close()
     solution = solver.postprocess(state, times)
     if solver.throw and not bool(solution.result == RESULTS.successful):
-        raise RuntimeError(f"{description}: {RESULTS[solution.result]}")
+        raise RuntimeError(_failure_message(description, solution.result))
     return solution
 
 

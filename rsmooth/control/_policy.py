@@ -72,6 +72,7 @@ from jax.typing import ArrayLike
 
 from rsmooth import _checks
 from rsmooth import estimators as _estimators
+from rsmooth._results import RESULTS
 from rsmooth import schedules as _schedules
 from rsmooth.control._problem import ShootingProblem, check_initial_state
 from rsmooth.noise import Gaussian, Noise
@@ -420,6 +421,10 @@ class PolicySolution(eqx.Module):
         theta: the final parameters.
         cost: the true cost :math:`V` of the final parameters.
         xs, us: their rollout, ``(T + 1, nx)`` and ``(T, nu)``.
+        result: a :class:`~rsmooth.RESULTS` item: ``successful``, or ``nonfinite`` where the
+            final cost or a final parameter is NaN or infinite (the last step left the region
+            where the cost is defined; the earlier iterates are in ``stats["theta"]``). The
+            optimization runs a fixed number of iterations, so it has no other failure.
         stats: NumPy histories, one entry per iteration ``k = 0 .. N - 1`` (the iterate
             ``theta_k`` the step started from) unless said: ``theta`` (the parameters, a
             pytree with a leading axis ``N + 1``, the final ones last), ``cost`` (true cost,
@@ -434,6 +439,7 @@ class PolicySolution(eqx.Module):
     cost: Array
     xs: Array
     us: Array
+    result: RESULTS
     stats: dict
 
 
@@ -533,11 +539,14 @@ def optimize_policy(
         progress: show a `tqdm` progress bar.
 
     Returns:
-        A :class:`PolicySolution`.
+        A :class:`PolicySolution`; its ``result`` is ``RESULTS.nonfinite`` where the final
+        cost or parameters are not finite (check it: the solve does not raise for it).
 
     Raises:
         ValueError: on a ``theta`` of the wrong shapes or not finite, or a non-finite initial
             cost.
+        equinox's runtime error: where the cost or its gradient is not finite at a sampled
+            point of an iteration (the estimators' checks).
     """
     if not isinstance(solver, PolicyGradient):
         raise TypeError(f"solver must be a PolicyGradient, got {type(solver).__name__}")
@@ -592,4 +601,6 @@ def optimize_policy(
     stats["theta"] = jax.tree.map(lambda *leaves: np.stack([np.asarray(leaf) for leaf in leaves]), *thetas)
     stats["time_per_iteration"] = np.asarray(times)
     stats["total_time"] = float(np.sum(times))
-    return PolicySolution(theta=theta, cost=cost, xs=xs, us=us, stats=stats)
+    finite = np.isfinite(float(cost)) and all(bool(np.all(np.isfinite(np.asarray(leaf)))) for leaf in jax.tree.leaves(theta))
+    result = RESULTS.successful if finite else RESULTS.nonfinite
+    return PolicySolution(theta=theta, cost=cost, xs=xs, us=us, result=result, stats=stats)

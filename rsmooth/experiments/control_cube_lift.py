@@ -81,7 +81,7 @@ def build_problem(config: Config):
     """The system, the shooting problem and the target height (absolute, m). The target is a
     traced cost parameter: problems for other heights share the compiled solver steps."""
     system = sim.cube(wrench_components=(2,))
-    x0 = sim.cube_rest_state(system)
+    x0 = system.initial_state()
     target = float(x0[2]) + config.height
     params = {"target": jnp.asarray(target, x0.dtype)}
     problem = control.ShootingProblem(system, _running, _terminal, x0, config.horizon, params=params)

@@ -144,7 +144,7 @@ def build_problem(config: Config, system=None):
     standing posture are their traced ``params``: solving for another foot or height reuses
     the compiled solver steps."""
     system = sim.solo12() if system is None else system
-    x0 = sim.solo12_standing_state(system)
+    x0 = system.initial_state()
     u0 = sim.solo12_standing_torques(system, x0)
     feet0 = sim.solo12_foot_positions(system, x0)
     lifted = FEET.index(config.foot)

@@ -61,7 +61,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     """Runs the experiment, writes metrics.json and null_gradients.png under `out`."""
     out = Path(out)
     cube = sim.cube()
-    x0 = sim.cube_rest_state(cube)
+    x0 = cube.initial_state()
     mass = float(cube.model.body_mass[1])
     weight = mass * float(-cube.model.gravity[2])
     h = float(cube.time_step)

@@ -114,7 +114,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     out = Path(out)
     start = time.perf_counter()
     system = sim.solo12(body_contacts=config.body_contacts)
-    x0 = sim.solo12_standing_state(system)
+    x0 = system.initial_state()
     standing = sim.solo12_standing_torques(system, x0)
     perturbations = jnp.zeros((config.steps, system.nu))
     gains = config.gains()

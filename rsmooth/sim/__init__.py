@@ -70,9 +70,7 @@ from rsmooth.sim._systems import (
     pusher as pusher,
     pusher_start_state as pusher_start_state,
     cube as cube,
-    cube_rest_state as cube_rest_state,
     solo12 as solo12,
     solo12_foot_positions as solo12_foot_positions,
-    solo12_standing_state as solo12_standing_state,
     solo12_standing_torques as solo12_standing_torques,
 )

@@ -37,6 +37,7 @@ from jax.typing import ArrayLike
 
 from rsmooth import _xla
 from rsmooth._batching import once_if, run_where_needed
+from rsmooth._results import RESULTS
 from rsmooth._unrolled import sum_last
 
 Array = jax.Array
@@ -303,12 +304,20 @@ def ncp_residuals(G: Array, g: Array, mu: Array, impulse: Array) -> tuple[Array,
 class NCPInfo(eqx.Module):
     """Diagnostics of an NCP solve (no derivatives flow through them).
 
+    Its arrays, ``result``'s value included, are batched like the solve under `vmap` (and
+    stacked by a rollout's `scan`): ``info.result == RESULTS.successful`` and ``converged``
+    are then bool arrays of the batch's shape.
+
     Attributes:
         iterations: ADMM iterations used (0 if the warm start, the sticking guess or the
             polish already satisfied the tolerance).
         primal_feasibility, dual_feasibility, complementarity: the residuals of
             :func:`ncp_residuals` at the returned impulse.
-        converged: all three residuals ``<= tolerance``.
+        result: a :class:`~rsmooth.RESULTS` item: ``successful`` (all three residuals
+            ``<= tolerance``), ``max_iterations_reached`` (ADMM stopped at
+            ``max_iterations``; the impulse is the best iterate met) or ``nonfinite`` (the
+            impulse or a residual is NaN or infinite). A compliant contact law, which solves
+            no NCP, reports ``successful``.
         rho: the final ADMM penalty (0 where the starting impulse already solved the problem
             and ADMM did not run).
     """
@@ -317,8 +326,23 @@ class NCPInfo(eqx.Module):
     primal_feasibility: Array
     dual_feasibility: Array
     complementarity: Array
-    converged: Array
+    result: RESULTS
     rho: Array
+
+    @property
+    def converged(self) -> Array:
+        """Whether the solve succeeded (``result == RESULTS.successful``), a bool array."""
+        return self.result == RESULTS.successful
+
+
+def _ncp_result(converged: Array, impulse: Array, primal: Array, dual: Array, complementarity: Array) -> RESULTS:
+    """The :class:`~rsmooth.RESULTS` item of a solve that returns ``impulse`` with these
+    residuals: ``successful`` where they met the tolerance (``converged``), ``nonfinite``
+    where a value is not finite, else ``max_iterations_reached``."""
+    finite = jnp.all(jnp.isfinite(impulse)) & jnp.isfinite(primal) & jnp.isfinite(dual) & jnp.isfinite(complementarity)
+    return RESULTS.where(
+        converged, RESULTS.successful, RESULTS.where(finite, RESULTS.max_iterations_reached, RESULTS.nonfinite)
+    )
 
 
 class NCPState(eqx.Module):
@@ -616,8 +640,8 @@ class NCPSolver(eqx.Module):
     (absolute: impulse, velocity and impulse x velocity units), or ADMM reaches
     ``max_iterations``. ADMM returns the best iterate ``z`` it met (the smallest largest
     residual, the starting impulse included; every ``z`` is exactly in the cone): a capped
-    solve is never worse than its start, and ``NCPInfo.converged`` says whether the result is
-    a solution.
+    solve is never worse than its start, and ``NCPInfo.result`` says whether it is a solution
+    (``NCPInfo.converged`` is ``result == RESULTS.successful``).
 
     Where ``G`` is singular (more contact rows than the degrees of freedom they constrain: a
     box on four coplanar corners) the impulses are not unique and the start decides which
@@ -644,7 +668,7 @@ class NCPSolver(eqx.Module):
             derivative (see :func:`solve_ncp`).
         throw: raise (``equinox.error_if``) when the solve does not converge. Off by default:
             inside smoothed or batched rollouts one unconverged sample would abort the whole
-            batch; check ``info.converged`` instead.
+            batch; check ``info.result`` (or ``info.converged``) instead.
         sticking_guess: where the warm start (or zero) is not already a solution, try the
             impulse that makes every contact whose free normal velocity closes (``g_N < 0``)
             stick and leaves the others without impulse, ``P_K(-G_AA^{-1} g_A)`` on that active
@@ -743,7 +767,8 @@ class NCPSolver(eqx.Module):
             z = jnp.where(jnp.all(jnp.isfinite(z)), z, 0.0)
             primal, dual, complementarity = ncp_residuals(G, g, mu, z)
             converged = self._within_tolerance(primal, dual, complementarity)
-            return z, NCPInfo(jnp.zeros((), jnp.int32), primal, dual, complementarity, converged, jnp.zeros((), G.dtype))
+            result = _ncp_result(converged, z, primal, dual, complementarity)
+            return z, NCPInfo(jnp.zeros((), jnp.int32), primal, dual, complementarity, result, jnp.zeros((), G.dtype))
 
         if warm_start is None:
             given = jnp.zeros_like(g)
@@ -905,12 +930,13 @@ class NCPSolver(eqx.Module):
         """The best impulse (never worse than the one the iterations started from) and the
         diagnostics at it."""
         primal, dual, complementarity = state.best_residuals
+        converged = self._residuals_within_tolerance(state)
         info = NCPInfo(
             iterations=state.iteration,
             primal_feasibility=primal,
             dual_feasibility=dual,
             complementarity=complementarity,
-            converged=self._residuals_within_tolerance(state),
+            result=_ncp_result(converged, state.best, primal, dual, complementarity),
             rho=state.rho,
         )
         return state.best, info
@@ -1038,8 +1064,9 @@ def solve_ncp(
             moved = last - _natural_map(last, G, g, mu, fixed_point_step_sizes(G, mu.shape[0]))
             candidate, primal, dual, complementarity, solved = solver.polished(G, g, mu, jnp.where(round_ == 0, impulse, moved))
             solved = solved & ~info.converged
-            result = NCPInfo(info.iterations, primal, dual, complementarity, solved, info.rho)
-            info = jax.tree.map(lambda a, b: jnp.where(solved, a, b), result, info)
+            # kept only where solved: a successful solve
+            polished = NCPInfo(info.iterations, primal, dual, complementarity, RESULTS.successful, info.rho)
+            info = jax.tree.map(lambda a, b: jnp.where(solved, a, b), polished, info)
             return round_ + 1, info.converged, (jnp.where(solved, candidate, impulse), info), candidate
 
         return lax.while_loop(lambda c: ~c[1] & (c[0] < solver.polish_rounds), polish_round, carry)
@@ -1070,7 +1097,7 @@ def solve_ncp(
     impulse, info = carry[2]
     if solver.throw:
         impulse = eqx.error_if(
-            impulse, ~info.converged, "NCP solver did not converge within max_iterations."
+            impulse, ~info.converged, "NCP solver did not converge within max_iterations, or its impulse is not finite (NCPInfo.result).",
         )
     impulse = _with_implicit_derivative(solver.implicit_regularization, impulse, G, g, mu)
     return impulse, info

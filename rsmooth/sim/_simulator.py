@@ -71,6 +71,7 @@ import numpy as np
 from jax.typing import ArrayLike
 
 from rsmooth import _checks
+from rsmooth._results import RESULTS
 from rsmooth.sim import _derivatives, _dynamics
 from rsmooth.sim import _spatial as spatial
 from rsmooth.sim._contact import (
@@ -104,7 +105,9 @@ class StepInfo(eqx.Module):
         distance: signed distances of the candidate contacts at the start of the step, ``(n,)``.
         impulse: contact impulses ``[t1, t2, n]`` per contact, ``(3 n,)``.
         ncp: the :class:`~rsmooth.sim.NCPInfo` of the contact solve (hard contact; for a
-            compliant law it reports zero iterations and ``converged = True``).
+            compliant law it reports zero iterations and ``RESULTS.successful``): its
+            ``result`` is ``nonfinite`` where the contact problem itself was not finite
+            (a step from an already diverged state).
         torque_clipped: whether an input was beyond its limit and was clipped.
         force: the contact forces in world axes, ``(n, 3)``: the impulses over the step, divided
             by ``h`` (the force on the sphere's body).
@@ -155,8 +158,10 @@ class _VelocityUpdate(NamedTuple):
 class RigidBodySystem(eqx.Module):
     """A kinematic tree with sphere contacts against half-spaces, stepped in time.
 
-    Build one with the factories :func:`~rsmooth.sim.cube`, :func:`~rsmooth.sim.ball_wall`,
-    :func:`~rsmooth.sim.solo12` (or directly, for a new robot).
+    Build one with the factories :func:`~rsmooth.sim.cube`, :func:`~rsmooth.sim.box`,
+    :func:`~rsmooth.sim.ball`, :func:`~rsmooth.sim.ball_wall`, :func:`~rsmooth.sim.pusher`,
+    :func:`~rsmooth.sim.solo12` (or directly, for a new robot); :meth:`initial_state` is the
+    state each factory defines as the start.
 
     The input ``u`` is mapped to generalized forces in one of two ways (``actuation``):
 
@@ -197,6 +202,9 @@ class RigidBodySystem(eqx.Module):
             terms otherwise let grow until the step diverges.
         max_motion_per_step: bound on ``|v+| h`` (rad or m) beyond which a step is reported
             as diverged (static; ``inf`` reports only non-finite states).
+        initial_configuration: the configuration ``q`` ``(nq,)`` that :meth:`initial_state`
+            starts from, set by each factory (e.g. a cube resting on its floor); ``None``: the
+            model's neutral configuration.
         derivative: how ``step`` is differentiated with hard contact (static).
             ``"implicit"`` (default): the implicit function theorem on the step's own
             equations, momentum balance ``M (v+ - v) + h (b - tau) - Jᵀ lambda = 0`` and the
@@ -233,9 +241,14 @@ class RigidBodySystem(eqx.Module):
     derivative: str = eqx.field(static=True, default="implicit")
     joint_damping: Array | None = None
     max_motion_per_step: float = eqx.field(static=True, default=1.0)
+    initial_configuration: Array | None = None
 
     def __check_init__(self):
         num_spheres, num_planes = len(self.sphere_frames), self.plane_normals.shape[0]
+        if self.initial_configuration is not None and jnp.shape(self.initial_configuration) != (self.model.nq,):
+            raise ValueError(
+                f"initial_configuration must have shape (nq,) = ({self.model.nq},), got {jnp.shape(self.initial_configuration)}"
+            )
         if self.joint_damping is not None:
             if self.joint_damping.shape != (self.model.nv,):
                 raise ValueError(f"joint_damping must have shape ({self.model.nv},), got {self.joint_damping.shape}")
@@ -309,6 +322,30 @@ class RigidBodySystem(eqx.Module):
         v = jnp.zeros(q.shape[:-1] + (self.model.nv,), q.dtype) if v is None else jnp.asarray(v)
         return jnp.concatenate([q, v], axis=-1)
 
+    def initial_state(self) -> Array:
+        """The state the system starts from: :attr:`initial_configuration` at zero velocity.
+
+        Each factory of :mod:`rsmooth.sim` stores the configuration its docstring describes
+        (a body resting on its first half-space, the pusher's finger behind the box, Solo-12
+        standing), so every system gives its default start the same way. Without one it is
+        the model's neutral configuration: zero joint positions, free flyers at the origin
+        with the identity orientation.
+
+        Returns:
+            The state ``[q, 0]``, shape ``(nx,)``.
+
+        Example:
+            >>> import rsmooth.sim as sim
+            >>> [round(float(v), 3) for v in sim.cube().initial_state()[:7]]
+            [0.0, 0.0, 0.1, 0.0, 0.0, 0.0, 1.0]
+        """
+        if self.initial_configuration is not None:
+            return self.state(self.initial_configuration)
+        q = np.zeros(self.model.nq)
+        for joint in _dynamics._tree(self.model).free_flyer:
+            q[int(self.model.idx_q[joint]) + 6] = 1.0  # quaternion [x, y, z, w] = identity
+        return self.state(jnp.asarray(q, self.time_step.dtype))
+
     def project_state(self, x: ArrayLike) -> Array:
         """The state with every free flyer's quaternion scaled to unit norm (the rest as is).
 
@@ -321,7 +358,7 @@ class RigidBodySystem(eqx.Module):
         Example:
             >>> import rsmooth.sim as sim
             >>> system = sim.cube()
-            >>> x = sim.cube_rest_state(system).at[3:7].multiply(2.0)  # a quaternion of norm 2
+            >>> x = system.initial_state().at[3:7].multiply(2.0)  # a quaternion of norm 2
             >>> float(jnp.linalg.norm(system.project_state(x)[3:7]))
             1.0
         """
@@ -549,12 +586,12 @@ class RigidBodySystem(eqx.Module):
                 jnp.where(broken, 0.0, free_velocity), mu, solver=self.solver, warm_start=warm_start,
             )
             impulse = jnp.where(broken, jnp.nan, impulse)
-            ncp = eqx.tree_at(lambda info: info.converged, ncp, ncp.converged & ~broken)
+            ncp = eqx.tree_at(lambda info: info.result, ncp, RESULTS.where(broken, RESULTS.nonfinite, ncp.result))
         else:
             free_velocity = jacobian @ v_free
             impulse = self._compliant_impulse(distance, free_velocity, delassus, h)
             zero = jnp.zeros((), distance.dtype)
-            ncp = NCPInfo(jnp.zeros((), jnp.int32), zero, zero, zero, jnp.ones((), bool), zero)
+            ncp = NCPInfo(jnp.zeros((), jnp.int32), zero, zero, zero, RESULTS.successful, zero)
         v_next = v_free + jax.scipy.linalg.solve_triangular(factor[0], half @ impulse, lower=True, trans="T")
         return _VelocityUpdate(
             v_next, impulse, distance, ncp, clipped, factor, jacobian, delassus, free_velocity, mu, kinematics, inertias,
@@ -632,7 +669,7 @@ class RigidBodySystem(eqx.Module):
         finite instead of turning into NaN (or a runtime error) several steps later.
 
         Every step's contact solve and divergence are in the returned ``infos``
-        (``infos.ncp.converged``, ``infos.diverged``): :func:`check_steps` counts them and warns;
+        (``infos.ncp.result``, ``infos.diverged``): :func:`check_steps` counts them and warns;
         ``throw=True`` raises (an ``equinox`` runtime error) where any step diverged or left its
         contact solve unconverged."""
         x0, us = jnp.asarray(x0), jnp.asarray(us)
@@ -656,7 +693,7 @@ class RigidBodySystem(eqx.Module):
         if throw:
             xs = eqx.error_if(
                 xs, jnp.any(infos.diverged) | ~jnp.all(infos.ncp.converged),
-                "the rollout has a diverged step or an unconverged contact solve (infos.diverged, infos.ncp.converged)",
+                "the rollout has a diverged step or an unconverged contact solve (infos.diverged, infos.ncp.result)",
             )
         return xs, infos
 
@@ -846,31 +883,43 @@ class SimulationWarning(UserWarning):
 
 
 def check_steps(infos: StepInfo, *, what: str = "the simulation") -> dict[str, int]:
-    """Counts the steps whose contact solve did not converge and those that diverged, and
+    """Counts the steps whose contact solve did not succeed and those that diverged, and
     warns (:class:`SimulationWarning`) if there is any.
 
     Host-side, on concrete diagnostics (e.g. the ``infos`` of :meth:`RigidBodySystem.rollout`,
     any batch shape): the experiments call it on their rollouts, so that such steps are never
-    silent. Use ``warnings.simplefilter("error", SimulationWarning)`` to make them errors.
+    silent. The warning gives, for each unsuccessful :class:`~rsmooth.RESULTS` item of
+    ``infos.ncp.result``, its count and message. Use
+    ``warnings.simplefilter("error", SimulationWarning)`` to make them errors.
 
     Args:
         infos: a :class:`StepInfo` with leading axes (steps, samples, ...).
         what: the name of the simulation, for the message.
 
     Returns:
-        ``{"steps", "unconverged_steps", "diverged_steps"}``.
+        ``{"steps", "unconverged_steps", "diverged_steps"}``: ``unconverged_steps`` counts
+        the contact solves whose result is not ``RESULTS.successful``.
     """
-    converged = np.asarray(infos.ncp.converged)
+    result = infos.ncp.result
     diverged = np.asarray(infos.diverged)
+    failures = {
+        name: int(np.sum(np.asarray(result == getattr(RESULTS, name))))
+        for name in ("max_iterations_reached", "nonfinite")
+    }
+    successful = np.asarray(result == RESULTS.successful)
     counts = {
-        "steps": int(converged.size),
-        "unconverged_steps": int(np.sum(~converged)),
+        "steps": int(successful.size),
+        "unconverged_steps": int(np.sum(~successful)),
         "diverged_steps": int(np.sum(diverged)),
     }
     if counts["unconverged_steps"] or counts["diverged_steps"]:
+        reasons = "".join(
+            f"; {count} {name}: {RESULTS[getattr(RESULTS, name)]}" for name, count in failures.items() if count
+        )
         warnings.warn(
             f"{what}: {counts['unconverged_steps']} of {counts['steps']} steps left the contact solve "
-            f"unconverged and {counts['diverged_steps']} diverged (StepInfo.ncp, StepInfo.diverged)",
+            f"unconverged and {counts['diverged_steps']} diverged (StepInfo.ncp.result, StepInfo.diverged)"
+            f"{reasons}",
             SimulationWarning,
             stacklevel=2,
         )

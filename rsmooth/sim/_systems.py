@@ -2,7 +2,8 @@
 pushing a box, the Solo-12 quadruped.
 
 Each factory returns a :class:`~rsmooth.sim.RigidBodySystem` (a ``Dynamics``: ``step(x, u)``,
-``nx``, ``nu``) and each system has a resting state to start from.
+``nx``, ``nu``) that stores the configuration its docstring describes as the start, so that
+``system.initial_state()`` gives every system's default initial state (at zero velocity).
 """
 
 from __future__ import annotations
@@ -33,10 +34,8 @@ __all__ = [
     "cube",
     "pusher",
     "pusher_start_state",
-    "cube_rest_state",
     "solo12",
     "solo12_foot_positions",
-    "solo12_standing_state",
     "solo12_standing_torques",
 ]
 
@@ -134,9 +133,23 @@ def _gravity(gravity) -> np.ndarray:
     return vector
 
 
-def _free_body_system(model, name, offsets, radii, planes, friction, time_step, contact, solver, baumgarte, wrench_components):
+def _resting_configuration(normal: np.ndarray, offset: float, height: float) -> np.ndarray:
+    """The free-flyer configuration ``[p, quaternion]`` ``(7,)`` of a body resting on the
+    half-space ``{p : n . p >= offset}`` (``n`` unit): its centre ``height`` above the plane's
+    point nearest the origin, its ``z`` axis along ``n`` (the shortest rotation from ``e_z``), so
+    that the body's ``-z`` side faces the plane."""
+    normal = np.asarray(normal, dtype=np.float64)
+    if normal[2] > -1.0 + 1e-12:
+        quaternion = np.array([-normal[1], normal[0], 0.0, 1.0 + normal[2]])  # [e_z x n, 1 + e_z . n]
+    else:
+        quaternion = np.array([1.0, 0.0, 0.0, 0.0])  # upside down: half a turn about x
+    return np.concatenate([(float(offset) + height) * normal, quaternion / np.linalg.norm(quaternion)]) + 0.0  # no -0
+
+
+def _free_body_system(model, name, offsets, radii, planes, friction, time_step, contact, solver, baumgarte, wrench_components, height):
     """A free body whose spheres (``offsets`` in its frame, ``radii``) touch half-spaces, driven by
-    a wrench at its centre of mass."""
+    a wrench at its centre of mass, starting at rest on the first half-space with its centre
+    ``height`` above it."""
     normals, plane_offsets, mu = _planes(planes, friction)
     if not isinstance(contact, str) or contact == "hard":
         law = _as_contact(contact, 0.0)
@@ -161,6 +174,7 @@ def _free_body_system(model, name, offsets, radii, planes, friction, time_step, 
         wrench_frame=model.frame_id(name),
         wrench_components=tuple(int(c) for c in wrench_components),
         input_limit=jnp.full(len(wrench_components), jnp.inf),
+        initial_configuration=jnp.asarray(_resting_configuration(normals[0], plane_offsets[0], height)),
     )
 
 
@@ -182,7 +196,9 @@ def box(
 
     Its eight corners are point contacts with every half-space ``{p : n . p >= offset}``. The
     input is a wrench ``u = [fx, fy, fz, tx, ty, tz]`` in world axes at the centre of mass, or
-    the components listed in ``wrench_components``; ``nx = 13``.
+    the components listed in ``wrench_components``; ``nx = 13``. ``initial_state()``: the box
+    at rest on the first half-space, its ``-z`` face flat on it (its ``z`` axis along the
+    plane's normal), centred above the plane's point nearest the origin.
 
     Args:
         half_extents: half side lengths ``(3,)`` (m), positive.
@@ -219,7 +235,8 @@ def box(
     model = free_body(mass, inertia, name=name, gravity=_gravity(gravity))
     corners = np.array(list(itertools.product((-1.0, 1.0), repeat=3))) * extents
     return _free_body_system(
-        model, name, corners, np.zeros(8), planes, friction, time_step, contact, solver, baumgarte, wrench_components
+        model, name, corners, np.zeros(8), planes, friction, time_step, contact, solver, baumgarte, wrench_components,
+        height=extents[2],
     )
 
 
@@ -237,7 +254,9 @@ def ball(
     name: str = "ball",
 ) -> RigidBodySystem:
     """A solid ball among half-spaces, pushed by a force ``u = [fx, fy, fz]`` (world axes) at its
-    centre; ``nx = 13``, ``nu = 3``.
+    centre; ``nx = 13``, ``nu = 3``. ``initial_state()``: the ball at rest on the first
+    half-space, above the plane's point nearest the origin (on the default floor: at
+    ``(0, 0, radius)``).
 
     Args:
         radius: radius (m).
@@ -251,7 +270,8 @@ def ball(
     radius, mass = _number("radius", radius), _number("mass", mass)
     model = free_body(mass, np.full(3, 0.4 * mass * radius**2), name=name, gravity=_gravity(gravity))
     return _free_body_system(
-        model, name, np.zeros((1, 3)), np.array([radius]), planes, friction, time_step, contact, solver, baumgarte, (0, 1, 2)
+        model, name, np.zeros((1, 3)), np.array([radius]), planes, friction, time_step, contact, solver, baumgarte, (0, 1, 2),
+        height=radius,
     )
 
 
@@ -290,7 +310,7 @@ def cube(
         wrench_components: indices into ``[fx, fy, fz, tx, ty, tz]`` of the inputs.
 
     Returns:
-        The system; :func:`cube_rest_state` gives its resting state.
+        The system; ``initial_state()`` is the cube resting flat on the floor at the origin.
 
     Raises:
         ValueError: ``side``, ``mass`` or ``time_step`` is not positive and finite, or
@@ -305,12 +325,6 @@ def cube(
         half_extents=(side / 2,) * 3, mass=mass, friction=friction, time_step=time_step, contact=contact,
         solver=solver, baumgarte=baumgarte, wrench_components=wrench_components, name="cube",
     )
-
-
-def cube_rest_state(system: RigidBodySystem) -> jax.Array:
-    """The cube resting flat on the floor at the origin, at zero velocity, shape ``(13,)``."""
-    half_side = float(jnp.max(system.sphere_offsets[:, 2]))
-    return jnp.array([0.0, 0.0, half_side, 0.0, 0.0, 0.0, 1.0] + [0.0] * 6)
 
 
 def ball_wall(
@@ -331,6 +345,8 @@ def ball_wall(
     position is discontinuous in the throw, the geometric discontinuity smoothing has to
     deal with. The input is a force ``u = [fx, fy, fz]`` in world axes at the centre
     (``nu = 3``; a throw is a large force during the first step), ``nx = 13``.
+    ``initial_state()``: the ball at rest on the floor at ``(0, 0, radius)``, its centre
+    ``wall_distance`` from the wall.
 
     Args:
         radius: ball radius (m).
@@ -430,7 +446,8 @@ def pusher(
         baumgarte: penetration correction rate (hard contact).
 
     Returns:
-        The system; :func:`pusher_start_state` places the finger behind the box.
+        The system; ``initial_state()`` is :func:`pusher_start_state`'s default: the box at
+        rest at the origin, the finger 5 cm behind its ``-x`` face.
 
     Raises:
         ValueError: a size or mass is not positive and finite, a friction coefficient is
@@ -470,16 +487,31 @@ def pusher(
         box_half_extents=jnp.full(3, box_side / 2),
         box_spheres=(8,),
         box_friction=float(finger_friction),
+        initial_configuration=jnp.asarray(_pusher_configuration(box_side / 2, finger_radius, 0.05, 0.0)),
     )
 
 
+def _pusher_configuration(half: float, radius: float, finger_gap: float, finger_y: float) -> np.ndarray:
+    """The pusher's box at rest on the floor at the origin and its finger ``finger_gap``
+    behind the box's ``-x`` face, ``finger_y`` along it: ``q`` ``(9,)``."""
+    return np.array([0.0, 0.0, half, 0.0, 0.0, 0.0, 1.0, -(half + radius + finger_gap), finger_y])
+
+
 def pusher_start_state(system: RigidBodySystem, *, finger_gap: float = 0.05, finger_y: float = 0.0) -> jax.Array:
-    """Box at rest on the floor at the origin, finger ``finger_gap`` behind its ``-x`` face
-    (offset ``finger_y`` along the face), all at rest; shape ``(17,)``."""
+    """A :func:`pusher` start with the finger placed elsewhere than ``system.initial_state()``.
+
+    Args:
+        system: a :func:`pusher` system.
+        finger_gap: the distance (m) from the finger's surface to the box's ``-x`` face.
+        finger_y: the finger's offset (m) along that face.
+
+    Returns:
+        The box at rest on the floor at the origin and the finger at rest behind it, shape
+        ``(17,)``; with the default arguments, ``system.initial_state()``.
+    """
     half = float(system.box_half_extents[0])
     radius = float(system.sphere_radii[system.box_spheres[0]])
-    q = jnp.array([0.0, 0.0, half, 0.0, 0.0, 0.0, 1.0, -(half + radius + finger_gap), finger_y])
-    return system.state(q)
+    return system.state(jnp.asarray(_pusher_configuration(half, radius, finger_gap, finger_y)))
 
 
 def solo12(
@@ -528,8 +560,8 @@ def solo12(
             solved in every step: costlier, and not needed while the robot stands).
 
     Returns:
-        The system; :func:`solo12_standing_state` and :func:`solo12_standing_torques` give a
-        posture that holds still.
+        The system; ``initial_state()`` is the SRDF's standing posture with the base lowered
+        until the feet touch the floor, which :func:`solo12_standing_torques` holds still.
 
     Raises:
         ValueError: ``time_step`` is not positive and finite, ``torque_limit`` is not
@@ -557,7 +589,7 @@ def solo12(
             centres.append(np.zeros(3))
             radii.append(SOLO12_KNEE_RADIUS)
     normals, offsets, mu = _planes([FLOOR], friction)
-    return RigidBodySystem(
+    fields = dict(
         model=model,
         sphere_frames=tuple(frames),
         sphere_offsets=jnp.asarray(np.stack(centres)),
@@ -576,20 +608,17 @@ def solo12(
         input_limit=jnp.full(model.nv - 6, float(torque_limit)),
         joint_damping=jnp.zeros(model.nv).at[6:].set(float(joint_damping)),
     )
+    # The start: the SRDF's standing posture, lowered until the lowest contact sphere (a foot)
+    # touches the floor.
+    q = np.array(solo12_standing_configuration(model))
+    distance, _, _ = _contacts(RigidBodySystem(**fields), jnp.asarray(q))
+    q[2] -= float(jnp.min(distance))
+    return RigidBodySystem(**fields, initial_configuration=jnp.asarray(q))
 
 
 # Jitted so that set-up code calling it eagerly compiles one program instead of dispatching
 # (and compiling) the kinematics' few hundred small operations one by one.
 _contacts = eqx.filter_jit(lambda system, q: system.contacts(q))
-
-
-def solo12_standing_state(system: RigidBodySystem) -> jax.Array:
-    """The SRDF's standing posture, base lowered so that the feet just touch the floor,
-    at zero velocity, shape ``(37,)``."""
-    q = np.array(solo12_standing_configuration(system.model))
-    distance, _, _ = _contacts(system, jnp.asarray(q))
-    q[2] -= float(jnp.min(distance))
-    return system.state(jnp.asarray(q))
 
 
 @eqx.filter_jit
@@ -613,7 +642,7 @@ def solo12_standing_torques(system: RigidBodySystem, x: jax.Array) -> jax.Array:
 
     Args:
         system: a :func:`solo12` system.
-        x: a state with the feet on the floor (e.g. :func:`solo12_standing_state`).
+        x: a state with the feet on the floor (e.g. ``system.initial_state()``).
 
     Returns:
         Torques, shape ``(12,)``.

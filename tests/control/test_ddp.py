@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from control_systems import Linear, linear_quadratic, pendulum_swing_up, riccati
 
+import rsmooth
 from rsmooth import control
 
 
@@ -178,6 +179,8 @@ def test_callback_progress_and_throw(pendulum):
     assert {"cost", "noise", "step_size", "regularization", "expected_improvement", "time"} <= set(seen[0])
     solution = control.ddp(pendulum, solver=control.DDP(max_iterations=3, throw=False))
     assert solution.result == control.RESULTS.max_iterations_reached and not solution.converged
+    # one enumeration for every solver of rsmooth, its message generic and DDP's error specific
+    assert control.RESULTS is rsmooth.RESULTS and "max_iterations" in control.RESULTS[solution.result]
 
 
 def test_bad_input_raises_named_errors(pendulum):

@@ -151,6 +151,7 @@ def test_optimize_policy_decreases_a_smooth_cost_and_records_its_histories(getke
     best = stats["cost"][0] - 0.5 * g @ np.linalg.solve(hessian, g)
     assert stats["cost"][-1] - best < 0.05 * (stats["cost"][0] - best)
     assert stats["cost"][-1] == float(solution.cost)
+    assert bool(solution.result == control.RESULTS.successful)
     np.testing.assert_allclose(stats["sigma"], 0.1 * 0.9 ** np.arange(30), rtol=1e-12)
     # On a quadratic the first-order samples vary by H sigma w only, far less than the score
     # function's: alpha* = var_0 / (var_0 + var_1) is close to 1. The trust region rejects
@@ -163,6 +164,31 @@ def test_optimize_policy_decreases_a_smooth_cost_and_records_its_histories(getke
     again = control.optimize_policy(LINEAR, OPEN_LOOP, jax.random.key(0), OPEN_LOOP.init(), solver=solver)
     twice = control.optimize_policy(LINEAR, OPEN_LOOP, jax.random.key(0), OPEN_LOOP.init(), solver=solver)
     np.testing.assert_array_equal(again.stats["theta"], twice.stats["theta"])
+
+
+class Integrator:
+    nx, nu = 1, 1
+
+    def step(self, x, u):
+        return x + u
+
+
+def _undefined_beyond_half(x):
+    return jnp.sum(jnp.where(x > 0.5, jnp.nan, (x - 1.0) ** 2))
+
+
+def test_optimize_policy_reports_a_nonfinite_result():
+    """The cost is NaN beyond x = 0.5 and Adam's first step (about the learning rate, 1) goes
+    there from theta = 0: the final cost is not finite, which the result reports (and the next
+    iteration's estimate, at NaN samples, raises)."""
+    problem = control.ShootingProblem(Integrator(), lambda x, u: jnp.zeros(()), _undefined_beyond_half, jnp.zeros(1), 1)
+    policy = control.OpenLoop(horizon=1, nu=1)
+    solver = control.PolicyGradient(estimator="first", sigma=0.01, num_samples=4, learning_rate=1.0, iterations=1)
+    solution = control.optimize_policy(problem, policy, jax.random.key(0), policy.init(), solver=solver)
+    assert bool(solution.result == control.RESULTS.nonfinite) and not np.isfinite(float(solution.cost))
+    assert np.isfinite(solution.stats["cost"][0])
+    with pytest.raises(Exception, match="non-finite"):
+        control.optimize_policy(problem, policy, jax.random.key(0), policy.init(), solver=dataclasses.replace(solver, iterations=2))
 
 
 TRACES = []

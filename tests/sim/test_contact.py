@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from rsmooth import RESULTS
 from rsmooth.sim import _contact
 from rsmooth.sim._contact import (
     LogBarrier,
@@ -669,6 +670,21 @@ def test_throw_on_non_convergence():
         jax.block_until_ready(
             eqx.filter_jit(solve_ncp)(G, g, mu, solver=NCPSolver(max_iterations=1, throw=True))
         )
+
+
+def test_result_of_batched_solves():
+    """Under jit and vmap, NCPInfo.result is batched: a problem its start solves (a separating
+    contact: zero impulse) is successful, one that ADMM capped at one iteration cannot solve
+    reports max_iterations_reached, with its message; converged follows the result."""
+    G = jnp.stack([jnp.eye(3)] * 2)
+    g, mu = jnp.array([[0.0, 0.0, 1.0], [1.0, 0.0, -1.0]]), jnp.array([[0.5], [0.5]])
+    capped = NCPSolver(max_iterations=1)
+    _, info = jax.jit(jax.vmap(lambda G, g, mu: solve_ncp(G, g, mu, solver=capped)))(G, g, mu)
+    np.testing.assert_array_equal(info.result == RESULTS.successful, [True, False])
+    np.testing.assert_array_equal(info.result == RESULTS.max_iterations_reached, [False, True])
+    np.testing.assert_array_equal(info.converged, [True, False])
+    second = jax.tree.map(lambda leaf: leaf[1], info)
+    assert "max_iterations" in RESULTS[second.result]
 
 
 # ----------------------------------------------------------------------------- compliant models

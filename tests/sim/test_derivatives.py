@@ -25,7 +25,7 @@ def _solo_state(seed: int, spread: float):
     """Solo-12 near (spread small) or far from its standing posture (unit quaternion), with
     torques."""
     solo = _solo()
-    x = sim.solo12_standing_state(solo)
+    x = solo.initial_state()
     keys = jax.random.split(jax.random.key(seed), 3)
     q_noise = spread * jax.random.normal(keys[0], (19,))
     v_noise = 10 * spread * jax.random.normal(keys[1], (18,))
@@ -39,7 +39,7 @@ def _pusher_state(seed: int, spread: float):
     corners): a system the closed form supports."""
     full = sim.pusher()
     pusher = dataclasses.replace(full, box_spheres=())
-    x = sim.pusher_start_state(full)
+    x = full.initial_state()
     x = x + spread * jax.random.normal(jax.random.key(seed), x.shape)
     x = x.at[3:7].set(x[3:7] / jnp.linalg.norm(x[3:7])).at[2].set(0.099)  # corners 1 mm into the floor
     return pusher, x, jnp.array([3.0, -1.0])

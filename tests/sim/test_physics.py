@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rsmooth import sim
+from rsmooth import RESULTS, sim
 from rsmooth.sim import _spatial
 
 GRAVITY = 9.81
@@ -117,7 +117,7 @@ def test_box_slides_without_rocking_and_stops_where_coulomb_says(friction):
     # v0^2 / (2 mu g) - h v0 / 2 to within one step's h v0.
     v0, h = 2.0, 0.01
     system = sim.box(friction=friction)
-    x0 = sim.cube_rest_state(system).at[7].set(v0)
+    x0 = system.initial_state().at[7].set(v0)
     steps = 120 if friction > 0.2 else 10
     xs, infos = _rollout(system, x0, jnp.zeros((steps, 6)))
     assert bool(jnp.all(infos.ncp.converged))
@@ -152,7 +152,7 @@ def test_box_slides_without_rocking_and_stops_where_coulomb_says(friction):
 @pytest.mark.parametrize("friction", [0.5, 0.8, 1.0])
 def test_box_sticks_below_the_coulomb_threshold_and_slides_above(friction):
     system = sim.box(friction=friction)
-    x0 = sim.cube_rest_state(system)
+    x0 = system.initial_state()
     threshold = friction * GRAVITY  # 1 kg
     step = jax.jit(lambda x, u: system.step_with_info(x, u))
     for scale, sticks in ((0.95, True), (1.05, False)):
@@ -177,7 +177,7 @@ def test_derivative_at_zero_distance_is_the_touching_side():
     # derivative of the touching side (phi <= 0: Baumgarte, dz+/dz = 1 - beta), the same as an
     # infinitesimal penetration's; a gap closes within the step (dz+/dz = 0).
     cube = sim.cube()
-    x0 = sim.cube_rest_state(cube)
+    x0 = cube.initial_state()
 
     def height(z):
         return cube.step(x0.at[2].set(z), jnp.zeros(6))[2]
@@ -199,7 +199,7 @@ def test_contact_solve_never_returns_worse_than_its_start():
     # A sliding box's contact problem on four corners, its impulses not unique: from a warm
     # start, a capped solve returns the best impulse it saw, never a worse one.
     system = sim.box(friction=0.8)
-    x = sim.cube_rest_state(system).at[7].set(2.0)
+    x = system.initial_state().at[7].set(2.0)
     G, g, mu = _contact_problem(system, x)
     exact, info = sim.solve_ncp(G, g, mu, solver=system.solver)
     assert bool(info.converged)
@@ -214,7 +214,7 @@ def test_contact_solve_never_returns_worse_than_its_start():
 
 def test_default_tolerance_is_reachable_in_float32():
     system = sim.cube()
-    x = sim.cube_rest_state(system).at[7].set(1.0)
+    x = system.initial_state().at[7].set(1.0)
     G, g, mu, jacobian = _contact_problem(system, x, with_jacobian=True)
     problem = [a.astype(jnp.float32) for a in (G, g, mu)]
     solver = sim.NCPSolver()
@@ -232,9 +232,9 @@ def test_unconverged_solves_and_divergence_are_reported():
     # A solver capped at 2 iterations cannot solve a sliding box's problems: every such step is
     # reported, by check_steps (a warning) and by rollout(throw=True) (an error).
     capped = sim.cube(friction=0.8, solver=sim.NCPSolver(max_iterations=2))
-    x0 = sim.cube_rest_state(capped).at[7].set(2.0)
+    x0 = capped.initial_state().at[7].set(2.0)
     xs, infos = _rollout(capped, x0, jnp.zeros((3, 6)))
-    with pytest.warns(sim.SimulationWarning, match="of 3 steps left the contact solve unconverged"):
+    with pytest.warns(sim.SimulationWarning, match="of 3 steps left the contact solve unconverged.*max_iterations_reached: "):
         counts = sim.check_steps(infos, what="the capped box")
     assert counts["unconverged_steps"] > 0 and counts["diverged_steps"] == 0
     with pytest.raises(Exception, match="unconverged contact solve"):
@@ -248,9 +248,10 @@ def test_unconverged_solves_and_divergence_are_reported():
     # A state far beyond float64's resolution of the world-frame inertias (1e7 m) gives no
     # finite step: reported as diverged and unconverged, and step() raises instead of
     # returning NaN.
-    far = sim.cube_rest_state(good).at[0].set(1e7)
+    far = good.initial_state().at[0].set(1e7)
     _, infos = _rollout(good, far, jnp.zeros((3, 6)))
     assert bool(infos.diverged[0]) and not bool(infos.ncp.converged[0])
+    assert bool((infos.ncp.result == RESULTS.nonfinite)[0])
     with pytest.raises(Exception, match="the step diverged"):
         eqx.filter_jit(lambda s, a, b: s.step(a, b))(good, far, jnp.zeros(6))
 
@@ -265,7 +266,7 @@ def test_thrown_spinning_solo12_keeps_its_centroidal_momentum_to_first_order_in_
     system = sim.solo12(armature=0.0)
     rng = np.random.default_rng(0)
     v0 = np.r_[1.0, 0.5, 0.2, 2.0, -1.0, 3.0, rng.uniform(-5.0, 5.0, 12)]
-    x0 = sim.solo12_standing_state(system).at[2].add(1.0).at[19:].set(v0)
+    x0 = system.initial_state().at[2].add(1.0).at[19:].set(v0)
     system = eqx.tree_at(lambda s: s.model.gravity, system, jnp.zeros(3))
     system = eqx.tree_at(lambda s: s.plane_offsets, system, system.plane_offsets - 100.0)
     pin_model = pin.buildModelFromUrdf(str(sim.solo12_urdf_path()), pin.JointModelFreeFlyer())
@@ -329,7 +330,7 @@ def test_scenes_agree_with_mujoco():
         box = f'<geom type="box" size=".1 .1 .1" mass="1" friction="{friction} 0 0"/>'
         qpos, qvel = mujoco_run(box, friction, 2.0, 0.01, 1.0)
         system = sim.cube(friction=friction)
-        xs, _ = _rollout(system, sim.cube_rest_state(system).at[7].set(2.0), jnp.zeros((100, 6)))
+        xs, _ = _rollout(system, system.initial_state().at[7].set(2.0), jnp.zeros((100, 6)))
         np.testing.assert_allclose(xs[-1, 0], qpos[0], rtol=5e-3)  # slide distance
         np.testing.assert_allclose(xs[-1, 2], qpos[2], atol=2e-4)  # rest height
         np.testing.assert_allclose(qvel[:3], 0.0, atol=1e-6)

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rsmooth import sim
+from rsmooth import RESULTS, sim
 
 GRAVITY = 9.81
 
@@ -41,7 +41,7 @@ def _energies(system, xs):
 
 def test_resting_cube_stays_at_rest():
     cube = _cube()
-    x = sim.cube_rest_state(cube)
+    x = cube.initial_state()
     step = jax.jit(lambda a, b, solver: dataclasses.replace(cube, solver=solver).step_with_info(a, b))
     x_next, info = step(x, jnp.zeros(6), cube.solver)
     assert bool(info.ncp.converged)
@@ -70,7 +70,7 @@ def test_resting_cube_stays_at_rest():
 
 def test_dropped_cube_comes_to_rest_without_gaining_energy():
     cube = _cube()
-    rest = sim.cube_rest_state(cube)
+    rest = cube.initial_state()
     axis = jnp.array([0.3, 0.1, 0.0, 1.0])
     x0 = rest.at[2].set(0.4).at[3:7].set(axis / jnp.linalg.norm(axis)).at[7:10].set(jnp.array([0.5, 0.0, 0.0]))
     xs, infos = _rollout(cube, x0, jnp.zeros((150, 6)))
@@ -89,7 +89,7 @@ def test_dropped_cube_comes_to_rest_without_gaining_energy():
 
 def test_impulses_satisfy_cone_and_complementarity():
     cube = _cube()
-    x = sim.cube_rest_state(cube)
+    x = cube.initial_state()
     push = jnp.array([3.0, 1.0, 0.0, 0.0, 0.0, 0.2])  # below the friction bound: sticks
     _, info = jax.jit(lambda a, b: cube.step_with_info(a, b))(x, push)
     impulse = info.impulse.reshape(8, 3)
@@ -100,7 +100,7 @@ def test_impulses_satisfy_cone_and_complementarity():
 def test_small_upward_force_has_exactly_zero_gradient():
     """Fig. 2 of Le Lidec et al. 2022: below m g the cube does not move, whatever the force."""
     cube = _cube()
-    x0 = sim.cube_rest_state(cube)
+    x0 = cube.initial_state()
 
     def final_height(force, steps=5):
         us = jnp.zeros((steps, 6)).at[:, 2].set(force)
@@ -153,7 +153,7 @@ def test_sliding_ball_gradients_match_finite_differences():
 
 def test_sliding_cube_gradients_match_finite_differences():
     cube = sim.cube(solver=sim.NCPSolver(tolerance=1e-12, max_iterations=2000))
-    x = sim.cube_rest_state(cube).at[7].set(0.3)  # sliding along x on the floor
+    x = cube.initial_state().at[7].set(0.3)  # sliding along x on the floor
     u = jnp.array([2.0, 0.5, 1.0, 0.0, 0.0, 0.1])
     step = jax.jit(lambda a, b: cube.step(a, b))
     jac_u = jax.jit(jax.jacfwd(lambda b: cube.step(x, b)))(u)
@@ -173,7 +173,7 @@ def test_sliding_cube_gradients_match_finite_differences():
 
 def test_compliant_laws_reach_their_equilibria():
     spring = sim.cube(contact=sim.SpringDamper(stiffness=1e4, damping=50.0, friction=0.5), time_step=0.002)
-    xs, _ = _rollout(spring, sim.cube_rest_state(spring), jnp.zeros((300, 6)))
+    xs, _ = _rollout(spring, spring.initial_state(), jnp.zeros((300, 6)))
     # Four corners share the weight: k * penetration = m g / 4.
     np.testing.assert_allclose(xs[-1, 2], 0.1 - GRAVITY / 4e4, atol=1e-7)
     np.testing.assert_allclose(xs[-1, 7:], 0.0, atol=1e-6)
@@ -184,7 +184,7 @@ def test_compliant_laws_reach_their_equilibria():
     gap = 4 * kappa / GRAVITY
     for _ in range(50):  # fixed-point iteration on d = 4 kappa / (m g - 4 kappa / (d + 0.2))
         gap = 4 * kappa / (GRAVITY - 4 * kappa / (gap + 0.2))
-    hovering = sim.cube_rest_state(barrier).at[2].add(gap)
+    hovering = barrier.initial_state().at[2].add(gap)
     xs, _ = _rollout(barrier, hovering, jnp.zeros((100, 6)))
     np.testing.assert_allclose(xs[-1], hovering, atol=1e-9)
     # Its gradient is informative before touching: a lifting force moves the cube at once,
@@ -207,7 +207,7 @@ def test_ball_thrown_at_the_wall_stops_at_it():
 
 def test_solo12_stands_still_under_gravity_compensation():
     solo = _solo()
-    x0 = sim.solo12_standing_state(solo)
+    x0 = solo.initial_state()
     assert solo.nx == 37 and solo.nu == 12
     distance, _, _ = solo.contacts(solo.split(x0)[0])
     np.testing.assert_allclose(distance, 0.0, atol=1e-12)
@@ -233,7 +233,7 @@ def test_solo12_polish_solves_perturbed_steps_without_admm():
     gives the next states of plain ADMM (the impulses are unique there: four feet, 18 dofs)."""
     solo = _solo()
     plain = dataclasses.replace(solo, solver=dataclasses.replace(solo.solver, polish=False))
-    x0 = sim.solo12_standing_state(solo)
+    x0 = solo.initial_state()
     key_x, key_u = jax.random.split(jax.random.key(5))
     scale = jnp.concatenate([jnp.full(19, 1e-2), jnp.full(18, 1e-1)])
     xs = jax.vmap(solo.project_state)(x0[None] + scale[None] * jax.random.normal(key_x, (16, solo.nx)))
@@ -257,7 +257,7 @@ def test_solo12_under_random_open_loop_torques_stays_finite():
     flagged as diverged, and the rollout held, before any value turns non-finite."""
     solo = _solo()
     bare = sim.solo12(armature=0.0, joint_damping=0.0, model=solo.model)
-    x0 = sim.solo12_standing_state(solo)
+    x0 = solo.initial_state()
     standing = sim.solo12_standing_torques(solo, x0)
     noise = jax.random.uniform(jax.random.key(0), (3, 300, 12), minval=-0.3, maxval=0.3)
     rollout = eqx.filter_jit(lambda system, us: jax.vmap(lambda u: system.rollout(x0, u))(us))
@@ -282,7 +282,7 @@ def test_joint_damping_is_implicit_and_dissipates():
     the integrator's error), and at a huge damping the implicit step stops the joints within
     a step instead of reversing them (an explicit ``D v`` would overshoot once h d / I > 2)."""
     solo = _solo()
-    x0 = sim.solo12_standing_state(solo).at[2].add(1.0)  # one metre up: no contact
+    x0 = solo.initial_state().at[2].add(1.0)  # one metre up: no contact
     nq = solo.model.nq
     x0 = x0.at[nq + 6 :].set(5.0)
     free = dataclasses.replace(solo, model=dataclasses.replace(solo.model, gravity=jnp.zeros(3)))
@@ -326,7 +326,7 @@ def test_solo12_body_spheres_lie_within_the_urdf_collision_meshes():
     lower = trimesh.load(meshes / "with_foot" / "solo_lower_leg_left_side.stl").bounds
     assert sim.SOLO12_KNEE_RADIUS >= max(np.abs(lower[:, 0]).max(), lower[1, 2])
     # Standing, only the feet touch; the standing torques still hold the robot.
-    x0 = sim.solo12_standing_state(solo)
+    x0 = solo.initial_state()
     distance, _, _ = solo.contacts(solo.split(x0)[0])
     np.testing.assert_allclose(distance[:4], 0.0, atol=1e-12)
     assert float(jnp.min(distance[4:])) > 0.05
@@ -335,7 +335,7 @@ def test_solo12_body_spheres_lie_within_the_urdf_collision_meshes():
 
 def test_torques_are_clipped_and_reported():
     solo = _solo()
-    x0 = sim.solo12_standing_state(solo)
+    x0 = solo.initial_state()
     step = jax.jit(lambda a, b: solo.step_with_info(a, b))
     big, info = step(x0, jnp.full(12, 10.0))
     limited, info_limited = step(x0, jnp.full(12, sim.SOLO12_TORQUE_LIMIT))
@@ -347,7 +347,7 @@ def test_rollout_with_feedback_applies_it_at_every_step():
     """``rollout(x0, us, feedback)`` steps with ``us[t] + feedback(x_t)``: the same states as
     a loop of single steps, and a damping feedback slows a dropped cube's fall."""
     cube = _cube()
-    x0 = sim.cube_rest_state(cube).at[2].add(0.2)
+    x0 = cube.initial_state().at[2].add(0.2)
     us = jnp.zeros((15, 6))
     damping = lambda x: jnp.concatenate([-5.0 * x[7:10], jnp.zeros(3)])  # noqa: E731  (force on v)
     xs, _ = jax.jit(lambda a, b: cube.rollout(a, b, feedback=damping))(x0, us)
@@ -362,7 +362,7 @@ def test_rollout_with_feedback_applies_it_at_every_step():
 
 def test_step_vmaps_over_states_and_inputs(getkey):
     cube = _cube()
-    rest = sim.cube_rest_state(cube)
+    rest = cube.initial_state()
     xs = jnp.stack([rest.at[2].set(z) for z in (0.1, 0.15, 0.3)])
     us = jax.random.normal(getkey(), (3, 6))
     batched = jax.jit(jax.vmap(lambda a, b: cube.step(a, b)))(xs, us)
@@ -378,7 +378,7 @@ def test_a_step_from_an_already_diverged_state_reports_it_instead_of_raising():
     state (a rollout holds, a DDP trial is rejected) rather than aborting on the NCP solver's
     input check, which is for bad inputs."""
     solo = _solo()
-    x = sim.solo12_standing_state(solo).at[:3].set(jnp.array([-1.0e8, 1.4e8, 3.2e8])).at[7:].set(1e9).at[19:].set(1e11)
+    x = solo.initial_state().at[:3].set(jnp.array([-1.0e8, 1.4e8, 3.2e8])).at[7:].set(1e9).at[19:].set(1e11)
     x_next, info = eqx.filter_jit(lambda system, x, u: system.step_with_info(x, u))(solo, x, jnp.full(12, 2.7))
     assert bool(info.diverged) and not bool(jnp.all(jnp.isfinite(x_next)))
     with pytest.raises(ValueError, match="G contains NaN"):  # the solver's own check stands
@@ -387,7 +387,7 @@ def test_a_step_from_an_already_diverged_state_reports_it_instead_of_raising():
 
 def test_bad_input_is_named():
     cube = _cube()
-    rest = sim.cube_rest_state(cube)
+    rest = cube.initial_state()
     with pytest.raises(ValueError, match=r"x must have shape \(nx,\) = \(13,\)"):
         cube.step(rest[:12], jnp.zeros(6))
     with pytest.raises(ValueError, match=r"u must have shape \(nu,\) = \(6,\)"):
@@ -450,7 +450,7 @@ def test_pusher_default_solver_steps_as_plain_admm_and_converges():
     plain = dataclasses.replace(pusher, solver=sim.NCPSolver())
     batch, steps = 16, 30
     forces = 5.0 * jax.random.normal(jax.random.key(0), (steps, batch, 2))
-    x0 = jnp.tile(sim.pusher_start_state(pusher), (batch, 1))
+    x0 = jnp.tile(pusher.initial_state(), (batch, 1))
     xs, _ = jax.jit(jax.vmap(pusher.rollout, in_axes=(0, 1)))(x0, forces)  # (batch, steps + 1, nx)
     states, inputs = xs[:, :-1].reshape(-1, pusher.nx), jnp.swapaxes(forces, 0, 1).reshape(-1, 2)
     step = eqx.filter_jit(jax.vmap(lambda system, x, u: system.step_with_info(x, u), in_axes=(None, 0, 0)))
@@ -472,7 +472,7 @@ def _sliding_ball():
 
 def _solo_stepping():
     solo = _solo()
-    x = sim.solo12_standing_state(solo)
+    x = solo.initial_state()
     noise = jax.random.normal(jax.random.key(3), x.shape) * jnp.concatenate([jnp.full(19, 1e-3), jnp.full(18, 1e-2)])
     x = (x + noise).at[3:7].set(x[3:7] / jnp.linalg.norm(x[3:7]))
     return solo, x, sim.solo12_standing_torques(solo, x) + 0.1
@@ -532,3 +532,38 @@ def test_implicit_step_derivative_with_respect_to_system_parameters():
     for ours, theirs in zip(by_parameters(system), by_parameters(reference)):
         assert float(jnp.max(jnp.abs(theirs))) > 1e-3
         np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-9 * float(jnp.max(jnp.abs(theirs))))
+
+
+def test_every_factory_gives_its_initial_state():
+    """``system.initial_state()``: finite, of the system's shape, at zero velocity, with the
+    system's contact spheres touching (a body resting on its first half-space, the feet on the
+    floor) and none penetrating; the pusher's is pusher_start_state's default, a box on an
+    incline rests flat on it, and one step from the ball's start stays put."""
+    distance = eqx.filter_jit(lambda system, q: system.contacts(q)[0])
+    systems = {"cube": _cube(), "box": sim.box(), "ball": sim.ball(), "ball_wall": sim.ball_wall(),
+               "pusher": sim.pusher(), "solo12": _solo()}
+    for name, system in systems.items():
+        x = system.initial_state()
+        assert x.shape == (system.nx,) and bool(jnp.all(jnp.isfinite(x))), name
+        q, v = system.split(x)
+        np.testing.assert_array_equal(v, 0.0, err_msg=name)
+        d = distance(system, q)
+        assert abs(float(jnp.min(d))) < 1e-12, name
+    np.testing.assert_array_equal(systems["pusher"].initial_state(), sim.pusher_start_state(systems["pusher"]))
+    np.testing.assert_allclose(systems["ball_wall"].initial_state()[:3], [0.0, 0.0, 0.05])
+    incline = sim.box(planes=[((0.0, 0.3, 1.0), 0.1)])
+    d = distance(incline, incline.split(incline.initial_state())[0])
+    np.testing.assert_allclose(jnp.sort(d)[:4], 0.0, atol=1e-12)  # four corners on the plane
+    assert float(jnp.sort(d)[4]) > 0.1
+    # Without a configuration of its own: the model's neutral one (identity orientation).
+    neutral = dataclasses.replace(systems["ball"], initial_configuration=None).initial_state()
+    np.testing.assert_array_equal(neutral[:7], [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+    # One step from the ball's start (ADMM from zero, to its tolerance of 1e-10 on the
+    # impulses: a tangential impulse of that size spins the ball, r / I = 500 / (kg m), at
+    # about 1e-7 rad/s) leaves it where it is.
+    ball = systems["ball_wall"]
+    x = ball.initial_state()
+    x_next, info = eqx.filter_jit(lambda s, a, b: s.step_with_info(a, b))(ball, x, jnp.zeros(3))
+    assert bool(info.ncp.result == RESULTS.successful)
+    np.testing.assert_allclose(x_next, x, atol=1e-6)
+    np.testing.assert_allclose(x_next[:7], x[:7], atol=1e-8)
