@@ -100,12 +100,17 @@ def _cpu_name() -> str:
 
 
 def format_value(value: Any) -> str:
-    """A metric as text: 4 significant digits for floats, lists shortened past LIST_SHOWN."""
+    """A metric as text: 4 significant digits for floats, lists shortened past LIST_SHOWN, lists of
+    records (per-seed runs) by their count."""
     if isinstance(value, bool) or value is None:
         return str(value)
     if isinstance(value, float):
         return f"{value:.4g}" if math.isfinite(value) else str(value)
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k}: {format_value(v)}" for k, v in value.items()) + "}"
     if isinstance(value, (list, tuple)):
+        if value and all(isinstance(v, dict) for v in value):  # per-run records: in metrics.json
+            return f"{len(value)} records (metrics.json)"
         if len(value) > LIST_SHOWN:
             head = ", ".join(format_value(v) for v in value[:3])
             tail = ", ".join(format_value(v) for v in value[-2:])
@@ -146,7 +151,7 @@ def _media(entry: Entry) -> str:
         label = html.escape(name)
         suffix = Path(name).suffix.lower()
         if suffix in IMAGE_SUFFIXES:
-            parts.append(f'<figure><img src="{src}" alt="{label}" loading="lazy"><figcaption>{label}</figcaption></figure>')
+            parts.append(f'<figure><a href="{src}"><img src="{src}" alt="{label}"></a><figcaption>{label}</figcaption></figure>')
         elif suffix in VIDEO_SUFFIXES:
             parts.append(f'<figure><video src="{src}" controls muted loop></video><figcaption>{label}</figcaption></figure>')
     return f'<div class="media">{"".join(parts)}</div>' if parts else ""

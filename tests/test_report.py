@@ -95,7 +95,8 @@ def test_a_missing_figure_is_caught_by_the_browser_check(tmp_path):
 
 @pytest.mark.parametrize("value, text", [
     (0.123456, "0.1235"), (float("nan"), "nan"), (True, "True"), (None, "None"), ([1, 2.5], "[1, 2.5]"),
-    (list(range(10)), "[0, 1, 2, ..., 8, 9] (10 values)"), ("x", "x"),
+    (list(range(10)), "[0, 1, 2, ..., 8, 9] (10 values)"), ("x", "x"), ({"a": 0.5, "b": [1]}, "{a: 0.5, b: [1]}"),
+    ([{"seed": 0}, {"seed": 1}], "2 records (metrics.json)"),
 ])
 def test_format_value(value, text):
     assert report.format_value(value) == text
