@@ -41,7 +41,8 @@ def test_cli_sim_solo12_writes_metrics_and_animation(tmp_path):
     result = CliRunner().invoke(app, ["sim", "solo12", "--quick", "--steps", "5", "--out", str(tmp_path)])
     assert result.exit_code == 0, result.output
     metrics = json.loads((tmp_path / "metrics.json").read_text())
-    assert metrics["steps"] == 5 and metrics["base_drift"] < 1e-6
+    assert metrics["steps"] == 5 and metrics["base_drift"] < 1e-6 and metrics["max_foot_slip"] < 1e-6
+    assert metrics["base_height_drift"] <= metrics["base_drift"] and metrics["ncp_converged_fraction"] == 1.0
     assert (tmp_path / "solo12.gif").stat().st_size > 0 and (tmp_path / "solo12.png").stat().st_size > 0
     bad = CliRunner().invoke(app, ["sim", "solo12", "--torques", "wild", "--out", str(tmp_path)])
     assert bad.exit_code != 0 and "--torques" in bad.output

@@ -5,19 +5,15 @@ import json
 from rsmooth.experiments import solo12_sim
 
 
-def test_solo12_standing_and_random(tmp_path, getkey):
-    standing = solo12_sim.run(solo12_sim.Config(steps=30, frames=3), str(tmp_path / "standing"), getkey(), progress=False)
-    assert standing["base_drift"] < 1e-6 and standing["max_foot_slip"] < 1e-6
-    assert standing["base_height_drift"] <= standing["base_drift"]
-    assert standing["ncp_converged_fraction"] == 1.0
+def test_solo12_random_torques_stay_sane(tmp_path, getkey):
+    """Standing still is checked through the command line (tests/test_project.py)."""
     config = solo12_sim.Config(torques="random", steps=30, frames=3)
-    shaken = solo12_sim.run(config, tmp_path / "random", getkey(), progress=False)
+    shaken = solo12_sim.run(config, str(tmp_path), getkey(), progress=False)  # a str works as well as a Path
     assert shaken["base_drift"] > 1e-4  # it does move
     assert shaken["min_foot_distance"] > -1e-3  # no foot sinks into the floor
     assert shaken["ncp_converged_fraction"] > 0.9
-    for folder in ("standing", "random"):
-        assert json.loads((tmp_path / folder / "metrics.json").read_text())["steps"] == 30
-        assert (tmp_path / folder / "solo12.gif").stat().st_size > 1000
+    assert json.loads((tmp_path / "metrics.json").read_text())["steps"] == 30
+    assert (tmp_path / "solo12.gif").stat().st_size > 1000
 
 
 def test_solo12_falls_under_open_loop_random_torques_without_diverging(tmp_path, getkey):
