@@ -20,22 +20,22 @@
 #   pip download --no-deps --only-binary=:all: --python-version 3.12 -d .gpu/whl trimesh  # the renderer's primitives
 # then run `bash benchmarks/gpu.sh` on the GPU machine with .gpu beside it. Each phase has
 # its own time limit, so that one that hangs or fails leaves the others' numbers; the logs go
-# to $OUT (default /tmp/rsmooth-gpu). The limits add up to over 20 min: where one call may run 10,
+# to $OUT (default .gpu/out). The limits add up to over 20 min: where one call may run 10,
 # choose with PHASES="render control ..." (on an H200: render 2 min, control 1.5, tests 1.7,
 # core 0.3, sim 1.8 to 2.4 with its chunk sizes, pose 2.1, control-default 1.4, control-batched
 # 1.5, pose-samples 2; on an H100 the renderer's tables alone took 150 s). A fresh machine took
 # ~30 s to start.
 set -u
 cd "$(dirname "$0")/.."
-OUT=${OUT:-/tmp/rsmooth-gpu}
+OUT=${OUT:-.gpu/out}
 JSON_DIR=${JSON_DIR:-benchmarks/results/gpu}
 mkdir -p "$OUT" "$JSON_DIR"
-export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD:$PWD/.gpu:/tmp/rsmooth-site" RSMOOTH_BENCHMARK_SOLO12_MODEL="$PWD/.gpu/solo12.npz"
+export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD:$PWD/.gpu:$PWD/.gpu/site" RSMOOTH_BENCHMARK_SOLO12_MODEL="$PWD/.gpu/solo12.npz"
 PY=${PYTHON:-python3}
 PHASES=${PHASES:-"info render control control-batched tests core sim pose"}
 # other phases, by name only: pose-samples control-default reconstruct-seeds
 if compgen -G ".gpu/whl/*.whl" > /dev/null; then
-  $PY -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/rsmooth-site .gpu/whl/*.whl
+  $PY -m pip install -q --no-index --no-deps --no-compile --upgrade --target .gpu/site .gpu/whl/*.whl
 fi
 
 phase() {  # phase NAME LIMIT_SECONDS COMMAND...
