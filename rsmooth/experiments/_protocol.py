@@ -34,6 +34,8 @@ def option(
     choices: Optional[tuple] = None,
     min: Optional[float] = None,
     max: Optional[float] = None,
+    above: Optional[float] = None,
+    below: Optional[float] = None,
     cli: bool = True,
 ) -> Any:
     """A `Config` field with its help text and the values it accepts.
@@ -45,13 +47,15 @@ def option(
         for a bool, ``"on/off"`` names both switches (e.g. ``"keep-best/last"``; default
         ``"NAME/no-NAME"``).
       choices: the allowed values (of each element, for a tuple field).
-      min, max: the allowed closed range (of each element, for a tuple field).
+      min, max: closed bounds of the allowed range (of each element, for a tuple field).
+      above, below: open bounds (``above=0``: positive).
       cli: False keeps the field out of the command line (set in code only).
 
     Returns:
       A `dataclasses.field` carrying these as metadata.
     """
-    metadata = {"help": " ".join(help.split()), "flag": flag, "choices": choices, "min": min, "max": max, "cli": cli}
+    metadata = {"help": " ".join(help.split()), "flag": flag, "choices": choices, "min": min, "max": max,
+                "above": above, "below": below, "cli": cli}
     return dataclasses.field(default=default, metadata=metadata)
 
 
@@ -73,7 +77,7 @@ def _is_number(value) -> bool:
 
 
 def check_options(config) -> None:
-    """Checks every field declared with `choices`, `min` or `max` (each element of a tuple).
+    """Checks every field declared with `choices` or bounds (each element of a tuple).
 
     Raises:
       ValueError: naming the field, its flag, the value and what is allowed.
@@ -90,13 +94,21 @@ def check_options(config) -> None:
                 allowed = ", ".join(map(str, meta["choices"]))
                 raise ValueError(f"{where} must be one of {allowed}, got {item!r}")
             low, high = meta.get("min"), meta.get("max")
-            if low is None and high is None or item is None:
+            above, below = meta.get("above"), meta.get("below")
+            if all(bound is None for bound in (low, high, above, below)) or item is None:
                 continue
             if not _is_number(item) or not math.isfinite(item):
                 raise ValueError(f"{where} must be a finite number, got {item!r}")
-            if low is not None and item < low or high is not None and item > high:
-                bounds = f"[{low if low is not None else '-inf'}, {high if high is not None else 'inf'}]"
-                raise ValueError(f"{where} must be in {bounds}, got {item!r}")
+            if (low is not None and item < low or high is not None and item > high
+                    or above is not None and not item > above or below is not None and not item < below):
+                raise ValueError(f"{where} must be in {_interval(meta)}, got {item!r}")
+
+
+def _interval(meta) -> str:
+    """The allowed range of a field's metadata, e.g. ``(0, 1]``."""
+    left = f"({meta['above']}" if meta.get("above") is not None else f"[{meta['min'] if meta.get('min') is not None else '-inf'}"
+    right = f"{meta['below']})" if meta.get("below") is not None else f"{meta['max'] if meta.get('max') is not None else 'inf'}]"
+    return f"{left}, {right}"
 
 
 def field_type(config_class, field: dataclasses.Field):

@@ -39,8 +39,8 @@ that method are also at the top level."""
 @dataclasses.dataclass(frozen=True)
 class Config:
     method: str = _control.method_option()
-    height: float = _protocol.option(0.1, "Target height above rest, m.", min=0.0)
-    tolerance: float = _protocol.option(0.01, "A run succeeds when |final height - target| is below it, m.")
+    height: float = _protocol.option(0.1, "Target height above rest, m.", above=0.0)
+    tolerance: float = _protocol.option(0.01, "A run succeeds when |final height - target| is below it, m.", above=0.0)
     horizon: int = _control.horizon_option(20)
     seeds: int = _control.seeds_option(10)
     num_samples: int = _control.samples_option(16)
@@ -58,10 +58,6 @@ class Config:
 
     def __post_init__(self):
         _control.check_config(self)
-        if not self.height > 0:
-            raise ValueError(f"height must be positive (m), got {self.height}")
-        if not self.tolerance > 0:
-            raise ValueError(f"tolerance must be positive (m), got {self.tolerance}")
 
     def solver(self) -> control.RDDP:
         # State: position (3), quaternion (4), linear and angular velocities (6).

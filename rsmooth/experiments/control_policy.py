@@ -116,16 +116,16 @@ def method_option():
 class Config:
     method: str = method_option()
     seeds: int = _protocol.option(10, "Runs per method, keys fold_in(seed, i).", min=1)
-    speed: float = _protocol.option(5.0, "Speed of the throw, m/s.")
-    wall_distance: float = _protocol.option(1.0, "Distance of the wall from the thrower, m.")
-    wall_height: float = _protocol.option(0.8, "Height of the wall, m.")
+    speed: float = _protocol.option(5.0, "Speed of the throw, m/s.", above=0.0)
+    wall_distance: float = _protocol.option(1.0, "Distance of the wall from the thrower, m.", above=0.0)
+    wall_height: float = _protocol.option(0.8, "Height of the wall, m.", above=0.0)
     theta0_deg: float = _protocol.option(70.0, "The initial throw's angle, degrees (over the wall).", min=0.0, max=90.0)
     horizon: int = _protocol.option(120, "Time steps of 10 ms: every throw has landed by then.", min=2)
-    sigma: float = _protocol.option(0.1, "Initial noise on the throw's angle, rad.")
+    sigma: float = _protocol.option(0.1, "Initial noise on the throw's angle, rad.", above=0.0)
     sigma_decay: float = _protocol.option(0.98, "Factor of the noise at every iteration.", min=0.0, max=1.0)
     sigma_floor: float = _protocol.option(0.01, "The noise's floor, rad.", min=0.0)
     num_samples: int = _protocol.option(64, "Rollouts per gradient estimate (alpha: half to each estimate).", flag="samples", min=4)
-    learning_rate: float = _protocol.option(0.02, "Adam's learning rate, rad.")
+    learning_rate: float = _protocol.option(0.02, "Adam's learning rate, rad.", above=0.0)
     iterations: int = _protocol.option(100, "Adam steps per run.", min=1)
 
     @classmethod
@@ -134,9 +134,6 @@ class Config:
 
     def __post_init__(self):
         _protocol.check_options(self)
-        for name in ("speed", "wall_distance", "wall_height", "sigma", "learning_rate"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
     def methods(self) -> tuple[str, ...]:
         return ("first", "zeroth", "alpha") if self.method == "all" else (self.method,)

@@ -97,12 +97,12 @@ class Config:
     target_x: float = _protocol.option(0.1, "Target box centre x, m (the box starts at 0).")
     finger_gap: float = _protocol.option(0.05, "Gap between the finger and the box's -x face at the start, m.", min=0.0)
     horizon: int = _protocol.option(20, "Time steps of 10 ms.", min=2)
-    sigma: float = _protocol.option(0.2, "Noise on every force of the open-loop policy, N.")
+    sigma: float = _protocol.option(0.2, "Noise on every force of the open-loop policy, N.", above=0.0)
     num_samples: int = _protocol.option(
         16, "Rollouts per gradient estimate, even (alpha: half to each estimate).", flag="samples", min=4)
-    learning_rate: float = _protocol.option(0.5, "Adam's learning rate, N.")
+    learning_rate: float = _protocol.option(0.5, "Adam's learning rate, N.", above=0.0)
     iterations: int = _protocol.option(150, "Adam steps per run.", min=1)
-    position_tolerance: float = _protocol.option(0.02, "A run succeeds when the box centre ends within it of the target, m.")
+    position_tolerance: float = _protocol.option(0.02, "A run succeeds when the box centre ends within it of the target, m.", above=0.0)
     at_rest: bool = _protocol.option(False, "Whether the terminal cost also has the box's velocities (the box at rest).")
 
     @classmethod
@@ -113,9 +113,6 @@ class Config:
         _protocol.check_options(self)
         if self.num_samples % 2:
             raise ValueError(f"num_samples must be even (alpha order halves them), got {self.num_samples}")
-        for name in ("sigma", "learning_rate", "position_tolerance"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
     def methods(self) -> tuple[str, ...]:
         return ("first", "zeroth", "alpha") if self.method == "all" else (self.method,)

@@ -83,9 +83,9 @@ class Config:
     estimator: str = _control.estimator_option()
     max_iterations: int = _control.max_iterations_option(20)
     geometric_decays: tuple[float, ...] = _control.geometric_decays_option((0.5, 0.8))
-    position_tolerance: float = _protocol.option(0.02, "A run succeeds when the box centre ends within it of the target, m.")
-    yaw_tolerance: float = _protocol.option(5.0, "A run succeeds only if the box's yaw ends within it of the target's, degrees.")
-    speed_tolerance: float = _protocol.option(0.05, "A run succeeds only if the box's final speed is below it, m/s.")
+    position_tolerance: float = _protocol.option(0.02, "A run succeeds when the box centre ends within it of the target, m.", above=0.0)
+    yaw_tolerance: float = _protocol.option(5.0, "A run succeeds only if the box's yaw ends within it of the target's, degrees.", above=0.0)
+    speed_tolerance: float = _protocol.option(0.05, "A run succeeds only if the box's final speed is below it, m/s.", above=0.0)
 
     @classmethod
     def quick(cls, **changes) -> "Config":
@@ -95,9 +95,6 @@ class Config:
         _control.check_config(self)
         if not abs(self.finger_y) < 0.1:
             raise ValueError(f"finger_y must be within the box's half side, |finger_y| < 0.1 m, got {self.finger_y}")
-        for name in ("position_tolerance", "yaw_tolerance", "speed_tolerance"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
     def target(self) -> tuple[float, float, float]:
         """The target pose ``(x, y, yaw)``, m and radians."""

@@ -91,10 +91,10 @@ class Config:
     estimator: str = _control.estimator_option()
     max_iterations: int = _control.max_iterations_option(40)
     geometric_decays: tuple[float, ...] = _control.geometric_decays_option((0.5,))
-    tolerance: float = _protocol.option(0.01, "A run succeeds when the lifted foot ends within it of the target, m.")
+    tolerance: float = _protocol.option(0.01, "A run succeeds when the lifted foot ends within it of the target, m.", above=0.0)
     max_other_height: float = _protocol.option(
-        0.005, "A run succeeds only if the other feet never rise more than this above the floor, m.")
-    max_other_slip: float = _protocol.option(0.01, "A run succeeds only if the other feet slip less than this, m.")
+        0.005, "A run succeeds only if the other feet never rise more than this above the floor, m.", above=0.0)
+    max_other_slip: float = _protocol.option(0.01, "A run succeeds only if the other feet slip less than this, m.", above=0.0)
 
     @classmethod
     def quick(cls, **changes) -> "Config":
@@ -104,9 +104,6 @@ class Config:
         _control.check_config(self)
         if not 0 < self.height <= 0.15:
             raise ValueError(f"height must be in (0, 0.15] m, got {self.height}")
-        for name in ("tolerance", "max_other_height", "max_other_slip"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be positive (m), got {getattr(self, name)}")
 
     def solver(self) -> control.RDDP:
         # State: base position (3), quaternion (4), joints (12); then velocities (18).

@@ -35,7 +35,7 @@ num_samples, x0, sigma."""
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    sigma: float = _protocol.option(0.3, "Standard deviation of the Gaussian smoothing noise.")
+    sigma: float = _protocol.option(0.3, "Standard deviation of the Gaussian smoothing noise.", above=0.0)
     x0: float = _protocol.option(0.1, "The point where the error against the number of samples is measured.")
     x_grid: tuple[float, float, int] = _protocol.option(
         (-1.2, 1.2, 49), "The x grid of the mean and spread curves: start, stop, number of points.")
@@ -51,8 +51,6 @@ class Config:
 
     def __post_init__(self):
         _protocol.check_options(self)
-        if not self.sigma > 0:
-            raise ValueError(f"sigma must be positive, got {self.sigma}")
         if not self.x_grid[2] >= 2:
             raise ValueError(f"x_grid needs at least 2 points, got {self.x_grid[2]}")
         if not self.num_samples_grid:

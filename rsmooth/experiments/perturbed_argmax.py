@@ -44,9 +44,9 @@ class Config:
     rank_test_queries: int = _protocol.option(256, "Held-out queries.", min=1)
     rank_batch: int = _protocol.option(32, "Queries per Adam step.", min=1)
     rank_steps: int = _protocol.option(300, "Adam steps of the ranking model.", min=1)
-    rank_sigma: float = _protocol.option(0.5, "Noise scale of the perturbed ranking (Fenchel-Young loss).")
+    rank_sigma: float = _protocol.option(0.5, "Noise scale of the perturbed ranking (Fenchel-Young loss).", above=0.0)
     rank_num_samples: int = _protocol.option(32, "Samples per perturbed ranking.", min=1)
-    learning_rate: float = _protocol.option(0.05, "Adam's learning rate for the ranking model.")
+    learning_rate: float = _protocol.option(0.05, "Adam's learning rate for the ranking model.", above=0.0)
 
     @classmethod
     def quick(cls) -> "Config":
@@ -54,9 +54,6 @@ class Config:
 
     def __post_init__(self):
         _protocol.check_options(self)
-        for name in ("rank_sigma", "learning_rate"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if not (self.sigmas and all(sigma > 0 for sigma in self.sigmas)):
             raise ValueError(f"sigmas must be positive (at least one), got {self.sigmas}")
         if not self.num_samples_grid:

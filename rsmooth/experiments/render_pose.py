@@ -72,10 +72,10 @@ class Config:
     batch_size: int = option(25, "Most problems optimized at once (vmapped); the others wait their turn.", min=1)
     steps: int = option(200, "Adam steps per problem.", min=1)
     methods: tuple[str, ...] = option(METHODS, "Renderers compared (repeatable).", flag="method", choices=METHODS)
-    learning_rate: float = option(0.05, "Adam's initial learning rate (cosine decay).", min=0.0)
+    learning_rate: float = option(0.05, "Adam's initial learning rate (cosine decay).", above=0.0)
     sigma: float = option(3.0, "Coverage noise scale of the smoothed renderers, pixels at a 128-pixel image "
-                          "(scaled with the image size).", min=0.0)
-    gamma: float = option(0.02, "Depth temperature of the smoothed renderers, normalized inverse depth.", min=0.0)
+                          "(scaled with the image size).", above=0.0)
+    gamma: float = option(0.02, "Depth temperature of the smoothed renderers, normalized inverse depth.", above=0.0)
     num_samples: int = option(16, "Monte-Carlo samples per pixel of a perturbed render.", flag="samples", min=1)
     sample_growth: int = option(
         2, "Multiply the perturbed renderers' samples per pixel by this at each noise decrease (a step then "
@@ -84,7 +84,7 @@ class Config:
     pixel_chunk: float = option(
         0.125, "Perturbed renders draw their samples only at the pixels their noise may change, in chunks of "
         "this fraction of the image, the others from one hard render (the same estimate); 1: whole renders.",
-        min=0.0, max=1.0)
+        above=0.0, max=1.0)
     antithetic_pose: bool = option(
         True, "Draw a step's pose noise in antithetic pairs (+eps z, -eps z), whose first-order terms cancel, "
         "rather than independently.", flag="antithetic-pose/independent-pose")
@@ -95,11 +95,11 @@ class Config:
     interior_edges: bool = option(
         False, "Smooth coverage across every triangle edge, as the paper does (seams along shared edges), "
         "rather than the silhouette only.")
-    decay_factor: float = option(2.0, "The noise scale is divided by this at each decrease.", min=1.0)
-    momentum: float = option(0.9, "Momentum of the schedule's average of d loss / d noise scale.", min=0.0, max=1.0)
+    decay_factor: float = option(2.0, "The noise scale is divided by this at each decrease.", above=1.0)
+    momentum: float = option(0.9, "Momentum of the schedule's average of d loss / d noise scale.", min=0.0, below=1.0)
     noise_floor: float = option(0.05, "Smallest noise scale factor.", min=0.0)
     patience: int = option(10, "Least number of steps between two noise decreases.", min=1)
-    final_learning_rate: float = option(0.1, "Fraction of learning_rate reached at the last step.", min=0.0)
+    final_learning_rate: float = option(0.1, "Fraction of learning_rate reached at the last step.", above=0.0)
     optimize_translation: bool = option(False, "Fit the translation too (it starts off by init_translation).")
     init_translation: float = option(0.2, "Distance of the initial translation to the true one, scene units.", min=0.0)
     camera_distance: float = option(4.0, "Camera distance to the mesh's centre, scene units.", min=0.0)
@@ -114,12 +114,12 @@ class Config:
         "shrunk with the renderer's noise scale (0: off; never for the hard renderer).", flag="pose-noise", min=0.0)
     pose_noise_until: float = option(
         1.0, "Fraction of the steps at which the pose noise has faded linearly to 0; the later steps descend "
-        "the image-smoothed loss alone.", min=0.0, max=1.0)
+        "the image-smoothed loss alone.", above=0.0, max=1.0)
     restarts: int = option(
         0, "Run a problem again from its initial pose with fresh noise, up to this many times, while its best "
         "hard render stays far from the target (no ground truth used); each reports its closest run.", min=0)
     restart_loss: float = option(
-        0.05, "A problem is rerun while its image loss is above this fraction of its initial pose's.", min=0.0)
+        0.05, "A problem is rerun while its image loss is above this fraction of its initial pose's.", above=0.0)
     average_decay: float = option(
         0.0, "With keep_best, also consider the exponential average of the iterates with this decay per step "
         "(one more hard render per step; 0: off).", flag="average-iterates", min=0.0, max=0.999)
@@ -140,17 +140,6 @@ class Config:
             raise ValueError("init_errors_deg (--init-error) must hold at least one initial rotation error (degrees)")
         if not self.methods:
             raise ValueError("methods (--method) must name at least one renderer")
-        if not self.pixel_chunk > 0:
-            raise ValueError(f"pixel_chunk (--pixel-chunk) must be in (0, 1] (a fraction of the image), got {self.pixel_chunk!r}")
-        for name in ("restart_loss", "sigma", "gamma", "learning_rate", "final_learning_rate"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
-        if not self.decay_factor > 1:
-            raise ValueError(f"decay_factor must be > 1, got {self.decay_factor!r}")
-        if not self.momentum < 1:
-            raise ValueError(f"momentum must be in [0, 1), got {self.momentum!r}")
-        if not self.pose_noise_until > 0:
-            raise ValueError(f"pose_noise_until must be in (0, 1] (a fraction of the steps), got {self.pose_noise_until!r}")
         if any(m.startswith("perturbed") for m in self.methods):
             check_baseline(renderer_baseline(self.baseline), self.num_samples)
 

@@ -88,10 +88,10 @@ class Config:
     views: int = option(8, "Cameras around the target.", min=1)
     image_size: int = option(64, "Image side, pixels.", min=1)
     subdivisions: int = option(2, "Subdivisions of the icosphere template (2: 162 vertices, 320 faces).", min=0)
-    template_radius: float = option(0.5, "Radius of the icosphere template, unit-box units.", min=0.0)
+    template_radius: float = option(0.5, "Radius of the icosphere template, unit-box units.", above=0.0)
     steps: int = option(200, "Adam steps.", min=1)
-    learning_rate: float = option(0.02, "Adam's initial learning rate (cosine decay).", min=0.0)
-    final_learning_rate: float = option(0.1, "Fraction of learning_rate reached at the last step.", min=0.0)
+    learning_rate: float = option(0.02, "Adam's initial learning rate (cosine decay).", above=0.0)
+    final_learning_rate: float = option(0.1, "Fraction of learning_rate reached at the last step.", above=0.0)
     laplacian_weight: float = option(
         30.0, "Weight of the Laplacian of the vertex offsets (the icosphere is the rest shape): thin parts gain "
         "from more, sharp corners lose.", min=0.0)
@@ -101,8 +101,8 @@ class Config:
     # Well below the faces' size: with independent noise on each face, a pixel on an edge shared
     # by two faces is missed by both with probability 1/4, and the smoothed silhouette gets holes.
     sigma: float = option(0.6, "Coverage noise scale, pixels at a 64-pixel image (scaled with the image size).",
-                          min=0.0)
-    gamma: float = option(0.02, "Depth temperature, normalized inverse depth.", min=0.0)
+                          above=0.0)
+    gamma: float = option(0.02, "Depth temperature, normalized inverse depth.", above=0.0)
     num_samples: int = option(32, "Monte-Carlo samples per pixel of the perturbed renderer.", flag="samples", min=1)
     baseline: str = option(
         "hard", "The perturbed estimator's baseline: the hard pixel (the paper's) or the mean of the pixel's "
@@ -111,12 +111,12 @@ class Config:
     faces_per_tile: int = option(64, "Candidate faces per tile in the culling pass.", min=1)
     pixel_chunk: float = option(
         0.125, "The perturbed renderer draws its samples only at the pixels its noise may change, in chunks of "
-        "this fraction of a view (the same images and gradients); 1: every pixel.", min=0.0, max=1.0)
-    decay_factor: float = option(2.0, "The noise scale is divided by this at each decrease.", min=1.0)
-    momentum: float = option(0.9, "Momentum of the schedule's average of d loss / d noise scale.", min=0.0, max=1.0)
+        "this fraction of a view (the same images and gradients); 1: every pixel.", above=0.0, max=1.0)
+    decay_factor: float = option(2.0, "The noise scale is divided by this at each decrease.", above=1.0)
+    momentum: float = option(0.9, "Momentum of the schedule's average of d loss / d noise scale.", min=0.0, below=1.0)
     noise_floor: float = option(0.1, "Smallest noise scale factor.", min=0.0)
     patience: int = option(20, "Least number of steps between two noise decreases.", min=1)
-    camera_distance: float = option(2.8, "Camera distance to the origin, unit-box units.", min=0.0)
+    camera_distance: float = option(2.8, "Camera distance to the origin, unit-box units.", above=0.0)
     fov: float = option(40.0, "Camera field of view, degrees.", min=0.0, max=180.0)
     elevation_deg: float = option(30.0, "Camera elevation, degrees; views alternate between + and -.",
                                   min=-90.0, max=90.0)
@@ -139,15 +139,6 @@ class Config:
             raise ValueError("targets (--mesh) must name at least one mesh")
         if not self.methods:
             raise ValueError("methods (--method) must name at least one renderer")
-        if not self.pixel_chunk > 0:
-            raise ValueError(f"pixel_chunk (--pixel-chunk) must be in (0, 1] (a fraction of a view), got {self.pixel_chunk!r}")
-        for name in ("sigma", "gamma", "learning_rate", "final_learning_rate", "camera_distance", "template_radius"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
-        if not self.decay_factor > 1:
-            raise ValueError(f"decay_factor must be > 1, got {self.decay_factor!r}")
-        if not self.momentum < 1:
-            raise ValueError(f"momentum must be in [0, 1), got {self.momentum!r}")
         if "perturbed-gaussian" in self.methods:
             check_baseline(renderer_baseline(self.baseline), self.num_samples)
         names = [_name(t) for t in self.targets]

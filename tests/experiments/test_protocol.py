@@ -17,6 +17,9 @@ class Config:
     scales: tuple[float, ...] = option((1.0,), "Scales.", flag="scale", min=0.0)
     on: bool = option(True, "A switch.", flag="on/off")
     limit: Optional[int] = option(None, "A limit.", min=0)
+    sigma: float = option(1.0, "A noise scale.", above=0.0)
+    fraction: float = option(0.5, "A fraction.", above=0.0, max=1.0)
+    decay: float = option(0.9, "A decay.", min=0.0, below=1.0)
 
     def __post_init__(self):
         _protocol.check_options(self)
@@ -29,6 +32,10 @@ class Config:
     ({"method": "c"}, r"method \(--method\) must be one of a, b, got 'c'"),
     ({"scales": (1.0, -2.0)}, r"scales \(--scale\) must be in \[0.0, inf\], got -2.0"),
     ({"limit": -1}, r"limit \(--limit\)"),
+    ({"sigma": 0.0}, r"sigma \(--sigma\) must be in \(0.0, inf\], got 0.0"),
+    ({"sigma": float("inf")}, r"sigma \(--sigma\) must be a finite number"),
+    ({"fraction": 0.0}, r"fraction \(--fraction\) must be in \(0.0, 1.0\], got 0.0"),
+    ({"decay": 1.0}, r"decay \(--decay\) must be in \[0.0, 1.0\), got 1.0"),
 ])
 def test_check_options_names_the_field_and_its_flag(changes, match):
     with pytest.raises(ValueError, match=match):
@@ -36,7 +43,7 @@ def test_check_options_names_the_field_and_its_flag(changes, match):
 
 
 def test_none_and_in_range_values_pass():
-    assert Config(limit=None, rate=1.0, scales=(), steps=1).steps == 1
+    assert Config(limit=None, rate=1.0, scales=(), steps=1, sigma=1e-9, fraction=1.0, decay=0.0).steps == 1
 
 
 def test_flags_and_types_of_fields():
