@@ -78,7 +78,7 @@ of that method are also at the top level."""
 class Config:
     foot: str = _protocol.option(
         "FL", "The foot to lift; all: each foot in turn, into OUT/FOOT (compiled once).", choices=FEET + ("all",))
-    height: float = _protocol.option(0.05, "Target height of the foot above its start, m, in (0, 0.15].", max=0.15)
+    height: float = _protocol.option(0.05, "Target height of the foot above its start, m.", above=0.0, max=0.15)
     method: str = _control.method_option()
     horizon: int = _control.horizon_option(20)
     seeds: int = _control.seeds_option(5)
@@ -102,8 +102,6 @@ class Config:
 
     def __post_init__(self):
         _control.check_config(self)
-        if not 0 < self.height <= 0.15:
-            raise ValueError(f"height must be in (0, 0.15] m, got {self.height}")
 
     def solver(self) -> control.RDDP:
         # State: base position (3), quaternion (4), joints (12); then velocities (18).
