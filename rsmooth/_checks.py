@@ -8,12 +8,49 @@ compiled program runs (the documented mechanism for checks under `jit`).
 
 from __future__ import annotations
 
+import contextlib
 import numbers
+import threading
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+
+_TRACE = threading.local()
+
+
+@contextlib.contextmanager
+def without_traced_checks():
+    """Programs traced inside leave out rsmooth's traced checks (:func:`error_if`).
+
+    For solvers that test finiteness themselves and report it in their result (DDP, R-DDP,
+    policy optimization): a traced check is a host callback in the compiled program, and JAX's
+    persistent compilation cache does not store programs with host callbacks, so every run
+    would compile them again. Checks that a user asks for (``throw=True``) are kept.
+    """
+    previous = getattr(_TRACE, "checks", True)
+    _TRACE.checks = False
+    try:
+        yield
+    finally:
+        _TRACE.checks = previous
+
+
+def traced_checks() -> bool:
+    """False inside :func:`without_traced_checks`."""
+    return getattr(_TRACE, "checks", True)
+
+
+def error_if(x, pred, message: str):
+    """`equinox.error_if`, left out inside :func:`without_traced_checks`."""
+    return eqx.error_if(x, pred, message) if traced_checks() else x
+
+
+def branched_error_if(x, pred, index, messages):
+    """`equinox.branched_error_if`, left out inside :func:`without_traced_checks`."""
+    return eqx.branched_error_if(x, pred, index, messages) if traced_checks() else x
 
 
 def is_traced(value) -> bool:
@@ -66,7 +103,7 @@ def check_positive_scalar(value, name: str):
         array = array.astype(float)
     if is_traced(value):
         bad = ~(jnp.isfinite(array) & (array > 0))
-        return eqx.error_if(array, bad, f"{name} must be positive and finite")
+        return error_if(array, bad, f"{name} must be positive and finite")
     if not (np.isfinite(float(value)) and float(value) > 0):
         raise ValueError(f"{name} must be positive and finite, got {float(value)}")
     return array
@@ -88,7 +125,7 @@ def check_finite(array, message: str):
     """Returns `array`, raising `ValueError(message)` now if it is concrete and not finite,
     or an `equinox` runtime error with the same message when a traced value is not finite."""
     if is_traced(array):
-        return eqx.error_if(array, ~jnp.all(jnp.isfinite(array)), message)
+        return error_if(array, ~jnp.all(jnp.isfinite(array)), message)
     # NumPy, not jnp: inside a jit trace even operations on concrete arrays are staged.
     if not np.all(np.isfinite(np.asarray(array))):
         raise ValueError(message)
@@ -119,7 +156,7 @@ def check_all(output, finite=(), conditions=()):
     if not traced:
         return output
     failures = jnp.stack([failed for failed, _ in traced])
-    return eqx.branched_error_if(output, jnp.any(failures), jnp.argmax(failures), [m for _, m in traced])
+    return branched_error_if(output, jnp.any(failures), jnp.argmax(failures), [m for _, m in traced])
 
 
 def resolution_failure(x, sigma, name: str = "x"):

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import importlib.metadata
 import os
+import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -49,6 +50,43 @@ def apply_cpu_defaults(environ: dict | None = None) -> bool:
         return False
     environ["XLA_FLAGS"] = f"{flags} {YNN_FLAG}=".strip()
     return True
+
+
+CACHE_VARIABLE = "RSMOOTH_COMPILATION_CACHE"
+# Programs that compile faster than this are not written to the cache: reading one back costs
+# a file read, and the small programs of a run (key splits, reshapes) are many.
+CACHE_MIN_COMPILE_SECONDS = 0.2
+
+
+def default_cache_dir(environ: dict | None = None) -> pathlib.Path:
+    """``$XDG_CACHE_HOME/rsmooth/jax``, or ``~/.cache/rsmooth/jax``."""
+    environ = os.environ if environ is None else environ
+    base = environ.get("XDG_CACHE_HOME") or str(pathlib.Path.home() / ".cache")
+    return pathlib.Path(base) / "rsmooth" / "jax"
+
+
+def enable_compilation_cache(environ: dict | None = None) -> pathlib.Path | None:
+    """Turns on JAX's persistent compilation cache for the ``rsmooth`` command; its folder.
+
+    Most of a command's time on a first run is XLA compiling; a second run of the same
+    command (or of another that builds the same programs) reads them back. The folder is
+    ``RSMOOTH_COMPILATION_CACHE`` when set (``0`` or ``off`` turns the cache off), else
+    :func:`default_cache_dir`. A cache the user configured for JAX
+    (``JAX_COMPILATION_CACHE_DIR``) is left as it is. Never called by importing rsmooth: a
+    library does not choose its host's cache. The folder is not size-capped (JAX's cap needs
+    the ``filelock`` package): a command's programs take a few MB, and deleting the folder at
+    any time only costs the next run its compilation.
+    """
+    environ = os.environ if environ is None else environ
+    setting = environ.get(CACHE_VARIABLE)
+    if setting is not None and setting.strip().lower() in ("", "0", "off", "false", "no"):
+        return None
+    if environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return pathlib.Path(environ["JAX_COMPILATION_CACHE_DIR"])
+    folder = pathlib.Path(setting).expanduser() if setting else default_cache_dir(environ)
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", CACHE_MIN_COMPILE_SECONDS)
+    return folder
 
 
 def on_accelerator() -> bool:

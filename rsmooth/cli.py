@@ -430,6 +430,7 @@ def main():  # the console-script entry point
 
         if sys.argv[1:2] == ["render"]:
             _xla.apply_cpu_defaults()  # before JAX starts its backend (see rsmooth._xla)
+        _xla.enable_compilation_cache()
         app()
     except BaseException:
         # Whatever ended the run after a Ctrl-C (the interrupt itself, or an error it caused,

@@ -76,7 +76,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array, lax
 
-from rsmooth import _xla
+from rsmooth import _checks, _xla
 from rsmooth._results import RESULTS
 from rsmooth.control._problem import ShootingProblem
 
@@ -644,14 +644,19 @@ class DDP(eqx.Module):
         return Solution(value=state.trajectory, result=result, stats=stats, state=state)
 
 
+# The solver tests every rollout for finiteness and reports it (RESULTS.nonfinite, rejected
+# trials), so the dynamics' own traced checks are left out of its programs: without host
+# callbacks, JAX's persistent compilation cache can keep them between runs.
 @eqx.filter_jit
 def _jitted_step(solver, problem, state):
-    return solver.step(problem, state)
+    with _checks.without_traced_checks():
+        return solver.step(problem, state)
 
 
 @eqx.filter_jit
 def _jitted_init(solver, problem, us, key):
-    return solver.init(problem, us, key)
+    with _checks.without_traced_checks():
+        return solver.init(problem, us, key)
 
 
 def _tqdm_callback(total: int, description: str):

@@ -443,10 +443,18 @@ class PolicySolution(eqx.Module):
     stats: dict
 
 
+_NONFINITE_ESTIMATE = (
+    "the estimate of the smoothed cost or of its gradient is not finite: the cost or its gradient is "
+    "non-finite (NaN or inf) at a sampled point theta + sigma * z"
+)
 _HISTORY = ("cost", "smoothed_cost", "sigma", "alpha", "variance", "grad_norm")
 
 
+# The programs below test the estimate for finiteness themselves (the record's "finite",
+# raised on by the host loop), so the traced checks of the estimators and the dynamics are
+# left out of them: without host callbacks, JAX's persistent compilation cache can keep them.
 @eqx.filter_jit
+@_checks.without_traced_checks()
 def _jitted_step(solver: PolicyGradient, problem, policy, theta, opt_state, schedule_state, key):
     sigma = schedule_state.sigma
     estimate = _estimate(
@@ -479,6 +487,7 @@ def _shared_sample_estimate(problem, policy, key, theta, sigma, solver: PolicyGr
 
 
 @eqx.filter_jit
+@_checks.without_traced_checks()
 def _jitted_shared_step(solver: PolicyGradient, problem, policy, theta, opt_state, schedule_state, key, index):
     estimate, cost = _shared_sample_estimate(problem, policy, key, theta, schedule_state.sigma, solver, index)
     return _update(solver, theta, opt_state, schedule_state, estimate, cost, estimate.stats["alpha"])
@@ -498,11 +507,13 @@ def _update(solver: PolicyGradient, theta, opt_state, schedule_state, estimate, 
         "alpha": alpha,
         "variance": estimate.stats["variance"],
         "grad_norm": grad_norm,
+        "finite": jnp.isfinite(estimate.value) & jnp.isfinite(grad_norm),
     }
     return theta_next, opt_state, schedule_state, record
 
 
 @eqx.filter_jit
+@_checks.without_traced_checks()
 def _jitted_rollout(problem, policy, theta):
     xs, us = _rollout(problem.dynamics, policy, theta, problem.x0, problem.horizon, problem.clip)
     return xs, us, problem.cost(xs, us)
@@ -545,8 +556,8 @@ def optimize_policy(
     Raises:
         ValueError: on a ``theta`` of the wrong shapes or not finite, or a non-finite initial
             cost.
-        equinox's runtime error: where the cost or its gradient is not finite at a sampled
-            point of an iteration (the estimators' checks).
+        FloatingPointError: where an iteration's estimate is not finite (the cost or its
+            gradient is not finite at a sampled point).
     """
     if not isinstance(solver, PolicyGradient):
         raise TypeError(f"solver must be a PolicyGradient, got {type(solver).__name__}")
@@ -583,6 +594,8 @@ def optimize_policy(
                 step = _jitted_step(step_solver, problem, policy, theta, opt_state, schedule_state, step_key)
             theta, opt_state, schedule_state, record = jax.block_until_ready(step)
             times.append(time.perf_counter() - start)
+            if not bool(record["finite"]):
+                raise FloatingPointError(f"iteration {k}: {_NONFINITE_ESTIMATE}")
             thetas.append(theta)
             records.append(record)
             info = {name: float(record[name]) for name in _HISTORY if name != "smoothed_cost"}

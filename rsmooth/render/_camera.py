@@ -25,6 +25,7 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
+from rsmooth import _checks
 from rsmooth._xla import matmul as _matmul
 
 __all__ = [
@@ -146,10 +147,10 @@ def check_camera(camera: "Camera") -> "Camera":
     pose = lambda c: (c.rotation, c.translation)  # noqa: E731
     intrinsics = lambda c: (c.fov, c.near, c.far)  # noqa: E731
     if any(_is_traced(a) for a in pose(camera)):
-        checked = eqx.error_if(pose(camera), ~_pose_is_finite(*pose(camera)), _POSE_MESSAGE)
+        checked = _checks.error_if(pose(camera), ~_pose_is_finite(*pose(camera)), _POSE_MESSAGE)
         camera = eqx.tree_at(pose, camera, checked)
     if any(_is_traced(a) for a in intrinsics(camera)):
-        checked = eqx.error_if(intrinsics(camera), ~_intrinsics_are_valid(*intrinsics(camera)), _INTRINSICS_MESSAGE)
+        checked = _checks.error_if(intrinsics(camera), ~_intrinsics_are_valid(*intrinsics(camera)), _INTRINSICS_MESSAGE)
         camera = eqx.tree_at(intrinsics, camera, checked)
     return camera
 
@@ -183,9 +184,9 @@ class Camera(eqx.Module):
         fov, near, far = (jnp.asarray(a, rotation.dtype) for a in (fov, near, far))
         # Traced values are checked when the program runs; concrete ones in __check_init__.
         if _is_traced(rotation) or _is_traced(translation):
-            rotation, translation = eqx.error_if((rotation, translation), ~_pose_is_finite(rotation, translation), _POSE_MESSAGE)
+            rotation, translation = _checks.error_if((rotation, translation), ~_pose_is_finite(rotation, translation), _POSE_MESSAGE)
         if any(_is_traced(a) for a in (fov, near, far)):
-            fov, near, far = eqx.error_if((fov, near, far), ~_intrinsics_are_valid(fov, near, far), _INTRINSICS_MESSAGE)
+            fov, near, far = _checks.error_if((fov, near, far), ~_intrinsics_are_valid(fov, near, far), _INTRINSICS_MESSAGE)
         self.rotation, self.translation, self.fov, self.near, self.far = rotation, translation, fov, near, far
         if len(image_size) != 2 or any(int(s) != s or s < 1 for s in image_size):
             raise ValueError(f"image_size must be (height, width), two positive ints, got {image_size}")

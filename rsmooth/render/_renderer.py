@@ -72,7 +72,7 @@ def _noise_level(value: ArrayLike, name: str, dtype) -> Array:
         raise ValueError(f"{name} must be a scalar, got shape {np.shape(value)}")
     if _checks.is_traced(value):
         array = jnp.asarray(value, dtype)
-        return eqx.error_if(array, ~(jnp.isfinite(array) & (array > 0)), f"{name} must be positive and finite")
+        return _checks.error_if(array, ~(jnp.isfinite(array) & (array > 0)), f"{name} must be positive and finite")
     number = float(np.asarray(value))
     if not (math.isfinite(number) and number > 0):
         raise ValueError(f"{name} must be positive and finite, got {number}")

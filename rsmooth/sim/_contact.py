@@ -35,7 +35,7 @@ import numpy as np
 from jax import lax
 from jax.typing import ArrayLike
 
-from rsmooth import _xla
+from rsmooth import _checks, _xla
 from rsmooth._batching import once_if, run_where_needed
 from rsmooth._results import RESULTS
 from rsmooth._unrolled import sum_last
@@ -61,7 +61,7 @@ __all__ = [
 
 
 # --------------------------------------------------------------------------------------
-# Host-side checks (before tracing) and traced checks (equinox.error_if).
+# Host-side checks (before tracing) and traced checks (rsmooth._checks.error_if).
 # --------------------------------------------------------------------------------------
 
 
@@ -75,7 +75,7 @@ def _check_finite(name: str, x: Array) -> Array:
         if not np.all(np.isfinite(np.asarray(x))):
             raise ValueError(f"{name} contains NaN or infinite values.")
         return x
-    return eqx.error_if(x, ~jnp.all(jnp.isfinite(x)), f"{name} contains NaN or infinite values.")
+    return _checks.error_if(x, ~jnp.all(jnp.isfinite(x)), f"{name} contains NaN or infinite values.")
 
 
 def _check_nonnegative(name: str, x: Array) -> Array:
@@ -83,7 +83,7 @@ def _check_nonnegative(name: str, x: Array) -> Array:
         if np.any(np.asarray(x) < 0):
             raise ValueError(f"{name} must be non-negative, got {np.asarray(x)}.")
         return x
-    return eqx.error_if(x, jnp.any(x < 0), f"{name} must be non-negative.")
+    return _checks.error_if(x, jnp.any(x < 0), f"{name} must be non-negative.")
 
 
 def _safe_norm(x: Array) -> Array:

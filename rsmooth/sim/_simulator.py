@@ -627,7 +627,7 @@ class RigidBodySystem(eqx.Module):
                 it in ``info.diverged`` instead, and :meth:`rollout` holds the last finite state).
         """
         x_next = self.step_with_info(x, u)[0]
-        return eqx.error_if(
+        return _checks.error_if(
             x_next, ~jnp.all(jnp.isfinite(x_next)),
             "the step diverged: the next state is not finite (step_with_info reports it as info.diverged)",
         )
