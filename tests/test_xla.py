@@ -1,8 +1,10 @@
 import importlib.metadata
 import os
+import pathlib
 import subprocess
 import sys
 
+import jax
 import pytest
 
 from rsmooth import _xla
@@ -57,3 +59,16 @@ def test_resolve_auto_follows_the_backend(monkeypatch):
     assert _xla.resolve_auto("auto", cpu=4, accelerator=None) is None
     assert _xla.resolve_auto(8, cpu=4, accelerator=None) == 8
     assert _xla.resolve_auto(None, cpu=4, accelerator=16) is None
+
+
+def test_compilation_cache_folder_and_opt_outs(tmp_path):
+    home = {"HOME": str(tmp_path)}
+    assert _xla.default_cache_dir({**home, "XDG_CACHE_HOME": "/x"}) == pathlib.Path("/x/rsmooth/jax")
+    assert _xla.default_cache_dir(home).parts[-3:] == (".cache", "rsmooth", "jax")
+    for off in ("0", "off", ""):
+        assert _xla.enable_compilation_cache({_xla.CACHE_VARIABLE: off}) is None
+    # a cache the user set up for JAX is kept as it is (and JAX's configuration not touched)
+    before = jax.config.jax_compilation_cache_dir
+    assert str(_xla.enable_compilation_cache({"JAX_COMPILATION_CACHE_DIR": "/mine"})) == "/mine"
+    assert jax.config.jax_compilation_cache_dir == before
+

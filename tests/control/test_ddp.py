@@ -1,5 +1,6 @@
 """DDP / Box-DDP against a Riccati recursion in NumPy, on a pendulum, and with box limits."""
 
+import dataclasses
 import types
 
 import equinox as eqx
@@ -408,3 +409,25 @@ def test_line_search_auto_on_an_accelerator_takes_the_sequential_steps(monkeypat
     assert batched.iterations == sequential.iterations
     np.testing.assert_allclose(batched.stats["step_size"], sequential.stats["step_size"], rtol=1e-12)
     np.testing.assert_allclose(batched.us, sequential.us, rtol=1e-12)
+
+
+def test_solver_programs_have_no_host_callbacks_so_the_compilation_cache_can_keep_them():
+    """The simulator's step carries traced checks (host callbacks, which JAX's persistent
+    compilation cache refuses to store); DDP's and R-DDP's programs leave them out, since the
+    solver tests its rollouts for finiteness itself."""
+    from rsmooth import sim
+    from rsmooth.control import _ddp
+
+    system = sim.ball(time_step=0.01)
+    x0 = system.initial_state()
+    assert "callback" in str(jax.make_jaxpr(system.step)(x0, jnp.zeros(system.nu)))
+    problem = control.ShootingProblem(system, lambda x, u: jnp.sum(u**2), lambda x: jnp.sum(x**2), x0, 2)
+    us = jnp.zeros((2, system.nu))
+    for solver in (control.DDP(), control.RDDP(num_samples=2)):
+        smoothed, exact = solver._programs()
+        state = _ddp._jitted_init(exact, problem, us, None)
+        if smoothed is not exact:
+            state = dataclasses.replace(state, noise=jnp.asarray(0.1), key=jax.random.key(0))
+        for program in {smoothed, exact}:
+            jaxpr = jax.make_jaxpr(lambda s, program=program: _ddp._jitted_step(program, problem, s))(state)
+            assert "callback" not in str(jaxpr)

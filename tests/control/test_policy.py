@@ -10,6 +10,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 from control_systems import Pendulum
 
@@ -187,8 +188,30 @@ def test_optimize_policy_reports_a_nonfinite_result():
     solution = control.optimize_policy(problem, policy, jax.random.key(0), policy.init(), solver=solver)
     assert bool(solution.result == control.RESULTS.nonfinite) and not np.isfinite(float(solution.cost))
     assert np.isfinite(solution.stats["cost"][0])
-    with pytest.raises(Exception, match="non-finite"):
+    with pytest.raises(FloatingPointError, match="iteration 1: .*non-finite"):
         control.optimize_policy(problem, policy, jax.random.key(0), policy.init(), solver=dataclasses.replace(solver, iterations=2))
+
+
+def test_policy_step_has_no_host_callbacks_so_the_compilation_cache_can_keep_it():
+    """The estimators' traced checks are host callbacks (JAX's persistent compilation cache
+    does not store programs with them); the policy step leaves them out and tests its
+    estimate's finiteness itself (the test above)."""
+    from rsmooth import estimators
+    from rsmooth.control import _policy
+
+    problem = control.ShootingProblem(Integrator(), _quadratic_running, _quadratic_terminal, jnp.zeros(1), 2)
+    policy = control.OpenLoop(horizon=2, nu=1)
+    theta = policy.init()
+    f = lambda th: _policy._policy_cost(problem, policy, th)  # noqa: E731
+    smoothed = jax.make_jaxpr(lambda key, th: estimators.zeroth_order(f, key, th, sigma=0.1, num_samples=4).grad)
+    assert "callback" in str(smoothed(jax.random.key(0), theta))
+    for estimator in ("zeroth", "first", "alpha"):
+        solver = control.PolicyGradient(estimator=estimator, num_samples=4, iterations=1)
+        schedule_state = solver.schedule.init(jnp.asarray(solver.sigma, jnp.float64), solver.num_samples)
+        opt_state = optax.adam(solver.learning_rate).init(theta)
+        jaxpr = jax.make_jaxpr(lambda th, o, s, k: _policy._jitted_step(solver, problem, policy, th, o, s, k))(
+            theta, opt_state, schedule_state, jax.random.key(0))
+        assert "callback" not in str(jaxpr)
 
 
 TRACES = []
