@@ -18,7 +18,25 @@ import jax.numpy as jnp
 import numpy as np
 
 
-_TRACE = threading.local()
+def _trace_flag():
+    """The flag of :func:`without_traced_checks`, as a JAX configuration state included in the
+    trace context: JAX's caches of traced functions (``jax.jit``, ``make_jaxpr``) are then
+    keyed on it, so a function traced inside the context is traced again outside it instead
+    of reusing a program without its checks. That state is defined through ``jax._src.config``
+    (JAX has no public way to add one); where that is missing, a thread-local flag, which
+    those caches do not see."""
+    try:
+        from jax._src import config as jax_config
+
+        return jax_config.bool_state(
+            "rsmooth_traced_checks", True, "rsmooth's traced checks (rsmooth._checks)", include_in_trace_context=True
+        )
+    except (ImportError, AttributeError, TypeError):  # pragma: no cover - another JAX
+        return None
+
+
+_FLAG = _trace_flag()
+_LOCAL = threading.local()
 
 
 @contextlib.contextmanager
@@ -26,21 +44,25 @@ def without_traced_checks():
     """Programs traced inside leave out rsmooth's traced checks (:func:`error_if`).
 
     For solvers that test finiteness themselves and report it in their result (DDP, R-DDP,
-    policy optimization): a traced check is a host callback in the compiled program, and JAX's
-    persistent compilation cache does not store programs with host callbacks, so every run
-    would compile them again. Checks that a user asks for (``throw=True``) are kept.
+    policy optimization, rollouts): a traced check is a host callback in the compiled program,
+    and JAX's persistent compilation cache does not store programs with host callbacks, so
+    every run would compile them again. Checks that a user asks for (``throw=True``) are kept.
     """
-    previous = getattr(_TRACE, "checks", True)
-    _TRACE.checks = False
+    if _FLAG is not None:
+        with _FLAG(False):
+            yield
+        return
+    previous = getattr(_LOCAL, "checks", True)
+    _LOCAL.checks = False
     try:
         yield
     finally:
-        _TRACE.checks = previous
+        _LOCAL.checks = previous
 
 
 def traced_checks() -> bool:
     """False inside :func:`without_traced_checks`."""
-    return getattr(_TRACE, "checks", True)
+    return bool(_FLAG.value) if _FLAG is not None else getattr(_LOCAL, "checks", True)
 
 
 def error_if(x, pred, message: str):
@@ -51,6 +73,29 @@ def error_if(x, pred, message: str):
 def branched_error_if(x, pred, index, messages):
     """`equinox.branched_error_if`, left out inside :func:`without_traced_checks`."""
     return eqx.branched_error_if(x, pred, index, messages) if traced_checks() else x
+
+
+def jit_checked_on_host(fn, what: str):
+    """``jax.jit(fn)``, its program traced :func:`without_traced_checks`, and its floating
+    outputs checked on the host instead: a non-finite one raises ``FloatingPointError``
+    naming ``what`` and the output. For the programs an experiment or a fitting loop calls,
+    which JAX's persistent compilation cache can then keep between runs."""
+    compiled = jax.jit(without_traced_checks()(fn))
+
+    def call(*args, **kwargs):
+        out = compiled(*args, **kwargs)
+        check_outputs_on_host(out, what)
+        return out
+
+    return call
+
+
+def check_outputs_on_host(out, what: str) -> None:
+    """Raises ``FloatingPointError`` if a floating leaf of ``out`` holds NaN or inf."""
+    for path, leaf in jax.tree_util.tree_leaves_with_path(out):
+        if jnp.issubdtype(jnp.result_type(leaf), jnp.inexact) and not np.all(np.isfinite(np.asarray(leaf))):
+            name = jax.tree_util.keystr(path) or "the output"
+            raise FloatingPointError(f"{what}: {name} is not finite (NaN or inf)")
 
 
 def is_traced(value) -> bool:

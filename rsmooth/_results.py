@@ -32,7 +32,8 @@ class RESULTS(eqx.Enumeration):
     its iteration cap first (the returned value is its best or last iterate, not a
     solution). ``regularization_exceeded``: the regularization that makes a step's linear
     system positive definite reached its cap (DDP's backward pass). ``nonfinite``: a value the
-    solver computed is NaN or infinite.
+    solver computed is NaN or infinite. ``invalid_input``: an input is outside the solver's
+    domain (reported where the solver's traced input checks are left out, as in a rollout).
     """
 
     successful = ""
@@ -48,4 +49,8 @@ class RESULTS(eqx.Enumeration):
     nonfinite = (
         "a value the solver computed is not finite (NaN or inf): check the inputs, and the "
         "dynamics and costs at the states the solve reached"
+    )
+    invalid_input = (
+        "an input of the solve is outside its domain (NaN or inf, or a negative friction "
+        "coefficient): the result is meaningless"
     )

@@ -22,7 +22,7 @@ from jax.scipy.stats import norm
 from tqdm.auto import tqdm
 
 import rsmooth
-from rsmooth import viz
+from rsmooth import _checks, viz
 from rsmooth.experiments import _protocol
 
 METRICS_DOC = """metrics.json keys: for each function F in heaviside, abs, stiff_sigmoid, coulomb and each
@@ -96,7 +96,6 @@ def _estimate_table(estimator, fs, key, points, sigma, num_samples, num_trials):
     keys = jax.random.split(key, (len(fs), points.shape[0], num_trials))
     index = jnp.arange(len(fs))
 
-    @jax.jit
     def run(keys, points):
         def one(k, x, i):
             f = lambda y: jax.lax.switch(i, fs, y)  # noqa: E731
@@ -104,9 +103,10 @@ def _estimate_table(estimator, fs, key, points, sigma, num_samples, num_trials):
 
         per_trial = jax.vmap(one, in_axes=(0, None, None))
         est = jax.vmap(jax.vmap(per_trial, in_axes=(0, 0, None)), in_axes=(0, None, 0))(keys, points, index)
-        return est.grad, est.stats.get("alpha", jnp.full(est.grad.shape, jnp.nan))
+        return est.grad, est.stats.get("alpha")
 
-    return run(keys, points)
+    grads, alphas = _checks.jit_checked_on_host(run, "the estimators experiment")(keys, points)
+    return grads, jnp.full(grads.shape, jnp.nan) if alphas is None else alphas
 
 
 ESTIMATORS = {"zeroth": rsmooth.zeroth_order, "first": rsmooth.first_order, "alpha": rsmooth.alpha_order}

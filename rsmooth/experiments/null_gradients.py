@@ -23,7 +23,7 @@ from jax.scipy.stats import norm
 from tqdm.auto import tqdm
 
 import rsmooth
-from rsmooth import sim, viz
+from rsmooth import _checks, sim, viz
 from rsmooth.experiments import _protocol
 
 METRICS_DOC = """metrics.json keys: forces (the grid of upward forces, N), weight (m g, N),
@@ -99,7 +99,6 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         # Samples are batched by vmap inside the estimator; the (force, trial) pairs go one
         # after the other: a vmap over both levels (~1400 rollouts with contact solves in
         # while loops) made XLA on CPU hang, as reported for MJX in the field notes.
-        @jax.jit
         def estimates(key, sigma):
             keys = jax.random.split(key, forces.shape[0] * config.num_trials)
             points = jnp.repeat(forces, config.num_trials)
@@ -107,7 +106,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
             grads = jax.lax.map(one, (keys, points, sigmas)).reshape(forces.shape[0], -1)
             return grads.mean(1), grads.std(1)
 
-        return estimates
+        return _checks.jit_checked_on_host(estimates, "the null-gradients experiment")
 
     estimators = {
         "first_order": compile_estimates(rsmooth.first_order),

@@ -20,7 +20,7 @@ import numpy as np
 import optax
 from tqdm.auto import tqdm
 
-from rsmooth import noise, perturbed, viz
+from rsmooth import _checks, noise, perturbed, viz
 from rsmooth.experiments import _protocol
 
 METRICS_DOC = """metrics.json keys: softmax_error (dict sigma -> list over num_samples of the max
@@ -112,7 +112,6 @@ def _ranking_part(config: Config, key, bar) -> dict:
 
     optimizer = optax.adam(config.learning_rate)
 
-    @jax.jit
     def step(w, opt_state, k):
         k_batch, k_loss = jax.random.split(k)
         idx = jax.random.choice(k_batch, config.rank_train_queries, (config.rank_batch,), replace=False)
@@ -120,6 +119,7 @@ def _ranking_part(config: Config, key, bar) -> dict:
         updates, opt_state = optimizer.update(grad, opt_state)
         return optax.apply_updates(w, updates), opt_state, loss
 
+    step = _checks.jit_checked_on_host(step, "the ranking experiment's training step")
     def evaluate(w):
         predicted = jax.vmap(perturbed.ranking_argmax)(x_test @ w)
         return float(jnp.mean(spearman(predicted, y_test))), float(jnp.mean(jnp.all(predicted == y_test, axis=-1)))

@@ -46,7 +46,7 @@ import numpy as np
 import optax
 from tqdm.auto import tqdm
 
-from rsmooth import noise, parallel, render, schedules, viz
+from rsmooth import _checks, noise, parallel, render, schedules, viz
 from rsmooth.estimators import check_baseline
 from rsmooth.experiments import _protocol
 from rsmooth.experiments._protocol import option
@@ -282,8 +282,17 @@ def make_solver(config: Config, method: str, template: render.Mesh, cams: render
         sched = schedule.update(sched, scale_grad) if adaptive else schedule.update(sched)
         return (offsets, opt_state, sched), loss, jnp.linalg.norm(data_grad)
 
-    # independent problems: one per device share when there are several (rsmooth.parallel)
-    return renderer, jax.vmap(init), jax.jit(parallel.vmap_samples(step))
+    # independent problems: one per device share when there are several (rsmooth.parallel);
+    # the loss and the gradient's norm checked on the host rather than by traced checks, so
+    # that the persistent compilation cache can keep the program (rsmooth._checks)
+    compiled = jax.jit(_checks.without_traced_checks()(parallel.vmap_samples(step)))
+
+    def checked_step(*args):
+        state, loss, grad_norm = compiled(*args)
+        _checks.check_outputs_on_host({"loss": loss, "gradient norm": grad_norm}, "render reconstruct's step")
+        return state, loss, grad_norm
+
+    return renderer, jax.vmap(init), checked_step
 
 
 def _name(target: str) -> str:

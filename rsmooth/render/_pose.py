@@ -49,7 +49,7 @@ import numpy as np
 import optax
 from jax import Array
 
-from rsmooth import parallel, schedules
+from rsmooth import _checks, parallel, schedules
 from rsmooth._xla import matmul
 from rsmooth.render._camera import Camera, axis_angle_to_matrix
 from rsmooth.render._mesh import Mesh, transform_mesh
@@ -444,9 +444,11 @@ def _compiled(fit: PoseFit, mesh: Mesh, camera: Camera):
         def hard_loss(rotation, translation, target):
             return image_loss(fit.hard_renderer(None, transform_mesh(mesh, rotation, translation), camera).rgb, target)
 
+        # The loop of fit_poses checks each step's loss on the host: the step's program leaves
+        # out the traced checks, so that the persistent compilation cache can keep it.
         _COMPILED[key] = (
             jax.jit(jax.vmap(fit.init)),
-            jax.jit(parallel.vmap_samples(step)),
+            jax.jit(_checks.without_traced_checks()(parallel.vmap_samples(step))),
             jax.jit(jax.vmap(hard_loss)),
         )
     return _COMPILED[key]
@@ -493,6 +495,11 @@ def fit_poses(
 
     Returns:
         A :class:`PoseFitResult`.
+
+    Raises:
+        FloatingPointError: where a step's loss or pose is not finite (checked on the host
+            after every step; the step's program leaves out the traced checks so that JAX's
+            persistent compilation cache can keep it).
     """
     if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
         raise ValueError(f"batch_size must be an int >= 1, got {batch_size!r}")
@@ -521,8 +528,8 @@ def fit_poses(
             trajectory = [np.asarray(initial_rotations[chunk])]
             for t in range(fit.steps):
                 start = time.perf_counter()
-                state, _, rotation = step(state, step_keys(keys, t), chunk_targets, chunk_r0)
-                jax.block_until_ready(rotation)
+                state, loss, rotation = step(state, step_keys(keys, t), chunk_targets, chunk_r0)
+                _checks.check_outputs_on_host({"loss": loss, "rotation": rotation}, f"fit_poses, step {t}")
                 if t > 0 and size == batch:  # full batches after their first step (which may compile)
                     elapsed.append(time.perf_counter() - start)
                 trajectory.append(np.asarray(rotation[:size]))

@@ -597,13 +597,17 @@ def _polish(G: Array, g: Array, mu: Array, impulse: Array, steps: int) -> Array:
     x = jnp.where(sliding[:, None], slide_start, z)
     unit = z[:, :2] / jnp.where(tangential > 0, tangential, 1.0)[:, None]
     direction = jnp.where((tangential > 0)[:, None], unit, jnp.array([[1.0, 0.0]], G.dtype))
-    for _ in range(steps):  # a few steps, unrolled: Newton converges quadratically here
+
+    def newton(_, carry):
+        x, direction = carry
         _, residual, jacobian = _mode_equations(x, direction, mode, G, g, mu)
         step = _solve_unpivoted(jacobian, residual).reshape(n, 3)
-        x = x - step
         # Turn the direction by the angle step (a retraction onto the unit circle).
         turned = direction - step[:, 1:2] * jnp.stack([-direction[:, 1], direction[:, 0]], axis=-1)
-        direction = turned / _safe_norm(turned)[:, None]
+        return x - step, turned / _safe_norm(turned)[:, None]
+
+    # A loop, not unrolled: one copy of the Newton step in the program (compile time).
+    x, direction = lax.fori_loop(0, steps, newton, (x, direction))
     return _mode_equations(x, direction, mode, G, g, mu)[0]
 
 
@@ -1095,6 +1099,10 @@ def solve_ncp(
     carry = (jnp.zeros((), jnp.int32), start_info.converged, (start, start_info), start)
     carry = run_where_needed(finish, ~start_info.converged, problem, carry, chunk=solver._chunk())
     impulse, info = carry[2]
+    # Reported in the result too: a caller that leaves out the traced checks above
+    # (rsmooth._checks.without_traced_checks, e.g. a rollout) still sees an invalid problem.
+    invalid = ~jnp.all(jnp.isfinite(G)) | ~jnp.all(jnp.isfinite(g)) | ~jnp.all(jnp.isfinite(mu)) | jnp.any(mu < 0)
+    info = eqx.tree_at(lambda i: i.result, info, RESULTS.where(invalid, RESULTS.invalid_input, info.result))
     if solver.throw:
         impulse = eqx.error_if(
             impulse, ~info.converged, "NCP solver did not converge within max_iterations, or its impulse is not finite (NCPInfo.result).",
