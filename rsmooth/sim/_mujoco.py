@@ -1,0 +1,784 @@
+"""Models loaded through MuJoCo's own compiler (MJCF, or URDF as MuJoCo reads it).
+
+MuJoCo compiles the file (defaults, ``fromto``, mesh inertia, angle units...) into an
+``mujoco.MjModel``; :func:`from_mujoco` converts that into rsmooth's :class:`~rsmooth.sim.Model`
+(the kinematic tree, inertias, limits, armature, gravity) plus what the tree does not hold: the
+joint damping, the time step, the direct joint motors, and the collision geometry as plain data.
+The conversion is checked once on the host and refuses, by name, what rsmooth's dynamics do not
+model (as MJX's ``put_model`` does), instead of simulating something else silently.
+
+Joint mapping. Every MuJoCo joint becomes one rsmooth joint, in MuJoCo's order, so rsmooth
+joint ``j + 1`` is MuJoCo joint ``j`` and ``q``/``v`` have the layout of ``qpos``/``qvel``:
+``hinge`` is ``"revolute"``, ``slide`` is ``"prismatic"``, ``free`` is ``"free_flyer"``. A hinge
+turns about ``jnt_axis`` through ``jnt_pos`` (in its body's frame), so its rsmooth joint frame
+is the body frame moved to ``jnt_pos``; the body, its inertia, geoms and sites are placed
+relative to that frame. A body with several joints becomes a chain of rsmooth joints whose
+intermediate bodies are massless (the last one carries the body), composed in MuJoCo's order.
+A body without joints is welded to its parent: its inertia is merged into the parent's body
+(parallel-axis theorem, as Pinocchio merges fixed joints). Every body, joint and site is a
+frame named like it (bodies first, so ``model.frame_id(body_name)`` finds the body; an unnamed
+element is called ``"<kind> <id>"``, e.g. ``"body 3"``).
+
+Conventions that differ (see :meth:`MujocoModel.qpos_to_q` and friends): MuJoCo's free joint
+has ``qpos = [x, y, z, qw, qx, qy, qz]`` and ``qvel = [linear velocity in world axes,
+angular velocity in body axes]``; rsmooth's has ``q = [x, y, z, qx, qy, qz, qw]`` and
+``v = [linear, angular]`` both in body axes. A hinge or slide with a reference position
+(``ref``, MuJoCo's ``qpos0``) has ``q = qpos - qpos0``. Because rsmooth's free-joint basis turns
+with the body, accelerations carry a transport term (:meth:`MujocoModel.qacc_to_a`) and
+``nonlinear_effects`` equals ``T^T (qfrc_bias + M dT/dt v)`` rather than ``T^T qfrc_bias``.
+
+Of ``opt``, the gravity, the time step and the ``gravity``, ``damper`` and ``filterparent``
+disable flags are read. Ignored without error: ``opt.integrator``, the constraint solver and
+its settings (``solver``, ``iterations``, ``tolerance``, ``cone``, ``impratio``...),
+``solref``/``solimp``, ``condim``, margins and gaps, cameras, lights, visuals, sensors and
+keyframes.
+"""
+
+from __future__ import annotations
+
+import pathlib
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.typing import ArrayLike
+
+from rsmooth.sim import _spatial as spatial
+from rsmooth.sim._model import FREE_FLYER, PRISMATIC, REVOLUTE, UNIVERSE, Model
+
+# The geom types a collision routine may meet; height fields and SDFs are accepted only
+# when they cannot collide (purely visual), so that geom indices stay MuJoCo's.
+GEOM_TYPES = ("plane", "sphere", "capsule", "ellipsoid", "cylinder", "box", "mesh")
+
+
+def _mujoco() -> Any:
+    try:
+        import mujoco
+    except ImportError as error:  # pragma: no cover - depends on the environment
+        raise ImportError("loading MJCF files needs MuJoCo: pip install mujoco") from error
+    return mujoco
+
+
+class MujocoModel(eqx.Module):
+    """A MuJoCo model converted for rsmooth: the kinematic tree plus damping, time step,
+    motors and collision geometry, and the maps between MuJoCo's and rsmooth's state vectors.
+
+    Indices: geoms, bodies and actuators keep MuJoCo's ids; ``geom_joints`` and
+    ``body_joints`` give the rsmooth joint (index into ``model``) that moves each of them.
+
+    Attributes:
+        model: the rsmooth kinematic tree (``model.gravity`` is ``opt.gravity``, or zero where
+            gravity is disabled; ``model.armature`` is ``dof_armature``; position limits are
+            ``jnt_range - qpos0`` where ``jnt_limited``; ``model.effort_limit`` is the largest
+            generalized force the motors of a joint can apply, ``inf`` where no limit applies).
+        damping: ``(nv,)``, viscous joint damping ``dof_damping`` (the force is
+            ``-damping * v``); zero where dampers are disabled.
+        timestep: ``opt.timestep``, in seconds.
+        body_names: name of every MuJoCo body (``"world"`` first).
+        body_joints: the rsmooth joint every MuJoCo body moves with (0 for the world and
+            bodies welded to it).
+        geom_names: name of every geom (``"geom <id>"`` when unnamed).
+        geom_types: MuJoCo type name of every geom (:data:`GEOM_TYPES`, or ``"hfield"`` /
+            ``"sdf"`` for geoms that cannot collide).
+        geom_bodies: MuJoCo body of every geom.
+        geom_joints: rsmooth joint every geom moves with.
+        geom_size: ``(ngeom, 3)``, ``geom_size`` as MuJoCo defines it per type (radius, half
+            lengths...).
+        geom_rotation: ``(ngeom, 3, 3)``, placement of the geom in its joint's frame.
+        geom_translation: ``(ngeom, 3)``.
+        geom_friction: ``(ngeom,)``, sliding friction coefficient.
+        geom_contype: ``contype`` bit mask of every geom.
+        geom_conaffinity: ``conaffinity`` bit mask of every geom.
+        geom_vertices: for a mesh geom, its vertices ``(nvert, 3)`` in the geom's frame
+            (``mesh_vert``); ``None`` for other geoms.
+        geom_faces: for a mesh geom, its triangles ``(nface, 3)``, indices into its vertices;
+            ``None`` for other geoms.
+        contact_pairs: explicit contact pairs ``(geom1, geom2)`` (``<contact><pair>``).
+        excluded_body_pairs: body pairs whose contacts are excluded (``<contact><exclude>``),
+            as MuJoCo body ids.
+        collision_pairs: every geom pair MuJoCo's collision detection may test, before any
+            distance test: the explicit pairs first, then the pairs ``(g1, g2)``, ``g1 < g2``,
+            that MuJoCo's filters keep (bodies not welded together, nor parent and child
+            unless ``filterparent`` is disabled, not excluded, ``contype``/``conaffinity``
+            compatible, not both planes, not already an explicit pair).
+        actuator_names: name of every actuator (all are motors on one hinge or slide).
+        actuator_dofs: the velocity index each actuator drives.
+        actuator_gear: ``(nu,)``, transmission ratio (generalized force per unit actuator force).
+        actuator_gain: ``(nu,)``, actuator force per unit control (``gainprm[0]``).
+        actuator_ctrl_range: ``(nu, 2)``, control range, ``[-inf, inf]`` where unlimited.
+        actuator_force_range: ``(nu, 2)``, actuator force range, ``[-inf, inf]`` where
+            unlimited.
+        dof_actuator_force_range: ``(nv, 2)``, range of the total actuator force on each dof
+            (``jnt_actfrcrange``), ``[-inf, inf]`` where unlimited.
+        qpos0: ``(nq,)``, MuJoCo's reference configuration on hinges and slides (zero
+            elsewhere), subtracted from ``qpos`` to give ``q``.
+        free_joint_qpos: ``qpos`` offset of every free joint.
+        free_joint_qvel: ``qvel`` offset of every free joint.
+    """
+
+    model: Model
+    damping: jax.Array
+    timestep: float = eqx.field(static=True)
+    body_names: tuple[str, ...] = eqx.field(static=True)
+    body_joints: tuple[int, ...] = eqx.field(static=True)
+    geom_names: tuple[str, ...] = eqx.field(static=True)
+    geom_types: tuple[str, ...] = eqx.field(static=True)
+    geom_bodies: tuple[int, ...] = eqx.field(static=True)
+    geom_joints: tuple[int, ...] = eqx.field(static=True)
+    geom_size: jax.Array
+    geom_rotation: jax.Array
+    geom_translation: jax.Array
+    geom_friction: jax.Array
+    geom_contype: tuple[int, ...] = eqx.field(static=True)
+    geom_conaffinity: tuple[int, ...] = eqx.field(static=True)
+    geom_vertices: tuple[jax.Array | None, ...]
+    geom_faces: tuple[jax.Array | None, ...]
+    contact_pairs: tuple[tuple[int, int], ...] = eqx.field(static=True)
+    excluded_body_pairs: tuple[tuple[int, int], ...] = eqx.field(static=True)
+    collision_pairs: tuple[tuple[int, int], ...] = eqx.field(static=True)
+    actuator_names: tuple[str, ...] = eqx.field(static=True)
+    actuator_dofs: tuple[int, ...] = eqx.field(static=True)
+    actuator_gear: jax.Array
+    actuator_gain: jax.Array
+    actuator_ctrl_range: jax.Array
+    actuator_force_range: jax.Array
+    dof_actuator_force_range: jax.Array
+    qpos0: jax.Array
+    free_joint_qpos: tuple[int, ...] = eqx.field(static=True)
+    free_joint_qvel: tuple[int, ...] = eqx.field(static=True)
+
+    @property
+    def ngeom(self) -> int:
+        """Number of geoms."""
+        return len(self.geom_names)
+
+    @property
+    def nu(self) -> int:
+        """Number of actuators (controls)."""
+        return len(self.actuator_names)
+
+    def _check(self, name: str, value: ArrayLike, size: int) -> jax.Array:
+        value = jnp.asarray(value)
+        if value.shape[-1:] != (size,):
+            raise ValueError(f"{name} must have shape (..., {size}), got {value.shape}")
+        return value
+
+    def qpos_to_q(self, qpos: ArrayLike) -> jax.Array:
+        """rsmooth's configuration from MuJoCo's ``qpos``.
+
+        Free joints: ``[x, y, z, qw, qx, qy, qz]`` becomes ``[x, y, z, qx, qy, qz, qw]`` with the
+        quaternion normalized (MuJoCo normalizes it before use; a zero quaternion is the
+        identity, as in MuJoCo). Hinges and slides: ``qpos - qpos0``.
+
+        Args:
+            qpos: shape ``(..., nq)``.
+
+        Returns:
+            ``q``, same shape.
+        """
+        qpos = self._check("qpos", qpos, self.model.nq)
+        q = qpos - jnp.broadcast_to(self.qpos0, qpos.shape).astype(qpos.dtype)
+        for adr in self.free_joint_qpos:
+            quaternion = jnp.concatenate([qpos[..., adr + 4 : adr + 7], qpos[..., adr + 3 : adr + 4]], axis=-1)
+            q = q.at[..., adr + 3 : adr + 7].set(_normalized_quaternion(quaternion))
+        return q
+
+    def q_to_qpos(self, q: ArrayLike) -> jax.Array:
+        """MuJoCo's ``qpos`` from rsmooth's configuration (the inverse of :meth:`qpos_to_q`
+        for unit quaternions).
+
+        Args:
+            q: shape ``(..., nq)``.
+
+        Returns:
+            ``qpos``, same shape.
+        """
+        q = self._check("q", q, self.model.nq)
+        qpos = q + jnp.broadcast_to(self.qpos0, q.shape).astype(q.dtype)
+        for adr in self.free_joint_qpos:
+            quaternion = jnp.concatenate([q[..., adr + 6 : adr + 7], q[..., adr + 3 : adr + 6]], axis=-1)
+            qpos = qpos.at[..., adr + 3 : adr + 7].set(quaternion)
+        return qpos
+
+    def qvel_to_v(self, qpos: ArrayLike, qvel: ArrayLike) -> jax.Array:
+        """rsmooth's velocity from MuJoCo's ``(qpos, qvel)``: the linear velocity of every free
+        joint is rotated from world axes into body axes (``v = T^T qvel`` where
+        ``qvel = T v``, ``T = diag(R, I)`` on a free joint's block and the identity elsewhere).
+
+        Generalized forces map the same way (:meth:`qfrc_to_tau`): ``T`` is orthogonal.
+
+        Args:
+            qpos: MuJoCo configuration, shape ``(..., nq)``.
+            qvel: MuJoCo velocity, shape ``(..., nv)``.
+
+        Returns:
+            ``v``, shape ``(..., nv)``.
+        """
+        qpos = self._check("qpos", qpos, self.model.nq)
+        qvel = self._check("qvel", qvel, self.model.nv)
+        return self._rotate_free_linear(self.qpos_to_q(qpos), qvel, inverse=True)
+
+    def v_to_qvel(self, q: ArrayLike, v: ArrayLike) -> jax.Array:
+        """MuJoCo's ``qvel`` from rsmooth's ``(q, v)`` (``qvel = T v``, see :meth:`qvel_to_v`).
+
+        Args:
+            q: rsmooth configuration, shape ``(..., nq)``.
+            v: rsmooth velocity, shape ``(..., nv)``.
+
+        Returns:
+            ``qvel``, shape ``(..., nv)``.
+        """
+        q = self._check("q", q, self.model.nq)
+        v = self._check("v", v, self.model.nv)
+        return self._rotate_free_linear(q, v, inverse=False)
+
+    def qfrc_to_tau(self, qpos: ArrayLike, qfrc: ArrayLike) -> jax.Array:
+        """rsmooth's generalized force from a MuJoCo one (``qfrc_bias``, ``qfrc_actuator``...):
+        ``tau = T^T qfrc``, which keeps the power ``tau . v = qfrc . qvel``.
+
+        Args:
+            qpos: MuJoCo configuration, shape ``(..., nq)``.
+            qfrc: MuJoCo generalized force, shape ``(..., nv)``.
+
+        Returns:
+            ``tau``, shape ``(..., nv)``.
+        """
+        return self.qvel_to_v(qpos, qfrc)
+
+    def tau_to_qfrc(self, q: ArrayLike, tau: ArrayLike) -> jax.Array:
+        """MuJoCo's generalized force from rsmooth's ``tau`` (``qfrc = T tau``).
+
+        Args:
+            q: rsmooth configuration, shape ``(..., nq)``.
+            tau: rsmooth generalized force, shape ``(..., nv)``.
+
+        Returns:
+            ``qfrc``, shape ``(..., nv)``.
+        """
+        return self.v_to_qvel(q, tau)
+
+    def qacc_to_a(self, qpos: ArrayLike, qvel: ArrayLike, qacc: ArrayLike) -> jax.Array:
+        """rsmooth's acceleration from MuJoCo's ``qacc``.
+
+        ``qvel = T(q) v`` with a ``T`` that turns with the body, so ``qacc = T a + (dT/dt) v``:
+        on a free joint, ``a_linear = R^T qacc_linear - omega x v_linear`` (body axes). The
+        same term makes rsmooth's bias ``C(q, v) v + g(q)`` equal to ``T^T (qfrc_bias + M
+        (dT/dt) v)``, not ``T^T qfrc_bias``.
+
+        Args:
+            qpos: MuJoCo configuration, shape ``(..., nq)``.
+            qvel: MuJoCo velocity, shape ``(..., nv)``.
+            qacc: MuJoCo acceleration, shape ``(..., nv)``.
+
+        Returns:
+            ``a``, shape ``(..., nv)``.
+        """
+        qacc = self._check("qacc", qacc, self.model.nv)
+        v = self.qvel_to_v(qpos, qvel)
+        return self._add_transport(v, self.qvel_to_v(qpos, qacc), sign=-1.0)
+
+    def a_to_qacc(self, q: ArrayLike, v: ArrayLike, a: ArrayLike) -> jax.Array:
+        """MuJoCo's ``qacc`` from rsmooth's ``(q, v, a)`` (the inverse of :meth:`qacc_to_a`).
+
+        Args:
+            q: rsmooth configuration, shape ``(..., nq)``.
+            v: rsmooth velocity, shape ``(..., nv)``.
+            a: rsmooth acceleration, shape ``(..., nv)``.
+
+        Returns:
+            ``qacc``, shape ``(..., nv)``.
+        """
+        v = self._check("v", v, self.model.nv)
+        a = self._check("a", a, self.model.nv)
+        return self.v_to_qvel(q, self._add_transport(v, a, sign=1.0))
+
+    def _add_transport(self, v: jax.Array, a: jax.Array, *, sign: float) -> jax.Array:
+        for adr in self.free_joint_qvel:
+            linear, angular = v[..., adr : adr + 3], v[..., adr + 3 : adr + 6]
+            a = a.at[..., adr : adr + 3].add(sign * jnp.cross(angular, linear))
+        return a
+
+    def _rotate_free_linear(self, q: jax.Array, velocity: jax.Array, *, inverse: bool) -> jax.Array:
+        for adr_q, adr_v in zip(self.free_joint_qpos, self.free_joint_qvel):
+            rotation = jnp.vectorize(spatial.quaternion_to_rotation, signature="(4)->(3,3)")(q[..., adr_q + 3 : adr_q + 7])
+            if inverse:
+                rotation = jnp.swapaxes(rotation, -1, -2)
+            linear = jnp.einsum("...ij,...j->...i", rotation, velocity[..., adr_v : adr_v + 3])
+            velocity = velocity.at[..., adr_v : adr_v + 3].set(linear)
+        return velocity
+
+    def ctrl_to_tau(self, ctrl: ArrayLike) -> jax.Array:
+        """Generalized force of the motors, as MuJoCo computes ``qfrc_actuator``: the control
+        clipped to its range, times the gain, clipped to the force range, times the gear, summed
+        per dof and clipped to the dof's actuator force range.
+
+        The force is the same in rsmooth's and MuJoCo's bases: motors drive hinges and slides
+        only, whose velocities coincide.
+
+        Args:
+            ctrl: shape ``(..., nu)``.
+
+        Returns:
+            ``tau``, shape ``(..., nv)``.
+        """
+        ctrl = self._check("ctrl", ctrl, self.nu)
+        def like(values, target):  # explicit broadcasting over the batch dimensions
+            return jnp.broadcast_to(values, target.shape)
+
+        ctrl = jnp.clip(ctrl, like(self.actuator_ctrl_range[:, 0], ctrl), like(self.actuator_ctrl_range[:, 1], ctrl))
+        force = like(self.actuator_gain, ctrl) * ctrl
+        force = jnp.clip(force, like(self.actuator_force_range[:, 0], force), like(self.actuator_force_range[:, 1], force))
+        tau = jnp.zeros(ctrl.shape[:-1] + (self.model.nv,), dtype=force.dtype)
+        tau = tau.at[..., np.asarray(self.actuator_dofs, dtype=np.int64)].add(like(self.actuator_gear, force) * force)
+        return jnp.clip(tau, like(self.dof_actuator_force_range[:, 0], tau), like(self.dof_actuator_force_range[:, 1], tau))
+
+
+def _normalized_quaternion(quaternion: jax.Array) -> jax.Array:
+    squared = jnp.sum(quaternion * quaternion, axis=-1, keepdims=True)
+    tiny = squared < 1e-28
+    identity = jnp.zeros_like(quaternion).at[..., 3].set(1.0)
+    return jnp.where(tiny, identity, quaternion / jnp.sqrt(jnp.where(tiny, 1.0, squared)))
+
+
+# --------------------------------------------------------------------------------------
+# Host-side conversion
+# --------------------------------------------------------------------------------------
+
+
+def _names(mj_model: Any, kind: str, count: int) -> tuple[str, ...]:
+    accessor = getattr(mj_model, kind)
+    return tuple(accessor(i).name or f"{kind} {i}" for i in range(count))
+
+
+def _quaternion_to_matrix(quaternion_wxyz: np.ndarray) -> np.ndarray:
+    w, x, y, z = np.asarray(quaternion_wxyz, dtype=np.float64) / np.linalg.norm(quaternion_wxyz)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _compose(first: tuple[np.ndarray, np.ndarray], second: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    return first[0] @ second[0], first[0] @ second[1] + first[1]
+
+
+def _pose(position: np.ndarray, quaternion_wxyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return _quaternion_to_matrix(quaternion_wxyz), np.asarray(position, dtype=np.float64)
+
+
+_IDENTITY = (np.eye(3), np.zeros(3))
+
+
+def _reject_unsupported(mj: Any, m: Any) -> None:
+    """Raises a ValueError naming the first element rsmooth cannot model faithfully."""
+    joint_names = _names(m, "joint", m.njnt)
+    body_names = _names(m, "body", m.nbody)
+    supported_joints = "supported: hinge, slide and free joints"
+    for j in range(m.njnt):
+        if int(m.jnt_type[j]) == int(mj.mjtJoint.mjJNT_BALL):
+            raise ValueError(
+                f"MuJoCo model: joint {joint_names[j]!r} is a ball joint, which rsmooth.sim does not support "
+                f"({supported_joints})"
+            )
+        if m.jnt_stiffness[j] != 0 or np.any(m.jnt_stiffnesspoly[j] != 0):
+            raise ValueError(
+                f"MuJoCo model: joint {joint_names[j]!r} has a spring (stiffness), which rsmooth.sim does not model "
+                "(supported: stiffness 0)"
+            )
+    for d in range(m.nv):
+        joint = joint_names[m.dof_jntid[d]]
+        if m.dof_frictionloss[d] != 0:
+            raise ValueError(
+                f"MuJoCo model: joint {joint!r} has frictionloss (dry joint friction), which rsmooth.sim does not "
+                "model (supported: frictionloss 0)"
+            )
+        if np.any(m.dof_dampingpoly[d] != 0):
+            raise ValueError(
+                f"MuJoCo model: joint {joint!r} has nonlinear damping (dampingpoly); rsmooth.sim supports linear "
+                "damping only"
+            )
+    counts = [
+        ("ntendon", "tendons", mj.mjtObj.mjOBJ_TENDON),
+        ("neq", "equality constraints", mj.mjtObj.mjOBJ_EQUALITY),
+        ("nflex", "flexible bodies (flex)", mj.mjtObj.mjOBJ_FLEX),
+        ("nskin", "skins", mj.mjtObj.mjOBJ_SKIN),
+        ("nplugin", "plugins", mj.mjtObj.mjOBJ_PLUGIN),
+    ]
+    for attribute, what, kind in counts:
+        count = getattr(m, attribute)
+        if count > 0:
+            first = mj.mj_id2name(m, kind, 0)
+            named = f" (the first is {first!r})" if first else ""
+            raise ValueError(f"MuJoCo model has {count} {what}{named}, which rsmooth.sim does not support")
+    for b in range(m.nbody):
+        if m.body_mocapid[b] >= 0:
+            raise ValueError(
+                f"MuJoCo model: body {body_names[b]!r} is a mocap body (moved by data, not by joints), which "
+                "rsmooth.sim does not support"
+            )
+        if m.body_gravcomp[b] != 0:
+            raise ValueError(
+                f"MuJoCo model: body {body_names[b]!r} has gravity compensation (gravcomp), which rsmooth.sim does "
+                "not model"
+            )
+    if m.opt.density != 0 or m.opt.viscosity != 0:
+        raise ValueError(
+            f"MuJoCo model: fluid forces (density {m.opt.density}, viscosity {m.opt.viscosity}) are not modelled by "
+            "rsmooth.sim (supported: density 0 and viscosity 0)"
+        )
+    geom_names = _names(m, "geom", m.ngeom)
+    paired = set(int(g) for g in m.pair_geom1) | set(int(g) for g in m.pair_geom2)
+    for g in range(m.ngeom):
+        kind = mj.mjtGeom(m.geom_type[g]).name.removeprefix("mjGEOM_").lower()
+        collides = m.geom_contype[g] != 0 or m.geom_conaffinity[g] != 0 or g in paired
+        if kind not in GEOM_TYPES and collides:
+            raise ValueError(
+                f"MuJoCo model: geom {geom_names[g]!r} is a colliding {kind}, which rsmooth.sim does not support "
+                f"(supported: {', '.join(GEOM_TYPES)}; a {kind} with contype = conaffinity = 0 is kept as visual)"
+            )
+    _check_actuators(mj, m, joint_names)
+
+
+def _check_actuators(mj: Any, m: Any, joint_names: tuple[str, ...]) -> None:
+    names = _names(m, "actuator", m.nu)
+    supported = (
+        "supported: motors (<motor>, or <general> with gaintype fixed, biastype none, dyntype none) "
+        "driving one hinge or slide joint"
+    )
+    for a in range(m.nu):
+        problem = None
+        trntype = int(m.actuator_trntype[a])
+        if trntype not in (int(mj.mjtTrn.mjTRN_JOINT), int(mj.mjtTrn.mjTRN_JOINTINPARENT)):
+            problem = f"its transmission is {mj.mjtTrn(trntype).name.removeprefix('mjTRN_').lower()}"
+        elif int(m.jnt_type[m.actuator_trnid[a, 0]]) not in (int(mj.mjtJoint.mjJNT_HINGE), int(mj.mjtJoint.mjJNT_SLIDE)):
+            problem = f"it drives joint {joint_names[m.actuator_trnid[a, 0]]!r}, which is not a hinge or slide"
+        elif int(m.actuator_biastype[a]) != int(mj.mjtBias.mjBIAS_NONE):
+            kind = "a position or velocity servo" if int(m.actuator_biastype[a]) == int(mj.mjtBias.mjBIAS_AFFINE) else "biased"
+            problem = f"it is {kind} (biastype {mj.mjtBias(m.actuator_biastype[a]).name.removeprefix('mjBIAS_').lower()})"
+        elif int(m.actuator_gaintype[a]) != int(mj.mjtGain.mjGAIN_FIXED):
+            problem = f"its gain type is {mj.mjtGain(m.actuator_gaintype[a]).name.removeprefix('mjGAIN_').lower()}"
+        elif int(m.actuator_dyntype[a]) != int(mj.mjtDyn.mjDYN_NONE):
+            problem = f"it has activation dynamics ({mj.mjtDyn(m.actuator_dyntype[a]).name.removeprefix('mjDYN_').lower()})"
+        elif m.actuator_damping[a] != 0 or m.actuator_armature[a] != 0 or np.any(m.actuator_dampingpoly[a] != 0):
+            problem = "it has actuator damping or armature"
+        elif m.actuator_delay[a] != 0 or m.actuator_plugin[a] >= 0:
+            problem = "it has a delay or a plugin"
+        if problem is not None:
+            raise ValueError(f"MuJoCo model: actuator {names[a]!r} is not a direct joint motor: {problem} ({supported})")
+
+
+def _merge_inertias(parts: list[tuple[float, np.ndarray, np.ndarray]]) -> tuple[float, np.ndarray, np.ndarray]:
+    """Mass, centre of mass and rotational inertia about it of rigid parts given as
+    ``(mass, com, inertia about com)`` in one frame (parallel-axis theorem)."""
+    mass = sum(p[0] for p in parts)
+    if mass <= 0:
+        return 0.0, np.zeros(3), sum((p[2] for p in parts), np.zeros((3, 3)))
+    com = sum(p[0] * p[1] for p in parts) / mass
+
+    def shifted(m, c, inertia):
+        offset = c - com
+        return inertia + m * (offset @ offset * np.eye(3) - np.outer(offset, offset))
+
+    return mass, com, sum(shifted(*p) for p in parts)
+
+
+def from_mujoco(mj_model: Any) -> MujocoModel:
+    """Converts a compiled MuJoCo model into a :class:`MujocoModel`.
+
+    Args:
+        mj_model: a ``mujoco.MjModel``.
+
+    Returns:
+        The converted model (see the module's description for the mapping).
+
+    Raises:
+        ValueError: if the model uses a feature that rsmooth.sim does not model (the message
+            names the element and what is supported): ball joints, joint springs,
+            frictionloss, nonlinear damping, tendons, equality constraints, flex, skins,
+            plugins, mocap bodies, gravity compensation, fluid forces, colliding height fields
+            or SDFs, actuators other than direct motors on a hinge or slide, and on a free
+            joint's linear axes an armature (MuJoCo applies it to the world-axes acceleration)
+            or a damping that differs between the three axes (it would not be diagonal in body
+            axes).
+    """
+    mj = _mujoco()
+    if not isinstance(mj_model, mj.MjModel):
+        raise ValueError(f"mj_model must be a mujoco.MjModel, got {type(mj_model).__name__}")
+    m = mj_model
+    _reject_unsupported(mj, m)
+    free, hinge, slide = (int(mj.mjtJoint.mjJNT_FREE), int(mj.mjtJoint.mjJNT_HINGE), int(mj.mjtJoint.mjJNT_SLIDE))
+    body_names = _names(m, "body", m.nbody)
+    joint_names = _names(m, "joint", m.njnt)
+    site_names = _names(m, "site", m.nsite)
+    geom_names = _names(m, "geom", m.ngeom)
+
+    # rsmooth joint j + 1 is MuJoCo joint j; MuJoCo numbers bodies parent first and joints
+    # body by body, so parents precede children as rsmooth requires.
+    njoints = m.njnt + 1
+    parents = [0] * njoints
+    placements = [_IDENTITY] * njoints
+    types = [UNIVERSE] + [""] * m.njnt
+    axes = np.zeros((njoints, 3))
+    body_joint = [0] * m.nbody
+    body_in_joint = [_IDENTITY] * m.nbody  # placement of each body frame in its joint's frame
+    for b in range(1, m.nbody):
+        parent = m.body_parentid[b]
+        frame = _compose(body_in_joint[parent], _pose(m.body_pos[b], m.body_quat[b]))
+        joint = body_joint[parent]
+        anchor = np.zeros(3)
+        for j in range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b]):
+            kind = int(m.jnt_type[j])
+            if kind == free:
+                # The free joint's qpos is the body's world pose (MuJoCo allows it on bodies
+                # whose parent is the world only), whatever body_pos and jnt_pos say.
+                placement, anchor = _IDENTITY, np.zeros(3)
+            else:
+                # The joint frame is the body frame (as moved by the joints before it) shifted
+                # to jnt_pos, where MuJoCo anchors the hinge's rotation.
+                new_anchor = np.asarray(m.jnt_pos[j], dtype=np.float64)
+                placement = _compose(frame, (np.eye(3), new_anchor - anchor))
+                anchor = new_anchor
+                axes[j + 1] = m.jnt_axis[j]
+            types[j + 1] = {free: FREE_FLYER, hinge: REVOLUTE, slide: PRISMATIC}[kind]
+            parents[j + 1] = joint
+            placements[j + 1] = placement
+            joint, frame = j + 1, _IDENTITY
+        if m.body_jntnum[b] > 0:
+            frame = (np.eye(3), -anchor)
+        body_joint[b], body_in_joint[b] = joint, frame
+
+    # Inertias: every body's, in its joint's frame, merged per joint.
+    parts: list[list[tuple[float, np.ndarray, np.ndarray]]] = [[] for _ in range(njoints)]
+    for b in range(m.nbody):
+        rotation, translation = _compose(body_in_joint[b], _pose(m.body_ipos[b], m.body_iquat[b]))
+        inertia = rotation @ np.diag(m.body_inertia[b]) @ rotation.T
+        parts[body_joint[b]].append((float(m.body_mass[b]), translation, inertia))
+    merged = [_merge_inertias(p) if p else (0.0, np.zeros(3), np.zeros((3, 3))) for p in parts]
+
+    qpos0 = np.zeros(m.nq)
+    lower, upper = np.full(m.nq, -np.inf), np.full(m.nq, np.inf)
+    free_qpos, free_qvel = [], []
+    for j in range(m.njnt):
+        adr = m.jnt_qposadr[j]
+        if int(m.jnt_type[j]) == free:
+            free_qpos.append(int(adr))
+            free_qvel.append(int(m.jnt_dofadr[j]))
+            dofs = slice(m.jnt_dofadr[j], m.jnt_dofadr[j] + 3)
+            # MuJoCo's armature on a free joint multiplies the world-axes linear acceleration,
+            # rsmooth's the body-axes one: they differ by armature * (omega x v).
+            if np.any(m.dof_armature[dofs] != 0):
+                raise ValueError(
+                    f"MuJoCo model: free joint {joint_names[j]!r} has armature {m.dof_armature[dofs].tolist()} on its "
+                    "linear axes; rsmooth.sim supports armature on a free joint's angular axes only"
+                )
+            if np.ptp(m.dof_damping[dofs]) != 0:
+                raise ValueError(
+                    f"MuJoCo model: free joint {joint_names[j]!r} has damping {m.dof_damping[dofs].tolist()} on its "
+                    "linear axes; rsmooth.sim needs the same value on the three (its linear velocity is in body axes)"
+                )
+            continue
+        qpos0[adr] = m.qpos0[adr]
+        if m.jnt_limited[j]:
+            lower[adr], upper[adr] = m.jnt_range[j] - m.qpos0[adr]
+
+    effort, actuator_info = _actuator_limits(mj, m)
+    frame_names = body_names + joint_names + site_names
+    frame_parents = tuple(body_joint) + tuple(range(1, njoints)) + tuple(body_joint[m.site_bodyid[s]] for s in range(m.nsite))
+    frame_poses = list(body_in_joint) + [_IDENTITY] * m.njnt + [
+        _compose(body_in_joint[m.site_bodyid[s]], _pose(m.site_pos[s], m.site_quat[s])) for s in range(m.nsite)
+    ]
+    disabled = m.opt.disableflags
+    gravity = np.zeros(3) if disabled & int(mj.mjtDisableBit.mjDSBL_GRAVITY) else np.asarray(m.opt.gravity, dtype=np.float64)
+    model = Model(
+        joint_names=("universe",) + joint_names,
+        joint_types=tuple(types),
+        parents=tuple(parents),
+        idx_q=(0,) + tuple(int(a) for a in m.jnt_qposadr),
+        idx_v=(0,) + tuple(int(a) for a in m.jnt_dofadr),
+        frame_names=frame_names,
+        frame_parents=tuple(int(p) for p in frame_parents),
+        nq=int(m.nq),
+        nv=int(m.nv),
+        joint_axes=_array(axes),
+        joint_placement_rotation=_array([p[0] for p in placements]),
+        joint_placement_translation=_array([p[1] for p in placements]),
+        body_mass=_array([p[0] for p in merged]),
+        body_com=_array([p[1] for p in merged]),
+        body_inertia=_array([p[2] for p in merged]),
+        frame_placement_rotation=_array([p[0] for p in frame_poses]).reshape(-1, 3, 3),
+        frame_placement_translation=_array([p[1] for p in frame_poses]).reshape(-1, 3),
+        lower_position_limit=_array(lower),
+        upper_position_limit=_array(upper),
+        velocity_limit=_array(np.full(m.nv, np.inf)),
+        effort_limit=_array(effort),
+        armature=_array(m.dof_armature),
+        gravity=_array(gravity),
+    )
+
+    geom_poses = [_compose(body_in_joint[m.geom_bodyid[g]], _pose(m.geom_pos[g], m.geom_quat[g])) for g in range(m.ngeom)]
+    vertices, faces = [], []
+    for g in range(m.ngeom):
+        mesh = m.geom_dataid[g]
+        if int(m.geom_type[g]) != int(mj.mjtGeom.mjGEOM_MESH) or mesh < 0:
+            vertices.append(None)
+            faces.append(None)
+            continue
+        start, count = m.mesh_vertadr[mesh], m.mesh_vertnum[mesh]
+        vertices.append(_array(m.mesh_vert[start : start + count]))
+        start, count = m.mesh_faceadr[mesh], m.mesh_facenum[mesh]
+        faces.append(jnp.asarray(np.asarray(m.mesh_face[start : start + count], dtype=np.int32)))
+    damping = np.zeros(m.nv) if disabled & int(mj.mjtDisableBit.mjDSBL_DAMPER) else np.asarray(m.dof_damping, dtype=np.float64)
+    return MujocoModel(
+        model=model,
+        damping=_array(damping),
+        timestep=float(m.opt.timestep),
+        body_names=body_names,
+        body_joints=tuple(body_joint),
+        geom_names=geom_names,
+        geom_types=tuple(mj.mjtGeom(t).name.removeprefix("mjGEOM_").lower() for t in m.geom_type),
+        geom_bodies=tuple(int(b) for b in m.geom_bodyid),
+        geom_joints=tuple(body_joint[b] for b in m.geom_bodyid),
+        geom_size=_array(m.geom_size).reshape(-1, 3),
+        geom_rotation=_array([p[0] for p in geom_poses]).reshape(-1, 3, 3),
+        geom_translation=_array([p[1] for p in geom_poses]).reshape(-1, 3),
+        geom_friction=_array(m.geom_friction[:, 0]),
+        geom_contype=tuple(int(c) for c in m.geom_contype),
+        geom_conaffinity=tuple(int(c) for c in m.geom_conaffinity),
+        geom_vertices=tuple(vertices),
+        geom_faces=tuple(faces),
+        contact_pairs=tuple((int(a), int(b)) for a, b in zip(m.pair_geom1, m.pair_geom2)),
+        # MuJoCo packs an excluded pair as body1 << 16 | body2.
+        excluded_body_pairs=tuple((int(s) >> 16, int(s) & 0xFFFF) for s in m.exclude_signature),
+        collision_pairs=_collision_pairs(mj, m),
+        **actuator_info,
+        qpos0=_array(qpos0),
+        free_joint_qpos=tuple(free_qpos),
+        free_joint_qvel=tuple(free_qvel),
+    )
+
+
+def _collision_pairs(mj: Any, m: Any) -> tuple[tuple[int, int], ...]:
+    """The geom pairs MuJoCo's ``mj_collision`` may test, by its filters (see
+    :attr:`MujocoModel.collision_pairs`); distances are left to the collision routines."""
+    explicit = [(int(a), int(b)) for a, b in zip(m.pair_geom1, m.pair_geom2)]
+    explicit_sets = {frozenset(pair) for pair in explicit}
+    excluded = {frozenset((int(s) >> 16, int(s) & 0xFFFF)) for s in m.exclude_signature}
+    weld = np.asarray(m.body_weldid)
+    weld_parent = weld[np.asarray(m.body_parentid)[weld]]
+    filter_parent = not m.opt.disableflags & int(mj.mjtDisableBit.mjDSBL_FILTERPARENT)
+    plane = int(mj.mjtGeom.mjGEOM_PLANE)
+    pairs = list(explicit)
+    for g1 in range(m.ngeom):
+        for g2 in range(g1 + 1, m.ngeom):
+            b1, b2 = int(m.geom_bodyid[g1]), int(m.geom_bodyid[g2])
+            w1, w2 = weld[b1], weld[b2]
+            if w1 == w2:
+                continue
+            if filter_parent and w1 != 0 and w2 != 0 and (w1 == weld_parent[w2] or w2 == weld_parent[w1]):
+                continue
+            if frozenset((b1, b2)) in excluded or frozenset((g1, g2)) in explicit_sets:
+                continue
+            if not (m.geom_contype[g1] & m.geom_conaffinity[g2] or m.geom_contype[g2] & m.geom_conaffinity[g1]):
+                continue
+            if m.geom_type[g1] == plane and m.geom_type[g2] == plane:
+                continue
+            pairs.append((g1, g2))
+    return tuple(pairs)
+
+
+def _actuator_limits(mj: Any, m: Any) -> tuple[np.ndarray, dict[str, Any]]:
+    """Effort limit per dof and the motors' fields. A dof driven by exactly one motor is
+    limited by what its control range and force range allow (through the gear); the dof's
+    own actuator force range (``actfrcrange``) limits it whatever drives it."""
+
+    def bounds(limited, ranges):
+        ranges = np.asarray(ranges, dtype=np.float64).reshape(-1, 2).copy()
+        ranges[~np.asarray(limited, dtype=bool)] = (-np.inf, np.inf)
+        return ranges
+
+    ctrl_range = bounds(m.actuator_ctrllimited, m.actuator_ctrlrange)
+    force_range = bounds(m.actuator_forcelimited, m.actuator_forcerange)
+    gear = np.asarray(m.actuator_gear[:, 0], dtype=np.float64)
+    gain = np.asarray(m.actuator_gainprm[:, 0], dtype=np.float64)
+    dofs = [int(m.jnt_dofadr[m.actuator_trnid[a, 0]]) for a in range(m.nu)]
+    dof_range = np.tile([-np.inf, np.inf], (m.nv, 1))
+    for j in range(m.njnt):
+        if m.jnt_actfrclimited[j]:
+            dof_range[m.jnt_dofadr[j]] = m.jnt_actfrcrange[j]
+    effort = np.max(np.abs(dof_range), axis=1)
+    for dof in set(dofs):
+        motors = [a for a in range(m.nu) if dofs[a] == dof]
+        if len(motors) != 1:
+            continue
+        a = motors[0]
+        # A zero gain or gear reaches nothing, even with an unbounded range (not 0 * inf).
+        scale_ctrl, scale_force = abs(gear[a] * gain[a]), abs(gear[a])
+        reach = min(
+            scale_ctrl * np.max(np.abs(ctrl_range[a])) if scale_ctrl > 0 else 0.0,
+            scale_force * np.max(np.abs(force_range[a])) if scale_force > 0 else 0.0,
+        )
+        effort[dof] = min(effort[dof], reach)
+    return effort, dict(
+        actuator_names=_names(m, "actuator", m.nu),
+        actuator_dofs=tuple(dofs),
+        actuator_gear=_array(gear),
+        actuator_gain=_array(gain),
+        actuator_ctrl_range=_array(ctrl_range).reshape(-1, 2),
+        actuator_force_range=_array(force_range).reshape(-1, 2),
+        dof_actuator_force_range=_array(dof_range).reshape(-1, 2),
+    )
+
+
+def _array(values: Any) -> jax.Array:
+    return jnp.asarray(np.asarray(values, dtype=np.float64))
+
+
+def load_mjcf(source: str | pathlib.Path | Any) -> MujocoModel:
+    """Loads a model with MuJoCo's compiler and converts it (:func:`from_mujoco`).
+
+    Args:
+        source: path to an MJCF file (or a URDF file, which MuJoCo also reads: its
+            ``package://`` mesh paths must be rewritten to files first), the XML text itself
+            (a string whose first non-blank character is ``<``), or a ``mujoco.MjModel``.
+
+    Returns:
+        The converted model.
+
+    Raises:
+        FileNotFoundError: if the path does not exist.
+        ValueError: if MuJoCo cannot compile the source (MuJoCo's message is included, with
+            the path: a malformed file, a missing mesh file...), if ``source`` is of another
+            type, or if the model uses a feature rsmooth.sim does not support (see
+            :func:`from_mujoco`).
+
+    Example:
+        >>> loaded = load_mjcf('''<mujoco><worldbody><body name="arm" pos="0 0 1">
+        ...   <joint name="hinge" axis="0 1 0"/><geom type="capsule" size=".05" fromto="0 0 0 0 0 -.5"/>
+        ... </body></worldbody></mujoco>''')
+        >>> loaded.model.joint_names, loaded.model.joint_types[1], loaded.geom_types
+        (('universe', 'hinge'), 'revolute', ('capsule',))
+    """
+    mj = _mujoco()
+    if isinstance(source, mj.MjModel):
+        return from_mujoco(source)
+    if isinstance(source, str) and source.lstrip().startswith("<"):
+        try:
+            compiled = mj.MjModel.from_xml_string(source)
+        except ValueError as error:
+            raise ValueError(f"MuJoCo could not load the XML text: {error}") from None
+        return from_mujoco(compiled)
+    if not isinstance(source, (str, pathlib.Path)):
+        raise ValueError(f"source must be a file path, XML text or a mujoco.MjModel, got {type(source).__name__}")
+    path = pathlib.Path(source)
+    if not path.is_file():
+        raise FileNotFoundError(f"MJCF file not found: {path}")
+    try:
+        compiled = mj.MjModel.from_xml_path(str(path))
+    except ValueError as error:
+        raise ValueError(f"MuJoCo could not load {path}: {error}") from None
+    return from_mujoco(compiled)

@@ -1,0 +1,545 @@
+"""Models loaded through MuJoCo (rsmooth.sim._mujoco) against MuJoCo's own answers.
+
+On seeded random states, MuJoCo's mass matrix, bias forces, accelerations and body, site and
+geom placements are compared with rsmooth's (``crba``, ``nonlinear_effects``,
+``forward_dynamics``, ``forward_kinematics``) after the change of velocity basis of free
+joints; Solo-12's URDF loaded by MuJoCo is also compared with ``load_urdf``'s model (loaded by
+Pinocchio). Each model's functions are jitted once and vmapped over the states.
+"""
+
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from rsmooth import sim
+from rsmooth.sim._mujoco import GEOM_TYPES, MujocoModel, from_mujoco, load_mjcf
+
+mujoco = pytest.importorskip("mujoco")
+
+NUM_STATES = 4
+TOLERANCE = 1e-9
+
+DOUBLE_PENDULUM = """
+<mujoco model="double_pendulum">
+  <compiler angle="radian"/>
+  <option timestep="0.005"/>
+  <worldbody>
+    <body name="upper" pos="0 0 2">
+      <joint name="shoulder" axis="0 1 0" damping="0.1"/>
+      <geom name="upper_link" type="capsule" fromto="0 0 0 0 0 -1" size="0.05" mass="1"/>
+      <body name="lower" pos="0 0 -1">
+        <joint name="elbow" axis="0 1 0" limited="true" range="-2 2"/>
+        <geom name="lower_link" type="capsule" fromto="0 0 0 0 0 -1" size="0.05" mass="1"/>
+        <site name="tip" pos="0 0 -1"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator>
+    <motor name="elbow_motor" joint="elbow" gear="2" ctrllimited="true" ctrlrange="-1 1"/>
+  </actuator>
+</mujoco>
+"""
+
+CART_POLE = """
+<mujoco model="cart_pole">
+  <compiler angle="radian"/>
+  <worldbody>
+    <geom name="floor" type="plane" size="0 0 1" friction="0.7"/>
+    <body name="cart" pos="0 0 0.5">
+      <joint name="slider" type="slide" axis="1 0 0" limited="true" range="-2 2" armature="0.1" damping="0.5"/>
+      <geom name="cart" type="box" size="0.2 0.1 0.05" mass="1"/>
+      <body name="pole">
+        <joint name="hinge" axis="0 1 0" ref="0.3"/>
+        <geom name="pole" type="capsule" fromto="0 0 0 0 0 1" size="0.03" mass="0.2" contype="2" conaffinity="4"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator>
+    <motor name="push" joint="slider" gear="10" forcelimited="true" forcerange="-3 3"/>
+  </actuator>
+  <contact>
+    <exclude body1="cart" body2="pole"/>
+    <pair geom1="floor" geom2="pole"/>
+  </contact>
+</mujoco>
+"""
+
+FLOATING_BOX = """
+<mujoco model="floating_box">
+  <compiler angle="radian"/>
+  <option gravity="0.5 -0.3 -9.81" timestep="0.001"/>
+  <worldbody>
+    <body name="box" pos="0 0 1">
+      <freejoint name="root"/>
+      <geom name="box" type="box" size="0.3 0.2 0.1" mass="3" pos="0.05 0.02 -0.01" euler="0.1 0.2 0.3"/>
+      <site name="corner" pos="0.3 0.2 0.1"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+# A free base; a body with three joints (two hinges about oblique axes and a slide, each
+# anchored off the body's origin, one with a reference position); a welded child with a
+# rotated inertia; a hinge below the welded child; armature, damping and a motor.
+TREE = """
+<mujoco model="tree">
+  <compiler angle="radian"/>
+  <option gravity="0.3 -0.2 -9.81"/>
+  <worldbody>
+    <geom name="ground" type="plane" size="5 5 0.1"/>
+    <body name="base" pos="0.1 0.2 1" quat="0.9 0.1 0.2 0.3">
+      <joint name="root" type="free" damping="0.1"/>
+      <geom name="base" type="box" size="0.2 0.1 0.05" mass="2"/>
+      <site name="front" pos="0.2 0 0" euler="0.3 0 0.1"/>
+      <body name="arm" pos="0.2 0.1 0" euler="0.1 0.2 0.3">
+        <joint name="h1" axis="0 1 0" pos="0.05 0 0.02" armature="0.01" damping="0.3" ref="0.2"/>
+        <joint name="h2" axis="1 0 1" pos="0 0.03 0" limited="true" range="-1 1.5"/>
+        <joint name="s1" type="slide" axis="0 0 1" pos="0.1 0.1 0.1"/>
+        <geom name="arm" type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="0.5"/>
+        <body name="welded" pos="0.3 0 0" euler="0 0.5 0">
+          <inertial pos="0.01 0.02 0.03" quat="0.8 0.2 0.3 0.1" mass="0.7" diaginertia="0.01 0.02 0.025"/>
+          <geom name="knob" type="sphere" size="0.05" contype="0" conaffinity="0"/>
+          <site name="knob"/>
+          <body name="child" pos="0.1 0 0">
+            <joint name="h3" axis="0 0 1" pos="0.02 0.01 0"/>
+            <geom name="child" type="cylinder" size="0.02 0.1" mass="0.2"/>
+            <geom name="child_tip" type="ellipsoid" size="0.02 0.03 0.04" pos="0 0 0.1" mass="0.05"/>
+          </body>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+  <actuator>
+    <motor name="h2_motor" joint="h2" gear="3" ctrllimited="true" ctrlrange="-0.5 2"/>
+    <motor name="h3_motor" joint="h3" gear="0.5"/>
+  </actuator>
+</mujoco>
+"""
+
+MODELS = {"double_pendulum": DOUBLE_PENDULUM, "cart_pole": CART_POLE, "floating_box": FLOATING_BOX, "tree": TREE}
+
+
+def assert_close(actual, expected, tolerance=TOLERANCE):
+    """Agreement to ``tolerance``, relative to the largest entry of ``expected`` (at least 1)."""
+    expected = np.asarray(expected)
+    scale = max(1.0, float(np.abs(expected).max(initial=0.0)))
+    np.testing.assert_allclose(np.asarray(actual), expected, rtol=tolerance, atol=tolerance * scale)
+
+
+def solo12_mujoco():
+    """Solo-12's URDF compiled by MuJoCo (mesh paths rewritten, static bodies kept), with a
+    free joint named as Pinocchio's."""
+    root = sim.example_robot_data_root()
+    text = sim.solo12_urdf_path().read_text().replace("package://example-robot-data/", f"{root}/")
+    start = text.index(">", text.index("<robot")) + 1
+    options = '<mujoco><compiler balanceinertia="true" discardvisual="false" fusestatic="false"/></mujoco>'
+    spec = mujoco.MjSpec.from_string(text[:start] + options + text[start:])
+    spec.worldbody.first_body().add_freejoint(name="root_joint")
+    return spec.compile()
+
+
+def random_states(m, seed):
+    """MuJoCo states: hinges in [-pi, pi], slides in [-1, 1] m, random base poses, normal
+    velocities and controls (large enough that some controls are clipped)."""
+    rng = np.random.default_rng(seed)
+    qpos = np.zeros((NUM_STATES, m.nq))
+    for j in range(m.njnt):
+        adr = m.jnt_qposadr[j]
+        if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
+            quaternion = rng.normal(size=(NUM_STATES, 4))
+            qpos[:, adr : adr + 3] = rng.uniform(-1, 1, (NUM_STATES, 3))
+            qpos[:, adr + 3 : adr + 7] = quaternion / np.linalg.norm(quaternion, axis=1, keepdims=True)
+        elif m.jnt_type[j] == mujoco.mjtJoint.mjJNT_SLIDE:
+            qpos[:, adr] = rng.uniform(-1, 1, NUM_STATES)
+        else:
+            qpos[:, adr] = rng.uniform(-np.pi, np.pi, NUM_STATES)
+    return qpos, rng.normal(size=(NUM_STATES, m.nv)), 2.0 * rng.normal(size=(NUM_STATES, m.nu))
+
+
+def mujoco_answers(m, qpos, qvel, ctrl):
+    """MuJoCo's quantities at each state, constraints (contacts, limits) disabled."""
+    m.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
+    d = mujoco.MjData(m)
+    names = ("M", "bias", "qacc", "actuator", "T", "Tdot_v", "xpos", "xmat", "site_xpos", "site_xmat", "geom_xpos", "geom_xmat")
+    answers = {name: [] for name in names}
+    for state in zip(qpos, qvel, ctrl):
+        d.qpos[:], d.qvel[:], d.ctrl[:] = state
+        mujoco.mj_forward(m, d)
+        mass = np.zeros((m.nv, m.nv))
+        mujoco.mj_fullM(m, d, mass)
+        # qvel = T v: on a free joint's block T = diag(R, I), R the body's rotation in MuJoCo's
+        # own kinematics; dT/dt v = [omega_world x qvel_linear, 0].
+        change, transport = np.eye(m.nv), np.zeros(m.nv)
+        for j in np.flatnonzero(m.jnt_type == mujoco.mjtJoint.mjJNT_FREE):
+            adr = m.jnt_dofadr[j]
+            rotation = d.xmat[m.jnt_bodyid[j]].reshape(3, 3)
+            change[adr : adr + 3, adr : adr + 3] = rotation
+            transport[adr : adr + 3] = np.cross(rotation @ d.qvel[adr + 3 : adr + 6], d.qvel[adr : adr + 3])
+        for name, value in (("M", mass), ("bias", d.qfrc_bias), ("qacc", d.qacc), ("actuator", d.qfrc_actuator), ("T", change),
+                            ("Tdot_v", transport), ("xpos", d.xpos), ("xmat", d.xmat), ("site_xpos", d.site_xpos),
+                            ("site_xmat", d.site_xmat), ("geom_xpos", d.geom_xpos), ("geom_xmat", d.geom_xmat)):
+            answers[name].append(np.array(value))
+    return {name: np.stack(values) for name, values in answers.items()}
+
+
+@jax.jit
+def rsmooth_answers(loaded: MujocoModel, qpos, qvel, ctrl):
+    def one(qpos, qvel, ctrl):
+        q, v = loaded.qpos_to_q(qpos), loaded.qvel_to_v(qpos, qvel)
+        tau = loaded.ctrl_to_tau(ctrl) - loaded.damping * v
+        rotations, translations = sim.forward_kinematics(loaded.model, q)
+        return dict(
+            q=q,
+            v=v,
+            M=sim.crba(loaded.model, q),
+            bias=sim.nonlinear_effects(loaded.model, q, v),
+            a=sim.forward_dynamics(loaded.model, q, v, tau),
+            actuator=loaded.ctrl_to_tau(ctrl),
+            rotations=rotations,
+            translations=translations,
+        )
+
+    return jax.vmap(one)(qpos, qvel, ctrl)
+
+
+def place(rotations, translations, joints, local_rotations, local_translations):
+    """World placements ``oMi[joint] * iMx`` of frames or geoms, batched over states."""
+    joints = np.asarray(joints, dtype=np.int64)
+    rotation = np.einsum("sxij,xjk->sxik", rotations[:, joints], local_rotations)
+    translation = np.einsum("sxij,xj->sxi", rotations[:, joints], local_translations) + translations[:, joints]
+    return rotation, translation
+
+
+def check_against_mujoco(m, loaded, seed):
+    qpos, qvel, ctrl = random_states(m, seed)
+    expected = mujoco_answers(m, qpos, qvel, ctrl)
+    actual = jax.tree_util.tree_map(np.asarray, rsmooth_answers(loaded, qpos, qvel, ctrl))
+    change = expected["T"]
+    transpose = np.swapaxes(change, 1, 2)
+    assert_close(np.einsum("sij,sj->si", change, actual["v"]), qvel)
+    assert_close(actual["M"], transpose @ expected["M"] @ change)
+    # rsmooth's velocity basis turns with the body: its bias has the extra M (dT/dt) v.
+    bias = expected["bias"] + np.einsum("sij,sj->si", expected["M"], expected["Tdot_v"])
+    assert_close(actual["bias"], np.einsum("sij,sj->si", transpose, bias))
+    assert_close(actual["actuator"], np.einsum("sij,sj->si", transpose, expected["actuator"]))
+    assert_close(actual["a"], jax.vmap(loaded.qacc_to_a)(qpos, qvel, expected["qacc"]), tolerance=1e-8)
+    model = loaded.model
+    rotations, translations = actual["rotations"], actual["translations"]
+    frames = [model.frame_id(name) for name in loaded.body_names]
+    local_rotations = np.asarray(model.frame_placement_rotation)
+    local_translations = np.asarray(model.frame_placement_translation)
+    parents = np.asarray(model.frame_parents)
+    rotation, translation = place(rotations, translations, parents[frames], local_rotations[frames], local_translations[frames])
+    assert_close(translation, expected["xpos"])
+    assert_close(rotation.reshape(NUM_STATES, -1, 9), expected["xmat"])
+    sites = np.arange(len(frames) + m.njnt, model.nframes)
+    assert [model.frame_names[f] for f in sites] == [m.site(s).name for s in range(m.nsite)]
+    rotation, translation = place(rotations, translations, parents[sites], local_rotations[sites], local_translations[sites])
+    assert_close(translation, expected["site_xpos"])
+    assert_close(rotation.reshape(NUM_STATES, -1, 9), expected["site_xmat"])
+    geom_rotations, geom_translations = np.asarray(loaded.geom_rotation), np.asarray(loaded.geom_translation)
+    rotation, translation = place(rotations, translations, loaded.geom_joints, geom_rotations, geom_translations)
+    assert_close(translation, expected["geom_xpos"])
+    assert_close(rotation.reshape(NUM_STATES, -1, 9), expected["geom_xmat"])
+    return actual
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_matches_mujoco(name):
+    m = mujoco.MjModel.from_xml_string(MODELS[name])
+    if name == "tree":
+        # Armature on a free joint's angular axes (MJCF sets a joint's armature on all its dofs).
+        m.dof_armature[3:6] = [0.01, 0.02, 0.03]
+    loaded = from_mujoco(m)
+    check_against_mujoco(m, loaded, seed=sorted(MODELS).index(name))
+    # Round trips of the state maps.
+    qpos, qvel, _ = random_states(m, seed=10)
+    q = loaded.qpos_to_q(qpos)
+    assert_close(loaded.q_to_qpos(q), qpos, tolerance=1e-14)
+    v = loaded.qvel_to_v(qpos, qvel)
+    assert_close(loaded.v_to_qvel(q, v), qvel, tolerance=1e-14)
+    assert_close(loaded.qacc_to_a(qpos, qvel, loaded.a_to_qacc(q, v, qvel)), qvel, tolerance=1e-14)
+
+
+def test_fields_of_the_cart_pole():
+    loaded = load_mjcf(CART_POLE)
+    model = loaded.model
+    assert model.joint_names == ("universe", "slider", "hinge")
+    assert model.joint_types == ("universe", "prismatic", "revolute")
+    assert loaded.body_names == ("world", "cart", "pole") and loaded.body_joints == (0, 1, 2)
+    assert model.frame_id("cart") == 1 and model.frame_id("hinge") == 4
+    assert loaded.timestep == 0.002
+    np.testing.assert_array_equal(loaded.damping, [0.5, 0.0])
+    np.testing.assert_array_equal(model.armature, [0.1, 0.0])
+    # The hinge's reference position is subtracted from qpos (and from nothing else).
+    np.testing.assert_array_equal(loaded.qpos0, [0.0, 0.3])
+    np.testing.assert_array_equal(model.lower_position_limit, [-2.0, -np.inf])
+    np.testing.assert_array_equal(model.upper_position_limit, [2.0, np.inf])
+    # The motor's force range (3 N) through its gear (10) bounds the slider's force.
+    np.testing.assert_array_equal(model.effort_limit, [30.0, np.inf])
+    assert loaded.actuator_names == ("push",) and loaded.actuator_dofs == (0,)
+    assert loaded.geom_types == ("plane", "box", "capsule")
+    assert loaded.geom_names == ("floor", "cart", "pole") and loaded.geom_joints == (0, 1, 2)
+    np.testing.assert_array_equal(loaded.geom_friction, [0.7, 1.0, 1.0])
+    assert loaded.geom_contype == (1, 1, 2) and loaded.geom_conaffinity == (1, 1, 4)
+    assert loaded.contact_pairs == ((0, 2),)
+    assert loaded.excluded_body_pairs == ((1, 2),)
+    assert all(vertices is None for vertices in loaded.geom_vertices)
+
+
+def test_welded_bodies_are_merged():
+    """The welded child's inertia joins its parent's body (the last of the three joints of
+    'arm'); the intermediate bodies of the chain are massless; total mass is kept."""
+    m = mujoco.MjModel.from_xml_string(TREE)
+    loaded = from_mujoco(m)
+    model = loaded.model
+    assert model.joint_names == ("universe", "root", "h1", "h2", "s1", "h3")
+    assert model.parents == (0, 0, 1, 2, 3, 4)
+    mass = np.asarray(model.body_mass)
+    np.testing.assert_allclose(mass[[2, 3]], 0.0)
+    np.testing.assert_allclose(mass[4], m.body_mass[2] + m.body_mass[3])
+    np.testing.assert_allclose(mass.sum(), m.body_mass.sum())
+    assert loaded.body_joints == (0, 1, 4, 4, 5)
+    np.testing.assert_array_equal(model.effort_limit, [np.inf] * 7 + [2.0 * 3.0, np.inf, np.inf])
+
+
+def test_solo12_matches_mujoco_and_pinocchio():
+    pytest.importorskip("pinocchio")
+    m = solo12_mujoco()
+    loaded = from_mujoco(m)
+    actual = check_against_mujoco(m, loaded, seed=7)
+    assert loaded.geom_types.count("mesh") == m.ngeom
+    vertices = loaded.geom_vertices[0]
+    assert vertices.shape == (m.mesh_vertnum[m.geom_dataid[0]], 3)
+    assert int(np.max(np.asarray(loaded.geom_faces[0]))) < vertices.shape[0]
+    # The same robot loaded by Pinocchio: the same dynamics at the same (rsmooth) states.
+    reference = sim.load_urdf(sim.solo12_urdf_path())
+    joints = [loaded.model.joint_id(name) for name in reference.joint_names[1:]]
+    assert (loaded.model.nq, loaded.model.nv) == (reference.nq, reference.nv)
+
+    def indices(offsets, size):
+        return np.concatenate([np.arange(offsets[j], offsets[j] + size(j)) for j in joints])
+
+    # Pinocchio's joint order may differ from MuJoCo's: reorder MuJoCo's vectors by name.
+    q_order = indices(loaded.model.idx_q, loaded.model.joint_nq)
+    v_order = indices(loaded.model.idx_v, loaded.model.joint_nv)
+    configurations, velocities = np.asarray(actual["q"])[:, q_order], np.asarray(actual["v"])[:, v_order]
+
+    @jax.jit
+    @jax.vmap
+    def pinocchio_side(q, v):
+        placements = [sim.frame_placement(reference, q, name) for name in loaded.body_names[1:]]
+        return sim.crba(reference, q), sim.nonlinear_effects(reference, q, v), placements
+
+    mass, bias, placements = pinocchio_side(configurations, velocities)
+    assert_close(mass, actual["M"][:, v_order][:, :, v_order])
+    assert_close(bias, actual["bias"][:, v_order])
+    for b, (rotation, translation) in enumerate(placements, start=1):
+        joint = loaded.body_joints[b]
+        frame = loaded.model.frame_id(loaded.body_names[b])
+        rotations, local_translation = actual["rotations"][:, joint], np.asarray(loaded.model.frame_placement_translation[frame])
+        expected_rotation = rotations @ np.asarray(loaded.model.frame_placement_rotation[frame])
+        expected_translation = np.einsum("sij,j->si", rotations, local_translation) + actual["translations"][:, joint]
+        assert_close(rotation, expected_rotation)
+        assert_close(translation, expected_translation)
+
+
+def test_mujoco_testdata_model_is_rejected_by_name():
+    path = pathlib.Path(mujoco.__file__).parent / "testdata" / "model.xml"
+    if not path.is_file():
+        pytest.skip("the mujoco package has no testdata/model.xml")
+    with pytest.raises(ValueError, match="does not (support|model)"):
+        load_mjcf(path)
+
+
+def wrap(body, extra=""):
+    return f"<mujoco><compiler angle='radian'/><worldbody>{body}</worldbody>{extra}</mujoco>"
+
+
+HINGE_BODY = "<body name='b'><joint name='j'/><geom name='g' size='0.1'/><site name='s'/></body>"
+UNSUPPORTED = {
+    "ball": (wrap("<body><joint name='shoulder' type='ball'/><geom size='0.1'/></body>"), "joint 'shoulder' is a ball joint"),
+    "tendon": (wrap(HINGE_BODY, "<tendon><fixed name='t'><joint joint='j' coef='1'/></fixed></tendon>"), "tendons .*'t'"),
+    "equality": (wrap(HINGE_BODY, "<equality><weld name='e' body1='b'/></equality>"), "equality constraints .*'e'"),
+    "spring": (wrap("<body><joint name='j' stiffness='3'/><geom size='0.1'/></body>"), "joint 'j' has a spring"),
+    "frictionloss": (wrap("<body><joint name='j' frictionloss='1'/><geom size='0.1'/></body>"), "joint 'j' has frictionloss"),
+    "position_servo": (
+        wrap(HINGE_BODY, "<actuator><position name='p' joint='j' kp='10'/></actuator>"),
+        "actuator 'p' is not a direct joint motor: it is a position",
+    ),
+    "site_actuator": (
+        wrap(HINGE_BODY, "<actuator><general name='a' site='s' gear='0 0 0 0 0 1'/></actuator>"),
+        "actuator 'a' .*transmission is site",
+    ),
+    "filter_actuator": (
+        wrap(HINGE_BODY, "<actuator><general name='a' joint='j' dyntype='filter'/></actuator>"),
+        "actuator 'a' .*activation dynamics",
+    ),
+    "free_motor": (
+        wrap("<body><freejoint name='f'/><geom size='0.1'/></body>", "<actuator><motor name='a' joint='f' gear='1 0 0 0 0 0'/></actuator>"),
+        "actuator 'a' .*not a hinge or slide",
+    ),
+    "gravcomp": (wrap("<body name='b' gravcomp='1'><joint/><geom size='0.1'/></body>"), "body 'b' has gravity compensation"),
+    "mocap": (
+        wrap("<body name='target' mocap='true'><geom size='0.1' contype='0' conaffinity='0'/></body>"),
+        "body 'target' is a mocap body",
+    ),
+    "fluid": (
+        "<mujoco><option density='1.2'/><worldbody><body><joint/><geom size='0.1'/></body></worldbody></mujoco>",
+        "fluid forces",
+    ),
+    "hfield": (
+        wrap("<geom name='terrain' type='hfield' hfield='h'/>", "<asset><hfield name='h' nrow='2' ncol='2' size='1 1 0.1 0.1'/></asset>"),
+        "geom 'terrain' is a colliding hfield",
+    ),
+}
+
+
+@pytest.mark.parametrize("name", sorted(UNSUPPORTED))
+def test_unsupported_features_are_rejected_by_name(name):
+    xml, message = UNSUPPORTED[name]
+    with pytest.raises(ValueError, match=message):
+        load_mjcf(xml)
+
+
+def test_free_joint_armature_and_damping():
+    """Armature on a free joint's angular axes and isotropic damping are kept; linear armature
+    (MuJoCo's multiplies the world-axes acceleration) and anisotropic damping are refused."""
+    m = mujoco.MjModel.from_xml_string(wrap("<body name='b'><freejoint name='f'/><geom size='0.1'/></body>"))
+    m.dof_armature[3:] = [0.1, 0.2, 0.3]
+    m.dof_damping[:] = [0.5, 0.5, 0.5, 0.1, 0.2, 0.3]
+    loaded = from_mujoco(m)
+    np.testing.assert_array_equal(loaded.model.armature, [0, 0, 0, 0.1, 0.2, 0.3])
+    np.testing.assert_array_equal(loaded.damping, [0.5, 0.5, 0.5, 0.1, 0.2, 0.3])
+    m.dof_damping[0] = 0.4
+    with pytest.raises(ValueError, match="free joint 'f' has damping"):
+        from_mujoco(m)
+    with pytest.raises(ValueError, match="free joint 'f' has armature"):
+        load_mjcf(wrap("<body><joint name='f' type='free' armature='0.1'/><geom size='0.1'/></body>"))
+
+
+def test_visual_hfield_is_kept():
+    loaded = load_mjcf(wrap(
+        "<geom name='terrain' type='hfield' hfield='h' contype='0' conaffinity='0'/><geom name='ball' size='0.1'/>",
+        "<asset><hfield name='h' nrow='2' ncol='2' size='1 1 0.1 0.1'/></asset>",
+    ))
+    assert loaded.geom_types == ("hfield", "sphere") and "hfield" not in GEOM_TYPES
+
+
+def test_bad_sources(tmp_path):
+    with pytest.raises(FileNotFoundError, match="missing.xml"):
+        load_mjcf(tmp_path / "missing.xml")
+    broken = tmp_path / "broken.xml"
+    broken.write_text("<mujoco><worldbody><body></worldbody></mujoco>")
+    with pytest.raises(ValueError, match="MuJoCo could not load .*broken.xml.*XML"):
+        load_mjcf(broken)
+    with_mesh = tmp_path / "with_mesh.xml"
+    with_mesh.write_text(
+        "<mujoco><asset><mesh name='m' file='absent.stl'/></asset><worldbody><geom type='mesh' mesh='m'/></worldbody></mujoco>"
+    )
+    with pytest.raises(ValueError, match="with_mesh.xml.*absent.stl"):
+        load_mjcf(with_mesh)
+    with pytest.raises(ValueError, match="MuJoCo could not load the XML text"):
+        load_mjcf("<mujoco><worldbody><geom type='sphere'/></worldbody><bogus/></mujoco>")
+    with pytest.raises(ValueError, match="source must be"):
+        load_mjcf(3)
+    with pytest.raises(ValueError, match="mj_model must be"):
+        from_mujoco("<mujoco/>")
+
+
+def test_state_maps_check_shapes():
+    loaded = load_mjcf(FLOATING_BOX)
+    with pytest.raises(ValueError, match="qpos must have shape"):
+        loaded.qpos_to_q(jnp.zeros(6))
+    with pytest.raises(ValueError, match="ctrl must have shape"):
+        loaded.ctrl_to_tau(jnp.zeros(1))
+
+
+# Spheres around the origin, all overlapping one another and the floor: MuJoCo then reports a
+# contact for every geom pair its filters keep.
+FILTERS = """
+<mujoco>
+  <worldbody>
+    <geom name="floor" type="plane" size="5 5 0.1"/>
+    <geom name="floor2" type="plane" size="5 5 0.1" pos="0 0 0.01"/>
+    <geom name="post" size="0.5" pos="0.01 0 0"/>
+    <body name="a">
+      <joint axis="0 1 0"/>
+      <geom name="a" size="0.5" pos="0 0.01 0"/>
+      <body name="b">
+        <joint axis="0 1 0"/>
+        <geom name="b" size="0.5" pos="0 0 0.01"/>
+      </body>
+      <body name="c" pos="0.01 0.01 0">
+        <geom name="c" size="0.5"/>
+        <body name="d">
+          <joint axis="1 0 0"/>
+          <geom name="d" size="0.5" pos="0 0 -0.01"/>
+        </body>
+      </body>
+    </body>
+    <body name="e" pos="-0.01 0 0">
+      <freejoint/>
+      <geom name="e" size="0.5" contype="2" conaffinity="2"/>
+      <geom name="e2" size="0.5" pos="0 -0.01 0"/>
+    </body>
+    <body name="f" pos="0 -0.02 0">
+      <freejoint/>
+      <geom name="f" size="0.5" contype="4" conaffinity="1"/>
+    </body>
+  </worldbody>
+  <contact>
+    <pair geom1="e" geom2="a"/>
+    <pair geom1="e2" geom2="b"/>
+    <exclude body1="b" body2="f"/>
+  </contact>
+</mujoco>
+"""
+
+
+@pytest.mark.parametrize("filter_parent", [True, False])
+def test_collision_pairs_match_mujoco(filter_parent):
+    m = mujoco.MjModel.from_xml_string(FILTERS)
+    if not filter_parent:
+        m.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_FILTERPARENT
+    loaded = from_mujoco(m)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    reported = {frozenset(int(g) for g in d.contact.geom[i]) for i in range(d.ncon)}
+    candidates = [frozenset(pair) for pair in loaded.collision_pairs]
+    assert len(set(candidates)) == len(candidates)
+    assert set(candidates) == reported
+    assert loaded.collision_pairs[:2] == loaded.contact_pairs
+    names = {frozenset(loaded.geom_names[g] for g in pair) for pair in loaded.collision_pairs}
+    # Welded together (a, c), parent and child (a, b; c, d), excluded (b, f), incompatible
+    # masks (e, post), two planes: never tested.
+    for kept_apart in (("a", "c"), ("b", "f"), ("e", "post"), ("floor", "floor2"), ("floor", "post")):
+        assert frozenset(kept_apart) not in names
+    assert (frozenset(("a", "b")) in names) == (not filter_parent)
+
+
+def test_urdf_file_through_mujoco_matches_load_urdf(tmp_path):
+    pytest.importorskip("pinocchio")
+    urdf = tmp_path / "arm.urdf"
+    urdf.write_text("""<robot name="arm">
+      <link name="base"/>
+      <link name="upper"><inertial><origin xyz="0.1 0 -0.3" rpy="0.1 0.2 0.3"/><mass value="1.5"/>
+        <inertia ixx="0.02" ixy="0.001" ixz="0" iyy="0.025" iyz="0.002" izz="0.015"/></inertial></link>
+      <link name="lower"><inertial><origin xyz="0 0.05 -0.2"/><mass value="0.5"/>
+        <inertia ixx="0.01" ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.002"/></inertial></link>
+      <joint name="shoulder" type="revolute"><parent link="base"/><child link="upper"/>
+        <origin xyz="0 0 1" rpy="0.2 0 0"/><axis xyz="0 1 0"/><limit effort="5" lower="-2" upper="2" velocity="3"/></joint>
+      <joint name="elbow" type="revolute"><parent link="upper"/><child link="lower"/>
+        <origin xyz="0.1 0 -0.6"/><axis xyz="1 0 0"/><limit effort="5" lower="-2" upper="2" velocity="3"/></joint>
+    </robot>""")
+    loaded = load_mjcf(urdf)
+    reference = sim.load_urdf(urdf, floating_base=False)
+    assert loaded.model.joint_names == reference.joint_names
+    np.testing.assert_allclose(loaded.model.lower_position_limit, reference.lower_position_limit)
+    for q, v in (([0.3, -1.2], [0.5, 2.0]), ([-2.0, 0.7], [-1.0, 0.1])):
+        q, v = jnp.array(q), jnp.array(v)
+        assert_close(sim.crba(loaded.model, q), sim.crba(reference, q))
+        assert_close(sim.nonlinear_effects(loaded.model, q, v), sim.nonlinear_effects(reference, q, v))
