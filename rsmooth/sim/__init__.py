@@ -1,12 +1,22 @@
 """Differentiable rigid-body simulation with frictional contact, in pure JAX.
 
-Kinematic trees come from URDF files through Pinocchio (:func:`load_urdf`) and are frozen
-into JAX arrays (:class:`Model`); dynamics (CRBA, RNEA, Jacobians) are pure JAX functions;
+Kinematic trees come from URDF files through Pinocchio (:func:`load_urdf`), or from MJCF and
+URDF files through MuJoCo's compiler (:func:`load_mjcf`), and are frozen into JAX arrays
+(:class:`Model`); dynamics (CRBA, RNEA, Jacobians) are pure JAX functions;
 contact is a frictional complementarity problem solved by ADMM and differentiated
-implicitly (:func:`solve_ncp`); :class:`RigidBodySystem` steps a system in time and is the
+implicitly (:func:`solve_ncp`); collision geometry (:class:`Sphere`, :class:`Capsule`,
+:class:`Box`, :class:`Cylinder`, :class:`HalfSpace`, :class:`ConvexMesh`) gives contact
+manifolds between posed shapes (:func:`collide`, :func:`candidate_pairs`); :class:`RigidBodySystem` steps a system in time and is the
 ``Dynamics`` (``step(x, u)``, ``nx``, ``nu``) that rsmooth's optimizers consume.
 """
 
+from rsmooth.sim._collision import (
+    CandidatePairs as CandidatePairs,
+    Contacts as Contacts,
+    candidate_pairs as candidate_pairs,
+    collide as collide,
+    manifold_size as manifold_size,
+)
 from rsmooth.sim._contact import (
     ContactPoints as ContactPoints,
     LogBarrier as LogBarrier,
@@ -35,6 +45,16 @@ from rsmooth.sim._dynamics import (
     nonlinear_effects as nonlinear_effects,
     rnea as rnea,
 )
+from rsmooth.sim._geometry import (
+    Box as Box,
+    Capsule as Capsule,
+    ConvexMesh as ConvexMesh,
+    Cylinder as Cylinder,
+    HalfSpace as HalfSpace,
+    NonConvexMeshWarning as NonConvexMeshWarning,
+    Sphere as Sphere,
+    convex_mesh as convex_mesh,
+)
 from rsmooth.sim._model import (
     Model as Model,
     example_robot_data_root as example_robot_data_root,
@@ -45,6 +65,11 @@ from rsmooth.sim._model import (
     save_model as save_model,
     solo12_standing_configuration as solo12_standing_configuration,
     solo12_urdf_path as solo12_urdf_path,
+)
+from rsmooth.sim._mujoco import (
+    MujocoModel as MujocoModel,
+    from_mujoco as from_mujoco,
+    load_mjcf as load_mjcf,
 )
 from rsmooth.sim._simulator import (
     SEPARATED as SEPARATED,

@@ -1,0 +1,860 @@
+"""Narrow- and broad-phase collision detection between the shapes of :mod:`._geometry`.
+
+:func:`collide` returns a fixed-size contact manifold (:class:`Contacts`) for a pair of posed
+shapes, dispatching on the shapes' types at trace time; :func:`candidate_pairs` prunes the
+pairs of many bodies by bounding spheres. Everything is branch-free JAX: it jits once,
+vmaps over poses, and has finite derivatives in the poses (equal to finite differences away
+from the configurations where the closest features switch).
+
+Algorithms, by pair:
+
+- Half-space against a shape: the shape's lowest points (the ends of a capsule, the corners
+  of a box, rim points of a cylinder, the vertices of a mesh), reduced to at most 4 that
+  span the largest area, so that a resting face gives a stable manifold.
+- Spheres and capsules among themselves, and sphere-box: closest points of points and
+  segments (Ericson, *Real-Time Collision Detection*, 2005, sections 5.1.2, 5.1.9).
+- Polytope cores (a sphere is a point dilated, a capsule a segment dilated, boxes and convex
+  meshes are polytopes): the separating axis test over face normals and edge cross products
+  (Gottschalk, Lin, Manocha, "OBBTree", SIGGRAPH 1996) gives the penetration depth of the
+  cores; when the cores are apart, GJK (Gilbert, Johnson, Keerthi, IEEE J. Robotics and
+  Automation 4(2), 1988, with the closest point of each simplex found by enumerating its
+  faces) gives their distance. A face axis gives a manifold by clipping the most
+  anti-parallel face (or the capsule's segment) of the other shape against the reference
+  face's side planes, reduced to 4 points (2 for a capsule); an edge axis gives one contact
+  at the edges' closest points.
+
+GJK runs in a ``lax.while_loop`` without derivatives; its final simplex is then evaluated
+again from the poses, which gives derivatives of the closest points that are exact for the
+closest features found (no unrolling through iterations).
+
+MJX (``mujoco.mjx``) has collision functions for most of these pairs, but they are private
+(``mjx._src``, no stable API), they take MJX's ``Model``/``Data`` and geom-type tables rather
+than standalone shapes and poses, and some of them are written for speed of the forward value
+(``jnp.argmax`` over sampled features, fixed polygon sizes per geom pair) rather than for
+derivatives; depending on them would tie our contact code to MuJoCo's release cadence. We
+write our own, standalone and tested against MuJoCo's own distance (``mj_geomDistance``).
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jax.typing import ArrayLike
+from typing import NamedTuple
+
+from rsmooth.sim._contact import _safe_norm
+from rsmooth.sim._geometry import (
+    Box,
+    Capsule,
+    ConvexMesh,
+    Cylinder,
+    HalfSpace,
+    Sphere,
+    _safe_normalize,
+)
+
+Array = jax.Array
+
+__all__ = [
+    "CandidatePairs",
+    "Contacts",
+    "candidate_pairs",
+    "collide",
+    "manifold_size",
+]
+
+
+class Contacts(eqx.Module):
+    """A fixed-size contact manifold between shape 1 and shape 2.
+
+    Entries are sorted so that entry 0 is the deepest (smallest distance); it always holds
+    the pair's signed distance, active or not. Inactive entries hold finite values.
+
+    Attributes:
+        distance: signed distances, shape ``(k,)``; negative means penetration.
+        normal: unit normals in world coordinates pointing from shape 1 to shape 2,
+            ``(k, 3)``.
+        point1: witness points on the surface of shape 1, world coordinates, ``(k, 3)``.
+        point2: witness points on the surface of shape 2, ``(k, 3)``; for entry 0,
+            ``point2 - point1 = distance * normal``.
+        active: whether the entry is a contact of the manifold (``distance <= margin``
+            and not a repeat of another entry), bool ``(k,)``.
+    """
+
+    distance: Array
+    normal: Array
+    point1: Array
+    point2: Array
+    active: Array
+
+
+def _swapped(contacts: Contacts) -> Contacts:
+    return Contacts(contacts.distance, -contacts.normal, contacts.point2, contacts.point1, contacts.active)
+
+
+def _transform(pose, points: Array) -> Array:
+    rotation, translation = pose
+    return points @ rotation.T + translation[None, :]
+
+
+def _eps(dtype) -> float:
+    return float(jnp.finfo(dtype).eps)
+
+
+# --------------------------------------------------------------------------------------
+# Manifold reduction.
+# --------------------------------------------------------------------------------------
+
+
+def _reduce(point1, point2, distance, normal, candidate, margin, count: int) -> Contacts:
+    """At most ``count`` (1, 2 or 4) of ``C`` candidate contacts: the deepest, then the one
+    farthest from it, then the two that make the largest triangles on either side of that
+    segment (the largest-area heuristic of game physics engines)."""
+    dtype = distance.dtype
+    huge = jnp.asarray(jnp.finfo(dtype).max, dtype)
+    first = jnp.argmin(jnp.where(candidate, distance, huge))
+    valid = candidate & (distance <= margin)
+    points = point2
+    p0 = points[first]
+    scale = jnp.max(jnp.abs(p0)) + jnp.max(jnp.where(valid[:, None], jnp.abs(points - p0[None, :]), 0.0))
+    tolerance = 1e3 * _eps(dtype) * (1.0 + scale)
+    chosen = [first]
+    keep = [valid[first]]
+    if count >= 2:
+        spread = jnp.sum((points - p0[None, :]) ** 2, axis=-1)
+        second = jnp.argmax(jnp.where(valid, spread, -1.0))
+        chosen.append(second)
+        keep.append(valid[second] & (spread[second] > tolerance**2))
+    if count >= 4:
+        edge = points[second] - p0
+        normals = jnp.broadcast_to(normal, points.shape)
+        area = jnp.sum(jnp.cross(edge[None, :], points - p0[None, :]) * normals, axis=-1)
+        area_tolerance = tolerance * (_safe_norm(edge) + tolerance)
+        third = jnp.argmax(jnp.where(valid, area, -huge))
+        fourth = jnp.argmin(jnp.where(valid, area, huge))
+        chosen += [third, fourth]
+        keep += [valid[third] & (area[third] > area_tolerance), valid[fourth] & (area[fourth] < -area_tolerance)]
+    index = jnp.stack(chosen)
+    normals = jnp.broadcast_to(normal, points.shape)[index]
+    return Contacts(distance[index], normals, point1[index], point2[index], jnp.stack(keep))
+
+
+def _single(distance, normal, point1, point2, margin) -> Contacts:
+    return Contacts(distance[None], normal[None], point1[None], point2[None], (distance <= margin)[None])
+
+
+# --------------------------------------------------------------------------------------
+# Half-space against shapes.
+# --------------------------------------------------------------------------------------
+
+
+def _halfspace_points(plane_pose, core_points: Array, radius, margin, count: int) -> Contacts:
+    """Contacts of points dilated by ``radius`` with the half-space; the plane's witness is
+    the projection of the shape's lowest point."""
+    rotation, translation = plane_pose
+    normal = rotation[:, 2]
+    height = (core_points - translation[None, :]) @ normal
+    point2 = core_points - radius * normal[None, :]
+    point1 = core_points - height[:, None] * normal[None, :]
+    distance = height - radius
+    if count == 1:
+        return _single(distance[0], normal, point1[0], point2[0], margin)
+    return _reduce(point1, point2, distance, normal, jnp.ones(distance.shape, bool), margin, count)
+
+
+def _halfspace_sphere(plane: HalfSpace, plane_pose, sphere: Sphere, pose, margin) -> Contacts:
+    return _halfspace_points(plane_pose, pose[1][None, :], sphere.radius, margin, 1)
+
+
+def _capsule_ends(capsule: Capsule, pose) -> Array:
+    rotation, translation = pose
+    axis = capsule.half_length * rotation[:, 2]
+    return jnp.stack([translation - axis, translation + axis])
+
+
+def _halfspace_capsule(plane, plane_pose, capsule: Capsule, pose, margin) -> Contacts:
+    return _halfspace_points(plane_pose, _capsule_ends(capsule, pose), capsule.radius, margin, 2)
+
+
+def _halfspace_box(plane, plane_pose, box: Box, pose, margin) -> Contacts:
+    return _halfspace_points(plane_pose, _transform(pose, box.corners()), 0.0, margin, 4)
+
+
+def _halfspace_mesh(plane, plane_pose, mesh: ConvexMesh, pose, margin) -> Contacts:
+    return _halfspace_points(plane_pose, _transform(pose, mesh.vertices), 0.0, margin, 4)
+
+
+def _halfspace_cylinder(plane, plane_pose, cylinder: Cylinder, pose, margin) -> Contacts:
+    """Rim points of both caps: the lowest one and two more at 120 degrees on each side,
+    so that a cylinder standing on a cap gets a triangle and one lying down a segment."""
+    rotation, translation = pose
+    down = -(rotation.T @ plane_pose[0][:, 2])
+    fallback = jnp.array([1.0, 0.0, 0.0], down.dtype)
+    radial, _ = _safe_normalize(down.at[2].set(0.0), fallback)
+    angles = np.array([0.0, 2.0 * np.pi / 3.0, -2.0 * np.pi / 3.0])
+    cos, sin = jnp.asarray(np.cos(angles), down.dtype), jnp.asarray(np.sin(angles), down.dtype)
+    rim_x = cylinder.radius * (cos * radial[0] - sin * radial[1])
+    rim_y = cylinder.radius * (sin * radial[0] + cos * radial[1])
+    caps = jnp.stack([-cylinder.half_length, cylinder.half_length])
+    local = jnp.stack(
+        [jnp.tile(rim_x, 2), jnp.tile(rim_y, 2), jnp.repeat(caps, 3)], axis=-1
+    )
+    return _halfspace_points(plane_pose, _transform(pose, local), 0.0, margin, 4)
+
+
+# --------------------------------------------------------------------------------------
+# Points and segments: spheres and capsules.
+# --------------------------------------------------------------------------------------
+
+
+def _closest_on_segment(start: Array, end: Array, point: Array) -> Array:
+    direction = end - start
+    length2 = jnp.sum(direction**2)
+    t = jnp.sum((point - start) * direction) / jnp.where(length2 > 0, length2, 1.0)
+    return start + jnp.clip(t, 0.0, 1.0) * direction
+
+
+def _closest_segment_segment(p1, q1, p2, q2) -> tuple[Array, Array]:
+    """Closest points of segments ``[p1, q1]`` and ``[p2, q2]`` (Ericson 2005, 5.1.9), with
+    the parameter of the first segment set to 0 when they are parallel."""
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    a, e = jnp.sum(d1 * d1), jnp.sum(d2 * d2)
+    b, c, f = jnp.sum(d1 * d2), jnp.sum(d1 * r), jnp.sum(d2 * r)
+    denominator = a * e - b * b
+    general = denominator > 1e3 * _eps(a.dtype) * a * e
+    safe_a, safe_e = jnp.where(a > 0, a, 1.0), jnp.where(e > 0, e, 1.0)
+    s = jnp.where(general, jnp.clip((b * f - c * e) / jnp.where(general, denominator, 1.0), 0.0, 1.0), 0.0)
+    t = (b * s + f) / safe_e
+    s = jnp.where(t < 0, jnp.clip(-c / safe_a, 0.0, 1.0), jnp.where(t > 1, jnp.clip((b - c) / safe_a, 0.0, 1.0), s))
+    t = jnp.clip(t, 0.0, 1.0)
+    return p1 + s * d1, p2 + t * d2
+
+
+def _dilated_points(core1, core2, radius1, radius2, margin) -> Contacts:
+    """The contact of two balls of the given radii centred at the closest core points."""
+    fallback = jnp.array([0.0, 0.0, 1.0], core1.dtype)
+    normal, length = _safe_normalize(core2 - core1, fallback)
+    return _single(length - radius1 - radius2, normal, core1 + radius1 * normal, core2 - radius2 * normal, margin)
+
+
+def _sphere_sphere(sphere1: Sphere, pose1, sphere2: Sphere, pose2, margin) -> Contacts:
+    return _dilated_points(pose1[1], pose2[1], sphere1.radius, sphere2.radius, margin)
+
+
+def _sphere_capsule(sphere: Sphere, pose1, capsule: Capsule, pose2, margin) -> Contacts:
+    start, end = _capsule_ends(capsule, pose2)
+    closest = _closest_on_segment(start, end, pose1[1])
+    return _dilated_points(pose1[1], closest, sphere.radius, capsule.radius, margin)
+
+
+def _capsule_capsule(capsule1: Capsule, pose1, capsule2: Capsule, pose2, margin) -> Contacts:
+    start1, end1 = _capsule_ends(capsule1, pose1)
+    start2, end2 = _capsule_ends(capsule2, pose2)
+    closest1, closest2 = _closest_segment_segment(start1, end1, start2, end2)
+    return _dilated_points(closest1, closest2, capsule1.radius, capsule2.radius, margin)
+
+
+def _box_sphere(box: Box, pose1, sphere: Sphere, pose2, margin) -> Contacts:
+    """Outside the box: the clamped centre is the closest point. Inside: the nearest face,
+    whose normal pushes the centre out (on a face, both agree and the depth is 0)."""
+    rotation, translation = pose1
+    centre = rotation.T @ (pose2[1] - translation)
+    half = box.half_extents
+    clamped = jnp.clip(centre, -half, half)
+    fallback = jnp.array([0.0, 0.0, 1.0], centre.dtype)
+    outward, outside_distance = _safe_normalize(centre - clamped, fallback)
+    inside = jnp.all(jnp.abs(centre) <= half)
+    face_depth = half - jnp.abs(centre)
+    axis = jnp.argmin(face_depth)
+    sign = jnp.where(centre[axis] >= 0, 1.0, -1.0)
+    face_normal = sign * jnp.eye(3, dtype=centre.dtype)[axis]
+    face_point = centre.at[axis].set(sign * half[axis])
+    normal_local = jnp.where(inside, face_normal, outward)
+    core_distance = jnp.where(inside, -face_depth[axis], outside_distance)
+    surface_local = jnp.where(inside, face_point, clamped)
+    normal = rotation @ normal_local
+    point1 = rotation @ surface_local + translation
+    point2 = pose2[1] - sphere.radius * normal
+    return _single(core_distance - sphere.radius, normal, point1, point2, margin)
+
+
+# --------------------------------------------------------------------------------------
+# GJK on the cores of two convex shapes.
+# --------------------------------------------------------------------------------------
+
+_PAIRS = tuple(itertools.combinations(range(4), 2))
+_TRIANGLES = tuple(itertools.combinations(range(4), 3))
+
+
+def _closest_in_simplex(points: Array, used: Array) -> tuple[Array, Array]:
+    """Barycentric weights ``(4,)`` of the point of the simplex ``points[used]`` closest to
+    the origin, and that point. Every face of the simplex is tried (its affine projection
+    of the origin is kept when its weights are non-negative); the closest point is the
+    nearest of those, and a vertex is always a candidate."""
+    dtype = points.dtype
+    tiny = 1e3 * _eps(dtype)
+    # Weights within rounding of 0 count as non-negative: a face whose projection lies on
+    # its boundary must not be rejected, or the iteration stalls on a worse face.
+    slack = tiny
+    zero = jnp.zeros(4, dtype)
+    weights, feasible = [], []
+    for i in range(4):
+        weights.append(zero.at[i].set(1.0))
+        feasible.append(used[i])
+    for i, j in _PAIRS:
+        edge = points[j] - points[i]
+        length2 = jnp.sum(edge * edge)
+        ok = length2 > tiny * (jnp.sum(points[i] ** 2) + jnp.sum(points[j] ** 2))
+        t = -jnp.sum(points[i] * edge) / jnp.where(ok, length2, 1.0)
+        weights.append(zero.at[i].set(1.0 - t).at[j].set(t))
+        feasible.append(used[i] & used[j] & ok & (t >= -slack) & (t <= 1 + slack))
+    for i, j, k in _TRIANGLES:
+        e1, e2 = points[j] - points[i], points[k] - points[i]
+        a, b, c = jnp.sum(e1 * e1), jnp.sum(e1 * e2), jnp.sum(e2 * e2)
+        r1, r2 = -jnp.sum(points[i] * e1), -jnp.sum(points[i] * e2)
+        determinant = a * c - b * b
+        ok = determinant > tiny * a * c
+        safe = jnp.where(ok, determinant, 1.0)
+        mu1, mu2 = (c * r1 - b * r2) / safe, (a * r2 - b * r1) / safe
+        weights.append(zero.at[i].set(1.0 - mu1 - mu2).at[j].set(mu1).at[k].set(mu2))
+        feasible.append(used[i] & used[j] & used[k] & ok & (mu1 >= -slack) & (mu2 >= -slack) & (mu1 + mu2 <= 1 + slack))
+    e1, e2, e3 = points[1] - points[0], points[2] - points[0], points[3] - points[0]
+    determinant = jnp.sum(e1 * jnp.cross(e2, e3))
+    scale = _safe_norm(e1) * _safe_norm(e2) * _safe_norm(e3)
+    ok = jnp.abs(determinant) > tiny * scale
+    safe = jnp.where(ok, determinant, 1.0)
+    origin = -points[0]
+    mu = jnp.stack(
+        [jnp.sum(origin * jnp.cross(e2, e3)), jnp.sum(e1 * jnp.cross(origin, e3)), jnp.sum(e1 * jnp.cross(e2, origin))]
+    ) / safe
+    weights.append(jnp.concatenate([1.0 - jnp.sum(mu)[None], mu]))
+    feasible.append(jnp.all(used) & ok & jnp.all(mu >= -slack) & (jnp.sum(mu) <= 1 + slack))
+    weights = jnp.stack(weights)
+    closest = weights @ points
+    squared = jnp.where(jnp.stack(feasible), jnp.sum(closest**2, axis=-1), jnp.inf)
+    best = jnp.argmin(squared)
+    return weights[best], closest[best]
+
+
+def _gjk(shape1, pose1, shape2, pose2, iterations: int = 64):
+    """Closest points of the cores of two convex shapes (``support_core`` in local frames);
+    returns ``(point1, point2)`` in world coordinates (equal where the cores meet)."""
+
+    def difference(p1, p2, direction):
+        local1 = shape1.support_core(p1[0].T @ -direction)
+        local2 = shape2.support_core(p2[0].T @ direction)
+        return p2[0] @ local2 + p2[1] - (p1[0] @ local1 + p1[1]), local1, local2
+
+    def run(p1, p2):
+        start = p1[1] - p2[1]
+        start = jnp.where(jnp.sum(start**2) > 0, start, jnp.array([1.0, 0.0, 0.0], start.dtype))
+        w, local1, local2 = difference(p1, p2, start)
+        dtype = w.dtype
+        simplex = jnp.zeros((4, 3), dtype).at[0].set(w)
+        locals1 = jnp.zeros((4, 3), dtype).at[0].set(local1)
+        locals2 = jnp.zeros((4, 3), dtype).at[0].set(local2)
+        used = jnp.zeros(4, bool).at[0].set(True)
+        scale2 = jnp.sum((p1[1] - p2[1]) ** 2) + jnp.sum(w**2)
+        tolerance = 1e3 * _eps(dtype)
+
+        def body(state):
+            simplex, locals1, locals2, used, closest, step, _ = state
+            w, local1, local2 = difference(p1, p2, -closest)
+            norm2 = jnp.sum(closest**2)
+            converged = norm2 - jnp.sum(closest * w) <= tolerance * norm2
+            slot = jnp.argmin(used)
+            new_simplex = simplex.at[slot].set(w)
+            new_used = used.at[slot].set(True)
+            weights, new_closest = _closest_in_simplex(new_simplex, new_used)
+            new_norm2 = jnp.sum(new_closest**2)
+            accept = ~converged & (new_norm2 < norm2)
+            pick = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
+            return (
+                pick(new_simplex, simplex),
+                pick(locals1.at[slot].set(local1), locals1),
+                pick(locals2.at[slot].set(local2), locals2),
+                pick(new_used & (weights > 0), used),
+                pick(new_closest, closest),
+                step + 1,
+                ~accept | (new_norm2 <= tolerance**2 * scale2),
+            )
+
+        def cond(state):
+            return (state[5] < iterations) & ~state[6]
+
+        state = (simplex, locals1, locals2, used, w, jnp.zeros((), jnp.int32), jnp.zeros((), bool))
+        return lax.while_loop(cond, body, state)
+
+    frozen = jax.tree.map(lax.stop_gradient, (pose1, pose2))
+    _, locals1, locals2, used, _, _, _ = run(*frozen)
+    # The final simplex again, from the differentiable poses: its vertices are points fixed
+    # in the shapes (exact for polytopes), which gives the derivative of the closest points
+    # for the features found without differentiating through the iterations.
+    points1, points2 = _transform(pose1, locals1), _transform(pose2, locals2)
+    weights, _ = _closest_in_simplex(points2 - points1, used)
+    return weights @ points1, weights @ points2
+
+
+# --------------------------------------------------------------------------------------
+# Polytope cores: separating axes, face clipping.
+# --------------------------------------------------------------------------------------
+
+
+class _Polytope(NamedTuple):
+    """A posed core in world coordinates; ``None`` fields are absent (a point has no faces
+    nor edges, a segment no faces)."""
+
+    vertices: Array
+    face_normals: Array | None
+    face_polygons: Array | None
+    edges: Array | None
+    edge_directions: Array | None
+    radius: Array
+
+
+def _box_faces() -> tuple[np.ndarray, np.ndarray]:
+    """Outward normals ``(6, 3)`` and corner signs ``(6, 4, 3)`` of the faces of a box,
+    counter-clockwise about each normal."""
+    normals, polygons = [], []
+    for axis in range(3):
+        i, j = (axis + 1) % 3, (axis + 2) % 3
+        for sign in (1.0, -1.0):
+            square = [(1, 1), (-1, 1), (-1, -1), (1, -1)]
+            if sign < 0:
+                square = square[::-1]
+            polygon = np.zeros((4, 3))
+            for corner, (u, v) in enumerate(square):
+                polygon[corner, axis], polygon[corner, i], polygon[corner, j] = sign, u, v
+            normal = np.zeros(3)
+            normal[axis] = sign
+            normals.append(normal)
+            polygons.append(polygon)
+    return np.array(normals), np.array(polygons)
+
+
+_BOX_NORMALS, _BOX_POLYGONS = _box_faces()
+_BOX_EDGES = np.array(
+    [
+        [[s if k == axis else (u if k == (axis + 1) % 3 else v) for k in range(3)] for s in (-1.0, 1.0)]
+        for axis in range(3)
+        for u in (-1.0, 1.0)
+        for v in (-1.0, 1.0)
+    ]
+)
+
+
+def _polytope(shape, pose) -> _Polytope:
+    rotation, translation = pose
+    if isinstance(shape, Sphere):
+        return _Polytope(translation[None, :], None, None, None, None, shape.radius)
+    if isinstance(shape, Capsule):
+        ends = _capsule_ends(shape, pose)
+        return _Polytope(ends, None, None, ends[None], rotation[:, 2][None, :], shape.radius)
+    if isinstance(shape, Box):
+        half = shape.half_extents
+        dtype = half.dtype
+        polygons = _transform(pose, (jnp.asarray(_BOX_POLYGONS, dtype) * half[None, None, :]).reshape(-1, 3)).reshape(6, 4, 3)
+        edges = _transform(pose, (jnp.asarray(_BOX_EDGES, dtype) * half[None, None, :]).reshape(-1, 3)).reshape(12, 2, 3)
+        return _Polytope(
+            _transform(pose, shape.corners()),
+            jnp.asarray(_BOX_NORMALS, dtype) @ rotation.T,
+            polygons,
+            edges,
+            rotation.T,
+            shape.core_radius,
+        )
+    if isinstance(shape, ConvexMesh):
+        faces, size = shape.face_polygons.shape[:2]
+        edges = shape.edge_segments.shape[0]
+        return _Polytope(
+            _transform(pose, shape.vertices),
+            shape.face_normals @ rotation.T,
+            _transform(pose, shape.face_polygons.reshape(-1, 3)).reshape(faces, size, 3),
+            _transform(pose, shape.edge_segments.reshape(-1, 3)).reshape(edges, 2, 3),
+            shape.edge_directions @ rotation.T,
+            shape.core_radius,
+        )
+    raise TypeError(f"{type(shape).__name__} is not a polytope core.")
+
+
+def _clip(reference: Array, normal: Array, incident: _Polytope, tolerance):
+    """Candidate contact points of ``incident`` against the reference face (polygon
+    ``(P, 3)``, counter-clockwise about its outward ``normal``): the incident feature's
+    vertices inside the reference face's prism, its edges' crossings of the prism's side
+    planes, and the reference vertices inside the incident face. Returns the points on
+    the incident core ``(C, 3)`` and a validity mask ``(C,)``."""
+    following = jnp.roll(reference, -1, axis=0)
+    sides = jnp.cross(following - reference, normal[None, :])  # outward side-plane normals
+
+    def inside(points):
+        offsets = jnp.einsum("pk,cpk->cp", sides, points[:, None, :] - reference[None, :, :])
+        return jnp.all(offsets <= tolerance * (_safe_norm(sides)[None, :] + 1.0), axis=-1)
+
+    if incident.face_normals is not None:
+        face = jnp.argmin(incident.face_normals @ normal)
+        polygon = incident.face_polygons[face]
+        incident_edges = jnp.stack([polygon, jnp.roll(polygon, -1, axis=0)], axis=1)
+    elif incident.edges is not None:
+        polygon = incident.edges[0]
+        incident_edges = incident.edges
+    else:
+        polygon = incident.vertices
+        incident_edges = None
+    points, valid = [polygon], [inside(polygon)]
+    if incident_edges is not None:
+        start, end = incident_edges[:, 0], incident_edges[:, 1]
+        across = jnp.einsum("pk,ek->ep", sides, end - start)
+        reach = jnp.einsum("pk,epk->ep", sides, reference[None, :, :] - start[:, None, :])
+        ok = jnp.abs(across) > tolerance * (_safe_norm(sides)[None, :] + 1.0)
+        t = reach / jnp.where(ok, across, 1.0)
+        crossing = start[:, None, :] + t[..., None] * (end - start)[:, None, :]
+        crossing = crossing.reshape(-1, 3)
+        points.append(crossing)
+        valid.append((ok & (t >= 0) & (t <= 1)).reshape(-1) & inside(crossing))
+    if incident.face_normals is not None:
+        face_normal = incident.face_normals[face]
+        slope = jnp.sum(face_normal * normal)
+        ok = jnp.abs(slope) > 1e-6
+        lift = (polygon[0][None, :] - reference) @ face_normal / jnp.where(ok, slope, 1.0)
+        lifted = reference + lift[:, None] * normal[None, :]
+        incident_sides = jnp.cross(jnp.roll(polygon, -1, axis=0) - polygon, face_normal[None, :])
+        offsets = jnp.einsum("qk,cqk->cq", incident_sides, lifted[:, None, :] - polygon[None, :, :])
+        points.append(lifted)
+        valid.append(ok & jnp.all(offsets <= tolerance * (_safe_norm(incident_sides)[None, :] + 1.0), axis=-1))
+    return jnp.concatenate(points), jnp.concatenate(valid)
+
+
+def _face_manifold(reference: _Polytope, face, normal, incident: _Polytope, tolerance):
+    """Points on the incident core and their depths along the reference face's normal; the
+    incident core's deepest vertex (whose depth is the separation along the axis) stands in
+    when clipping leaves no point."""
+    polygon = reference.face_polygons[face]
+    points, valid = _clip(polygon, normal, incident, tolerance)
+    deepest = incident.vertices[jnp.argmin(incident.vertices @ normal)]
+    points = jnp.concatenate([deepest[None, :], points])
+    valid = jnp.concatenate([~jnp.any(valid)[None], valid])
+    depth = (points - polygon[0][None, :]) @ normal
+    return points, depth, valid
+
+
+def _support_edge(polytope: _Polytope, axis: Array) -> Array:
+    """The edge of ``polytope`` perpendicular to ``axis`` that is farthest along it (both
+    ends), the edge's side of an edge-edge contact. Chosen by geometry rather than by the
+    pair of directions whose cross product gave the axis: identical directions in both
+    shapes (two boxes) give the same axis for several pairs."""
+    edges = polytope.edges
+    along, _ = _safe_normalize(edges[:, 1] - edges[:, 0], jnp.zeros_like(edges[:, 0]))
+    perpendicular = jnp.abs(along @ axis) <= 1e-6
+    height = jnp.minimum(edges[:, 0] @ axis, edges[:, 1] @ axis)
+    return edges[jnp.argmax(jnp.where(perpendicular, height, -jnp.inf))]
+
+
+def _polytope_pair(shape1, pose1, shape2, pose2, margin, count: int) -> Contacts:
+    """Separating axes for overlapping cores, GJK for separated ones, face clipping for
+    the manifold (see the module's docstring)."""
+    core1, core2 = _polytope(shape1, pose1), _polytope(shape2, pose2)
+    dtype = core1.vertices.dtype
+    scale = shape1.bounding_radius + shape2.bounding_radius + _safe_norm(pose1[1] - pose2[1])
+    tolerance = 1e3 * _eps(dtype) * scale
+    radius1, radius2 = core1.radius, core2.radius
+    v1, v2 = core1.vertices, core2.vertices
+
+    def gap(axes):  # separation of the cores along unit axes (N, 3) pointing from 1 to 2
+        return jnp.min(v2 @ axes.T, axis=0) - jnp.max(v1 @ axes.T, axis=0)
+
+    minus_infinity = jnp.asarray(-jnp.inf, dtype)
+    # Faces: of shape 1 (outward normals) and of shape 2 (reversed outward normals).
+    best_face, best_face_gap, face_of_1 = None, minus_infinity, jnp.asarray(True)
+    if core1.face_normals is not None:
+        gaps1 = gap(core1.face_normals)
+        face1 = jnp.argmax(gaps1)
+        best_face_gap = gaps1[face1]
+    if core2.face_normals is not None:
+        gaps2 = gap(-core2.face_normals)
+        face2 = jnp.argmax(gaps2)
+        face_of_1 = best_face_gap >= gaps2[face2]
+        best_face_gap = jnp.maximum(best_face_gap, gaps2[face2])
+    # Edges: cross products of edge directions, both orientations.
+    has_edges = core1.edges is not None and core2.edges is not None
+    if has_edges:
+        crosses = jnp.cross(core1.edge_directions[:, None, :], core2.edge_directions[None, :, :]).reshape(-1, 3)
+        axes, length = _safe_normalize(crosses, jnp.zeros_like(crosses))
+        plus, minus = gap(axes), gap(-axes)
+        oriented = jnp.where((plus >= minus)[:, None], axes, -axes)
+        edge_gaps = jnp.where(length > 1e-6, jnp.maximum(plus, minus), minus_infinity)
+        edge = jnp.argmax(edge_gaps)
+        edge_axis = oriented[edge]
+        use_edge = edge_gaps[edge] > best_face_gap + tolerance
+        separation = jnp.where(use_edge, edge_gaps[edge], best_face_gap)
+    else:
+        use_edge = jnp.asarray(False)
+        separation = best_face_gap
+
+    # Face manifold, from whichever shape owns the best face.
+    candidates = []
+    if core1.face_normals is not None:
+        normal = core1.face_normals[face1]
+        points, depth, valid = _face_manifold(core1, face1, normal, core2, tolerance)
+        point2 = points - radius2 * normal[None, :]
+        point1 = points - depth[:, None] * normal[None, :] + radius1 * normal[None, :]
+        candidates.append((face_of_1, normal, point1, point2, depth - radius1 - radius2, valid))
+    if core2.face_normals is not None:
+        normal = -core2.face_normals[face2]
+        points, depth, valid = _face_manifold(core2, face2, -normal, core1, tolerance)
+        point1 = points + radius1 * normal[None, :]
+        point2 = points + depth[:, None] * normal[None, :] - radius2 * normal[None, :]
+        candidates.append((~face_of_1, normal, point1, point2, depth - radius1 - radius2, valid))
+    if len(candidates) == 2 and candidates[0][2].shape != candidates[1][2].shape:
+        size = max(c[2].shape[0] for c in candidates)
+        candidates = [_pad(c, size) for c in candidates]
+    if len(candidates) == 2:
+        pick = candidates[0][0]
+        _, normal, point1, point2, distance, valid = jax.tree.map(
+            lambda a, b: jnp.where(pick, a, b),
+            candidates[0],
+            candidates[1],
+        )
+    else:
+        _, normal, point1, point2, distance, valid = candidates[0]
+    manifold = _reduce(point1, point2, distance, normal, valid, margin, count)
+
+    def replace_first(contacts, distance, normal, point1, point2, condition):
+        update = lambda field, value: field.at[0].set(jnp.where(condition, value, field[0]))  # noqa: E731
+        return Contacts(
+            update(contacts.distance, distance),
+            update(contacts.normal, normal),
+            update(contacts.point1, point1),
+            update(contacts.point2, point2),
+            update(contacts.active, distance <= margin),
+        )
+
+    if has_edges:
+        edge1 = _support_edge(core1, edge_axis)
+        edge2 = _support_edge(core2, -edge_axis)
+        closest1, closest2 = _closest_segment_segment(edge1[0], edge1[1], edge2[0], edge2[1])
+        edge_distance = jnp.sum((closest2 - closest1) * edge_axis) - radius1 - radius2
+        # An edge-edge contact is a single point: every entry holds it, only the first is active.
+        edge_contact = _single(edge_distance, edge_axis, closest1 + radius1 * edge_axis, closest2 - radius2 * edge_axis, margin)
+        manifold = jax.tree.map(
+            lambda ours, edge: jnp.where(use_edge, jnp.broadcast_to(edge, ours.shape), ours), manifold, edge_contact
+        )
+        manifold = eqx.tree_at(lambda c: c.active, manifold, manifold.active & ((jnp.arange(count) == 0) | ~use_edge))
+
+    # Separated cores: GJK's exact distance for the deepest entry.
+    closest1, closest2 = _gjk(shape1, pose1, shape2, pose2)
+    fallback = manifold.normal[0]
+    gjk_normal, length = _safe_normalize(closest2 - closest1, fallback)
+    # The separation along the best axis is a lower bound of the distance of separated
+    # cores, exact when their closest features are parallel faces (a resting contact):
+    # keep the clipped manifold then, whose points span the face.
+    separated = (separation > 0) & (jnp.abs(length - radius1 - radius2 - manifold.distance[0]) > tolerance)
+    return replace_first(
+        manifold,
+        length - radius1 - radius2,
+        gjk_normal,
+        closest1 + radius1 * gjk_normal,
+        closest2 - radius2 * gjk_normal,
+        separated,
+    )
+
+
+def _pad(candidate, size):
+    condition, normal, point1, point2, distance, valid = candidate
+    extra = size - point1.shape[0]
+    repeat = lambda a: jnp.concatenate([a, jnp.repeat(a[:1], extra, axis=0)])  # noqa: E731
+    return condition, normal, repeat(point1), repeat(point2), repeat(distance), jnp.concatenate([valid, jnp.zeros(extra, bool)])
+
+
+# --------------------------------------------------------------------------------------
+# Dispatch.
+# --------------------------------------------------------------------------------------
+
+
+def _polytope_pair_of(count):
+    return lambda s1, p1, s2, p2, margin: _polytope_pair(s1, p1, s2, p2, margin, count)
+
+
+# (type1, type2) -> (function, manifold size). A pair given in the other order is computed
+# in this order and swapped.
+_PAIR_FUNCTIONS = {
+    (HalfSpace, Sphere): (_halfspace_sphere, 1),
+    (HalfSpace, Capsule): (_halfspace_capsule, 2),
+    (HalfSpace, Box): (_halfspace_box, 4),
+    (HalfSpace, Cylinder): (_halfspace_cylinder, 4),
+    (HalfSpace, ConvexMesh): (_halfspace_mesh, 4),
+    (Sphere, Sphere): (_sphere_sphere, 1),
+    (Sphere, Capsule): (_sphere_capsule, 1),
+    (Capsule, Capsule): (_capsule_capsule, 1),
+    (Box, Sphere): (_box_sphere, 1),
+    (Capsule, Box): (_polytope_pair_of(2), 2),
+    (Box, Box): (_polytope_pair_of(4), 4),
+    (Sphere, ConvexMesh): (_polytope_pair_of(1), 1),
+    (Capsule, ConvexMesh): (_polytope_pair_of(2), 2),
+    (Box, ConvexMesh): (_polytope_pair_of(4), 4),
+    (ConvexMesh, ConvexMesh): (_polytope_pair_of(4), 4),
+}
+
+
+def _lookup(shape1, shape2):
+    key = (type(shape1), type(shape2))
+    if key in _PAIR_FUNCTIONS:
+        return _PAIR_FUNCTIONS[key], False
+    if key[::-1] in _PAIR_FUNCTIONS:
+        return _PAIR_FUNCTIONS[key[::-1]], True
+    supported = ", ".join(f"{a.__name__}-{b.__name__}" for a, b in _PAIR_FUNCTIONS)
+    raise NotImplementedError(
+        f"no collision function for {key[0].__name__} against {key[1].__name__}; "
+        f"supported pairs (either order): {supported}."
+    )
+
+
+def manifold_size(shape1, shape2) -> int:
+    """The number of entries ``k`` of the :class:`Contacts` that :func:`collide` returns for
+    these shape types (static).
+
+    Example:
+        >>> manifold_size(HalfSpace(), Box([1.0, 1.0, 1.0]))
+        4
+    """
+    (_, size), _ = _lookup(shape1, shape2)
+    return size
+
+
+def _check_pose(name: str, pose):
+    if not isinstance(pose, (tuple, list)) or len(pose) != 2:
+        raise ValueError(f"{name} must be a pair (rotation (3, 3), translation (3,)), got {type(pose).__name__}.")
+    rotation, translation = jnp.asarray(pose[0]), jnp.asarray(pose[1])
+    if rotation.shape != (3, 3) or translation.shape != (3,):
+        raise ValueError(
+            f"{name} must be (rotation (3, 3), translation (3,)), got shapes {rotation.shape} and "
+            f"{translation.shape}; vmap over poses to batch them."
+        )
+    dtype = jnp.result_type(rotation, translation, float)
+    return rotation.astype(dtype), translation.astype(dtype)
+
+
+def collide(shape1, pose1, shape2, pose2, *, margin: ArrayLike = 0.0) -> Contacts:
+    """Contact manifold between two posed shapes.
+
+    Args:
+        shape1, shape2: shapes of :mod:`rsmooth.sim._geometry`; the pair of types must be
+            supported (see :func:`manifold_size`; either order).
+        pose1, pose2: ``(rotation (3, 3), translation (3,))`` placing each shape in the
+            world (``x_world = rotation @ x_local + translation``).
+        margin: entries with ``distance <= margin`` are active; a positive margin reports
+            contacts before touching.
+
+    Returns:
+        :class:`Contacts` of size :func:`manifold_size`, normals from shape 1 to shape 2.
+
+    Raises:
+        NotImplementedError: for an unsupported pair of types.
+        ValueError: for poses of the wrong shape.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> eye = jnp.eye(3)
+        >>> contacts = collide(HalfSpace(), (eye, jnp.zeros(3)),
+        ...                    Box([0.5, 0.5, 0.5]), (eye, jnp.array([0.0, 0.0, 0.4])))
+        >>> [round(float(d), 6) for d in contacts.distance], contacts.active.tolist()
+        ([-0.1, -0.1, -0.1, -0.1], [True, True, True, True])
+    """
+    (function, _), swap = _lookup(shape1, shape2)
+    pose1, pose2 = _check_pose("pose1", pose1), _check_pose("pose2", pose2)
+    dtype = jnp.result_type(pose1[0], pose2[0])
+    margin = jnp.asarray(margin, dtype)
+    if swap:
+        return _swapped(function(shape2, pose2, shape1, pose1, margin))
+    return function(shape1, pose1, shape2, pose2, margin)
+
+
+# --------------------------------------------------------------------------------------
+# Broad phase.
+# --------------------------------------------------------------------------------------
+
+
+class CandidatePairs(eqx.Module):
+    """Pairs of shapes whose bounding volumes overlap, in a fixed-capacity array.
+
+    Attributes:
+        pairs: indices ``(i, j)``, ``i < j``, shape ``(capacity, 2)``; unused rows hold
+            ``(0, 0)``.
+        active: which rows are candidate pairs, bool ``(capacity,)``.
+        count: the number of overlapping pairs found (may exceed ``capacity``).
+        overflow: ``count > capacity``: some overlapping pairs were left out; raise the
+            capacity.
+    """
+
+    pairs: Array
+    active: Array
+    count: Array
+    overflow: Array
+
+
+def candidate_pairs(shapes, poses, *, capacity: int, margin: ArrayLike = 0.0, excluded=()) -> CandidatePairs:
+    """Broad phase: the pairs whose bounding spheres (half-spaces: the half-space itself)
+    are within ``margin`` of each other.
+
+    The test is over all pairs, ``O(N^2)`` but a few flops each and branch-free, so that the
+    costly narrow phase (:func:`collide`) runs only on ``capacity`` pairs.
+
+    Args:
+        shapes: a sequence of ``N`` shapes (static: their types and order).
+        poses: ``(rotations (N, 3, 3), translations (N, 3))``.
+        capacity: the number of rows of the result (static).
+        margin: extra distance below which a pair is a candidate.
+        excluded: pairs ``(i, j)`` never to report (bodies joined together, two
+            half-spaces are always excluded).
+
+    Returns:
+        A :class:`CandidatePairs`; rows are in increasing ``(i, j)`` order.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> shapes = [HalfSpace(), Sphere(0.1), Sphere(0.1)]
+        >>> poses = (jnp.broadcast_to(jnp.eye(3), (3, 3, 3)),
+        ...          jnp.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.05], [5.0, 0.0, 1.0]]))
+        >>> found = candidate_pairs(shapes, poses, capacity=2)
+        >>> found.pairs[found.active].tolist(), bool(found.overflow)
+        ([[0, 1]], False)
+    """
+    count = len(shapes)
+    rotations, translations = jnp.asarray(poses[0]), jnp.asarray(poses[1])
+    if rotations.shape != (count, 3, 3) or translations.shape != (count, 3):
+        raise ValueError(
+            f"poses must be (rotations ({count}, 3, 3), translations ({count}, 3)) for {count} shapes, "
+            f"got {rotations.shape} and {translations.shape}."
+        )
+    if not isinstance(capacity, (int, np.integer)) or capacity < 1:
+        raise ValueError(f"capacity must be a positive int, got {capacity!r}.")
+    excluded = {tuple(sorted(map(int, pair))) for pair in excluded}
+    planes = [isinstance(shape, HalfSpace) for shape in shapes]
+    index = [
+        (i, j)
+        for i, j in itertools.combinations(range(count), 2)
+        if (i, j) not in excluded and not (planes[i] and planes[j])
+    ]
+    if not index:
+        empty = jnp.zeros((capacity, 2), jnp.int32)
+        return CandidatePairs(empty, jnp.zeros(capacity, bool), jnp.zeros((), jnp.int32), jnp.zeros((), bool))
+    index = np.array(index)
+    dtype = translations.dtype
+    radii = jnp.stack([jnp.zeros((), dtype) if plane else jnp.asarray(s.bounding_radius, dtype) for s, plane in zip(shapes, planes)])
+    first, second = index[:, 0], index[:, 1]
+    plane_first = jnp.asarray(np.array(planes)[first])
+    plane_second = jnp.asarray(np.array(planes)[second])
+    gap_spheres = _safe_norm(translations[second] - translations[first]) - radii[first] - radii[second]
+    # A bounding sphere against a half-space: the height of its centre above the plane.
+    height_first_plane = jnp.sum((translations[second] - translations[first]) * rotations[first][:, :, 2], axis=-1) - radii[second]
+    height_second_plane = jnp.sum((translations[first] - translations[second]) * rotations[second][:, :, 2], axis=-1) - radii[first]
+    gaps = jnp.where(plane_first, height_first_plane, jnp.where(plane_second, height_second_plane, gap_spheres))
+    overlapping = gaps <= margin
+    found = jnp.sum(overlapping.astype(jnp.int32))
+    (rows,) = jnp.nonzero(overlapping, size=capacity, fill_value=index.shape[0])
+    padded = jnp.concatenate([jnp.asarray(index, jnp.int32), jnp.zeros((1, 2), jnp.int32)])
+    return CandidatePairs(padded[rows], rows < index.shape[0], found, found > capacity)

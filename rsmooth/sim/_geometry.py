@@ -1,0 +1,377 @@
+"""Collision shapes: spheres, capsules, boxes, cylinders, half-spaces and convex meshes.
+
+Each shape is a frozen :class:`equinox.Module` in its own local frame; its array fields are
+traced (so shapes can be batched, differentiated and built inside ``jit``) and checked on the
+host when they are concrete. A shape is placed in the world by a pose
+``(rotation (3, 3), translation (3,))`` mapping local to world coordinates,
+``x_world = rotation @ x_local + translation`` (as :mod:`rsmooth.sim._spatial`).
+
+Conventions follow MuJoCo's geoms so that sizes carry over: the axis of a capsule and of a
+cylinder is the local ``z`` axis, ``half_length`` is half the length of that axis (of the
+cylindrical part, for a capsule), and a :class:`HalfSpace` is the solid ``z <= 0`` of its
+frame, whose boundary plane has the outward normal ``+z`` (MuJoCo's plane).
+
+For the narrow phase (:mod:`rsmooth.sim._collision`) every bounded shape is described by a
+*core* and a *radius*: the shape is the core dilated by a ball of that radius (a sphere is a
+point dilated, a capsule a segment dilated; boxes, cylinders and meshes have radius 0). The
+core's support function, ``argmax_{x in core} x . d``, is all that the generic distance
+algorithm needs.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.typing import ArrayLike
+
+Array = jax.Array
+
+__all__ = [
+    "Box",
+    "Capsule",
+    "ConvexMesh",
+    "Cylinder",
+    "HalfSpace",
+    "NonConvexMeshWarning",
+    "Sphere",
+    "convex_mesh",
+]
+
+
+def _as_float(value: ArrayLike) -> Array:
+    value = jnp.asarray(value)
+    if not jnp.issubdtype(value.dtype, jnp.floating):
+        value = value.astype(jnp.result_type(float))
+    return value
+
+
+def _is_concrete(value) -> bool:
+    return not isinstance(value, jax.core.Tracer)
+
+
+def _check(name: str, value: Array, shape: tuple[int, ...], *, positive: bool = True) -> None:
+    """Host check of a size field: its shape, and when concrete, finite (and positive)."""
+    if value.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {value.shape}.")
+    if _is_concrete(value):
+        array = np.asarray(value)
+        if not np.all(np.isfinite(array)):
+            raise ValueError(f"{name} must be finite, got {array}.")
+        if positive and not np.all(array > 0):
+            raise ValueError(f"{name} must be positive (in (0, inf)), got {array}.")
+
+
+def _safe_normalize(vector: Array, fallback: Array) -> tuple[Array, Array]:
+    """``vector / |vector|`` over the last axis, ``fallback`` where it is 0 (NaN-free in
+    value and derivative); also returns the norm."""
+    from rsmooth.sim._contact import _safe_norm
+
+    norm = _safe_norm(vector)
+    nonzero = norm > 0
+    unit = vector / jnp.where(nonzero, norm, 1.0)[..., None]
+    return jnp.where(nonzero[..., None], unit, fallback), norm
+
+
+class Sphere(eqx.Module):
+    """A ball of radius ``radius`` centred at the origin of its frame.
+
+    Attributes:
+        radius: positive scalar.
+
+    Example:
+        >>> float(Sphere(0.5).bounding_radius)
+        0.5
+    """
+
+    radius: Array = eqx.field(converter=_as_float)
+
+    def __check_init__(self):
+        _check("radius", self.radius, ())
+
+    @property
+    def core_radius(self) -> Array:
+        return self.radius
+
+    def support_core(self, direction: Array) -> Array:
+        """The core (the centre) has itself as support point in every direction."""
+        return jnp.zeros_like(direction)
+
+    @property
+    def bounding_radius(self) -> Array:
+        """Radius of the smallest ball about the frame's origin that contains the shape."""
+        return self.radius
+
+
+class Capsule(eqx.Module):
+    """A segment along local ``z`` from ``-half_length`` to ``half_length``, dilated by
+    ``radius`` (MuJoCo's capsule).
+
+    Attributes:
+        radius: positive scalar.
+        half_length: positive scalar, half the length of the cylindrical part.
+    """
+
+    radius: Array = eqx.field(converter=_as_float)
+    half_length: Array = eqx.field(converter=_as_float)
+
+    def __check_init__(self):
+        _check("radius", self.radius, ())
+        _check("half_length", self.half_length, ())
+
+    @property
+    def core_radius(self) -> Array:
+        return self.radius
+
+    def support_core(self, direction: Array) -> Array:
+        z = jnp.where(direction[..., 2] >= 0, self.half_length, -self.half_length)
+        zeros = jnp.zeros_like(z)
+        return jnp.stack([zeros, zeros, z], axis=-1)
+
+    @property
+    def bounding_radius(self) -> Array:
+        return self.radius + self.half_length
+
+
+class Box(eqx.Module):
+    """The box ``|x_i| <= half_extents[i]`` (MuJoCo's box ``size``).
+
+    Attributes:
+        half_extents: positive, shape ``(3,)``.
+    """
+
+    half_extents: Array = eqx.field(converter=_as_float)
+
+    def __check_init__(self):
+        _check("half_extents", self.half_extents, (3,))
+
+    @property
+    def core_radius(self) -> Array:
+        return jnp.zeros((), self.half_extents.dtype)
+
+    def support_core(self, direction: Array) -> Array:
+        return jnp.where(direction >= 0, self.half_extents, -self.half_extents)
+
+    @property
+    def bounding_radius(self) -> Array:
+        return jnp.sqrt(jnp.sum(self.half_extents**2))
+
+    def corners(self) -> Array:
+        """The 8 corners in the local frame, shape ``(8, 3)``; corner ``i`` has the sign
+        ``-`` on axis ``j`` where bit ``j`` of ``i`` is set."""
+        signs = 1.0 - 2.0 * ((np.arange(8)[:, None] >> np.arange(3)[None, :]) & 1)
+        return jnp.asarray(signs, self.half_extents.dtype) * self.half_extents[None, :]
+
+
+class Cylinder(eqx.Module):
+    """A solid cylinder of axis local ``z``: ``x^2 + y^2 <= radius^2``,
+    ``|z| <= half_length`` (MuJoCo's cylinder).
+
+    Attributes:
+        radius: positive scalar.
+        half_length: positive scalar.
+    """
+
+    radius: Array = eqx.field(converter=_as_float)
+    half_length: Array = eqx.field(converter=_as_float)
+
+    def __check_init__(self):
+        _check("radius", self.radius, ())
+        _check("half_length", self.half_length, ())
+
+    @property
+    def core_radius(self) -> Array:
+        return jnp.zeros((), self.radius.dtype)
+
+    def support_core(self, direction: Array) -> Array:
+        # Along the axis the support is flat: any point of a cap's disc. For a direction with
+        # no radial part the centre of the cap is returned (the fallback of the normalize).
+        radial, _ = _safe_normalize(
+            direction.at[..., 2].set(0.0), jnp.zeros_like(direction)
+        )
+        z = jnp.where(direction[..., 2] >= 0, self.half_length, -self.half_length)
+        return (self.radius * radial).at[..., 2].set(z)
+
+    @property
+    def bounding_radius(self) -> Array:
+        return jnp.sqrt(self.radius**2 + self.half_length**2)
+
+
+class HalfSpace(eqx.Module):
+    """The half-space ``z <= 0`` of its frame; its boundary plane has outward normal ``+z``
+    (MuJoCo's plane, infinite for collision). It has no fields: place it with its pose."""
+
+    @property
+    def bounding_radius(self) -> Array:
+        return jnp.asarray(jnp.inf)
+
+
+class ConvexMesh(eqx.Module):
+    """A convex polytope, as the collision code needs it.
+
+    Build one with :func:`convex_mesh`, which takes the convex hull and fills every field.
+
+    Attributes:
+        vertices: the hull's vertices, shape ``(V, 3)``, ``V >= 4``.
+        face_normals: outward unit normals of the hull's faces, ``(F, 3)``; coplanar
+            triangles are merged, so each plane appears once.
+        face_offsets: ``face_normals[f] . x <= face_offsets[f]`` inside, shape ``(F,)``.
+        face_polygons: each face's vertices in counter-clockwise order about its normal,
+            padded to the largest face by repeating the last vertex, ``(F, P, 3)``.
+        edge_segments: the hull's edges (not the diagonals of its triangulated faces) as
+            end points, ``(M, 2, 3)``.
+        edge_directions: unit directions of the hull's edges, one per direction up to
+            sign, shape ``(E, 3)``.
+    """
+
+    vertices: Array = eqx.field(converter=_as_float)
+    face_normals: Array = eqx.field(converter=_as_float)
+    face_offsets: Array = eqx.field(converter=_as_float)
+    face_polygons: Array = eqx.field(converter=_as_float)
+    edge_segments: Array = eqx.field(converter=_as_float)
+    edge_directions: Array = eqx.field(converter=_as_float)
+
+    def __check_init__(self):
+        if self.vertices.ndim != 2 or self.vertices.shape[1] != 3 or self.vertices.shape[0] < 4:
+            raise ValueError(f"vertices must have shape (V, 3) with V >= 4, got {self.vertices.shape}.")
+        faces = self.face_normals.shape[:1]
+        _check("face_normals", self.face_normals, faces + (3,), positive=False)
+        _check("face_offsets", self.face_offsets, faces, positive=False)
+        _check("vertices", self.vertices, self.vertices.shape, positive=False)
+        if self.face_polygons.ndim != 3 or self.face_polygons.shape[::2] != (faces[0], 3):
+            raise ValueError(f"face_polygons must have shape ({faces[0]}, P, 3), got {self.face_polygons.shape}.")
+        if self.edge_segments.ndim != 3 or self.edge_segments.shape[1:] != (2, 3):
+            raise ValueError(f"edge_segments must have shape (M, 2, 3), got {self.edge_segments.shape}.")
+        if self.edge_directions.ndim != 2 or self.edge_directions.shape[1] != 3:
+            raise ValueError(
+                f"edge_directions must have shape (E, 3), got {self.edge_directions.shape}."
+            )
+
+    @property
+    def core_radius(self) -> Array:
+        return jnp.zeros((), self.vertices.dtype)
+
+    def support_core(self, direction: Array) -> Array:
+        scores = self.vertices @ direction
+        return self.vertices[jnp.argmax(scores)]
+
+    @property
+    def bounding_radius(self) -> Array:
+        return jnp.sqrt(jnp.max(jnp.sum(self.vertices**2, axis=-1)))
+
+
+class NonConvexMeshWarning(UserWarning):
+    """The mesh given to :func:`convex_mesh` was not convex; its convex hull is used."""
+
+
+def _unique_directions(directions: np.ndarray, tolerance: float) -> np.ndarray:
+    """Unit directions, one per line through the origin (``d`` and ``-d`` are the same)."""
+    kept: list[np.ndarray] = []
+    for direction in directions:
+        if all(abs(abs(float(direction @ other)) - 1.0) > tolerance for other in kept):
+            kept.append(direction)
+    return np.array(kept).reshape(-1, 3)
+
+
+def convex_mesh(source) -> ConvexMesh:
+    """Builds a :class:`ConvexMesh` from a file, a ``trimesh.Trimesh`` or a vertex array.
+
+    The convex hull of the points is taken (host-side, with ``trimesh``); coplanar hull
+    triangles are merged into one face normal, and edge directions are deduplicated, so a
+    box gives 6 faces and 3 edge directions.
+
+    Args:
+        source: a path to an STL, OBJ or PLY file (anything ``trimesh.load`` reads as one
+            mesh), a ``trimesh.Trimesh``, or an array of vertices of shape ``(V, 3)``.
+
+    Returns:
+        The :class:`ConvexMesh` of the hull, in the coordinates of ``source``.
+
+    Raises:
+        ValueError: for a missing or unreadable file, an array of the wrong shape or with
+            non-finite values, or fewer than 4 points not all in one plane.
+
+    Warns:
+        NonConvexMeshWarning: when a mesh (file or ``Trimesh``) is not convex.
+
+    Example:
+        >>> import numpy as np
+        >>> corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
+        >>> mesh = convex_mesh(corners)
+        >>> mesh.vertices.shape, mesh.face_normals.shape, mesh.edge_directions.shape
+        ((8, 3), (6, 3), (3, 3))
+    """
+    import trimesh
+
+    name = "source"
+    mesh = None
+    if isinstance(source, (str, os.PathLike)):
+        name = f"mesh file {os.fspath(source)!r}"
+        if not os.path.isfile(source):
+            raise ValueError(f"{name} does not exist.")
+        try:
+            loaded = trimesh.load(source, force="mesh")
+        except Exception as error:  # trimesh raises many types for a bad file
+            raise ValueError(f"{name} could not be read as a mesh: {error}") from error
+        if not isinstance(loaded, trimesh.Trimesh) or len(loaded.vertices) == 0:
+            raise ValueError(f"{name} could not be read as a mesh (no vertices found).")
+        mesh = loaded
+    elif isinstance(source, trimesh.Trimesh):
+        mesh = source
+    if mesh is not None:
+        points = np.asarray(mesh.vertices, dtype=float)
+        if len(mesh.faces) and not mesh.is_convex:
+            warnings.warn(
+                f"{name} is not convex; its convex hull is used.", NonConvexMeshWarning, stacklevel=2
+            )
+    else:
+        points = np.asarray(source, dtype=float)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise ValueError(f"source vertices must have shape (V, 3), got {points.shape}.")
+    if not np.all(np.isfinite(points)):
+        raise ValueError(f"{name} has non-finite vertices.")
+    centred = points - points.mean(axis=0)
+    scale = max(float(np.abs(centred).max(initial=0.0)), 1e-300)
+    if len(points) < 4 or np.linalg.matrix_rank(centred / scale, tol=1e-9) < 3:
+        raise ValueError(
+            f"{name} needs at least 4 points not all in one plane, got {len(points)} points "
+            "spanning fewer than 3 dimensions."
+        )
+    hull = trimesh.convex.convex_hull(points)
+    vertices = np.asarray(hull.vertices, dtype=float)
+    normals = _unique_normals(np.asarray(hull.face_normals, dtype=float))
+    offsets = np.max(vertices @ normals.T, axis=0)
+    size = float(np.abs(vertices - vertices.mean(axis=0)).max())
+    polygons = [_face_polygon(vertices, normal, offset, 1e-6 * size) for normal, offset in zip(normals, offsets)]
+    largest = max(len(polygon) for polygon in polygons)
+    polygons = np.stack([np.concatenate([p, np.repeat(p[-1:], largest - len(p), axis=0)]) for p in polygons])
+    # Edges between two faces that are not coplanar: the diagonals of a triangulated face
+    # are no edges of the polytope and would only add useless separating axes.
+    real = hull.face_adjacency_angles > 1e-9
+    segments = vertices[hull.face_adjacency_edges[real]]
+    directions = segments[:, 1] - segments[:, 0]
+    directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    return ConvexMesh(vertices, normals, offsets, polygons, segments, _unique_directions(directions, 1e-9))
+
+
+def _face_polygon(vertices: np.ndarray, normal: np.ndarray, offset: float, tolerance: float) -> np.ndarray:
+    """The hull vertices on the plane ``normal . x = offset``, counter-clockwise about it."""
+    on_plane = vertices[np.abs(vertices @ normal - offset) <= tolerance]
+    centre = on_plane.mean(axis=0)
+    tangent = on_plane[0] - centre
+    tangent /= np.linalg.norm(tangent)
+    bitangent = np.cross(normal, tangent)
+    angles = np.arctan2((on_plane - centre) @ bitangent, (on_plane - centre) @ tangent)
+    return on_plane[np.argsort(angles)]
+
+
+def _unique_normals(normals: np.ndarray) -> np.ndarray:
+    kept: list[np.ndarray] = []
+    for normal in normals:
+        if all(float(normal @ other) < 1.0 - 1e-9 for other in kept):
+            kept.append(normal)
+    return np.array(kept)

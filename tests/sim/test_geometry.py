@@ -1,0 +1,406 @@
+"""Tests of collision shapes and contact manifolds. Reference: MuJoCo's signed distance and
+witness points (``mj_geomDistance``) on seeded random poses, separated and penetrating;
+manifolds on configurations whose contact polygon is known; central finite differences."""
+
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+import trimesh
+
+from rsmooth.sim._collision import Contacts, candidate_pairs, collide, manifold_size
+from rsmooth.sim._geometry import (
+    Box,
+    Capsule,
+    ConvexMesh,
+    Cylinder,
+    HalfSpace,
+    NonConvexMeshWarning,
+    Sphere,
+    convex_mesh,
+)
+
+# A convex mesh with faces of several sizes (a truncated, skewed prism) and its vertices.
+_MESH_VERTICES = np.array(
+    [
+        [0.3, 0.0, -0.2], [0.1, 0.25, -0.2], [-0.2, 0.15, -0.2], [-0.25, -0.15, -0.2], [0.05, -0.3, -0.2],
+        [0.2, 0.05, 0.2], [0.0, 0.2, 0.25], [-0.15, -0.05, 0.2],
+    ]
+)
+MESH = convex_mesh(_MESH_VERTICES)
+
+SHAPES = {
+    "halfspace": HalfSpace(),
+    "sphere": Sphere(0.2),
+    "capsule": Capsule(0.1, 0.25),
+    "box": Box([0.15, 0.2, 0.3]),
+    "cylinder": Cylinder(0.2, 0.15),
+    "mesh": MESH,
+}
+
+
+def _mjcf_geom(name: str) -> str:
+    """The MuJoCo geom of a shape of SHAPES. Boxes are given to MuJoCo as meshes: its
+    dedicated box-box function reports separation along the best axis, not the distance,
+    whereas a mesh goes through its exact GJK/EPA."""
+    shape = SHAPES[name]
+    if name == "halfspace":
+        return 'type="plane" size="0 0 1"'
+    if name == "sphere":
+        return f'type="sphere" size="{float(shape.radius)}"'
+    if name in ("capsule", "cylinder"):
+        return f'type="{name}" size="{float(shape.radius)} {float(shape.half_length)}"'
+    return f'type="mesh" mesh="{name}"'
+
+
+def _mjcf_mesh_assets() -> str:
+    box = np.asarray(SHAPES["box"].corners())
+    return (
+        f'<mesh name="box" vertex="{" ".join(map(str, box.reshape(-1)))}"/>'
+        f'<mesh name="mesh" vertex="{" ".join(map(str, _MESH_VERTICES.reshape(-1)))}"/>'
+    )
+
+
+@functools.cache
+def _mujoco_pair(name1: str, name2: str):
+    xml = f"""<mujoco><option ccd_tolerance="1e-12" ccd_iterations="500"/>
+    <asset>{_mjcf_mesh_assets()}</asset><worldbody>
+    <body mocap="true"><geom {_mjcf_geom(name1)}/></body>
+    <body mocap="true"><geom {_mjcf_geom(name2)}/></body>
+    </worldbody></mujoco>"""
+    model = mujoco.MjModel.from_xml_string(xml)
+    return model, mujoco.MjData(model)
+
+
+def _mujoco_distance(name1, name2, quaternions, translations):
+    """Signed distances ``(N,)`` and witness points ``(N, 2, 3)`` from MuJoCo for poses of
+    shape 1 and 2 given as quaternions ``(N, 2, 4)`` (w, x, y, z) and translations."""
+    model, data = _mujoco_pair(name1, name2)
+    distances, witnesses = [], []
+    for quaternion, translation in zip(quaternions, translations):
+        data.mocap_quat[:] = quaternion
+        data.mocap_pos[:] = translation
+        mujoco.mj_kinematics(model, data)
+        fromto = np.zeros(6)
+        distances.append(mujoco.mj_geomDistance(model, data, 0, 1, 10.0, fromto))
+        witnesses.append(fromto.reshape(2, 3))
+    return np.array(distances), np.array(witnesses)
+
+
+def _rotation(quaternion) -> np.ndarray:
+    matrix = np.zeros(9)
+    mujoco.mju_quat2Mat(matrix, quaternion)
+    return matrix.reshape(3, 3)
+
+
+def _random_poses(seed: int, count: int, spread: float, flat_first: bool = False):
+    """Quaternions ``(count, 2, 4)`` and translations ``(count, 2, 3)``; shape 2 lies at a
+    random direction and distance up to ``spread`` from shape 1."""
+    rng = np.random.default_rng(seed)
+    quaternions = rng.normal(size=(count, 2, 4))
+    quaternions /= np.linalg.norm(quaternions, axis=-1, keepdims=True)
+    if flat_first:
+        quaternions[:, 0] = [1.0, 0.0, 0.0, 0.0]
+    offsets = rng.normal(size=(count, 3))
+    offsets *= (spread * rng.uniform(0.0, 1.0, size=count) / np.linalg.norm(offsets, axis=-1))[:, None]
+    first = rng.uniform(-0.5, 0.5, size=(count, 3))
+    translations = np.stack([first, first + offsets], axis=1)
+    rotations = np.array([[_rotation(q) for q in pair] for pair in quaternions])
+    return quaternions, translations, rotations
+
+
+@functools.cache
+def _batched_collide(name1: str, name2: str):
+    shape1, shape2 = SHAPES[name1], SHAPES[name2]
+    return jax.jit(jax.vmap(lambda r1, t1, r2, t2: collide(shape1, (r1, t1), shape2, (r2, t2))))
+
+
+def _collide_batch(name1, name2, rotations, translations) -> Contacts:
+    return _batched_collide(name1, name2)(
+        rotations[:, 0], translations[:, 0], rotations[:, 1], translations[:, 1]
+    )
+
+
+def _check_consistent(contacts: Contacts):
+    for field in (contacts.distance, contacts.normal, contacts.point1, contacts.point2):
+        assert np.all(np.isfinite(field))
+    np.testing.assert_allclose(np.linalg.norm(contacts.normal, axis=-1), 1.0, atol=1e-9)
+    gap = contacts.point2[:, 0] - contacts.point1[:, 0]
+    np.testing.assert_allclose(gap, contacts.distance[:, 0, None] * contacts.normal[:, 0], atol=1e-9)
+    # Entry 0 is the deepest of the active entries.
+    deepest = np.min(np.where(contacts.active, contacts.distance, np.inf), axis=-1)
+    assert np.all(contacts.distance[:, 0] <= deepest + 1e-12)
+
+
+PAIRS = [
+    ("halfspace", "sphere"),
+    ("halfspace", "capsule"),
+    ("halfspace", "box"),
+    ("halfspace", "cylinder"),
+    ("halfspace", "mesh"),
+    ("sphere", "sphere"),
+    ("sphere", "capsule"),
+    ("capsule", "capsule"),
+    ("box", "sphere"),
+    ("capsule", "box"),
+    ("box", "box"),
+    ("sphere", "mesh"),
+    ("capsule", "mesh"),
+    ("box", "mesh"),
+    ("mesh", "mesh"),
+]
+
+
+@pytest.mark.parametrize("name1, name2", PAIRS, ids=[f"{a}-{b}" for a, b in PAIRS])
+def test_distance_and_witnesses_match_mujoco(name1, name2):
+    """Signed distance of entry 0 against ``mj_geomDistance`` on 64 random poses, about
+    half of them penetrating; witness points where the cores are apart (unique there)."""
+    count = 64
+    plane = name1 == "halfspace"
+    reach = sum(float(SHAPES[name].bounding_radius) for name in (name1, name2) if name != "halfspace")
+    quaternions, translations, rotations = _random_poses(1 + PAIRS.index((name1, name2)), count, 1.6 * reach, flat_first=plane)
+    if plane:  # the plane through the first origin; heights of shape 2 above and below it
+        translations[:, 1, 2] = translations[:, 0, 2] + np.linspace(-0.25, 0.6, count)
+    expected, witnesses = _mujoco_distance(name1, name2, quaternions, translations)
+    contacts = jax.device_get(_collide_batch(name1, name2, rotations, translations))
+    _check_consistent(contacts)
+    assert 0.2 * count < np.sum(expected < 0) < 0.8 * count
+    np.testing.assert_allclose(contacts.distance[:, 0], expected, atol=1e-6)
+    # Witness points are unique when the shapes are apart, except along flat features
+    # (a plane, parallel edges, faces); check them where MuJoCo's lie on our shapes'
+    # closest features: where both distances agree and the points are within tolerance.
+    apart = expected > 1e-3
+    if name1 != "halfspace":
+        agree = np.linalg.norm(contacts.point1[:, 0] - witnesses[:, 0], axis=-1) < 1e-5
+        # Curved (point and segment cores) closest points are unique: all of them agree.
+        if name1 in ("sphere", "capsule") and name2 in ("sphere", "capsule"):
+            assert np.all(agree[apart])
+        else:
+            assert np.mean(agree[apart]) > 0.8
+    else:
+        np.testing.assert_allclose(contacts.point2[apart, 0, 2] - contacts.point1[apart, 0, 2], expected[apart], atol=1e-6)
+
+
+def test_either_order_gives_swapped_contacts():
+    _, translations, rotations = _random_poses(7, 64, 0.6)  # the batch size of the MuJoCo test: compiled once
+    forward = _collide_batch("capsule", "box", rotations, translations)
+    backward = _collide_batch("box", "capsule", rotations[:, ::-1], translations[:, ::-1])
+    np.testing.assert_allclose(backward.distance, forward.distance, atol=1e-12)
+    np.testing.assert_allclose(backward.normal, -forward.normal, atol=1e-12)
+    np.testing.assert_allclose(backward.point1, forward.point2, atol=1e-12)
+    np.testing.assert_array_equal(backward.active, forward.active)
+
+
+def _pose(translation, rotation=None):
+    rotation = np.eye(3) if rotation is None else rotation
+    return jnp.asarray(rotation, float), jnp.asarray(translation, float)
+
+
+def _rotation_z(angle):
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _active_points(contacts: Contacts) -> np.ndarray:
+    active = np.asarray(contacts.active)
+    return np.asarray(contacts.point2)[active]
+
+
+def test_box_resting_on_halfspace_gives_its_four_bottom_corners():
+    box = Box([0.1, 0.2, 0.3])
+    contacts = eqx.filter_jit(collide)(HalfSpace(), _pose([0.0, 0.0, 0.0]), box, _pose([1.0, 2.0, 0.3 - 1e-4], _rotation_z(0.3)))
+    assert np.sum(contacts.active) == 4
+    corners = np.asarray(box.corners()) @ _rotation_z(0.3).T + np.array([1.0, 2.0, 0.3 - 1e-4])
+    bottom = corners[corners[:, 2] < 0.1]
+    assert sorted(map(tuple, np.round(_active_points(contacts), 9))) == sorted(map(tuple, np.round(bottom, 9)))
+    np.testing.assert_allclose(contacts.distance, -1e-4, atol=1e-12)
+
+
+@pytest.mark.parametrize("name, expected", [("capsule", 2), ("cylinder", 3), ("mesh", 4)])
+def test_flat_shapes_on_halfspace_give_multi_point_manifolds(name, expected):
+    shape = SHAPES[name]
+    # A capsule lies on its side (axis along x); a cylinder stands; the mesh rests on its base.
+    rotation = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]) if name == "capsule" else np.eye(3)
+    height = {"capsule": 0.1, "cylinder": 0.15, "mesh": 0.2}[name] - 1e-5
+    contacts = eqx.filter_jit(collide)(HalfSpace(), _pose([0.0, 0.0, 0.0]), shape, _pose([0.2, 0.1, height], rotation))
+    assert int(np.sum(contacts.active)) == expected
+    np.testing.assert_allclose(np.asarray(contacts.distance)[np.asarray(contacts.active)], -1e-5, atol=1e-12)
+
+
+def test_box_on_box_gives_the_overlap_rectangle():
+    """A box resting on a larger one, shifted so that it overhangs a side: the contacts are
+    the corners of the overlap of the two faces."""
+    lower, upper = Box([0.5, 0.5, 0.1]), Box([0.2, 0.3, 0.1])
+    contacts = eqx.filter_jit(collide)(lower, _pose([0.0, 0.0, 0.0]), upper, _pose([0.4, 0.1, 0.2 - 1e-4]))
+    assert int(np.sum(contacts.active)) == 4
+    expected = {(x, y) for x in (0.2, 0.5) for y in (-0.2, 0.4)}
+    points = {tuple(float(v) for v in np.round(p[:2], 9)) for p in _active_points(contacts)}
+    assert points == expected
+    np.testing.assert_allclose(np.asarray(contacts.distance), -1e-4, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(contacts.normal), np.tile([0.0, 0.0, 1.0], (4, 1)), atol=1e-12)
+
+
+def test_capsule_lying_on_a_box_gives_two_contacts():
+    contacts = eqx.filter_jit(collide)(
+        Capsule(0.05, 0.2),
+        _pose([0.1, 0.0, 0.15 - 1e-4], np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])),
+        Box([0.5, 0.5, 0.1]),
+        _pose([0.0, 0.0, 0.0]),
+    )
+    assert int(np.sum(contacts.active)) == 2
+    np.testing.assert_allclose(sorted(np.asarray(contacts.point2)[:, 0]), [-0.1, 0.3], atol=1e-9)
+    np.testing.assert_allclose(np.asarray(contacts.normal)[:, 2], -1.0, atol=1e-12)
+
+
+def _perturbed(pose, delta):
+    """The pose moved by a twist ``delta`` (6,): translation, then a rotation vector
+    applied on the left."""
+    rotation, translation = pose
+    angle = delta[3:]
+    theta2 = jnp.sum(angle**2)
+    skew = jnp.array([[0.0, -angle[2], angle[1]], [angle[2], 0.0, -angle[0]], [-angle[1], angle[0], 0.0]])
+    # Second-order exponential: exact enough for derivatives at 0.
+    exponential = jnp.eye(3) + skew + 0.5 * skew @ skew - theta2 / 6.0 * skew
+    return exponential @ rotation, translation + delta[:3]
+
+
+@pytest.mark.parametrize(
+    "name1, name2", [("halfspace", "box"), ("capsule", "capsule"), ("box", "sphere"), ("box", "box")]
+)
+def test_gradients_match_finite_differences(name1, name2):
+    quaternions, translations, rotations = _random_poses(11, 4, 0.6, flat_first=name1 == "halfspace")
+    shape1, shape2 = SHAPES[name1], SHAPES[name2]
+
+    def entry0(delta, r1, t1, r2, t2):
+        contacts = collide(shape1, (r1, t1), shape2, _perturbed((r2, t2), delta))
+        return jnp.concatenate([contacts.distance[:1], contacts.point2[0], contacts.point1[0]])
+
+    args = (rotations[:, 0], translations[:, 0], rotations[:, 1], translations[:, 1])
+    zero = jnp.zeros((len(rotations), 6))
+    jacobian = jax.jit(jax.vmap(jax.jacfwd(entry0)))(zero, *args)
+    if name1 == "capsule":  # reverse mode agrees with forward mode
+        gradient = jax.jit(jax.vmap(jax.grad(lambda *a: entry0(*a)[0])))(zero, *args)
+        np.testing.assert_allclose(gradient, jacobian[:, 0], atol=1e-9)
+    step = 1e-6
+    eye = step * jnp.eye(6)
+    values = jax.jit(jax.vmap(jax.vmap(entry0, in_axes=(0, None, None, None, None)), in_axes=(None, 0, 0, 0, 0)))
+    finite = (values(eye, *args) - values(-eye, *args)) / (2 * step)  # (batch, 6, outputs)
+    finite = np.swapaxes(np.asarray(finite), 1, 2)
+    assert np.all(np.isfinite(jacobian))
+    np.testing.assert_allclose(jacobian, finite, atol=2e-5)
+
+
+def test_degenerate_configurations_have_finite_values_and_gradients():
+    eye = jnp.eye(3)
+    cases = [
+        (Sphere(0.2), Sphere(0.3), [0.0, 0.0, 0.0]),  # coincident centres
+        (Capsule(0.1, 0.2), Capsule(0.1, 0.3), [0.0, 0.1, 0.0]),  # parallel axes
+        (Capsule(0.1, 0.2), Capsule(0.1, 0.3), [0.0, 0.0, 0.0]),  # coincident segments
+        (Box([0.2, 0.2, 0.2]), Sphere(0.1), [0.2, 0.0, 0.0]),  # sphere centre on a face
+        (Box([0.2, 0.2, 0.2]), Sphere(0.1), [0.0, 0.0, 0.0]),  # at the box's centre
+        (Box([0.2, 0.2, 0.2]), Box([0.2, 0.2, 0.2]), [0.0, 0.0, 0.0]),  # coincident boxes
+        (HalfSpace(), Cylinder(0.1, 0.2), [0.0, 0.0, 0.1]),  # standing exactly upright
+    ]
+    for shape1, shape2, offset in cases:
+        def distance(translation):
+            contacts = collide(shape1, (eye, jnp.zeros(3)), shape2, (eye, translation))
+            return jnp.sum(jnp.where(contacts.active, contacts.distance, 0.0)) + contacts.distance[0]
+
+        value, gradient = jax.jit(jax.value_and_grad(distance))(jnp.asarray(offset, float))
+        assert np.isfinite(value) and np.all(np.isfinite(gradient)), (type(shape1), type(shape2), offset)
+
+
+def test_float32_has_no_nan():
+    with jax.enable_x64(False):
+        for name1, name2 in [("halfspace", "cylinder"), ("sphere", "capsule"), ("box", "box")]:
+            shape1 = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), SHAPES[name1])
+            shape2 = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), SHAPES[name2])
+            _, translations, rotations = _random_poses(3, 16, 0.6)
+            rotations, translations = rotations.astype(np.float32), translations.astype(np.float32)
+
+            def distance(r1, t1, r2, t2):
+                return collide(shape1, (r1, t1), shape2, (r2, t2)).distance[0]
+
+            value, gradient = jax.jit(jax.vmap(jax.value_and_grad(distance, argnums=3)))(
+                rotations[:, 0], translations[:, 0], rotations[:, 1], translations[:, 1]
+            )
+            assert value.dtype == jnp.float32
+            assert np.all(np.isfinite(value)) and np.all(np.isfinite(gradient))
+
+
+def test_unsupported_pair_names_the_types():
+    with pytest.raises(NotImplementedError, match="Cylinder against Sphere"):
+        collide(Cylinder(0.1, 0.1), _pose([0, 0, 0]), Sphere(0.1), _pose([0, 0, 1]))
+    assert manifold_size(Box([1, 1, 1]), HalfSpace()) == 4
+
+
+def test_bad_shapes_and_poses_raise():
+    with pytest.raises(ValueError, match="radius must be positive"):
+        Sphere(-1.0)
+    with pytest.raises(ValueError, match="half_length must be finite"):
+        Capsule(0.1, np.inf)
+    with pytest.raises(ValueError, match=r"half_extents must have shape \(3,\)"):
+        Box([1.0, 1.0])
+    with pytest.raises(ValueError, match="pose2 must be"):
+        collide(Sphere(0.1), _pose([0, 0, 0]), Sphere(0.1), (jnp.eye(3), jnp.zeros(2)))
+
+
+def test_convex_mesh_loader(tmp_path):
+    cube = trimesh.creation.box(extents=[1.0, 2.0, 3.0])
+    path = tmp_path / "cube.stl"
+    cube.export(path)
+    mesh = convex_mesh(path)
+    assert isinstance(mesh, ConvexMesh)
+    assert mesh.vertices.shape == (8, 3) and mesh.face_normals.shape == (6, 3)
+    assert mesh.edge_segments.shape == (12, 2, 3) and mesh.edge_directions.shape == (3, 3)
+    # A non-convex mesh (two boxes in an L) warns and gives its hull.
+    l_shape = trimesh.util.concatenate(
+        [trimesh.creation.box(extents=[2, 1, 1]), trimesh.creation.box(extents=[1, 2, 1]).apply_translation([0.5, 0.5, 0])]
+    )
+    with pytest.warns(NonConvexMeshWarning, match="not convex"):
+        convex_mesh(l_shape)
+    with pytest.raises(ValueError, match="missing.obj.*does not exist"):
+        convex_mesh(tmp_path / "missing.obj")
+    garbage = tmp_path / "garbage.ply"
+    garbage.write_bytes(b"ply\nthis is not a mesh\n")
+    with pytest.raises(ValueError, match="garbage.ply"):
+        convex_mesh(garbage)
+    with pytest.raises(ValueError, match="4 points not all in one plane"):
+        convex_mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
+    with pytest.raises(ValueError, match=r"\(V, 3\)"):
+        convex_mesh(np.zeros((5, 2)))
+
+
+def test_broad_phase_keeps_every_overlapping_pair_and_reports_overflow():
+    rng = np.random.default_rng(5)
+    shapes = [HalfSpace()] + [Sphere(0.1), Capsule(0.05, 0.1), Box([0.1, 0.05, 0.08]), MESH] * 5
+    count = len(shapes)
+    translations = rng.uniform(-1.0, 1.0, size=(8, count, 3))
+    translations[:, 0] = 0.0
+    rotations = np.broadcast_to(np.eye(3), (8, count, 3, 3))
+    excluded = [(1, 2), (4, 3)]
+    radii = np.array([0.0] + [float(s.bounding_radius) for s in shapes[1:]])
+    brute = []
+    for t in translations:
+        overlapping = set()
+        for i in range(count):
+            for j in range(i + 1, count):
+                if (i, j) in {(1, 2), (3, 4)}:
+                    continue
+                gap = t[j, 2] - radii[j] if i == 0 else np.linalg.norm(t[i] - t[j]) - radii[i] - radii[j]
+                if gap <= 0:
+                    overlapping.add((i, j))
+        brute.append(overlapping)
+    capacity = int(np.median([len(b) for b in brute]))  # some trials overflow, some do not
+    find = jax.jit(jax.vmap(lambda r, t: candidate_pairs(shapes, (r, t), capacity=capacity, excluded=excluded)))
+    found = jax.device_get(find(rotations, translations))
+    for trial, overlapping in enumerate(brute):
+        reported = {tuple(p) for p in found.pairs[trial][found.active[trial]]}
+        assert found.count[trial] == len(overlapping)
+        assert bool(found.overflow[trial]) == (len(overlapping) > capacity)
+        assert reported <= overlapping and len(reported) == min(len(overlapping), capacity)
+    assert np.any(found.overflow) and not np.all(found.overflow)
