@@ -2,8 +2,6 @@
 
 import itertools
 import os
-import shutil
-import tempfile
 
 # Compile fast rather than run fast: most of the suite's time is XLA compiling small programs,
 # and LLVM's optimizations are a third of that. At level 0 (instead of XLA's default 2) the suite
@@ -26,26 +24,12 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
 
-# One persistent compilation cache for the run, shared by the pytest-xdist workers and the CLI
-# subprocesses of the tests: a program that two tests (or two workers) build is compiled once.
-# The controller makes the folder before the workers start (they inherit the environment) and
-# removes it at the end, so every run starts cold, as CI does.
-_CACHE_VARIABLE = "RSMOOTH_COMPILATION_CACHE"
-
-
-def pytest_configure(config):
-    if not hasattr(config, "workerinput") and _CACHE_VARIABLE not in os.environ:
-        os.environ[_CACHE_VARIABLE] = tempfile.mkdtemp(prefix="rsmooth-test-jax-cache-")
-        config._rsmooth_cache = os.environ[_CACHE_VARIABLE]
-    from rsmooth import _xla
-
-    _xla.enable_compilation_cache()
-
-
-def pytest_unconfigure(config):
-    folder = getattr(config, "_rsmooth_cache", None)
-    if folder is not None:
-        shutil.rmtree(folder, ignore_errors=True)
+# No persistent compilation cache in the tests, not even the `rsmooth` command's own
+# (~/.cache/rsmooth/jax) in their subprocesses: every run starts cold, as CI does, and writes
+# nothing outside its temporary folders. A cache shared by the workers does not make the
+# suite faster (its programs differ), and jaxlib 0.10's XLA:CPU can crash while serializing
+# an executable for it (`put_executable_and_time`, under the full suite).
+os.environ.setdefault("RSMOOTH_COMPILATION_CACHE", "0")
 
 
 def pytest_collection_modifyitems(config, items):
