@@ -18,6 +18,7 @@ system (a folder that cannot be written) end the command with a one-line message
 from __future__ import annotations
 
 import dataclasses
+import faulthandler
 import gc
 import inspect
 import os
@@ -420,6 +421,9 @@ class _InterruptHandler:
 
 
 def main():  # the console-script entry point
+    # A crash inside XLA (a segmentation fault) prints the Python stack where it happened
+    # instead of ending the process without a word.
+    faulthandler.enable()
     handler = _InterruptHandler()
     # A shell starts background jobs with SIGINT ignored: keep it so.
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
