@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from rsmooth import sim, viz
+from rsmooth import _checks, sim, viz
 from rsmooth.experiments import _protocol
 
 METRICS_DOC = """metrics.json keys: torques ('standing' or 'random'), steps, time_step,
@@ -127,7 +127,10 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         q, v = system.split(x)
         return gains[0] * (posture - q[7:]) - gains[1] * v[6:]
 
+    # The rollout's diagnostics are checked below (sim.check_steps), so its program leaves out
+    # the steps' traced checks: the persistent compilation cache can then keep it.
     @jax.jit
+    @_checks.without_traced_checks()
     def simulate(x0, perturbations):
         return system.rollout(x0, standing[None] + perturbations, feedback=posture_pd)
 

@@ -669,8 +669,9 @@ class RigidBodySystem(eqx.Module):
         finite instead of turning into NaN (or a runtime error) several steps later.
 
         Every step's contact solve and divergence are in the returned ``infos``
-        (``infos.ncp.result``, ``infos.diverged``; an invalid contact problem is
-        ``RESULTS.invalid_input``, not a runtime error): :func:`check_steps` counts them and warns;
+        (``infos.ncp.result``, ``infos.diverged``; traced inside
+        ``rsmooth._checks.without_traced_checks``, an invalid contact problem is
+        ``RESULTS.invalid_input`` rather than a runtime error): :func:`check_steps` counts them and warns;
         ``throw=True`` raises (an ``equinox`` runtime error) where any step diverged or left its
         contact solve unconverged."""
         x0, us = jnp.asarray(x0), jnp.asarray(us)
@@ -689,11 +690,7 @@ class RigidBodySystem(eqx.Module):
             return (x_next, impulse_next, diverged), (x_next, info)
 
         impulse0 = jnp.zeros(3 * self.num_contacts, jnp.result_type(x0, float))
-        # The rollout reports what the steps' traced checks would raise on (a non-finite
-        # state diverges, an invalid contact problem is not converged), so its program leaves
-        # them out: a host callback keeps JAX's persistent compilation cache from storing it.
-        with _checks.without_traced_checks():
-            _, (xs, infos) = jax.lax.scan(body, (x0, impulse0, jnp.zeros((), bool)), us)
+        _, (xs, infos) = jax.lax.scan(body, (x0, impulse0, jnp.zeros((), bool)), us)
         xs = jnp.concatenate([x0[None], xs])
         if throw:
             xs = eqx.error_if(
