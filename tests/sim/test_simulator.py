@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import subprocess
+import sys
 
 import equinox as eqx
 import jax
@@ -440,28 +442,46 @@ def test_pusher_gradients_match_finite_differences_while_pushing():
     assert float(jnp.abs(jac[9, 0])) > 1e-3  # the finger force moves the box
 
 
+_PUSHER_SOLVER_CHECK = """
+import dataclasses
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from rsmooth import sim
+jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_numpy_rank_promotion", "raise")
+pusher = sim.pusher()
+plain = dataclasses.replace(pusher, solver=sim.NCPSolver())
+batch, steps = 16, 30
+forces = 5.0 * jax.random.normal(jax.random.key(0), (steps, batch, 2))
+x0 = jnp.tile(pusher.initial_state(), (batch, 1))
+xs, _ = jax.jit(jax.vmap(pusher.rollout, in_axes=(0, 1)))(x0, forces)  # (batch, steps + 1, nx)
+states, inputs = xs[:, :-1].reshape(-1, pusher.nx), jnp.swapaxes(forces, 0, 1).reshape(-1, 2)
+step = eqx.filter_jit(jax.vmap(lambda system, x, u: system.step_with_info(x, u), in_axes=(None, 0, 0)))
+x_guess, info_guess = step(pusher, states, inputs)
+x_plain, info_plain = step(plain, states, inputs)
+guessed = np.asarray(info_guess.ncp.iterations == 0)
+assert guessed.mean() > 0.5  # the box sticks in most steps: no ADMM there
+both = np.asarray(info_guess.ncp.converged & info_plain.ncp.converged)
+assert both.mean() > 0.9
+np.testing.assert_allclose(x_guess[both], x_plain[both], atol=1e-7)
+assert int(jnp.sum(~info_guess.ncp.converged)) <= int(jnp.sum(~info_plain.ncp.converged))
+"""
+
+
 def test_pusher_default_solver_steps_as_plain_admm_and_converges():
-    # The pusher's solver (the sticking guess by the pseudo-inverse, then ADMM from zero) on the
-    # states of rollouts under random finger forces (the box rests, is pushed, slides, stops):
-    # where both converge its next states are plain ADMM's (sliding on four coplanar corners
-    # has non-unique solutions, so this checks that it finds the same one), and it leaves no
-    # more solves unconverged.
-    pusher = sim.pusher()
-    plain = dataclasses.replace(pusher, solver=sim.NCPSolver())
-    batch, steps = 16, 30
-    forces = 5.0 * jax.random.normal(jax.random.key(0), (steps, batch, 2))
-    x0 = jnp.tile(pusher.initial_state(), (batch, 1))
-    xs, _ = jax.jit(jax.vmap(pusher.rollout, in_axes=(0, 1)))(x0, forces)  # (batch, steps + 1, nx)
-    states, inputs = xs[:, :-1].reshape(-1, pusher.nx), jnp.swapaxes(forces, 0, 1).reshape(-1, 2)
-    step = eqx.filter_jit(jax.vmap(lambda system, x, u: system.step_with_info(x, u), in_axes=(None, 0, 0)))
-    x_guess, info_guess = step(pusher, states, inputs)
-    x_plain, info_plain = step(plain, states, inputs)
-    guessed = np.asarray(info_guess.ncp.iterations == 0)
-    assert guessed.mean() > 0.5  # the box sticks in most steps: no ADMM there
-    both = np.asarray(info_guess.ncp.converged & info_plain.ncp.converged)
-    assert both.mean() > 0.9
-    np.testing.assert_allclose(x_guess[both], x_plain[both], atol=1e-7)
-    assert int(jnp.sum(~info_guess.ncp.converged)) <= int(jnp.sum(~info_plain.ncp.converged))
+    """The pusher's solver (the sticking guess by the pseudo-inverse, then ADMM from zero) on the
+    states of rollouts under random finger forces (the box rests, is pushed, slides, stops):
+    where both converge its next states are plain ADMM's (sliding on four coplanar corners
+    has non-unique solutions, so this checks that it finds the same one), and it leaves no
+    more solves unconverged.
+
+    In a fresh process: compiling this batched rollout crashed XLA:CPU (jaxlib 0.10, a
+    segmentation fault in `backend_compile_and_load`) in a pytest-xdist worker that had
+    compiled many other programs, and never in a fresh one."""
+    done = subprocess.run([sys.executable, "-c", _PUSHER_SOLVER_CHECK], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-4000:]
 
 
 def _sliding_ball():
