@@ -44,9 +44,9 @@ def without_traced_checks():
     """Programs traced inside leave out rsmooth's traced checks (:func:`error_if`).
 
     For solvers that test finiteness themselves and report it in their result (DDP, R-DDP,
-    policy optimization, rollouts): a traced check is a host callback in the compiled program,
-    and JAX's persistent compilation cache does not store programs with host callbacks, so
-    every run would compile them again. Checks that a user asks for (``throw=True``) are kept.
+    policy optimization, a rollout whose diagnostics the caller checks): a traced check is a
+    host callback in the compiled program, and JAX's persistent compilation cache does not
+    store programs with host callbacks, so every run would compile them again. Checks that a user asks for (``throw=True``) are kept.
     """
     if _FLAG is not None:
         with _FLAG(False):
