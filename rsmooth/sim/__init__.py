@@ -6,7 +6,8 @@ URDF files through MuJoCo's compiler (:func:`load_mjcf`), and are frozen into JA
 contact is a frictional complementarity problem solved by ADMM and differentiated
 implicitly (:func:`solve_ncp`); collision geometry (:class:`Sphere`, :class:`Capsule`,
 :class:`Box`, :class:`Cylinder`, :class:`HalfSpace`, :class:`ConvexMesh`) gives contact
-manifolds between posed shapes (:func:`collide`, :func:`candidate_pairs`); :class:`RigidBodySystem` steps a system in time and is the
+manifolds between posed shapes (:func:`collide`, :func:`candidate_pairs`); :class:`RigidBodySystem` steps a system in time
+(its contacts: spheres against half-spaces, and any pairs of shapes, :class:`GeomPair`) and is the
 ``Dynamics`` (``step(x, u)``, ``nx``, ``nu``) that rsmooth's optimizers consume.
 """
 
@@ -75,6 +76,7 @@ from rsmooth.sim._simulator import (
     SEPARATED as SEPARATED,
     SLIDING as SLIDING,
     STICKING as STICKING,
+    GeomPair as GeomPair,
     RigidBodySystem as RigidBodySystem,
     SimulationWarning as SimulationWarning,
     StepInfo as StepInfo,
@@ -91,6 +93,7 @@ from rsmooth.sim._systems import (
     SOLO12_TORQUE_LIMIT as SOLO12_TORQUE_LIMIT,
     ball as ball,
     ball_wall as ball_wall,
+    bodies as bodies,
     box as box,
     pusher as pusher,
     pusher_start_state as pusher_start_state,

@@ -18,7 +18,9 @@ state ``x = [q, v]``:
    energy at every step of a spinning or tumbling body.
 2. Contacts between the system's spheres (a point is a sphere of radius 0) and the world's
    half-spaces, with signed distance ``phi``, contact frame ``R`` and contact Jacobian
-   ``J = R^T J_p(q)`` (``3 n x nv``, rows ``[t1, t2, n]`` per contact).
+   ``J = R^T J_p(q)`` (``3 n x nv``, rows ``[t1, t2, n]`` per contact); then the contact
+   manifolds of its geometry pairs (:class:`GeomPair`, :func:`~rsmooth.sim.collide`), with
+   ``J = R^T (J_p2 - J_p1)`` the Jacobian of the relative velocity of the witness points.
 3. Contact impulses ``lambda``, by the selected contact law:
 
    - ``"hard"``: the frictional NCP of Signorini and Coulomb with maximum dissipation at the
@@ -87,12 +89,14 @@ from rsmooth.sim._contact import (
     natural_map_of_velocity,
     solve_ncp,
 )
+from rsmooth.sim._collision import collide, manifold_size
+from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, HalfSpace, Sphere
 from rsmooth.sim._model import Model
 
 Array = jax.Array
 ContactLaw = Union[Literal["hard"], SpringDamper, LogBarrier]
 
-__all__ = ["RigidBodySystem", "SimulationWarning", "StepInfo", "check_steps", "energy"]
+__all__ = ["GeomPair", "RigidBodySystem", "SimulationWarning", "StepInfo", "check_steps", "energy"]
 
 
 SEPARATED, STICKING, SLIDING = 0, 1, 2  # StepInfo.mode
@@ -110,7 +114,7 @@ class StepInfo(eqx.Module):
             (a step from an already diverged state).
         torque_clipped: whether an input was beyond its limit and was clipped.
         force: the contact forces in world axes, ``(n, 3)``: the impulses over the step, divided
-            by ``h`` (the force on the sphere's body).
+            by ``h`` (the force on the sphere's body; for a :class:`GeomPair`, on shape 2's).
         mode: each contact's mode, ``(n,)``: :data:`SEPARATED` (0, no normal impulse),
             :data:`STICKING` (1) or :data:`SLIDING` (2, its end-of-step tangential velocity
             above the square root of the solver's tolerance).
@@ -155,12 +159,118 @@ class _VelocityUpdate(NamedTuple):
         return self.v_next, self.impulse, self.distance, self.ncp, self.clipped, (self.frames, self.jacobian @ self.v_next)
 
 
+_SHAPES = (Sphere, Capsule, Box, Cylinder, HalfSpace, ConvexMesh)
+# Signed distance given to the entries of a manifold that are not contacts (beyond the
+# pair's margin, or repeats of another entry): ten metres, a gap that no step that has not
+# diverged closes (StepInfo.diverged: at most max_motion_per_step, 1 m by default, per body
+# and step), so these entries exert no impulse while keeping finite frames and Jacobians.
+_INACTIVE_DISTANCE = 10.0
+
+
+def _placement(name: str, placement) -> tuple[Array, Array]:
+    """``(rotation (3, 3), translation (3,))`` from ``None`` (the identity) or a pair; checked."""
+    if placement is None:
+        return jnp.eye(3), jnp.zeros(3)
+    if not isinstance(placement, (tuple, list)) or len(placement) != 2:
+        raise ValueError(f"{name} must be a pair (rotation (3, 3), translation (3,)) or None, got {placement!r}")
+    rotation, translation = jnp.asarray(placement[0], float), jnp.asarray(placement[1], float)
+    if rotation.shape != (3, 3) or translation.shape != (3,):
+        raise ValueError(
+            f"{name} must be (rotation (3, 3), translation (3,)), got shapes {rotation.shape} and {translation.shape}"
+        )
+    if not (_checks.is_traced(rotation) or _checks.is_traced(translation)):
+        r, t = np.asarray(rotation), np.asarray(translation)
+        if not (np.all(np.isfinite(r)) and np.all(np.isfinite(t))):
+            raise ValueError(f"{name} must be finite, got {placement!r}")
+        if not (np.allclose(r.T @ r, np.eye(3), atol=1e-6) and np.linalg.det(r) > 0):
+            raise ValueError(f"{name}: the rotation must be a rotation matrix (orthonormal, det +1), got {r.tolist()}")
+    return rotation, translation
+
+
+class GeomPair(eqx.Module):
+    """Two collision shapes of a :class:`RigidBodySystem` that touch each other.
+
+    Each shape is attached to a frame of the model (it moves with that frame's body) or, with
+    frame ``None``, fixed in the world; its placement is its pose in that frame (in the world,
+    for ``None``). The pair's contacts are :func:`~rsmooth.sim.collide`'s manifold
+    (:func:`~rsmooth.sim.manifold_size` entries), normals from shape 1 to shape 2.
+
+    Attributes:
+        shape1: a :class:`~rsmooth.sim.Sphere`, :class:`~rsmooth.sim.Capsule`,
+            :class:`~rsmooth.sim.Box`, :class:`~rsmooth.sim.Cylinder`,
+            :class:`~rsmooth.sim.HalfSpace` or :class:`~rsmooth.sim.ConvexMesh`.
+        frame1: frame index or name carrying shape 1 (static), ``None``: fixed in the world.
+        placement1: ``(rotation (3, 3), translation (3,))`` of shape 1 in its frame.
+        shape2: the other shape; the pair of types must be one that
+            :func:`~rsmooth.sim.collide` supports (either order).
+        frame2: frame of shape 2 (static), ``None``: fixed in the world.
+        placement2: pose of shape 2 in its frame.
+        friction: Coulomb coefficient between the two shapes, ``>= 0``.
+        margin: entries of the manifold at most this far apart (m, static) are candidate
+            contacts: the contact law decides whether they act (hard contact: only a gap
+            that closes within the step does), so a resting contact stays in the problem
+            across steps. Farther entries are given a distance of 10 m (no impulse).
+
+    Example:
+        >>> import rsmooth.sim as sim
+        >>> pair = sim.GeomPair(sim.HalfSpace(), None, sim.Box([0.1, 0.1, 0.1]), "box", friction=0.5)
+        >>> sim.manifold_size(pair.shape1, pair.shape2)
+        4
+    """
+
+    shape1: Sphere | Capsule | Box | Cylinder | HalfSpace | ConvexMesh
+    frame1: int | str | None = eqx.field(static=True)
+    placement1: tuple[Array, Array]
+    shape2: Sphere | Capsule | Box | Cylinder | HalfSpace | ConvexMesh
+    frame2: int | str | None = eqx.field(static=True)
+    placement2: tuple[Array, Array]
+    friction: Array
+    margin: float = eqx.field(static=True)
+
+    def __init__(self, shape1, frame1, shape2, frame2, *, friction, placement1=None, placement2=None, margin=0.01):
+        """Args: as the attributes; ``placement1``/``placement2`` ``None`` is the identity."""
+        for name, shape in (("shape1", shape1), ("shape2", shape2)):
+            if not isinstance(shape, _SHAPES):
+                names = ", ".join(t.__name__ for t in _SHAPES)
+                raise ValueError(f"{name} must be a collision shape ({names}), got {type(shape).__name__}")
+        try:
+            manifold_size(shape1, shape2)
+        except NotImplementedError as error:
+            raise ValueError(f"shape1 and shape2: {error}") from None
+        for name, frame in (("frame1", frame1), ("frame2", frame2)):
+            valid_index = isinstance(frame, (int, np.integer)) and not isinstance(frame, bool) and frame >= 0
+            if not (frame is None or isinstance(frame, str) or valid_index):
+                raise ValueError(f"{name} must be a frame name, a frame index >= 0, or None (the world), got {frame!r}")
+        if frame1 is None and frame2 is None:
+            raise ValueError("frame1 and frame2 are both None: a pair of world-fixed shapes never moves")
+        self.shape1, self.shape2 = shape1, shape2
+        self.frame1 = frame1 if frame1 is None or isinstance(frame1, str) else int(frame1)
+        self.frame2 = frame2 if frame2 is None or isinstance(frame2, str) else int(frame2)
+        self.placement1 = _placement("placement1", placement1)
+        self.placement2 = _placement("placement2", placement2)
+        friction = jnp.asarray(friction, float)
+        if friction.shape != ():
+            raise ValueError(f"friction must be a scalar, got shape {friction.shape}")
+        if not _checks.is_traced(friction) and not (np.isfinite(float(friction)) and float(friction) >= 0):
+            raise ValueError(f"friction must be non-negative and finite, got {float(friction)}")
+        self.friction = friction
+        if isinstance(margin, bool) or not (np.ndim(margin) == 0 and np.isfinite(margin) and margin >= 0):
+            raise ValueError(f"margin must be a non-negative, finite number (m), got {margin!r}")
+        self.margin = float(margin)
+
+    @property
+    def size(self) -> int:
+        """The number of candidate contacts of the pair (static)."""
+        return manifold_size(self.shape1, self.shape2)
+
+
 class RigidBodySystem(eqx.Module):
-    """A kinematic tree with sphere contacts against half-spaces, stepped in time.
+    """A kinematic tree with sphere contacts against half-spaces and contacts between pairs
+    of collision shapes (:class:`GeomPair`), stepped in time.
 
     Build one with the factories :func:`~rsmooth.sim.cube`, :func:`~rsmooth.sim.box`,
     :func:`~rsmooth.sim.ball`, :func:`~rsmooth.sim.ball_wall`, :func:`~rsmooth.sim.pusher`,
-    :func:`~rsmooth.sim.solo12` (or directly, for a new robot); :meth:`initial_state` is the
+    :func:`~rsmooth.sim.solo12`, :func:`~rsmooth.sim.bodies` (or directly, for a new robot); :meth:`initial_state` is the
     state each factory defines as the start.
 
     The input ``u`` is mapped to generalized forces in one of two ways (``actuation``):
@@ -196,6 +306,9 @@ class RigidBodySystem(eqx.Module):
         box_half_extents: half side lengths of that box in its frame, ``(3,)``.
         box_spheres: indices of the spheres that collide with the box.
         box_friction: Coulomb coefficient between those spheres and the box.
+        geom_pairs: pairs of collision shapes (:class:`GeomPair`) whose contact manifolds
+            are contacts of the system, after the sphere contacts (e.g. boxes on a floor and
+            on each other: :func:`~rsmooth.sim.bodies`).
         joint_damping: viscous damping ``(nv,)`` (N m s/rad or N s/m) of each dof, ``>= 0``,
             integrated implicitly; ``None`` for none. It bounds the speed a constant torque
             gives a free joint (``tau / d``), which explicit velocity-product (Coriolis)
@@ -238,6 +351,7 @@ class RigidBodySystem(eqx.Module):
     box_half_extents: Array | None = None
     box_spheres: tuple[int, ...] = eqx.field(static=True, default=())
     box_friction: float = eqx.field(static=True, default=0.0)
+    geom_pairs: tuple[GeomPair, ...] = ()
     derivative: str = eqx.field(static=True, default="implicit")
     joint_damping: Array | None = None
     max_motion_per_step: float = eqx.field(static=True, default=1.0)
@@ -287,6 +401,15 @@ class RigidBodySystem(eqx.Module):
                 raise ValueError(f"box_spheres must index the spheres 0..{num_spheres - 1}, got {self.box_spheres}")
         if any(c not in range(6) for c in self.wrench_components):
             raise ValueError(f"wrench_components must be in 0..5, got {self.wrench_components}")
+        if not isinstance(self.geom_pairs, tuple) or not all(isinstance(p, GeomPair) for p in self.geom_pairs):
+            raise ValueError(f"geom_pairs must be a tuple of GeomPair, got {self.geom_pairs!r}")
+        for index, pair in enumerate(self.geom_pairs):
+            for name, frame in (("frame1", pair.frame1), ("frame2", pair.frame2)):
+                if frame is not None:
+                    try:
+                        self.model.frame_id(frame)
+                    except ValueError as error:
+                        raise ValueError(f"geom_pairs[{index}].{name}: {error}") from None
 
     # -- sizes and state layout -------------------------------------------------------
 
@@ -303,8 +426,12 @@ class RigidBodySystem(eqx.Module):
     @property
     def num_contacts(self) -> int:
         """Number of candidate contacts: every sphere against every half-space, then the
-        ``box_spheres`` against the box."""
-        return len(self.sphere_frames) * self.plane_normals.shape[0] + len(self.box_spheres)
+        ``box_spheres`` against the box, then the manifold entries of every geometry pair."""
+        return (
+            len(self.sphere_frames) * self.plane_normals.shape[0]
+            + len(self.box_spheres)
+            + sum(pair.size for pair in self.geom_pairs)
+        )
 
     def split(self, x: ArrayLike) -> tuple[Array, Array]:
         """``(q, v)`` from a state ``x`` of shape ``(..., nx)``."""
@@ -408,13 +535,26 @@ class RigidBodySystem(eqx.Module):
         """Candidate contacts at ``q``: ``(distance (n,), frames (n, 3, 3), J (3n, nv))``.
 
         Ordered sphere-major: contact ``s * P + p`` is sphere ``s`` against half-space ``p``;
-        then one contact per entry of ``box_spheres``. ``J`` maps ``v`` to the contact-frame
-        velocity ``[t1, t2, n]`` of the sphere point deepest towards the obstacle (relative to
-        the box's material point there, for box contacts).
+        then one contact per entry of ``box_spheres``; then, pair by pair, the manifold
+        entries of ``geom_pairs`` (:meth:`_geom_pair_contacts`). ``J`` maps ``v`` to the
+        contact-frame velocity ``[t1, t2, n]`` of the sphere point deepest towards the obstacle
+        (relative to the box's material point there, for box contacts; of shape 2's witness
+        point relative to shape 1's, for geometry pairs).
         """
         model = self.model
         if kinematics is None:
             kinematics = _dynamics._kinematics(model, q)
+        if not self.sphere_frames:
+            distances, frames, jacobians = [], [], []
+            for pair in self.geom_pairs:
+                distance, rotation, jacobian = self._geom_pair_contacts(kinematics, pair)
+                distances.append(distance)
+                frames.append(rotation)
+                jacobians.append(jacobian)
+            if not distances:
+                dtype = kinematics.translation.dtype
+                return jnp.zeros(0, dtype), jnp.zeros((0, 3, 3), dtype), jnp.zeros((0, model.nv), dtype)
+            return jnp.concatenate(distances), jnp.concatenate(frames), jnp.concatenate(jacobians).reshape(-1, model.nv)
         # All spheres at once (one batched expression per quantity, not one per sphere: the
         # traced graph, and the compile time of every solver built on the step, would grow
         # with the number of spheres). The contact -> joint map is static.
@@ -432,6 +572,11 @@ class RigidBodySystem(eqx.Module):
             distances.append(distance[None])
             frames.append(rotation[None])
             jacobians.append(jacobian[None])
+        for pair in self.geom_pairs:
+            distance, rotation, jacobian = self._geom_pair_contacts(kinematics, pair)
+            distances.append(distance)
+            frames.append(rotation)
+            jacobians.append(jacobian)
         distance = jnp.concatenate(distances)
         return distance, jnp.concatenate(frames), jnp.concatenate(jacobians).reshape(-1, model.nv)
 
@@ -493,6 +638,40 @@ class RigidBodySystem(eqx.Module):
         contact_rotation = contact_frame(normal)
         return distance, contact_rotation, contact_rotation.T @ (sphere_jacobian - box_jacobian)
 
+    def _geom_pose(self, kinematics, frame, placement) -> tuple[Array, Array]:
+        """World pose of a shape placed at ``placement`` in ``frame`` (``None``: the world)."""
+        if frame is None:
+            return placement
+        model = self.model
+        rotation, translation = _dynamics._frame_placement(
+            model, kinematics.rotation, kinematics.translation, model.frame_id(frame)
+        )
+        return spatial.compose(rotation, translation, placement[0], placement[1])
+
+    def _geom_pair_contacts(self, kinematics, pair: GeomPair) -> tuple[Array, Array, Array]:
+        """Signed distances ``(k,)``, contact frames ``(k, 3, 3)`` and relative contact
+        Jacobians ``(k, 3, nv)`` of a geometry pair's manifold: ``R^T (J_2 - J_1)`` with
+        ``J_i`` the Jacobian of the world velocity of the material point of shape ``i``'s
+        body at its witness point (none for a world-fixed shape), so the normal velocity
+        (along the normal from shape 1 to shape 2) is positive where they separate. Entries
+        that are not contacts of the manifold get a distance of 10 m (:data:`_INACTIVE_DISTANCE`)."""
+        model = self.model
+        pose1 = self._geom_pose(kinematics, pair.frame1, pair.placement1)
+        pose2 = self._geom_pose(kinematics, pair.frame2, pair.placement2)
+        manifold = collide(pair.shape1, pose1, pair.shape2, pose2, margin=pair.margin)
+        distance = jnp.where(manifold.active, manifold.distance, _INACTIVE_DISTANCE)
+        rotations = contact_frame(manifold.normal)  # (k, 3, 3)
+        velocity = 0.0  # (k, nv, 3): world velocity of point 2 relative to point 1
+        if pair.frame2 is not None:
+            joints = np.full(pair.size, model.frame_parents[model.frame_id(pair.frame2)])
+            velocity = velocity + _dynamics._point_velocity_columns(model, kinematics, joints, manifold.point2)
+        if pair.frame1 is not None:
+            joints = np.full(pair.size, model.frame_parents[model.frame_id(pair.frame1)])
+            velocity = velocity - _dynamics._point_velocity_columns(model, kinematics, joints, manifold.point1)
+        # R^T J, unrolled over the 3-axis as in contacts()
+        jacobians = sum(rotations[:, j, :, None] * velocity[:, None, :, j] for j in range(3))  # (k, 3, nv)
+        return distance, rotations, jacobians
+
     def step_with_info(self, x: ArrayLike, u: ArrayLike, *, warm_start: ArrayLike | None = None) -> tuple[Array, StepInfo]:
         """One time step and its diagnostics.
 
@@ -549,7 +728,7 @@ class RigidBodySystem(eqx.Module):
         return jnp.concatenate([
             jnp.repeat(self.friction[None, :], len(self.sphere_frames), axis=0).reshape(-1),
             jnp.full(len(self.box_spheres), self.box_friction, self.friction.dtype),
-        ])
+        ] + [jnp.full(pair.size, pair.friction, self.friction.dtype) for pair in self.geom_pairs])
 
     def _velocity_update(self, q: Array, v: Array, u: Array, warm_start) -> _VelocityUpdate:
         """The velocity update of one step and the quantities its derivative reuses."""

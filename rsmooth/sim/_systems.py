@@ -1,5 +1,6 @@
 """The canonical systems: a box or a cube among half-spaces, a ball (and a wall), a finger
-pushing a box, the Solo-12 quadruped.
+pushing a box, the Solo-12 quadruped, and free bodies of any shape colliding with each other
+(:func:`bodies`).
 
 Each factory returns a :class:`~rsmooth.sim.RigidBodySystem` (a ``Dynamics``: ``step(x, u)``,
 ``nx``, ``nu``) that stores the configuration its docstring describes as the start, so that
@@ -18,7 +19,10 @@ import numpy as np
 from rsmooth.sim import _dynamics
 from rsmooth.sim._contact import LogBarrier, NCPSolver, SpringDamper
 from rsmooth.sim._model import FREE_FLYER, PRISMATIC, UNIVERSE, Model, free_body, load_urdf, solo12_standing_configuration, solo12_urdf_path
-from rsmooth.sim._simulator import ContactLaw, RigidBodySystem, _point_jacobian
+from rsmooth.sim._collision import manifold_size
+from rsmooth.sim._contact import contact_frame
+from rsmooth.sim._geometry import Box, Capsule, Cylinder, HalfSpace, Sphere
+from rsmooth.sim._simulator import ContactLaw, GeomPair, RigidBodySystem, _point_jacobian
 
 __all__ = [
     "SOLO12_ARMATURE",
@@ -30,6 +34,7 @@ __all__ = [
     "SOLO12_TORQUE_LIMIT",
     "ball",
     "ball_wall",
+    "bodies",
     "box",
     "cube",
     "pusher",
@@ -370,6 +375,189 @@ def ball_wall(
     return ball(
         radius=radius, mass=mass, friction=friction, planes=[FLOOR, ((-1.0, 0.0, 0.0), -float(wall_distance))],
         time_step=time_step, contact=contact, solver=solver, baumgarte=baumgarte,
+    )
+
+
+def _inertia(shape, mass: float) -> np.ndarray:
+    """Principal moments ``(3,)`` of a uniform solid ``shape`` of ``mass`` about its centre, in
+    its frame."""
+    if isinstance(shape, Sphere):
+        return np.full(3, 0.4 * mass * float(shape.radius) ** 2)
+    if isinstance(shape, Box):
+        squares = np.asarray(shape.half_extents, dtype=np.float64) ** 2
+        return mass / 3.0 * np.array([squares[1] + squares[2], squares[0] + squares[2], squares[0] + squares[1]])
+    r, a = float(shape.radius), float(shape.half_length)  # Cylinder or Capsule, axis z
+    if isinstance(shape, Cylinder):
+        return np.array([mass * (3 * r**2 + 4 * a**2) / 12, mass * (3 * r**2 + 4 * a**2) / 12, mass * r**2 / 2])
+    # capsule: a cylinder of length 2a and two hemispheres, masses in proportion to volume
+    cylinder_volume, ball_volume = 2 * np.pi * r**2 * a, 4 / 3 * np.pi * r**3
+    m_c = mass * cylinder_volume / (cylinder_volume + ball_volume)
+    m_b = mass - m_c
+    axial = m_c * r**2 / 2 + 0.4 * m_b * r**2
+    # hemispheres: 2/5 m r^2 about their centre of curvature, moved to the capsule's centre
+    # (their centres of mass are 3 r / 8 beyond the cylinder's ends)
+    transverse = m_c * (3 * r**2 + 4 * a**2) / 12 + m_b * (0.4 * r**2 + a**2 + 0.75 * a * r)
+    return np.array([transverse, transverse, axial])
+
+
+def _bodies_model(names, masses, inertias, gravity) -> Model:
+    """Free bodies, each on its own free-flyer joint under the world; frames ``"universe"``,
+    then ``f"{name}_joint"`` and ``name`` per body."""
+    n = len(names)
+    eye = np.eye(3)
+    to_jax = lambda a: jnp.asarray(np.asarray(a, dtype=np.float64))  # noqa: E731
+    frame_names = ("universe",) + tuple(f for name in names for f in (f"{name}_joint", name))
+    return Model(
+        joint_names=("universe",) + tuple(f"{name}_joint" for name in names),
+        joint_types=(UNIVERSE,) + (FREE_FLYER,) * n,
+        parents=(0,) * (n + 1),
+        idx_q=(0,) + tuple(7 * i for i in range(n)),
+        idx_v=(0,) + tuple(6 * i for i in range(n)),
+        frame_names=frame_names,
+        frame_parents=(0,) + tuple(j for j in range(1, n + 1) for _ in range(2)),
+        nq=7 * n,
+        nv=6 * n,
+        joint_axes=to_jax(np.zeros((n + 1, 3))),
+        joint_placement_rotation=to_jax([eye] * (n + 1)),
+        joint_placement_translation=to_jax(np.zeros((n + 1, 3))),
+        body_mass=to_jax([0.0, *masses]),
+        body_com=to_jax(np.zeros((n + 1, 3))),
+        body_inertia=to_jax([np.zeros((3, 3))] + [np.diag(i) for i in inertias]),
+        frame_placement_rotation=to_jax([eye] * (2 * n + 1)),
+        frame_placement_translation=to_jax(np.zeros((2 * n + 1, 3))),
+        lower_position_limit=to_jax(np.full(7 * n, -np.inf)),
+        upper_position_limit=to_jax(np.full(7 * n, np.inf)),
+        velocity_limit=to_jax(np.full(6 * n, np.inf)),
+        effort_limit=to_jax(np.full(6 * n, np.inf)),
+        armature=to_jax(np.zeros(6 * n)),
+        gravity=to_jax(gravity),
+    )
+
+
+def bodies(
+    shapes,
+    masses,
+    positions,
+    *,
+    orientations=None,
+    planes=(FLOOR,),
+    obstacles=(),
+    friction: float = 0.5,
+    margin: float = 0.01,
+    gravity=(0.0, 0.0, -9.81),
+    time_step: float = 0.01,
+    solver: NCPSolver = NCPSolver(sticking_guess=True, rank_deficient=True, polish=True, max_iterations=1000),
+    baumgarte: float = 0.2,
+) -> RigidBodySystem:
+    """Free rigid bodies among half-spaces and fixed obstacles, colliding with all of them and
+    with each other (hard contact).
+
+    Every body is a uniform solid (its inertia from its shape and mass) on its own free-flyer
+    joint, its frame at its centre. Contacts are :class:`~rsmooth.sim.GeomPair` manifolds:
+    every body against every half-space and every obstacle, and every pair of bodies. The
+    input ``u`` ``(6 n,)`` holds each body's generalized force ``[force, torque]`` in its body
+    axes; ``nx = 13 n``. ``initial_state()``: the bodies at ``positions`` and
+    ``orientations``, at rest.
+
+    Args:
+        shapes: one :class:`~rsmooth.sim.Sphere`, :class:`~rsmooth.sim.Box`,
+            :class:`~rsmooth.sim.Capsule` or :class:`~rsmooth.sim.Cylinder` per body.
+        masses: a mass (kg) per body, positive.
+        positions: the bodies' initial centres in the world, ``(n, 3)`` (m).
+        orientations: their initial unit quaternions ``[qx, qy, qz, qw]``, ``(n, 4)``;
+            ``None``: the identity.
+        planes: the half-spaces ``((normal, offset), ...)``, ``{p : n . p >= offset}``; the
+            normal need not be unit.
+        obstacles: world-fixed shapes, ``((shape, (rotation (3, 3), translation (3,))), ...)``.
+        friction: Coulomb coefficient of every contact.
+        margin: distance within which manifold entries are candidate contacts
+            (:attr:`GeomPair.margin`, m).
+        gravity: gravity in world axes (m/s^2).
+        time_step: ``h`` (s).
+        solver: NCP solver configuration: the sticking guess by the pseudo-inverse (the
+            coplanar corners of a face resting on a face make the Delassus matrix singular),
+            the active-set polish, then ADMM, up to 1000 iterations (a stack of bodies of
+            different masses couples their contacts into a worse-conditioned problem than
+            one body's).
+        baumgarte: penetration correction rate.
+
+    Returns:
+        The system; its frames are ``"body0"``, ``"body1"``, ...
+
+    Raises:
+        ValueError: a shape is not one of the four, a mass is not positive, the sizes of
+            ``shapes``, ``masses``, ``positions`` and ``orientations`` differ, a pair of shapes
+            has no collision function, or a parameter is out of range.
+
+    Example:
+        >>> import rsmooth.sim as sim
+        >>> stack = sim.bodies([sim.Box([0.1, 0.1, 0.1])] * 2, [1.0, 1.0], [[0, 0, 0.1], [0, 0, 0.3]])
+        >>> stack.nx, stack.nu, stack.num_contacts
+        (26, 12, 12)
+    """
+    shapes = tuple(shapes)
+    n = len(shapes)
+    if n == 0:
+        raise ValueError("shapes must hold at least one shape")
+    for i, shape in enumerate(shapes):
+        if not isinstance(shape, (Sphere, Box, Capsule, Cylinder)):
+            raise ValueError(f"shapes[{i}] must be a Sphere, Box, Capsule or Cylinder, got {type(shape).__name__}")
+    masses = [_number(f"masses[{i}]", m) for i, m in enumerate(np.ravel(np.asarray(masses, dtype=object)))]
+    if len(masses) != n:
+        raise ValueError(f"masses must hold one mass per shape ({n}), got {len(masses)}")
+    positions = np.asarray(positions, dtype=np.float64)
+    if positions.shape != (n, 3) or not np.all(np.isfinite(positions)):
+        raise ValueError(f"positions must be finite with shape ({n}, 3), got {positions.shape}")
+    if orientations is None:
+        orientations = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+    orientations = np.asarray(orientations, dtype=np.float64)
+    if orientations.shape != (n, 4) or not np.allclose(np.linalg.norm(orientations, axis=1), 1.0, atol=1e-9):
+        raise ValueError(f"orientations must be unit quaternions [qx, qy, qz, qw] with shape ({n}, 4)")
+    friction = _number("friction", friction, zero=True)
+    names = tuple(f"body{i}" for i in range(n))
+    model = _bodies_model(names, masses, [_inertia(s, m) for s, m in zip(shapes, masses)], _gravity(gravity))
+    world = []
+    if planes:
+        normals, offsets, _ = _planes(planes, 0.0)
+        for normal, offset in zip(np.asarray(normals), np.asarray(offsets)):
+            # the HalfSpace is z <= 0 of its frame: the frame's z along the plane's normal
+            world.append((HalfSpace(), (contact_frame(jnp.asarray(normal)), jnp.asarray(offset * normal))))
+    for index, obstacle in enumerate(obstacles):
+        if not (isinstance(obstacle, (tuple, list)) and len(obstacle) == 2):
+            raise ValueError(f"obstacles[{index}] must be (shape, (rotation, translation)), got {obstacle!r}")
+        world.append(tuple(obstacle))
+    pairs = []
+    for i in range(n):
+        for shape, pose in world:
+            pairs.append(GeomPair(shape, None, shapes[i], names[i], placement1=pose, friction=friction, margin=margin))
+    for i, j in itertools.combinations(range(n), 2):
+        try:
+            manifold_size(shapes[i], shapes[j])
+        except NotImplementedError:
+            raise ValueError(
+                f"shapes[{i}] and shapes[{j}]: no collision function for {type(shapes[i]).__name__} against "
+                f"{type(shapes[j]).__name__}"
+            ) from None
+        pairs.append(GeomPair(shapes[i], names[i], shapes[j], names[j], friction=friction, margin=margin))
+    return RigidBodySystem(
+        model=model,
+        sphere_frames=(),
+        sphere_offsets=jnp.zeros((0, 3)),
+        sphere_radii=jnp.zeros(0),
+        plane_normals=jnp.zeros((0, 3)),
+        plane_offsets=jnp.zeros(0),
+        friction=jnp.zeros(0),
+        time_step=jnp.asarray(_number("time_step", time_step)),
+        contact="hard",
+        solver=solver,
+        baumgarte=baumgarte,
+        actuation="joints",
+        actuated_dofs=tuple(range(6 * n)),
+        wrench_frame=0,
+        wrench_components=(),
+        input_limit=jnp.full(6 * n, jnp.inf),
+        geom_pairs=tuple(pairs),
+        initial_configuration=jnp.asarray(np.concatenate([positions, orientations], axis=1).reshape(-1)),
     )
 
 

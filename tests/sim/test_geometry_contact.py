@@ -1,0 +1,183 @@
+"""Contacts between arbitrary collision shapes (`GeomPair`) in `RigidBodySystem`, and the
+`sim.bodies` factory: resting, stacking, sliding against closed forms, a cross-check with the
+hand-written sphere-box contact, and derivatives against finite differences."""
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import rsmooth.sim as sim
+from rsmooth.sim import _derivatives
+
+G = 9.81
+H = 0.01
+
+
+def _rollout(system, x0, steps):
+    """States and diagnostics of `steps` steps at zero input (one compilation per system)."""
+    us = jnp.zeros((steps, system.nu))
+    xs, infos = eqx.filter_jit(lambda s, x: s.rollout(x, us))(system, x0)
+    return np.asarray(xs), infos
+
+
+def test_box_rests_on_floor_through_a_geom_pair():
+    mass, half = 2.0, np.array([0.2, 0.1, 0.05])
+    system = sim.bodies([sim.Box(half)], [mass], [[0.3, -0.2, half[2]]], time_step=H)
+    assert system.num_contacts == 4
+    assert isinstance(system.geom_pairs[0].shape1, sim.HalfSpace) and system.geom_pairs[0].frame1 is None
+    x0 = np.asarray(system.initial_state())
+    xs, infos = _rollout(system, x0, 100)
+    sim.check_steps(infos, what="a box resting on the floor")  # warnings are errors
+    assert np.max(np.abs(np.asarray(xs[:, :3] - x0[:3]))) < 1e-6
+    assert np.max(np.abs(np.asarray(xs[:, 7:]))) < 1e-6  # at rest
+    # the contact forces carry the weight, at every step
+    total = np.asarray(infos.force).sum(axis=1)
+    np.testing.assert_allclose(total, np.tile([0.0, 0.0, mass * G], (100, 1)), atol=1e-6)
+
+
+def test_box_stack_rests():
+    """A box on a box on the floor: the floor carries both weights, the lower box the upper."""
+    half, masses = 0.1, [1.0, 0.5]
+    system = sim.bodies(
+        [sim.Box([half] * 3), sim.Box([0.08, 0.06, half])], masses, [[0, 0, half], [0, 0, 3 * half]], time_step=H
+    )
+    # pairs: floor-body0, floor-body1, body0-body1
+    assert [type(p.shape1).__name__ for p in system.geom_pairs] == ["HalfSpace", "HalfSpace", "Box"]
+    x0 = np.asarray(system.initial_state())
+    xs, infos = _rollout(system, x0, 100)
+    sim.check_steps(infos, what="a box stack")
+    np.testing.assert_allclose(xs[:, :3], np.broadcast_to(x0[:3], (101, 3)), atol=1e-6)
+    np.testing.assert_allclose(xs[:, 7:10], np.broadcast_to(x0[7:10], (101, 3)), atol=1e-6)
+    assert np.max(np.abs(np.asarray(xs[:, 14:]))) < 1e-6
+    force = np.asarray(infos.force[-1]).reshape(3, 4, 3).sum(axis=1)  # per pair
+    np.testing.assert_allclose(force[0], [0, 0, sum(masses) * G], atol=1e-6)  # floor on the lower box
+    np.testing.assert_allclose(force[1], 0.0, atol=1e-12)  # the upper box does not touch the floor
+    np.testing.assert_allclose(force[2], [0, 0, masses[1] * G], atol=1e-6)  # on the upper box (shape 2)
+
+
+def _slider(mu, height=0.1, **options):
+    """A box (half side 0.1 m) with its centre at `height` over a world-fixed slab whose top
+    face is z = 0; no floor."""
+    slab = (sim.Box([1.0, 1.0, 0.1]), (jnp.eye(3), jnp.array([0.0, 0.0, -0.1])))
+    return sim.bodies(
+        [sim.Box([0.1, 0.1, 0.1])], [1.0], [[0.0, 0.0, height]], planes=(), obstacles=(slab,), friction=mu, time_step=H,
+        **options,
+    )
+
+
+def test_box_slides_on_fixed_box_to_the_closed_form_distance():
+    """With semi-implicit Euler, kinetic friction removes exactly mu g h of speed per step, so a
+    box launched at v0 = N mu g h stops after N steps, having moved
+    h sum_{k=1..N} (v0 - k mu g h) = v0^2 / (2 mu g) - v0 h / 2: the continuous closed form
+    less half a step of travel (the first-order error of the time stepping). The discrete sum
+    is met to the contact solver's accuracy; the continuous one within v0 h / 2."""
+    mu, steps = 0.5, 20
+    v0 = steps * mu * G * H
+    system = _slider(mu)
+    x0 = system.state(system.initial_configuration, jnp.zeros(6).at[0].set(v0))
+    xs, infos = _rollout(system, x0, 60)
+    sim.check_steps(infos, what="a box sliding on a box")
+    travelled = float(xs[-1, 0] - xs[0, 0])
+    discrete = v0**2 / (2 * mu * G) - v0 * H / 2
+    continuous = v0**2 / (2 * mu * G)
+    assert abs(travelled - discrete) < 1e-6
+    assert abs(travelled - continuous) <= v0 * H / 2 + 1e-6
+    assert np.max(np.abs(np.asarray(xs[steps + 1 :, 7:]))) < 1e-6  # at rest from step N on
+    np.testing.assert_allclose(xs[:, 2], 0.1, atol=1e-6)  # no sinking or lifting
+    np.testing.assert_allclose(np.asarray(infos.force[: steps - 1]).sum(axis=1), np.tile([-mu * G, 0, G], (steps - 1, 1)), atol=1e-6)
+
+
+def test_sphere_box_pair_matches_the_sphere_box_contact():
+    """A GeomPair(Box, Sphere) on the pusher's box and finger gives the distance, contact frame
+    and relative Jacobian of the hand-written signed-distance contact (`box_spheres`)."""
+    pusher = sim.pusher(finger_radius=0.02)
+    pair = sim.GeomPair(
+        sim.Box(pusher.box_half_extents), "box", sim.Sphere(0.02), "finger", friction=pusher.box_friction
+    )
+    system = dataclasses.replace(pusher, geom_pairs=(pair,))
+    assert system.num_contacts == pusher.num_contacts + 1
+    np.testing.assert_array_equal(system.contact_friction()[-1], pusher.contact_friction()[-1])
+    contacts = eqx.filter_jit(lambda s, q: s.contacts(q))
+    # touching (the witness points coincide): distance, frame and Jacobian
+    for finger_y in (0.0, 0.05):
+        q = system.split(sim.pusher_start_state(system, finger_gap=0.0, finger_y=finger_y))[0]
+        distance, frames, jacobian = contacts(system, q)
+        np.testing.assert_allclose(distance[-1], distance[-2], atol=1e-12)
+        np.testing.assert_allclose(frames[-1], frames[-2], atol=1e-12)
+        np.testing.assert_allclose(jacobian[-3:], jacobian[-6:-3], atol=1e-12)
+    # apart (within the pair's margin), with the box turned: the same distance and frame
+    q = system.split(sim.pusher_start_state(system, finger_gap=0.005, finger_y=0.03))[0]
+    angle = -0.05
+    q = q.at[3:7].set(jnp.array([0.0, 0.0, np.sin(angle / 2), np.cos(angle / 2)]))
+    distance, frames, _ = contacts(system, q)
+    assert 0 < distance[-2] < 0.01
+    np.testing.assert_allclose(distance[-1], distance[-2], atol=1e-12)
+    np.testing.assert_allclose(frames[-1], frames[-2], atol=1e-12)
+
+
+def test_step_jacobian_of_sliding_box_matches_finite_differences():
+    """Mid-slide, away from mode switches, the implicit derivative equals central differences
+    of the step. The box slides at 0.5 m/s without spinning, 0.1 mm into the slab, so that its
+    four face contacts are all sliding, in one direction, and pushed out (Baumgarte) on both
+    sides of every difference: at zero distance the position correction has a kink, and a
+    spinning face contact has no unique friction torque (four coplanar contacts leave one
+    pattern of normal forces free, which then changes the torque). Plain ADMM (no active-set
+    polish) keeps the normal forces spread over the four contacts rather than at a vertex
+    of that free set, where one contact would be weakly active."""
+    system = _slider(0.3, height=0.1 - 1e-4, solver=sim.NCPSolver())
+    # joint-actuated, but its geometry pairs are outside the closed-form derivatives: forward mode
+    assert system.actuation == "joints" and not _derivatives.supported(system)
+    v = jnp.array([0.5, 0.1, 0.0, 0.0, 0.0, 0.0])
+    x = system.state(system.initial_configuration, v)
+    u = jnp.array([0.2, -0.1, 0.3, 0.0, 0.0, 0.0])
+    step = eqx.filter_jit(lambda s, x_, u_: s.step(x_, u_))
+    fx, fu = eqx.filter_jit(lambda s, x_, u_: jax.jacfwd(s.step, argnums=(0, 1))(x_, u_))(system, x, u)
+    assert np.all(np.isfinite(fx)) and np.all(np.isfinite(fu))
+    mode = eqx.filter_jit(lambda s, x_, u_: s.step_with_info(x_, u_)[1].mode)(system, x, u)
+    np.testing.assert_array_equal(mode, [sim.SLIDING] * 4)
+    eps = 1e-5  # the solver's tolerance limits smaller steps
+    numeric_x = np.stack(
+        [(step(system, x + eps * e, u) - step(system, x - eps * e, u)) / (2 * eps) for e in np.eye(system.nx)], axis=1
+    )
+    numeric_u = np.stack(
+        [(step(system, x, u + eps * e) - step(system, x, u - eps * e)) / (2 * eps) for e in np.eye(system.nu)], axis=1
+    )
+    np.testing.assert_allclose(fx, numeric_x, rtol=1e-4, atol=2e-5)
+    np.testing.assert_allclose(fu, numeric_u, rtol=1e-4, atol=2e-5)
+    # step_and_jacobians (forward mode through the step's equations) agrees
+    _, fx2, fu2 = eqx.filter_jit(lambda s, x_, u_: s.step_and_jacobians(x_, u_))(system, x, u)
+    np.testing.assert_allclose(fx2, fx, atol=1e-9)
+    np.testing.assert_allclose(fu2, fu, atol=1e-9)
+
+
+def test_bad_input_names_the_argument():
+    box = sim.Box([0.1, 0.1, 0.1])
+    with pytest.raises(ValueError, match="shape1"):
+        sim.GeomPair("box", "body0", box, None, friction=0.5)
+    with pytest.raises(ValueError, match="shape1 and shape2"):
+        sim.GeomPair(sim.HalfSpace(), None, sim.HalfSpace(), "body0", friction=0.5)
+    with pytest.raises(ValueError, match="frame1 and frame2"):
+        sim.GeomPair(sim.HalfSpace(), None, box, None, friction=0.5)
+    with pytest.raises(ValueError, match="frame2"):
+        sim.GeomPair(sim.HalfSpace(), None, box, 1.5, friction=0.5)
+    with pytest.raises(ValueError, match="friction"):
+        sim.GeomPair(sim.HalfSpace(), None, box, "body0", friction=-0.1)
+    with pytest.raises(ValueError, match="margin"):
+        sim.GeomPair(sim.HalfSpace(), None, box, "body0", friction=0.1, margin=-1.0)
+    with pytest.raises(ValueError, match="placement2"):
+        sim.GeomPair(sim.HalfSpace(), None, box, "body0", friction=0.1, placement2=(2 * jnp.eye(3), jnp.zeros(3)))
+    system = sim.bodies([box], [1.0], [[0, 0, 0.1]])
+    with pytest.raises(ValueError, match=r"geom_pairs\[0\].frame2"):
+        dataclasses.replace(system, geom_pairs=(sim.GeomPair(sim.HalfSpace(), None, box, "nope", friction=0.1),))
+    with pytest.raises(ValueError, match="masses"):
+        sim.bodies([box], [1.0, 2.0], [[0, 0, 0.1]])
+    with pytest.raises(ValueError, match=r"shapes\[0\]"):
+        sim.bodies([sim.HalfSpace()], [1.0], [[0, 0, 0.1]])
+    with pytest.raises(ValueError, match="positions"):
+        sim.bodies([box], [1.0], [0, 0, 0.1])
+    with pytest.raises(ValueError, match=r"shapes\[0\] and shapes\[1\]"):
+        sim.bodies([sim.Cylinder(0.1, 0.1), box], [1.0, 1.0], [[0, 0, 0.1], [1, 0, 0.1]])
