@@ -554,6 +554,14 @@ def _support_edge(polytope: _Polytope, axis: Array) -> Array:
     return edges[jnp.argmax(jnp.where(perpendicular, height, -jnp.inf))]
 
 
+# How much better than the best face axis an edge axis must separate the cores to be
+# chosen when the two axes are within _FACE_PREFERENCE_ANGLE (rad) of each other: a share
+# of the face's penetration plus a length relative to the pair's size.
+_FACE_PREFERENCE_ANGLE = 0.01
+_FACE_PREFERENCE_RELATIVE = 0.05
+_FACE_PREFERENCE_ABSOLUTE = 1e-3
+
+
 def _polytope_pair(shape1, pose1, shape2, pose2, margin, count: int) -> Contacts:
     """Separating axes for overlapping cores, GJK for separated ones, face clipping for
     the manifold (see the module's docstring)."""
@@ -589,7 +597,22 @@ def _polytope_pair(shape1, pose1, shape2, pose2, margin, count: int) -> Contacts
         edge_gaps = jnp.where(length > 1e-6, jnp.maximum(plus, minus), minus_infinity)
         edge = jnp.argmax(edge_gaps)
         edge_axis = oriented[edge]
-        use_edge = edge_gaps[edge] > best_face_gap + tolerance
+        if core1.face_normals is not None and core2.face_normals is not None:
+            best_face_normal = jnp.where(face_of_1, core1.face_normals[face1], -core2.face_normals[face2])
+        elif core1.face_normals is not None:
+            best_face_normal = core1.face_normals[face1]
+        else:
+            best_face_normal = -core2.face_normals[face2]
+        # Faces win near-ties: a resting face tilted by rounding or by a small rotation has
+        # edge axes within that angle of its normal and a hair better than it, and an edge
+        # contact is one point where the face gives the manifold that keeps a stack at
+        # rest. Such an edge must beat the face by a share of the penetration plus a slop
+        # (ODE's box-box test prefers faces the same way): the depth error this allows is
+        # at most that margin, and only for near-parallel axes; elsewhere the best axis wins.
+        face_normal = best_face_normal
+        near_parallel = jnp.abs(edge_axis @ face_normal) > jnp.cos(jnp.asarray(_FACE_PREFERENCE_ANGLE, dtype))
+        preference = _FACE_PREFERENCE_RELATIVE * jnp.abs(best_face_gap) + _FACE_PREFERENCE_ABSOLUTE * scale
+        use_edge = edge_gaps[edge] > best_face_gap + tolerance + jnp.where(near_parallel, preference, 0.0)
         separation = jnp.where(use_edge, edge_gaps[edge], best_face_gap)
     else:
         use_edge = jnp.asarray(False)

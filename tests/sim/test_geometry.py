@@ -244,6 +244,26 @@ def test_box_on_box_gives_the_overlap_rectangle():
     np.testing.assert_allclose(np.asarray(contacts.normal), np.tile([0.0, 0.0, 1.0], (4, 1)), atol=1e-12)
 
 
+@pytest.mark.parametrize("tilt", [1e-9, 1e-6, 1e-4, 1e-3])
+def test_slightly_tilted_box_on_equal_box_keeps_a_face_manifold(tilt):
+    """Two equal boxes, the upper one offset sideways and tilted by a small rotation (what a
+    resting stack drifts by): the face axis, not an edge axis a hair better than it, gives the
+    manifold; its normal is the lower box's face normal and its points span the overlap
+    (a single edge-edge point would let the upper box tip)."""
+    box = Box([0.1, 0.1, 0.1])
+    axis = np.array([1.0, 0.3, 0.7]) / np.linalg.norm([1.0, 0.3, 0.7])
+    cross = np.cross(np.eye(3), axis)  # the cross-product matrix of -axis
+    rotation = np.eye(3) + np.sin(tilt) * cross + (1 - np.cos(tilt)) * cross @ cross  # Rodrigues
+    contacts = eqx.filter_jit(collide)(box, _pose([0.0, 0.0, 0.0]), box, _pose([0.05, 0.03, 0.2 - 1e-5], rotation))
+    active = np.asarray(contacts.active)
+    assert active.sum() >= 2
+    np.testing.assert_allclose(np.asarray(contacts.normal)[active], np.tile([0.0, 0.0, 1.0], (active.sum(), 1)), atol=1e-12)
+    points = _active_points(contacts)[:, :2]
+    assert np.ptp(points[:, 0]) > 0.1 or np.ptp(points[:, 1]) > 0.1
+    # the depths are the upper box's bottom corners' depths: 1e-5 plus the tilt's lift
+    np.testing.assert_allclose(np.asarray(contacts.distance)[active], -1e-5, atol=0.2 * tilt + 1e-12)
+
+
 def test_capsule_lying_on_a_box_gives_two_contacts():
     contacts = eqx.filter_jit(collide)(
         Capsule(0.05, 0.2),
