@@ -14,6 +14,21 @@ The state holds ``sigma`` (a float array), ``num_samples`` (an int array: read i
   noise would increase the loss: the smoothing now hurts more than it helps), sigma is divided
   by `factor` (down to `floor`), the average restarts, and the sample count is multiplied by
   `sample_growth` (up to `max_num_samples`).
+* :class:`Reheating` is that sign rule in both directions: it also *raises* sigma when the
+  optimization is stuck, i.e. when the loss has not improved for `stall_patience` updates
+  while the averaged :math:`\partial L_\sigma / \partial\sigma` is not positive.
+
+Why the sign of :math:`\partial L_\sigma / \partial\sigma` separates "converged" from
+"stuck": near a minimum of a convex loss, Jensen's inequality gives
+:math:`L_\sigma(x) = \mathbb{E}\,L(x + \sigma z) \geq L(x)`, growing with sigma, so the
+signal is positive and the rule refines (smaller sigma). On a plateau (the null gradients of
+a contact not yet made, an object outside every sampled pixel) the signal is about zero; on
+a slope the optimizer cannot follow at this noise level (lower loss lies further than the
+samples reach) it is negative. Neither resolves by itself, and a decrease-only schedule
+makes both worse: a larger sigma lets the samples reach the lower loss.
+
+Every schedule's state also tracks the best loss seen (``best``) and the number of updates
+since it last improved (``stalled``); only :class:`Reheating` needs the ``loss``.
 
 Example:
     >>> from rsmooth.schedules import Adaptive
@@ -33,14 +48,27 @@ from jax.typing import ArrayLike
 
 from rsmooth import _checks
 
-__all__ = ["ScheduleState", "Schedule", "Constant", "Geometric", "Adaptive"]
+__all__ = ["ScheduleState", "Schedule", "Constant", "Geometric", "Adaptive", "Reheating"]
 
 
 class ScheduleState(eqx.Module):
+    """A schedule's state.
+
+    Attributes:
+        sigma: the noise level.
+        num_samples: the sample count (int32).
+        step: updates since the start or the last change of sigma by an adaptive rule.
+        ema: the moving average of the signal (adaptive rules).
+        best: the lowest loss passed to `update` (``inf`` when none was).
+        stalled: updates since ``best`` last improved (or since the last change of sigma).
+    """
+
     sigma: Array
     num_samples: Array
     step: Array
     ema: Array
+    best: Array
+    stalled: Array
 
 
 class Schedule(eqx.Module):
@@ -53,17 +81,41 @@ class Schedule(eqx.Module):
             num_samples=jnp.asarray(num_samples, dtype=jnp.int32),
             step=jnp.zeros((), jnp.int32),
             ema=jnp.zeros((), sigma.dtype),
+            best=jnp.asarray(jnp.inf, sigma.dtype),
+            stalled=jnp.zeros((), jnp.int32),
         )
 
-    def update(self, state: ScheduleState, signal: ArrayLike | None = None) -> ScheduleState:
+    def update(self, state: ScheduleState, signal: ArrayLike | None = None, loss: ArrayLike | None = None) -> ScheduleState:
+        """The state after one optimizer step.
+
+        Args:
+            state: the current state.
+            signal: d loss / d sigma at the current iterate (adaptive rules).
+            loss: the loss at the current iterate (:class:`Reheating`; the others only record
+                it in ``best`` and ``stalled``).
+        """
         raise NotImplementedError
+
+
+def _progress(state: ScheduleState, loss, tolerance: float = 0.0) -> tuple[Array, Array]:
+    """``(best, stalled)`` after seeing ``loss``: an improvement is a loss below ``best`` by
+    more than ``tolerance`` times ``|best|``."""
+    if loss is None:
+        return state.best, state.stalled + 1
+    loss = jnp.asarray(loss, state.best.dtype)
+    if loss.ndim != 0:
+        raise ValueError(f"loss must be a scalar, got shape {loss.shape}")
+    margin = tolerance * jnp.where(jnp.isfinite(state.best), jnp.abs(state.best), 0.0)
+    improved = jnp.isfinite(loss) & (loss < state.best - margin)
+    return jnp.where(improved, loss, state.best), jnp.where(improved, 0, state.stalled + 1)
 
 
 class Constant(Schedule):
     """sigma stays what `init` set."""
 
-    def update(self, state, signal=None):
-        return ScheduleState(state.sigma, state.num_samples, state.step + 1, state.ema)
+    def update(self, state, signal=None, loss=None):
+        best, stalled = _progress(state, loss)
+        return ScheduleState(state.sigma, state.num_samples, state.step + 1, state.ema, best, stalled)
 
 
 class Geometric(Schedule):
@@ -86,11 +138,12 @@ class Geometric(Schedule):
             raise ValueError(f"floor must be >= 0, got {self.floor}")
         _checks.check_num_samples(self.every, "every")
 
-    def update(self, state, signal=None):
+    def update(self, state, signal=None, loss=None):
         step = state.step + 1
         decayed = jnp.maximum(state.sigma * self.decay, self.floor)
         sigma = jnp.where(step % self.every == 0, decayed, state.sigma)
-        return ScheduleState(sigma, state.num_samples, step, state.ema)
+        best, stalled = _progress(state, loss)
+        return ScheduleState(sigma, state.num_samples, step, state.ema, best, stalled)
 
 
 class Adaptive(Schedule):
@@ -126,22 +179,96 @@ class Adaptive(Schedule):
         _checks.check_num_samples(self.max_num_samples, "max_num_samples")
         _checks.check_num_samples(self.patience, "patience")
 
-    def update(self, state, signal=None):
+    def _average(self, state, signal) -> Array:
         if signal is None:
-            raise ValueError("Adaptive.update needs signal = d loss / d sigma")
+            raise ValueError(f"{type(self).__name__}.update needs signal = d loss / d sigma")
         signal = _checks.check_finite(jnp.asarray(signal, state.ema.dtype), "signal (d loss / d sigma) must be finite")
         if signal.ndim != 0:
             raise ValueError(f"signal must be a scalar, got shape {signal.shape}")
-        ema = self.momentum * state.ema + (1.0 - self.momentum) * signal
+        return self.momentum * state.ema + (1.0 - self.momentum) * signal
+
+    def update(self, state, signal=None, loss=None):
+        ema = self._average(state, signal)
         step = state.step + 1
         reduce = (ema > 0) & (step >= self.patience) & (state.sigma > self.floor)
         sigma = jnp.where(reduce, jnp.maximum(state.sigma / self.factor, self.floor), state.sigma)
         grown = jnp.minimum(state.num_samples * self.sample_growth, self.max_num_samples)
         num_samples = jnp.where(reduce, grown, state.num_samples)
+        best, stalled = _progress(state, loss)
         # After a reduction the average restarts, and so does the patience count.
         return ScheduleState(
             sigma=sigma,
             num_samples=num_samples.astype(state.num_samples.dtype),
             step=jnp.where(reduce, 0, step),
             ema=jnp.where(reduce, 0.0, ema),
+            best=best,
+            stalled=stalled,
+        )
+
+
+class Reheating(Adaptive):
+    """The adaptive sign rule in both directions: sigma shrinks when the averaged
+    d loss / d sigma is positive (as :class:`Adaptive`) and grows when the optimization is
+    stuck: no improvement of the loss for ``stall_patience`` updates while the average is not
+    positive (the module docstring says why the sign tells the two apart).
+
+    `update(state, signal, loss)` takes ``signal`` = d loss / d sigma and ``loss``, the loss at
+    the current iterate (the value the optimizer is judged by: a true cost, or the smoothed
+    estimate when that is all there is).
+
+    Args:
+        factor, momentum, floor, sample_growth, max_num_samples, patience: as :class:`Adaptive`.
+        growth: sigma is multiplied by this (> 1) when stuck, up to ``ceiling``.
+        ceiling: the largest sigma (> 0; ``inf``: none).
+        stall_patience: updates without improvement that make a stall (>= 1).
+        stall_tolerance: an improvement is a decrease of the best loss by more than this
+            share of it (>= 0): Monte-Carlo losses fluctuate.
+
+    Example:
+        >>> from rsmooth.schedules import Reheating
+        >>> schedule = Reheating(growth=2.0, momentum=0.0, stall_patience=2)
+        >>> state = schedule.init(0.1)
+        >>> for _ in range(3):  # a plateau: the loss does not move, d loss / d sigma = 0
+        ...     state = schedule.update(state, 0.0, loss=1.0)
+        >>> float(state.sigma)
+        0.2
+    """
+
+    growth: float = 2.0
+    ceiling: float = float("inf")
+    stall_patience: int = 10
+    stall_tolerance: float = 1e-3
+
+    def __check_init__(self):
+        super().__check_init__()
+        if not self.growth > 1.0:
+            raise ValueError(f"growth must be > 1, got {self.growth}")
+        if not self.ceiling > 0:
+            raise ValueError(f"ceiling must be > 0, got {self.ceiling}")
+        _checks.check_num_samples(self.stall_patience, "stall_patience")
+        if not self.stall_tolerance >= 0:
+            raise ValueError(f"stall_tolerance must be >= 0, got {self.stall_tolerance}")
+
+    def update(self, state, signal=None, loss=None):
+        if loss is None:
+            raise ValueError("Reheating.update needs loss, the loss at the current iterate")
+        ema = self._average(state, signal)
+        step = state.step + 1
+        best, stalled = _progress(state, loss, self.stall_tolerance)
+        reduce = (ema > 0) & (step >= self.patience) & (state.sigma > self.floor)
+        grow = ~reduce & (ema <= 0) & (stalled >= self.stall_patience) & (state.sigma < self.ceiling)
+        sigma = jnp.where(reduce, jnp.maximum(state.sigma / self.factor, self.floor), state.sigma)
+        sigma = jnp.where(grow, jnp.minimum(state.sigma * self.growth, self.ceiling), sigma)
+        grown = jnp.minimum(state.num_samples * self.sample_growth, self.max_num_samples)
+        num_samples = jnp.where(reduce, grown, state.num_samples)
+        changed = reduce | grow
+        # A new sigma is a new smoothed problem: the average, the patience and the stall count
+        # restart (the best loss is kept: progress is judged on one scale throughout).
+        return ScheduleState(
+            sigma=sigma,
+            num_samples=num_samples.astype(state.num_samples.dtype),
+            step=jnp.where(changed, 0, step),
+            ema=jnp.where(changed, 0.0, ema),
+            best=best,
+            stalled=jnp.where(changed, 0, stalled),
         )

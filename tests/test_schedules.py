@@ -59,3 +59,54 @@ def test_bad_arguments():
         schedule.update(schedule.init(1.0), None)
     with pytest.raises(ValueError, match="signal"):
         schedule.update(schedule.init(1.0), jnp.nan)
+
+
+def _descend(schedule, key, steps=300):
+    """Gradient descent on f(x) = min(1, (x - 3)^2) from x = 0 with zeroth-order smoothed
+    gradients: a plateau at loss 1 around the start, the minimum 3 away."""
+    import rsmooth
+
+    f = lambda x: jnp.minimum(1.0, (x[0] - 3.0) ** 2)  # noqa: E731
+
+    def step(carry, key):
+        x, state = carry
+        estimate = rsmooth.zeroth_order(f, key, x, sigma=state.sigma, num_samples=64)
+        x = x - 0.1 * estimate.grad
+        return (x, schedule.update(state, estimate.sigma_grad, loss=f(x))), state.sigma
+
+    (x, state), sigmas = jax.jit(lambda k: jax.lax.scan(step, (jnp.zeros(1), schedule.init(0.1, 64)), jax.random.split(k, steps)))(key)
+    return float(f(x)), sigmas
+
+
+def test_reheating_leaves_a_plateau_that_stops_the_decrease_only_rule(getkey):
+    """From x = 0 no sample at sigma = 0.1 reaches the well (2 < x < 4): every estimate is
+    exactly zero, the sign rule keeps sigma and x never moves. Reheating doubles sigma at each
+    stall until samples reach the well, descends, then shrinks sigma again as the smoothed
+    minimum turns d loss / d sigma positive."""
+    key = getkey()
+    loss, sigmas = _descend(schedules.Adaptive(momentum=0.5), key)
+    assert loss == 1.0 and float(sigmas.max()) == pytest.approx(0.1)
+    loss, sigmas = _descend(schedules.Reheating(momentum=0.5, stall_patience=5), key)
+    assert loss < 1e-2
+    assert float(sigmas.max()) > 0.4 and float(sigmas[-1]) < float(sigmas.max()) / 2
+
+
+def test_reheating_rules():
+    schedule = schedules.Reheating(factor=2.0, growth=4.0, momentum=0.0, stall_patience=2, ceiling=2.0)
+    state = schedule.init(1.0)
+    state = schedule.update(state, -1.0, loss=5.0)  # first loss: an improvement on inf
+    assert float(state.best) == 5.0 and int(state.stalled) == 0 and float(state.sigma) == 1.0
+    state = schedule.update(state, -1.0, loss=5.0)
+    state = schedule.update(state, -1.0, loss=4.999)  # within the tolerance: no improvement
+    assert float(state.sigma) == 2.0 and int(state.stalled) == 0  # grown, capped by the ceiling
+    for _ in range(3):
+        state = schedule.update(state, -1.0, loss=5.0)
+    assert float(state.sigma) == 2.0  # at the ceiling
+    state = schedule.update(state, 1.0, loss=5.0)  # a positive signal still shrinks sigma
+    assert float(state.sigma) == 1.0
+    with pytest.raises(ValueError, match="loss"):
+        schedule.update(state, 1.0)
+    with pytest.raises(ValueError, match="growth"):
+        schedules.Reheating(growth=1.0)
+    with pytest.raises(ValueError, match="stall_patience"):
+        schedules.Reheating(stall_patience=0)

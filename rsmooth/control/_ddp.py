@@ -192,6 +192,7 @@ class _Derivatives(NamedTuple):
     luu: Array  # (T, nu, nu)
     lTx: Array  # (nx,)
     lTxx: Array  # (nx, nx)
+    noise_effect: Array  # (T, nx): d f_eps / d eps at each node (zero without smoothing)
 
 
 class _Backward(NamedTuple):
@@ -396,10 +397,13 @@ class DDP(eqx.Module):
         return jnp.zeros((), dtype)
 
     def _dynamics_jacobians(self, problem, state: DDPState):
+        """``(fx, fu, noise_effect)`` at the nodes of the current trajectory; the noise effect
+        (d f_eps / d eps) is zero without smoothing."""
         trajectory = state.trajectory
-        return dynamics_jacobians(problem, trajectory.xs, trajectory.us, self.node_batch_size)
+        fx, fu = dynamics_jacobians(problem, trajectory.xs, trajectory.us, self.node_batch_size)
+        return fx, fu, jnp.zeros(fx.shape[:2], fx.dtype)
 
-    def _next_noise(self, state: DDPState, stop, accepted, cost_new) -> Array:
+    def _next_noise(self, state: DDPState, stop, accepted, cost_new, d: _Derivatives) -> Array:
         return state.noise
 
     def _programs(self) -> tuple[DDP, DDP]:
@@ -439,8 +443,8 @@ class DDP(eqx.Module):
 
     def _derivatives(self, problem, state) -> _Derivatives:
         trajectory = state.trajectory
-        fx, fu = self._dynamics_jacobians(problem, state)
-        return _Derivatives(fx, fu, *_cost_derivatives(problem, trajectory.xs, trajectory.us))
+        fx, fu, noise_effect = self._dynamics_jacobians(problem, state)
+        return _Derivatives(fx, fu, *_cost_derivatives(problem, trajectory.xs, trajectory.us), noise_effect)
 
     def _backward_pass(self, problem: ShootingProblem, state: DDPState, d: _Derivatives, reg) -> _Backward:
         nx, nu = problem.nx, problem.nu
@@ -585,7 +589,7 @@ class DDP(eqx.Module):
 
         keep = lambda new, old: jnp.where(accepted, new, old)  # noqa: E731
         cost_next = keep(cost_new, state.cost)
-        noise_next = self._next_noise(state, stop, accepted, cost_next)
+        noise_next = self._next_noise(state, stop, accepted, cost_next, d)
         converged = stop & (state.noise == 0)
         result = RESULTS.where(
             nonfinite,

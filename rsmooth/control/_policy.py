@@ -359,7 +359,8 @@ class PolicyGradient(eqx.Module):
         iterations: the number of Adam steps.
         schedule: owns sigma (:mod:`rsmooth.schedules`; ``Constant()`` by default). It is
             updated after every step with the estimate's ``d V_sigma / d sigma`` (the signal
-            of ``Adaptive``); sample growth (``Adaptive.sample_growth``) recompiles the step.
+            of ``Adaptive``) and the true cost ``V(theta)`` (the loss ``Reheating`` judges
+            progress by); sample growth (``Adaptive.sample_growth``) recompiles the step.
         noise: the noise law.
         antithetic: antithetic pairs in the estimators.
         baseline: the zeroth-order baseline (``"zeroth"`` and ``"alpha"``): True, ``V(theta)``;
@@ -498,7 +499,7 @@ def _update(solver: PolicyGradient, theta, opt_state, schedule_state, estimate, 
     sigma = schedule_state.sigma
     updates, opt_state = optax.adam(solver.learning_rate).update(estimate.grad, opt_state, theta)
     theta_next = optax.apply_updates(theta, updates)
-    schedule_state = solver.schedule.update(schedule_state, estimate.sigma_grad)
+    schedule_state = solver.schedule.update(schedule_state, estimate.sigma_grad, loss=cost)
     grad_norm = jnp.sqrt(sum(jnp.sum(g**2) for g in jax.tree.leaves(estimate.grad)))
     record = {
         "cost": cost,

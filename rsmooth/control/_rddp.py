@@ -24,9 +24,22 @@ The noise level :math:`\varepsilon` (``eps``) is owned by a schedule, recorded i
   :math:`(J_k - J_{k+1}) / |J_k|` is below ``stall_threshold`` (a rejected step counts as
   no decrease) or when the expected improvement is below ``th_stop`` (the smoothed problem is
   solved); then ``eps <- decay * eps``.
+* ``schedule="reheating"``: as ``"adaptive"``, except that a stall where more noise would
+  lower the cost raises the noise instead, ``eps <- growth * eps`` up to ``eps_max``, at most
+  ``max_raises`` times. The signal is the cost's first-order response to the smoothing,
+  :math:`\sum_t \lambda_{t+1}^\top \partial f_\varepsilon(x_t, u_t) / \partial\varepsilon`
+  with the adjoints :math:`\lambda_T = \nabla \ell_T`,
+  :math:`\lambda_t = \nabla_x \ell_t + f_x^\top \lambda_{t+1}` of the smoothed
+  linearization: the estimators give :math:`\partial f_\varepsilon / \partial\varepsilon`
+  from the samples already drawn. The noise is raised when the decrease this signal promises
+  for the raise, relative to the cost, exceeds ``stall_threshold``: the smoothed dynamics at
+  a larger noise then reach lower cost (a contact that the samples at this noise barely
+  make). A positive signal means the noise only blurs a solution, which a smaller noise
+  refines (the reasoning of :class:`rsmooth.schedules.Reheating`); a zero one (linear
+  dynamics, or no sample reaching the contact at all) keeps the usual reduction.
 * ``schedule="geometric"``: ``eps <- decay * eps`` at every iteration (for comparison).
 
-In both, once ``eps`` would fall below the floor ``eps_min``, or after
+In all three, once ``eps`` would fall below the floor ``eps_min``, or after
 ``max_smoothed_iterations`` iterations, ``eps`` becomes exactly 0: the last iterations are
 plain DDP, and convergence (expected improvement below ``th_stop``) is only declared with
 ``eps = 0``, so the solution is a (local) solution of the true, non-smoothed problem. With
@@ -80,7 +93,7 @@ from rsmooth.noise import Gaussian, Noise
 __all__ = ["RDDP", "rddp", "smoothed_dynamics_jacobians"]
 
 ESTIMATORS = ("first", "zeroth", "alpha")
-SCHEDULES = ("adaptive", "geometric")
+SCHEDULES = ("adaptive", "geometric", "reheating")
 
 
 def _as_scale(value):
@@ -114,7 +127,8 @@ def smoothed_dynamics_jacobians(
     state_noise_scale: float | tuple[float, ...] = 1.0,
     control_noise_scale: float | tuple[float, ...] = 1.0,
     batch_size: int | None = 1,
-) -> tuple[Array, Array]:
+    noise_effect: bool = False,
+) -> tuple[Array, Array] | tuple[Array, Array, Array]:
     r"""Monte-Carlo Jacobians of the smoothed dynamics at every node of a trajectory.
 
     Estimates :math:`\partial f_\varepsilon / \partial x` and
@@ -136,9 +150,11 @@ def smoothed_dynamics_jacobians(
             positive value per coordinate (``nx`` and ``nu`` of them).
         batch_size: nodes estimated at a time (`lax.map` over batches; ``None``: `vmap` over
             all nodes); the samples of a node are always batched with `vmap`.
+        noise_effect: also return the estimators' :math:`\partial f_\varepsilon /
+            \partial\varepsilon` at every node, ``(T, nx)``.
 
     Returns:
-        ``(fx, fu)``, shapes ``(T, nx, nx)`` and ``(T, nx, nu)``.
+        ``(fx, fu)``, shapes ``(T, nx, nx)`` and ``(T, nx, nu)`` (and the noise effect).
     """
     nx, nu = problem.nx, problem.nu
     dtype = xs.dtype
@@ -182,10 +198,11 @@ def smoothed_dynamics_jacobians(
         y = jnp.concatenate([x, u]) / scale
         estimate = method(h, key, y, sigma=eps, num_samples=num_samples, noise=noise, **options)
         jacobian = estimate.grad / scale[None, :]
-        return jacobian[:, :nx], jacobian[:, nx:]
+        return jacobian[:, :nx], jacobian[:, nx:], estimate.sigma_grad
 
     keys = jax.random.split(key, us.shape[0])
-    return map_nodes(node, (keys, xs[:-1], us), batch_size)
+    fx, fu, effect = map_nodes(node, (keys, xs[:-1], us), batch_size)
+    return (fx, fu, effect) if noise_effect else (fx, fu)
 
 
 class RDDP(DDP):
@@ -200,9 +217,14 @@ class RDDP(DDP):
         state_noise_scale, control_noise_scale: the noise on ``x`` and ``u`` is
             ``eps * state_noise_scale * z`` and ``eps * control_noise_scale * w``: positive
             scalars, or one positive value per coordinate (e.g. noise on one force only).
-        schedule: ``"adaptive"`` (reduce on stall) or ``"geometric"`` (reduce every
-            iteration); see the module docstring.
+        schedule: ``"adaptive"`` (reduce on stall), ``"reheating"`` (reduce or raise on
+            stall, by the sign of the cost's response to the noise) or ``"geometric"``
+            (reduce every iteration); see the module docstring.
         decay: the factor in (0, 1) of each reduction.
+        growth: the factor (> 1) of each raise (``"reheating"``).
+        eps_max: the largest noise a raise reaches (``"reheating"``; ``None``: 4 ``eps``).
+        max_raises: the most raises in a solve (``"reheating"``): near a solution the
+            response's sign is noise, and unbounded raises would alternate with reductions.
         eps_min: the floor: a reduction below it sets ``eps`` to 0 (plain DDP).
         stall_threshold: the relative decrease of the true cost below which an iteration
             stalls (adaptive schedule).
@@ -225,6 +247,9 @@ class RDDP(DDP):
     control_noise_scale: float | tuple[float, ...] = eqx.field(static=True, default=1.0, converter=_as_scale)
     schedule: str = eqx.field(static=True, default="adaptive")
     decay: float = eqx.field(static=True, default=0.5)
+    growth: float = eqx.field(static=True, default=2.0)
+    eps_max: float | None = eqx.field(static=True, default=None)
+    max_raises: int = eqx.field(static=True, default=2)
     eps_min: float = eqx.field(static=True, default=1e-3)
     stall_threshold: float = eqx.field(static=True, default=1e-3)
     max_smoothed_iterations: int | None = eqx.field(static=True, default=None)
@@ -250,6 +275,11 @@ class RDDP(DDP):
             raise ValueError(f"schedule must be one of {SCHEDULES}, got {self.schedule!r}")
         if not 0 < self.decay < 1:
             raise ValueError(f"decay must be in (0, 1), got {self.decay}")
+        if not self.growth > 1:
+            raise ValueError(f"growth must be > 1, got {self.growth}")
+        _checks.check_num_samples(self.max_raises, "max_raises", minimum=0)
+        if self.eps_max is not None and not (self.eps_max > 0 and self.eps_max < float("inf")):
+            raise ValueError(f"eps_max must be a positive finite number or None, got {self.eps_max!r}")
         if not self.eps_min >= 0:
             raise ValueError(f"eps_min must be >= 0, got {self.eps_min}")
         if not self.stall_threshold >= 0:
@@ -274,7 +304,7 @@ class RDDP(DDP):
         return lax.cond(
             positive,
             lambda _: self._smoothed_jacobians(problem, state),
-            lambda _: dynamics_jacobians(problem, state.trajectory.xs, state.trajectory.us, self.node_batch_size),
+            lambda _: DDP._dynamics_jacobians(self, problem, state),
             None,
         )
 
@@ -295,6 +325,7 @@ class RDDP(DDP):
             state_noise_scale=self.state_noise_scale,
             control_noise_scale=self.control_noise_scale,
             batch_size=self._sample_node_batch(),
+            noise_effect=True,
         )
 
     def _sample_node_batch(self) -> int | None:
@@ -313,18 +344,44 @@ class RDDP(DDP):
         smoothed = _SmoothedPhase(**{field.name: getattr(self, field.name) for field in dataclasses.fields(self)})
         return smoothed, self.as_ddp()
 
-    def _next_noise(self, state: DDPState, stop, accepted, cost_new) -> Array:
+    def _next_noise(self, state: DDPState, stop, accepted, cost_new, d) -> Array:
         eps = state.noise
+        scale = jnp.maximum(jnp.abs(state.cost), jnp.finfo(eps.dtype).tiny)
         if self.schedule == "geometric":
-            reduce = jnp.ones((), bool)
+            stalled = jnp.ones((), bool)
         else:
-            scale = jnp.maximum(jnp.abs(state.cost), jnp.finfo(eps.dtype).tiny)
             relative_decrease = jnp.where(accepted, (state.cost - cost_new) / scale, 0.0)
-            reduce = stop | (relative_decrease < self.stall_threshold)
-        reduced = jnp.where(reduce, eps * self.decay, eps)
+            stalled = stop | (relative_decrease < self.stall_threshold)
         cap = self.max_iterations // 2 if self.max_smoothed_iterations is None else self.max_smoothed_iterations
-        to_zero = (reduced < self.eps_min) | (state.iteration + 1 >= cap)
-        return jnp.where(to_zero, 0.0, reduced).astype(eps.dtype)
+        reduced = eps * self.decay
+        if self.schedule == "reheating":
+            eps_max = jnp.asarray(4.0 * self.eps if self.eps_max is None else self.eps_max, eps.dtype)
+            # Raise where the response promises a relative decrease of the cost above the
+            # stall threshold: a response of exactly zero (linear dynamics, or no sample
+            # reaching a contact) gives no reason to move away from the usual reduction.
+            promised = -noise_response(d) * (self.growth - 1.0) * eps / scale
+            history = state.history["noise"]
+            raises = jnp.sum(jnp.where(jnp.isfinite(history[1:]) & jnp.isfinite(history[:-1]), history[1:] > history[:-1], False))
+            raise_ = (promised > self.stall_threshold) & (eps < eps_max) & (raises < self.max_raises)
+            changed = jnp.where(raise_, jnp.minimum(eps * self.growth, eps_max), reduced)
+        else:
+            changed = reduced
+        new = jnp.where(stalled, changed, eps)
+        to_zero = (new < self.eps_min) | (state.iteration + 1 >= cap)
+        return jnp.where(to_zero, 0.0, new).astype(eps.dtype)
+
+
+def noise_response(d) -> Array:
+    r"""The cost's first-order response to the noise level of the smoothed dynamics,
+    :math:`\sum_t \lambda_{t+1}^\top \partial f_\varepsilon / \partial\varepsilon`, with
+    the adjoints of the linearization in ``d`` (see the module docstring)."""
+
+    def node(adjoint, inputs):
+        fx, lx, effect = inputs
+        return lx + fx.T @ adjoint, adjoint @ effect
+
+    _, terms = lax.scan(node, d.lTx, (d.fx, d.lx, d.noise_effect), reverse=True)
+    return jnp.sum(terms)
 
 
 class _SmoothedPhase(RDDP):

@@ -2,7 +2,8 @@
 seeds with one progress bar, the summary of the runs, and the cost / noise figure.
 
 A *method* is a name: ``ddp`` (Box-DDP on the true dynamics), ``rddp`` (randomized DDP with the
-adaptive noise schedule) or ``rddp-geometric-D`` (randomized DDP whose noise is multiplied by
+adaptive noise schedule), ``rddp-reheating`` (the adaptive schedule that also raises the noise
+at a stall where more noise would lower the cost) or ``rddp-geometric-D`` (randomized DDP whose noise is multiplied by
 ``D`` at every iteration, to compare the schedules). Every method starts from the same initial
 controls; seeds change the R-DDP samples.
 
@@ -23,13 +24,14 @@ from tqdm.auto import tqdm
 from rsmooth import control, viz
 from rsmooth.experiments import _protocol
 
-METHOD_CHOICES = ("ddp", "rddp", "all")
+METHOD_CHOICES = ("ddp", "rddp", "rddp-reheating", "all")
 ESTIMATOR_CHOICES = ("first", "zeroth", "alpha")
 
 
 def method_option():
     return _protocol.option(
-        "all", "ddp, rddp, or all (ddp, rddp and R-DDP with geometric noise decays).", choices=METHOD_CHOICES)
+        "all", "ddp, rddp, rddp-reheating (noise raised at stalls where more would help), or all (ddp, rddp "
+        "and R-DDP with geometric noise decays).", choices=METHOD_CHOICES)
 
 
 def seeds_option(default: int):
@@ -81,6 +83,8 @@ def make_solver(name: str, rddp: control.RDDP) -> control.DDP:
         return rddp.as_ddp()
     if name == "rddp":
         return dataclasses.replace(rddp, schedule="adaptive")
+    if name == "rddp-reheating":
+        return dataclasses.replace(rddp, schedule="reheating")
     if name.startswith("rddp-geometric-"):
         return dataclasses.replace(rddp, schedule="geometric", decay=float(name.rsplit("-", 1)[1]))
     raise ValueError(f"unknown method {name!r}")

@@ -21,8 +21,9 @@ edge, at the price of a high variance. The alpha-order estimate uses the first-o
 than their sampling noise explains, the zeroth-order one (alpha = 0).
 
 Every method runs Adam for ``iterations`` steps from the same angle, with the same noise
-schedule (``sigma`` multiplied by ``sigma_decay`` at every step, down to ``sigma_floor``), over
-``seeds`` keys. A run *succeeds* when its final throw clears the wall (final true cost below
+schedule (``sigma`` multiplied by ``sigma_decay`` at every step, down to ``sigma_floor``; or
+``--noise-schedule reheating``: :class:`rsmooth.schedules.Reheating`, which also raises
+``sigma`` when the cost stalls), over ``seeds`` keys. A run *succeeds* when its final throw clears the wall (final true cost below
 ``-wall_distance``, i.e. the ball lands beyond the wall).
 
 The system lives here rather than in :mod:`rsmooth.sim`: the simulator's ``ball_wall`` has a
@@ -50,7 +51,7 @@ METHOD_CHOICES = ("first", "zeroth", "alpha", "all")
 METRICS_DOC = """metrics.json keys: task, methods, seeds, success_criterion, speed (m/s),
 wall_distance (m), wall_height (m), theta0_deg, edge_deg (the lowest throw that clears the wall,
 on a 0.05 deg grid), best_cost (the lowest true cost on that grid), initial_cost, sigma,
-sigma_final, num_samples, iterations, learning_rate, wall_time_s, and per method (first, zeroth,
+noise_schedule, sigma_final, num_samples, iterations, learning_rate, wall_time_s, and per method (first, zeroth,
 alpha): final_cost_mean, final_cost_std (true cost -x_T of the final throw, over seeds),
 success_rate, final_angle_deg_mean, final_angle_deg_std, mean_alpha (weight of the first-order
 estimate, averaged over iterations and seeds: 1 for first, 0 for zeroth), gradient_variance (the
@@ -122,8 +123,13 @@ class Config:
     theta0_deg: float = _protocol.option(70.0, "The initial throw's angle, degrees (over the wall).", min=0.0, max=90.0)
     horizon: int = _protocol.option(120, "Time steps of 10 ms: every throw has landed by then.", min=2)
     sigma: float = _protocol.option(0.1, "Initial noise on the throw's angle, rad.", above=0.0)
-    sigma_decay: float = _protocol.option(0.98, "Factor of the noise at every iteration.", min=0.0, max=1.0)
+    noise_schedule: str = _protocol.option(
+        "geometric", "The noise schedule: geometric decay, or reheating (rsmooth.schedules.Reheating: the sign "
+        "rule on d cost / d sigma, raising the noise when the cost stalls).", choices=("geometric", "reheating"))
+    sigma_decay: float = _protocol.option(0.98, "Geometric: factor of the noise at every iteration.", min=0.0, max=1.0)
     sigma_floor: float = _protocol.option(0.01, "The noise's floor, rad.", min=0.0)
+    sigma_ceiling: float = _protocol.option(1.0, "Reheating: the noise's ceiling, rad.", above=0.0)
+    stall_iterations: int = _protocol.option(10, "Reheating: iterations without a lower cost that make a stall.", min=1)
     num_samples: int = _protocol.option(64, "Rollouts per gradient estimate (alpha: half to each estimate).", flag="samples", min=4)
     learning_rate: float = _protocol.option(0.02, "Adam's learning rate, rad.", above=0.0)
     iterations: int = _protocol.option(100, "Adam steps per run.", min=1)
@@ -145,8 +151,13 @@ class Config:
             num_samples=self.num_samples,
             learning_rate=self.learning_rate,
             iterations=self.iterations,
-            schedule=schedules.Geometric(decay=self.sigma_decay, floor=self.sigma_floor),
+            schedule=self.schedule(),
         )
+
+    def schedule(self) -> schedules.Schedule:
+        if self.noise_schedule == "reheating":
+            return schedules.Reheating(floor=self.sigma_floor, ceiling=self.sigma_ceiling, stall_patience=self.stall_iterations)
+        return schedules.Geometric(decay=self.sigma_decay, floor=self.sigma_floor)
 
 
 def _zero_running_cost(x, u):
@@ -336,6 +347,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "edge_deg": edge,
         "best_cost": float(values.min()),
         "sigma": config.sigma,
+        "noise_schedule": config.noise_schedule,
         "num_samples": config.num_samples,
         "iterations": config.iterations,
         "learning_rate": config.learning_rate,

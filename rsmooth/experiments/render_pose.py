@@ -95,7 +95,15 @@ class Config:
     interior_edges: bool = option(
         False, "Smooth coverage across every triangle edge, as the paper does (seams along shared edges), "
         "rather than the silhouette only.")
+    noise_schedule: str = option(
+        "adaptive", "The smoothed renderers' noise schedule: the paper's sign rule, which only decreases the "
+        "noise, or reheating, which also raises it when the loss stalls (rsmooth.schedules.Reheating).",
+        choices=("adaptive", "reheating"))
     decay_factor: float = option(2.0, "The noise scale is divided by this at each decrease.", above=1.0)
+    growth_factor: float = option(2.0, "Reheating: the noise scale is multiplied by this when the loss stalls.",
+                                  above=1.0)
+    stall_steps: int = option(15, "Reheating: steps without a lower loss that make a stall.", min=1)
+    noise_ceiling: float = option(4.0, "Reheating: largest noise scale factor.", above=0.0)
     momentum: float = option(0.9, "Momentum of the schedule's average of d loss / d noise scale.", min=0.0, below=1.0)
     noise_floor: float = option(0.05, "Smallest noise scale factor.", min=0.0)
     patience: int = option(10, "Least number of steps between two noise decreases.", min=1)
@@ -190,16 +198,22 @@ def make_renderer(config: Config, method: str, mesh: render.Mesh | None = None) 
 
 def make_fit(config: Config, method: str, mesh: render.Mesh) -> render.PoseFit:
     """The pose fit of `method`: the hard renderer stays unsmoothed (constant schedule, no pose
-    noise); the smoothed ones follow the adaptive schedule, with sample growth when perturbed."""
+    noise); the smoothed ones follow the adaptive (or reheating) schedule, with sample growth
+    when perturbed."""
     smoothed = method != "hard"
-    schedule = (
-        schedules.Adaptive(
-            factor=config.decay_factor, momentum=config.momentum, floor=config.noise_floor, patience=config.patience,
-            sample_growth=config.sample_growth if method.startswith("perturbed") else 1,
-            max_num_samples=max(config.max_samples, config.num_samples),
-        )
-        if smoothed else schedules.Constant()
+    adaptive = dict(
+        factor=config.decay_factor, momentum=config.momentum, floor=config.noise_floor, patience=config.patience,
+        sample_growth=config.sample_growth if method.startswith("perturbed") else 1,
+        max_num_samples=max(config.max_samples, config.num_samples),
     )
+    if not smoothed:
+        schedule = schedules.Constant()
+    elif config.noise_schedule == "reheating":
+        schedule = schedules.Reheating(
+            **adaptive, growth=config.growth_factor, stall_patience=config.stall_steps, ceiling=config.noise_ceiling
+        )
+    else:
+        schedule = schedules.Adaptive(**adaptive)
     return render.PoseFit(
         make_renderer(config, method, mesh), steps=config.steps, learning_rate=config.learning_rate,
         final_learning_rate=config.final_learning_rate, schedule=schedule,

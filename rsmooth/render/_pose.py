@@ -123,7 +123,8 @@ class PoseFit(eqx.Module):
             noise's fade are spread over them).
         learning_rate: Adam's initial learning rate.
         final_learning_rate: the fraction of `learning_rate` reached at the last step.
-        schedule: the noise schedule (:class:`rsmooth.schedules.Adaptive`, fed d loss / d scale;
+        schedule: the noise schedule (:class:`rsmooth.schedules.Adaptive` or
+            :class:`~rsmooth.schedules.Reheating`, fed d loss / d scale and the step's loss;
             its `sample_growth` makes a step average several renders); a
             :class:`rsmooth.schedules.Constant` keeps the scale at 1.
         pose_noise: the standard deviation of the pose noise at scale 1, in radians (0: off).
@@ -364,7 +365,7 @@ class PoseFit(eqx.Module):
             grad = {**grad, "translation": jnp.zeros_like(grad["translation"])}
         updates, opt_state = self.optimizer().update(grad, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
-        sched = self.schedule.update(state.schedule, scale_grad)
+        sched = self.schedule.update(state.schedule, scale_grad, loss=loss)
         average, best_params, best_loss = state.average, state.best_params, state.best_loss
         candidates = [params]
         if self.average_decay > 0:

@@ -223,3 +223,48 @@ def test_sample_node_batch_size_auto_follows_the_backend(monkeypatch):
     monkeypatch.setattr(_xla, "on_accelerator", lambda: True)
     assert control.RDDP()._sample_node_batch() is None
     assert control.RDDP(sample_node_batch_size=5)._sample_node_batch() == 5
+
+
+def test_reheating_raises_the_noise_where_the_adaptive_rule_gives_up():
+    """The cube lift with less noise on the force: the samples barely lift the cube, the
+    adaptive rule reads the first stall as convergence and decays the noise to 0 (DDP's
+    answer: the cube stays down); the reheating rule sees that more noise lowers the cost
+    (a negative response) and doubles it, and the lift succeeds."""
+    problem = cube_lift()
+    options = dict(eps=1.0, num_samples=16, estimator="first", state_noise_scale=0.01, control_noise_scale=4.0)
+    key = jax.random.key(0)
+    adaptive = control.rddp(problem, key, solver=control.RDDP(**options, schedule="adaptive"))
+    assert float(jnp.max(jnp.abs(adaptive.xs[:, 0]))) == 0.0
+    assert np.all(np.diff(np.asarray(adaptive.stats["noise"])) <= 0.0)
+    reheated = control.rddp(problem, key, solver=control.RDDP(**options, schedule="reheating"))
+    noise = np.asarray(reheated.stats["noise"])
+    assert noise[1] == 2.0 and noise[-1] == 0.0 and reheated.converged
+    assert np.sum(np.diff(noise) > 0) <= control.RDDP().max_raises
+    assert abs(float(reheated.xs[-1, 0]) - 0.5) < 0.1
+
+
+def test_noise_response_is_the_derivative_of_the_cost_along_the_noise_effect(getkey):
+    """`noise_response` is the adjoint form of d J / d delta for the rollout
+    x_{t+1} = f(x_t, u_t) + delta e_t: compared with automatic differentiation of that
+    rollout, on a nonlinear system."""
+    from rsmooth.control._ddp import _cost_derivatives, _Derivatives
+    from rsmooth.control._rddp import noise_response
+
+    problem = pendulum_swing_up()
+    us = 0.3 * jax.random.normal(getkey(), (problem.horizon, problem.nu))
+    effect = jax.random.normal(getkey(), (problem.horizon, problem.nx))
+
+    def cost(delta):
+        def node(x, inputs):
+            u, e = inputs
+            return problem.dynamics.step(x, u) + delta * e, x
+        x_last, xs = jax.lax.scan(node, problem.x0, (us, effect))
+        return problem.cost(jnp.concatenate([xs, x_last[None]]), us)
+
+    @jax.jit
+    def adjoint_form(us, effect):
+        xs = problem.rollout(us)
+        fx, fu = jax.vmap(jax.jacfwd(problem.dynamics.step, argnums=(0, 1)))(xs[:-1], us)
+        return noise_response(_Derivatives(fx, fu, *_cost_derivatives(problem, xs, us), effect))
+
+    np.testing.assert_allclose(float(adjoint_form(us, effect)), float(jax.jit(jax.grad(cost))(0.0)), rtol=1e-10)
