@@ -227,11 +227,11 @@ class Reheating(Adaptive):
     Example:
         >>> from rsmooth.schedules import Reheating
         >>> schedule = Reheating(growth=2.0, momentum=0.0, stall_patience=2)
-        >>> state = schedule.init(0.1)
+        >>> state = schedule.init(0.125)
         >>> for _ in range(3):  # a plateau: the loss does not move, d loss / d sigma = 0
         ...     state = schedule.update(state, 0.0, loss=1.0)
         >>> float(state.sigma)
-        0.2
+        0.25
     """
 
     growth: float = 2.0

@@ -738,22 +738,84 @@ def _array(values: Any) -> jax.Array:
     return jnp.asarray(np.asarray(values, dtype=np.float64))
 
 
-def load_mjcf(source: str | pathlib.Path | Any) -> MujocoModel:
+# MuJoCo's URDF reader merges bodies without joints into their parents (a robot's floating base
+# into the world), drops visual meshes and strips mesh paths to file names by default: a URDF
+# read here keeps its bodies and its mesh paths, and balances inertias as Pinocchio's
+# parser accepts them.
+_URDF_COMPILER = (
+    '<mujoco><compiler balanceinertia="true" discardvisual="false" fusestatic="false" strippath="false"/></mujoco>'
+)
+
+
+def _resolve_packages(text: str, package_dirs, path: pathlib.Path) -> str:
+    """``text`` with every ``package://NAME/REST`` URI replaced by an absolute path: the first
+    ``DIR/NAME/REST`` that exists for ``DIR`` in ``package_dirs`` (ROS's convention: folders
+    that hold packages), or ``DIR/REST`` where ``DIR`` is itself named ``NAME``."""
+    import re
+
+    dirs = [pathlib.Path(d) for d in package_dirs]
+
+    def resolve(match):
+        name, rest = match.group(1), match.group(2)
+        for folder in dirs:
+            for candidate in (folder / name / rest, folder / rest if folder.name == name else None):
+                if candidate is not None and candidate.exists():
+                    return str(candidate.resolve())
+        searched = ", ".join(str(d) for d in dirs) or "none given"
+        raise FileNotFoundError(
+            f"{path}: cannot resolve package://{name}/{rest}: no such file under package_dirs ({searched}); "
+            f"pass the folder that holds the package {name!r}"
+        )
+
+    return re.sub(r"package://([^/\"'\s]+)/([^\"'\s<>]+)", resolve, text)
+
+
+def _read_urdf(mj, path: pathlib.Path, package_dirs) -> Any:
+    """An ``MjSpec`` of a URDF file, its ``package://`` URIs resolved and relative mesh paths
+    taken from the file's folder."""
+    text = _resolve_packages(path.read_text(), package_dirs, path)
+    if "<mujoco" not in text:
+        robot = text.find("<robot")
+        if robot < 0:
+            raise ValueError(f"{path}: not a URDF file (no <robot> element)")
+        start = text.index(">", robot) + 1
+        text = text[:start] + _URDF_COMPILER + text[start:]
+    try:
+        spec = mj.MjSpec.from_string(text)
+    except ValueError as error:
+        raise ValueError(f"MuJoCo could not load {path}: {error}") from None
+    if not spec.meshdir:
+        spec.meshdir = str(path.parent.resolve())
+    return spec
+
+
+def load_mjcf(source: str | pathlib.Path | Any, *, package_dirs=(), floating_base: bool = False) -> MujocoModel:
     """Loads a model with MuJoCo's compiler and converts it (:func:`from_mujoco`).
 
+    A URDF file (``.urdf``) is read as MuJoCo reads URDF, with three differences that a robot
+    model needs: ``package://`` mesh URIs are resolved through ``package_dirs``, bodies
+    without joints are kept (MuJoCo's ``fusestatic`` would merge a floating base into the
+    world) and visual meshes and mesh paths are kept; unless the file has its own
+    ``<mujoco>`` element, which then decides.
+
     Args:
-        source: path to an MJCF file (or a URDF file, which MuJoCo also reads: its
-            ``package://`` mesh paths must be rewritten to files first), the XML text itself
-            (a string whose first non-blank character is ``<``), or a ``mujoco.MjModel``.
+        source: path to an MJCF or URDF file, the MJCF text itself (a string whose first
+            non-blank character is ``<``), or a ``mujoco.MjModel``.
+        package_dirs: folders that hold the packages ``package://`` URIs name (each either
+            contains a folder per package, or is the package's own folder).
+        floating_base: give the first body under the world a free joint named
+            ``"root_joint"`` (a legged robot's base; a URDF has no free joint of its own).
 
     Returns:
         The converted model.
 
     Raises:
-        FileNotFoundError: if the path does not exist.
+        FileNotFoundError: if the path does not exist, or a ``package://`` URI cannot be
+            resolved (the message names the URI and the folders searched).
         ValueError: if MuJoCo cannot compile the source (MuJoCo's message is included, with
             the path: a malformed file, a missing mesh file...), if ``source`` is of another
-            type, or if the model uses a feature rsmooth.sim does not support (see
+            type, if ``floating_base`` is asked of a model whose first body already has a
+            joint, or if the model uses a feature rsmooth.sim does not support (see
             :func:`from_mujoco`).
 
     Example:
@@ -765,13 +827,41 @@ def load_mjcf(source: str | pathlib.Path | Any) -> MujocoModel:
     """
     mj = _mujoco()
     if isinstance(source, mj.MjModel):
+        if floating_base:
+            raise ValueError("floating_base applies to a file or XML text, not to a compiled mujoco.MjModel")
         return from_mujoco(source)
     if isinstance(source, str) and source.lstrip().startswith("<"):
+        where = "the XML text"
         try:
-            compiled = mj.MjModel.from_xml_string(source)
+            spec = mj.MjSpec.from_string(source)
         except ValueError as error:
             raise ValueError(f"MuJoCo could not load the XML text: {error}") from None
-        return from_mujoco(compiled)
+    elif isinstance(source, (str, pathlib.Path)):
+        path = pathlib.Path(source)
+        where = str(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"model file not found: {path}")
+        if path.suffix.lower() == ".urdf":
+            spec = _read_urdf(mj, path, package_dirs)
+        else:
+            try:
+                spec = mj.MjSpec.from_file(str(path))
+            except ValueError as error:
+                raise ValueError(f"MuJoCo could not load {path}: {error}") from None
+    else:
+        raise ValueError(f"source must be a file path, XML text or a mujoco.MjModel, got {type(source).__name__}")
+    if floating_base:
+        body = spec.worldbody.first_body()
+        if body is None:
+            raise ValueError(f"floating_base: {where} has no body under the world")
+        if body.first_joint() is not None:
+            raise ValueError(f"floating_base: the first body of {where}, {body.name!r}, already has a joint")
+        body.add_freejoint(name="root_joint")
+    try:
+        compiled = spec.compile()
+    except ValueError as error:
+        raise ValueError(f"MuJoCo could not load {where}: {error}") from None
+    return from_mujoco(compiled)
     if not isinstance(source, (str, pathlib.Path)):
         raise ValueError(f"source must be a file path, XML text or a mujoco.MjModel, got {type(source).__name__}")
     path = pathlib.Path(source)

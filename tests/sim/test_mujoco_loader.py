@@ -309,7 +309,10 @@ def test_welded_bodies_are_merged():
 def test_solo12_matches_mujoco_and_pinocchio():
     pytest.importorskip("pinocchio")
     m = solo12_mujoco()
-    loaded = from_mujoco(m)
+    # The URDF read by load_mjcf itself (package:// URIs resolved, the base kept and given a
+    # free joint) against MuJoCo's answers on the model compiled by hand above.
+    loaded = load_mjcf(sim.solo12_urdf_path(), package_dirs=[sim.example_robot_data_root().parent], floating_base=True)
+    assert loaded.body_names == tuple(m.body(i).name for i in range(m.nbody))
     actual = check_against_mujoco(m, loaded, seed=7)
     assert loaded.geom_types.count("mesh") == m.ngeom
     vertices = loaded.geom_vertices[0]
@@ -448,6 +451,14 @@ def test_bad_sources(tmp_path):
         load_mjcf(3)
     with pytest.raises(ValueError, match="mj_model must be"):
         from_mujoco("<mujoco/>")
+    urdf = tmp_path / "robot.urdf"
+    urdf.write_text("""<robot name="r"><link name="base"><visual><geometry>
+      <mesh filename="package://missing_description/meshes/base.stl"/></geometry></visual></link></robot>""")
+    with pytest.raises(FileNotFoundError, match="package://missing_description/meshes/base.stl.*package_dirs"):
+        load_mjcf(urdf, package_dirs=[tmp_path])
+    with pytest.raises(ValueError, match="floating_base.*'arm'.*already has a joint"):
+        load_mjcf("<mujoco><worldbody><body name='arm'><joint/><geom size='.1'/></body></worldbody></mujoco>",
+                  floating_base=True)
 
 
 def test_state_maps_check_shapes():
