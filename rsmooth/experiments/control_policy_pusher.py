@@ -64,7 +64,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rsmooth import control, viz
+from rsmooth import control, schedules, viz
 from rsmooth.experiments import _control, _protocol, control_policy, control_pusher
 
 METHOD_CHOICES = control_policy.METHOD_CHOICES
@@ -72,7 +72,7 @@ METHOD_CHOICES = control_policy.METHOD_CHOICES
 METRICS_DOC = """metrics.json keys: task, methods, seeds, success_criterion, target_x
 (m; the box starts at x = 0), finger_gap (m), horizon (steps of 10 ms), at_rest (whether the box's final velocities are
 costed), position_tolerance (m), sigma
-(N, the noise on every force), num_samples, iterations, learning_rate, initial_cost (the zero-force
+(N, the initial noise on every force), noise_schedule (constant or reheating: floor 0.01 N), num_samples, iterations, learning_rate, initial_cost (the zero-force
 policy's true cost), wall_time_s, and per method (first, zeroth, alpha): final_cost_mean,
 final_cost_std (true cost of the final policy, over seeds), success_rate, push_rate (the fraction of
 runs that pushed the box at all: first_push_iteration >= 0), position_error_mean,
@@ -98,6 +98,11 @@ class Config:
     finger_gap: float = _protocol.option(0.05, "Gap between the finger and the box's -x face at the start, m.", min=0.0)
     horizon: int = _protocol.option(20, "Time steps of 10 ms.", min=2)
     sigma: float = _protocol.option(0.2, "Noise on every force of the open-loop policy, N.", above=0.0)
+    noise_schedule: str = _protocol.option(
+        "constant", "The noise schedule: constant sigma, or reheating (rsmooth.schedules.Reheating: the sign rule on "
+        "d cost / d sigma, raising the noise when the cost stalls).", choices=("constant", "reheating"))
+    sigma_ceiling: float = _protocol.option(2.0, "Reheating: the noise's ceiling, N.", above=0.0)
+    stall_iterations: int = _protocol.option(10, "Reheating: iterations without a lower cost that make a stall.", min=1)
     num_samples: int = _protocol.option(
         16, "Rollouts per gradient estimate, even (alpha: half to each estimate).", flag="samples", min=4)
     learning_rate: float = _protocol.option(0.5, "Adam's learning rate, N.", above=0.0)
@@ -126,6 +131,8 @@ class Config:
             learning_rate=self.learning_rate,
             iterations=self.iterations,
             shared_samples=True,
+            schedule=(schedules.Reheating(floor=0.01, ceiling=self.sigma_ceiling, stall_patience=self.stall_iterations)
+                      if self.noise_schedule == "reheating" else schedules.Constant()),
         )
 
 
@@ -207,6 +214,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "at_rest": config.at_rest,
         "position_tolerance": config.position_tolerance,
         "sigma": config.sigma,
+        "noise_schedule": config.noise_schedule,
         "num_samples": config.num_samples,
         "iterations": config.iterations,
         "learning_rate": config.learning_rate,

@@ -53,3 +53,23 @@ def test_another_target_changes_only_traced_parameters(module, changes):
     arrays_second, static_second = eqx.partition(second, eqx.is_array)
     assert static_first == static_second
     assert not all(np.array_equal(a, b) for a, b in zip(*(jax.tree.leaves(p.params) for p in (arrays_first, arrays_second))))
+
+
+def test_noise_schedule_options_pick_the_reheating_rule():
+    """Each experiment's schedule option reaches the solver it builds."""
+    from rsmooth import render, schedules
+    from rsmooth.experiments import control_policy, control_policy_pusher, render_pose
+
+    assert control_pusher.Config.quick().solver().schedule == "adaptive"
+    assert _control.make_solver("rddp-reheating", control_solo_lift.Config.quick().solver()).schedule == "reheating"
+    assert isinstance(control_policy.Config(noise_schedule="reheating").solver("alpha").schedule, schedules.Reheating)
+    assert isinstance(control_policy.Config().solver("alpha").schedule, schedules.Geometric)
+    pusher = control_policy_pusher.Config(noise_schedule="reheating", sigma_ceiling=1.5).solver("alpha").schedule
+    assert isinstance(pusher, schedules.Reheating) and pusher.ceiling == 1.5
+    assert isinstance(control_policy_pusher.Config().solver("alpha").schedule, schedules.Constant)
+    config = render_pose.Config.quick(noise_schedule="reheating", stall_steps=7)
+    fit = render_pose.make_fit(config, "soft", render.cube())
+    assert isinstance(fit.schedule, schedules.Reheating) and fit.schedule.stall_patience == 7
+    assert isinstance(render_pose.make_fit(render_pose.Config.quick(), "hard", render.cube()).schedule, schedules.Constant)
+    with pytest.raises(ValueError, match="noise_schedule"):
+        control_policy.Config(noise_schedule="sometimes")
