@@ -1125,6 +1125,19 @@ def _regularized_coulomb(
     return -(friction * normal_force / speed)[..., None] * tangential_velocity
 
 
+def _check_law_parameters(law, positive=(), nonnegative=()) -> None:
+    """Named errors for a contact law's concrete parameters out of range (traced ones, e.g. a
+    stiffness swept under ``vmap``, are not checked)."""
+    for names, test, wanted in ((positive, lambda a: a > 0, "positive"), (nonnegative, lambda a: a >= 0, ">= 0")):
+        for name in names:
+            value = getattr(law, name)
+            if _checks.is_traced(value):
+                continue
+            array = np.asarray(value, dtype=float)
+            if not (np.all(np.isfinite(array)) and np.all(test(array))):
+                raise ValueError(f"{type(law).__name__}.{name} must be finite and {wanted}, got {value!r}")
+
+
 class SpringDamper(eqx.Module):
     """Parameters of the penalty (Kelvin–Voigt) contact model, see
     :func:`spring_damper_force`.
@@ -1140,6 +1153,9 @@ class SpringDamper(eqx.Module):
     damping: ArrayLike
     friction: ArrayLike
     smoothing_velocity: ArrayLike = 1e-3
+
+    def __check_init__(self):
+        _check_law_parameters(self, positive=("stiffness", "smoothing_velocity"), nonnegative=("damping", "friction"))
 
     def __call__(self, distance: ArrayLike, velocity: ArrayLike) -> Array:
         return spring_damper_force(distance, velocity, self)
@@ -1200,6 +1216,11 @@ class LogBarrier(eqx.Module):
     friction: ArrayLike = 0.0
     smoothing_velocity: ArrayLike = 1e-3
     lookahead: ArrayLike = 0.0
+
+    def __check_init__(self):
+        _check_law_parameters(
+            self, positive=("stiffness", "min_distance", "smoothing_velocity"), nonnegative=("friction", "lookahead")
+        )
 
     def __call__(self, distance: ArrayLike, velocity: ArrayLike) -> Array:
         return log_barrier_force(distance, velocity, self)

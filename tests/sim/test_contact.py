@@ -731,3 +731,17 @@ def test_log_barrier_force():
     ahead = LogBarrier(stiffness=1e-3, lookahead=0.1)
     np.testing.assert_allclose(log_barrier_force(0.05, jnp.array([0.0, 0.0, -0.2]), ahead)[2],
                                1e-3 / 0.03)
+
+
+def test_contact_law_parameters_out_of_range_are_refused_by_name():
+    with pytest.raises(ValueError, match="SpringDamper.stiffness must be finite and positive"):
+        SpringDamper(stiffness=0.0, damping=1.0, friction=0.5)
+    with pytest.raises(ValueError, match="SpringDamper.damping"):
+        SpringDamper(stiffness=1e3, damping=-1.0, friction=0.5)
+    with pytest.raises(ValueError, match="LogBarrier.min_distance"):
+        LogBarrier(stiffness=1e-3, min_distance=0.0)
+    with pytest.raises(ValueError, match="LogBarrier.friction"):
+        LogBarrier(stiffness=1e-3, friction=float("nan"))
+    # traced parameters (a stiffness swept under vmap) are left to the caller
+    stiffness = jax.vmap(lambda k: SpringDamper(stiffness=k, damping=0.0, friction=0.0).stiffness)(jnp.array([1e2, 1e3]))
+    np.testing.assert_array_equal(stiffness, [1e2, 1e3])
