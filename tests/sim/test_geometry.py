@@ -185,6 +185,33 @@ def test_distance_and_witnesses_match_mujoco(name1, name2):
         np.testing.assert_allclose(contacts.point2[apart, 0, 2] - contacts.point1[apart, 0, 2], expected[apart], atol=1e-6)
 
 
+CYLINDER_PAIRS = [("sphere", "cylinder"), ("capsule", "cylinder"), ("box", "cylinder"), ("cylinder", "cylinder"),
+                  ("cylinder", "mesh")]
+
+
+@pytest.mark.parametrize("name1, name2", CYLINDER_PAIRS, ids=[f"{a}-{b}" for a, b in CYLINDER_PAIRS])
+def test_cylinder_pairs_match_mujoco_within_the_prism_sagitta(name1, name2):
+    """A cylinder against a shape other than a half-space is its inscribed prism for the
+    penetration depth (error at most the sagitta r (1 - cos(pi / n)) per cylinder) and the
+    exact cylinder (GJK on its support) for the distance of separated shapes."""
+    from rsmooth.sim._collision import _CYLINDER_SIDES
+
+    count = 64
+    reach = sum(float(SHAPES[name].bounding_radius) for name in (name1, name2))
+    quaternions, translations, rotations = _random_poses(100 + CYLINDER_PAIRS.index((name1, name2)), count, 1.6 * reach)
+    expected, _ = _mujoco_distance(name1, name2, quaternions, translations)
+    contacts = jax.device_get(_collide_batch(name1, name2, rotations, translations))
+    _check_consistent(contacts)
+    assert 0.2 * count < np.sum(expected < 0) < 0.8 * count
+    sagitta = float(SHAPES["cylinder"].radius) * (1.0 - np.cos(np.pi / _CYLINDER_SIDES))
+    error = contacts.distance[:, 0] - expected
+    separated = expected > 2 * sagitta
+    np.testing.assert_allclose(error[separated], 0.0, atol=1e-6)
+    assert np.all(np.abs(error) <= (name1, name2).count("cylinder") * sagitta + 1e-6)
+    # the bound is not loose: the prism is visibly there in some penetrating poses
+    assert np.max(np.abs(error[~separated])) > 0.05 * sagitta
+
+
 def test_either_order_gives_swapped_contacts():
     _, translations, rotations = _random_poses(7, 64, 0.6)  # the batch size of the MuJoCo test: compiled once
     forward = _collide_batch("capsule", "box", rotations, translations)
@@ -262,6 +289,18 @@ def test_slightly_tilted_box_on_equal_box_keeps_a_face_manifold(tilt):
     assert np.ptp(points[:, 0]) > 0.1 or np.ptp(points[:, 1]) > 0.1
     # the depths are the upper box's bottom corners' depths: 1e-5 plus the tilt's lift
     np.testing.assert_allclose(np.asarray(contacts.distance)[active], -1e-5, atol=0.2 * tilt + 1e-12)
+
+
+def test_cylinder_standing_on_a_box_gives_a_flat_manifold():
+    """A cap flat on a face: four contacts on the rim, at the cap's exact depth."""
+    cylinder = Cylinder(0.1, 0.2)
+    contacts = eqx.filter_jit(collide)(Box([0.5, 0.5, 0.1]), _pose([0.0, 0.0, 0.0]), cylinder, _pose([0.1, -0.05, 0.3 - 1e-4]))
+    active = np.asarray(contacts.active)
+    assert active.sum() == 4
+    np.testing.assert_allclose(np.asarray(contacts.distance)[active], -1e-4, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(contacts.normal)[active], np.tile([0.0, 0.0, 1.0], (4, 1)), atol=1e-12)
+    radial = np.linalg.norm(_active_points(contacts)[:, :2] - np.array([0.1, -0.05]), axis=1)
+    np.testing.assert_allclose(radial, 0.1, atol=1e-12)  # on the rim (the prism's vertices)
 
 
 def test_capsule_lying_on_a_box_gives_two_contacts():
