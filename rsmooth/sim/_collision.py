@@ -253,10 +253,26 @@ def _sphere_capsule(sphere: Sphere, pose1, capsule: Capsule, pose2, margin) -> C
 
 
 def _capsule_capsule(capsule1: Capsule, pose1, capsule2: Capsule, pose2, margin) -> Contacts:
+    """Entry 0: the segments' closest points. Entry 1: of the four endpoint-to-segment
+    closest pairs, the one farthest along segment 1 from entry 0, so that two capsules lying
+    side by side touch along their overlap's two ends (one point would let them spin about
+    it); it is active when within the margin and apart from entry 0."""
     start1, end1 = _capsule_ends(capsule1, pose1)
     start2, end2 = _capsule_ends(capsule2, pose2)
     closest1, closest2 = _closest_segment_segment(start1, end1, start2, end2)
-    return _dilated_points(closest1, closest2, capsule1.radius, capsule2.radius, margin)
+    first = _dilated_points(closest1, closest2, capsule1.radius, capsule2.radius, margin)
+    cores1 = jnp.stack([start1, end1, _closest_on_segment(start1, end1, start2), _closest_on_segment(start1, end1, end2)])
+    cores2 = jnp.stack([_closest_on_segment(start2, end2, start1), _closest_on_segment(start2, end2, end1), start2, end2])
+    candidates = jax.vmap(lambda a, b: _dilated_points(a, b, capsule1.radius, capsule2.radius, margin))(cores1, cores2)
+    candidates = jax.tree.map(lambda a: a[:, 0], candidates)
+    along = jnp.abs((cores1 - closest1[None, :]) @ (end1 - start1))
+    within = candidates.distance <= margin
+    pick = jnp.argmax(jnp.where(within, along, -1.0))
+    second = jax.tree.map(lambda a: a[pick][None], candidates)
+    scale = 2.0 * capsule1.half_length + 2.0 * capsule2.half_length
+    apart = jnp.linalg.norm(cores1[pick] - closest1) > 1e3 * _eps(closest1.dtype) * scale
+    second = eqx.tree_at(lambda c: c.active, second, second.active & apart)
+    return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), first, second)
 
 
 def _box_sphere(box: Box, pose1, sphere: Sphere, pose2, margin) -> Contacts:
@@ -762,7 +778,7 @@ _PAIR_FUNCTIONS = {
     (HalfSpace, ConvexMesh): (_halfspace_mesh, 4),
     (Sphere, Sphere): (_sphere_sphere, 1),
     (Sphere, Capsule): (_sphere_capsule, 1),
-    (Capsule, Capsule): (_capsule_capsule, 1),
+    (Capsule, Capsule): (_capsule_capsule, 2),
     (Box, Sphere): (_box_sphere, 1),
     (Capsule, Box): (_polytope_pair_of(2), 2),
     (Box, Box): (_polytope_pair_of(4), 4),

@@ -303,6 +303,21 @@ def test_cylinder_standing_on_a_box_gives_a_flat_manifold():
     np.testing.assert_allclose(radial, 0.1, atol=1e-12)  # on the rim (the prism's vertices)
 
 
+def test_parallel_capsules_touch_at_both_ends_of_their_overlap():
+    """Two capsules side by side, overlapping over x in [0.1, 0.3]: contacts at both ends of
+    the overlap; crossing capsules touch at one point."""
+    lying = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # local z along world x
+    capsule = Capsule(0.05, 0.2)
+    contacts = eqx.filter_jit(collide)(capsule, _pose([0.1, 0.0, 0.0], lying), capsule, _pose([0.3, 0.0, 0.1 - 1e-4], lying))
+    assert np.asarray(contacts.active).tolist() == [True, True]
+    np.testing.assert_allclose(np.asarray(contacts.distance), -1e-4, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(contacts.normal), [[0.0, 0.0, 1.0]] * 2, atol=1e-12)
+    assert sorted(np.round(np.asarray(contacts.point1)[:, 0], 9).tolist()) == [0.1, 0.3]
+    crossing = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # local z along world y
+    contacts = eqx.filter_jit(collide)(capsule, _pose([0.1, 0.0, 0.0], lying), capsule, _pose([0.1, 0.0, 0.1 - 1e-4], crossing))
+    assert np.asarray(contacts.active).tolist() == [True, False]
+
+
 def test_capsule_lying_on_a_box_gives_two_contacts():
     contacts = eqx.filter_jit(collide)(
         Capsule(0.05, 0.2),
