@@ -8,9 +8,10 @@ transform, noise schedules (:mod:`rsmooth.schedules`), perturbed optimizers
 contact solver) and :mod:`rsmooth.control` (DDP, R-DDP, policy optimization).
 """
 
-from rsmooth import noise, perturbed, schedules, stats
+from rsmooth import diagnostics, noise, perturbed, schedules, stats
 from rsmooth._results import RESULTS
 from rsmooth.estimators import Estimate, alpha_order, first_order, zeroth_order
+from rsmooth.diagnostics import bias_test, estimator_bias_variance, smoothed_landscape
 from rsmooth.smooth import smooth, smooth_elementwise
 
 __version__ = "0.1.0"
@@ -19,12 +20,16 @@ __all__ = [
     "Estimate",
     "RESULTS",
     "alpha_order",
+    "bias_test",
+    "diagnostics",
+    "estimator_bias_variance",
     "first_order",
     "noise",
     "perturbed",
     "schedules",
     "smooth",
     "smooth_elementwise",
+    "smoothed_landscape",
     "stats",
     "zeroth_order",
 ]
