@@ -31,7 +31,7 @@ noise schedules use.
 from __future__ import annotations
 
 import math
-from typing import Callable, NamedTuple
+from typing import Callable, NamedTuple, Sequence
 
 import equinox as eqx
 import jax
@@ -41,7 +41,7 @@ from jax import Array
 from jax.flatten_util import ravel_pytree
 from jax.typing import ArrayLike
 
-from rsmooth import _checks
+from rsmooth import _checks, parallel
 from rsmooth.noise import Gaussian, Noise
 
 __all__ = ["Estimate", "zeroth_order", "first_order", "alpha_order"]
@@ -149,6 +149,24 @@ def _check_options(sigma, num_samples, noise, *, antithetic=False, needs_score=F
     return _checks.check_positive_scalar(sigma, "sigma"), num_samples
 
 
+def _check_spread(devices, sample_chunk) -> dict:
+    """``devices`` and ``sample_chunk``, checked on the host, as keyword arguments for the
+    sample evaluation (:func:`rsmooth.parallel.map_samples`)."""
+    return dict(devices=parallel.resolve_devices(devices), sample_chunk=parallel.check_sample_chunk(sample_chunk))
+
+
+def _checked_samples(*arrays_and_messages) -> tuple:
+    """The per-sample arrays, checked finite (`ValueError(message)` for the first that is not,
+    at run time where traced). The traced check is tied to a zero added to each array rather
+    than to the arrays themselves: a runtime check runs on one device, and the arrays, which
+    may be laid out across devices (``devices``), would be gathered there."""
+    arrays = [array for array, _ in arrays_and_messages]
+    if not any(_checks.is_traced(array) for array in arrays):
+        return tuple(_checks.check_finite(array, message) for array, message in arrays_and_messages)
+    zero = _checks.check_all(jnp.zeros((), arrays[0].dtype), arrays_and_messages)
+    return tuple(array + zero.astype(array.dtype) for array in arrays)
+
+
 def perturbed_points(noise: Noise, key: Array, x: Array, sigma, num_samples: int, antithetic: bool):
     """Noise z (num_samples, d) and the points x + sigma z; with `antithetic`, the second half
     of z is minus the first. The one place samples are drawn, so that every estimator and
@@ -210,10 +228,12 @@ def baseline_values(values: Array, baseline, f_at_x: Callable[[], Array]) -> Arr
     return jnp.zeros_like(values[:1])
 
 
-def _zeroth_order_flat(flat: _Flat, key, sigma, num_samples, noise, baseline, antithetic) -> _FlatEstimate:
+def _zeroth_order_flat(
+    flat: _Flat, key, sigma, num_samples, noise, baseline, antithetic, *, devices=None, sample_chunk=None
+) -> _FlatEstimate:
     z, points = perturbed_points(noise, key, flat.x, sigma, num_samples, antithetic)
-    values = jax.vmap(flat.f)(points)
-    values = _checks.check_finite(values, _NONFINITE_F)
+    values = parallel.map_samples(flat.f, points, devices=devices, sample_chunk=sample_chunk)
+    (values,) = _checked_samples((values, _NONFINITE_F))
     reference = baseline_values(values, baseline, lambda: flat.f(flat.x))
     return _zeroth_order_terms(z, values, reference, sigma, noise, antithetic)
 
@@ -263,18 +283,20 @@ def value_and_jacobian(f_flat: Callable[[Array], Array], v: Array) -> tuple[Arra
     return y, jacobian
 
 
-def _first_order_flat(flat: _Flat, key, sigma, num_samples, noise, antithetic, jacobian_fn=None) -> _FlatEstimate:
+def _first_order_flat(
+    flat: _Flat, key, sigma, num_samples, noise, antithetic, jacobian_fn=None, *, devices=None, sample_chunk=None
+) -> _FlatEstimate:
     z, points = perturbed_points(noise, key, flat.x, sigma, num_samples, antithetic)
     if jacobian_fn is None:
-        values, jacobians = jax.vmap(lambda v: value_and_jacobian(flat.f, v))(points)
+        def given(v):
+            return value_and_jacobian(flat.f, v)
     else:
         def given(v):
             value, jac = jacobian_fn(flat.unravel(v))
             return jnp.reshape(value, (-1,)).astype(v.dtype), jnp.reshape(jac, (-1, v.shape[0])).astype(v.dtype)
 
-        values, jacobians = jax.vmap(given)(points)
-    values = _checks.check_finite(values, _NONFINITE_F)
-    jacobians = _checks.check_finite(jacobians, _NONFINITE_GRAD)
+    values, jacobians = parallel.map_samples(given, points, devices=devices, sample_chunk=sample_chunk)
+    values, jacobians = _checked_samples((values, _NONFINITE_F), (jacobians, _NONFINITE_GRAD))
     return _first_order_terms(z, values, jacobians, antithetic)
 
 
@@ -302,7 +324,10 @@ def _first_order_terms(z, values, jacobians, antithetic) -> _FlatEstimate:
     )
 
 
-def _alpha_order_flat(flat: _Flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta):
+def _alpha_order_flat(
+    flat: _Flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta, *, devices=None,
+    sample_chunk=None,
+):
     key_zeroth, key_first = jax.random.split(key)
     n_zeroth = num_samples // 2
     n_first = num_samples - n_zeroth
@@ -310,8 +335,9 @@ def _alpha_order_flat(flat: _Flat, key, sigma, num_samples, noise, baseline, ant
         raise ValueError(
             f"with antithetic=True, alpha_order needs num_samples divisible by 4, got {num_samples}"
         )
-    zeroth = _zeroth_order_flat(flat, key_zeroth, sigma, n_zeroth, noise, baseline, antithetic)
-    first = _first_order_flat(flat, key_first, sigma, n_first, noise, antithetic)
+    spread = dict(devices=devices, sample_chunk=sample_chunk)
+    zeroth = _zeroth_order_flat(flat, key_zeroth, sigma, n_zeroth, noise, baseline, antithetic, **spread)
+    first = _first_order_flat(flat, key_first, sigma, n_first, noise, antithetic, **spread)
     return _alpha_blend(zeroth, first, n_zeroth, n_first, antithetic, gamma, lipschitz, delta)
 
 
@@ -441,6 +467,8 @@ def zeroth_order(
     noise: Noise = Gaussian(),
     baseline: bool | str = True,
     antithetic: bool = False,
+    devices: str | Sequence[jax.Device] | None = None,
+    sample_chunk: int | None = None,
 ) -> Estimate:
     r"""Zeroth-order (score-function) estimate of the smoothed value and gradient.
 
@@ -459,6 +487,16 @@ def zeroth_order(
             ``"leave-one-out"``: subtract from each sample the mean of the others (no extra
             evaluation; lower variance where `f` jumps at `x`; M >= 2); False: none.
         antithetic: use pairs `(z, -z)` (symmetric laws only); the baseline then cancels.
+        devices: where `f` is evaluated at the samples: ``None`` (default) on the default
+            device; ``"all"`` (every device of every process) or a sequence of devices: the
+            samples split over them, each device evaluating its share, the means summed
+            across devices (:mod:`rsmooth.parallel`). The samples are drawn whole from `key`
+            first: the estimate is the one-device estimate up to rounding (for an `f` whose
+            value at a sample does not depend on the samples evaluated with it).
+        sample_chunk: the most samples at which `f` is evaluated at once (on each device);
+            ``None``: all of them, except on several CPU devices: one at a time (see
+            :mod:`rsmooth.parallel`). Bounds the memory of `f`'s intermediate values; the
+            estimate is unchanged up to rounding.
 
     Returns:
         An :class:`Estimate`.
@@ -484,8 +522,9 @@ def zeroth_order(
     _checks.check_key(key)
     sigma, num_samples = _check_options(sigma, num_samples, noise, antithetic=antithetic, needs_score=True)
     check_baseline(baseline, num_samples)
+    spread = _check_spread(devices, sample_chunk)
     flat = _flatten_resolved(f, x, sigma)
-    return _package(flat, _zeroth_order_flat(flat, key, sigma, num_samples, noise, baseline, antithetic))
+    return _package(flat, _zeroth_order_flat(flat, key, sigma, num_samples, noise, baseline, antithetic, **spread))
 
 
 def first_order(
@@ -498,6 +537,8 @@ def first_order(
     noise: Noise = Gaussian(),
     antithetic: bool = False,
     value_and_jacobian: Callable | None = None,
+    devices: str | Sequence[jax.Device] | None = None,
+    sample_chunk: int | None = None,
 ) -> Estimate:
     r"""First-order (pathwise) estimate: the mean of sampled gradients.
 
@@ -519,6 +560,11 @@ def first_order(
             Jacobian than JAX's autodiff of it (e.g. a simulator's `step_and_jacobians`);
             `x` must then be one array and `J(x)` of shape `f(x).shape + x.shape`. By
             default the Jacobian is autodiff of `f`.
+        devices: where `f` and its Jacobian are evaluated at the samples, as in
+            :func:`zeroth_order`; each device runs its own loops (a contact solve iterates as
+            long as that device's samples need).
+        sample_chunk: the most samples at which `f` and its Jacobian are evaluated at once
+            (on each device), as in :func:`zeroth_order`.
 
     Returns:
         An :class:`Estimate`.
@@ -532,10 +578,13 @@ def first_order(
     """
     _checks.check_key(key)
     sigma, num_samples = _check_options(sigma, num_samples, noise, antithetic=antithetic)
+    spread = _check_spread(devices, sample_chunk)
     flat = _flatten(f, x)
     if value_and_jacobian is not None and not isinstance(x, (jax.Array, np.ndarray)):
         raise TypeError(f"value_and_jacobian needs x to be one array, got {type(x).__name__}")
-    return _package(flat, _first_order_flat(flat, key, sigma, num_samples, noise, antithetic, value_and_jacobian))
+    return _package(
+        flat, _first_order_flat(flat, key, sigma, num_samples, noise, antithetic, value_and_jacobian, **spread)
+    )
 
 
 def alpha_order(
@@ -551,6 +600,8 @@ def alpha_order(
     delta: float = 0.05,
     baseline: bool | str = True,
     antithetic: bool = False,
+    devices: str | Sequence[jax.Device] | None = None,
+    sample_chunk: int | None = None,
 ) -> Estimate:
     r"""Alpha-order estimate: :math:`\alpha \hat g_1 + (1 - \alpha)\hat g_0` on independent batches.
 
@@ -584,6 +635,8 @@ def alpha_order(
         delta: the confidence level of the radius is `1 - delta`.
         baseline: baseline for the zeroth-order part (as in :func:`zeroth_order`).
         antithetic: antithetic pairs in both parts.
+        devices, sample_chunk: where and how many samples at a time `f` is evaluated, for
+            each part (as in :func:`zeroth_order`).
 
     Returns:
         An :class:`Estimate` whose `stats` hold `alpha`, `alpha_star`, `bias`, `radius`,
@@ -616,8 +669,9 @@ def alpha_order(
         raise ValueError(f"lipschitz must be positive, got {lipschitz}")
     if gamma is not None and not _checks.is_traced(gamma) and not float(gamma) >= 0:
         raise ValueError(f"gamma must be non-negative, got {gamma}")
+    spread = _check_spread(devices, sample_chunk)
     flat = _flatten_resolved(f, x, sigma)
     estimate, extra = _alpha_order_flat(
-        flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta
+        flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta, **spread
     )
     return _package(flat, estimate, extra)

@@ -47,14 +47,14 @@ values are checked when `g` is called (`ValueError`); traced ones at run time by
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
 from jax import lax
 from jax.typing import ArrayLike
 
-from rsmooth import _checks
+from rsmooth import _checks, parallel
 from rsmooth import estimators as _est
 from rsmooth._xla import matmul as _matmul
 from rsmooth.noise import Gaussian, Laplace, Noise, Uniform
@@ -76,6 +76,8 @@ def smooth(
     gamma: float | None = None,
     lipschitz: float | None = None,
     delta: float = 0.05,
+    devices: str | Sequence[jax.Device] | None = None,
+    sample_chunk: int | None = None,
 ) -> Callable:
     r"""Randomized smoothing of `f` as a differentiable function `g(key, x)`.
 
@@ -90,6 +92,12 @@ def smooth(
             :func:`rsmooth.zeroth_order`: True, False or ``"leave-one-out"``).
         gamma, lipschitz, delta: trust region of the alpha-order rule (see
             :func:`rsmooth.alpha_order`).
+        devices: where `f` (and, for derivatives, its per-sample derivatives) is evaluated
+            at the samples: ``None`` (default) on the default device; ``"all"`` or a sequence
+            of devices: split over them, the value and its derivatives the one-device ones up
+            to rounding (as in :func:`rsmooth.zeroth_order`).
+        sample_chunk: the most samples at which `f` is evaluated at once on each device
+            (as in :func:`rsmooth.zeroth_order`).
 
     Returns:
         `g(key, x)` with the shape of `f(x)`; its derivatives of every order are estimates on
@@ -129,12 +137,14 @@ def smooth(
         gamma=gamma,
         lipschitz=lipschitz,
         delta=delta,
+        devices=devices,
+        sample_chunk=sample_chunk,
     )
 
 
 def _smooth(
     f, name, *, sigma, num_samples, estimator="zeroth", noise=Gaussian(), baseline=True, antithetic=False,
-    gamma=None, lipschitz=None, delta=0.05,
+    gamma=None, lipschitz=None, delta=0.05, devices=None, sample_chunk=None,
 ):
     """:func:`smooth`, whose errors call the smoothed argument `name`."""
     if estimator not in ESTIMATORS:
@@ -161,6 +171,7 @@ def _smooth(
         gamma=gamma,
         lipschitz=lipschitz,
         delta=delta,
+        **_est._check_spread(devices, sample_chunk),
     )
 
     def smoothed(key, x):
@@ -179,10 +190,18 @@ def _smooth(
     return smoothed
 
 
-def _smoothed_flat(f_converted, num_consts, name, *, num_samples, estimator, noise, baseline, antithetic, gamma, lipschitz, delta):
+def _smoothed_flat(
+    f_converted, num_consts, name, *, num_samples, estimator, noise, baseline, antithetic, gamma, lipschitz, delta,
+    devices, sample_chunk,
+):
     score = _derivative_score(noise)
     ratio = _likelihood_ratio(noise, score, elementwise=False)
     nonfinite_x = f"{name} must be finite (it contains NaN or inf)"
+
+    def over_samples(fn, *args):
+        """``fn`` at every sample (the leading axis of ``args``), spread as asked."""
+        return parallel.map_samples(fn, *args, devices=devices, sample_chunk=sample_chunk)
+
     without_derivatives = _without_derivatives(
         "second derivatives are not available with estimator='alpha' (its blend is chosen for "
         "the first derivative from the samples); use estimator='zeroth' or 'first'"
@@ -220,7 +239,8 @@ def _smoothed_flat(f_converted, num_consts, name, *, num_samples, estimator, noi
         x = _checks.check_all(x, [(x, nonfinite_x)], [_checks.resolution_failure(x, sigma, name)])
         flat = _est._Flat(x, lambda v: f_converted(v, *consts), None, ())
         estimate, _ = _est._alpha_order_flat(
-            flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta
+            flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta, devices=devices,
+            sample_chunk=sample_chunk,
         )
         tangent = _matmul(estimate.jacobian, x_dot) + estimate.sigma_grad * sigma_dot
         if num_consts:
@@ -230,13 +250,13 @@ def _smoothed_flat(f_converted, num_consts, name, *, num_samples, estimator, noi
             def consts_tangent(v):
                 return jax.jvp(lambda *c: f_converted(v, *c), tuple(consts), tuple(consts_dot))[1]
 
-            tangent = tangent + jnp.mean(jax.vmap(consts_tangent)(perturbed), axis=0)
+            tangent = tangent + jnp.mean(over_samples(consts_tangent, perturbed), axis=0)
         return estimate.value, tangent
 
     @jax.custom_jvp
     def rule(key, x, sigma, *consts):
         _, perturbed = points(key, x, sigma)
-        values = jax.vmap(lambda v: f_converted(v, *consts))(perturbed)
+        values = over_samples(lambda v: f_converted(v, *consts), perturbed)
         return checked(jnp.mean(values, axis=0), x, sigma, values)
 
     @rule.defjvp
@@ -254,15 +274,17 @@ def _smoothed_flat(f_converted, num_consts, name, *, num_samples, estimator, noi
         z_at = _noise_at(z, x, sigma)
         if estimator == "zeroth":
             if num_consts:
-                values, consts_terms = jax.vmap(
-                    lambda v: jax.jvp(lambda *c: f_converted(v, *c), tuple(consts), tuple(consts_dot))
-                )(perturbed)
+                values, consts_terms = over_samples(
+                    lambda v: jax.jvp(lambda *c: f_converted(v, *c), tuple(consts), tuple(consts_dot)), perturbed
+                )
             else:
-                values, consts_terms = jax.vmap(lambda v: f_converted(v, *consts))(perturbed), None
+                values, consts_terms = over_samples(lambda v: f_converted(v, *consts), perturbed), None
             reference = lax.stop_gradient(
                 _est.baseline_values(values, baseline, lambda: f_converted(lax.stop_gradient(x), *consts))
             )
-            weight = checked(ratio(z, x, sigma), x, sigma, values, reference)[:, None]
+            # the checks tied to a zero, not to the (M,) weights: a runtime check runs on one
+            # device, where the weights, laid out across devices (`devices`), would be gathered
+            weight = (ratio(z, x, sigma) + checked(jnp.zeros((), x.dtype), x, sigma, values, reference))[:, None]
             centred = values - reference
             # The zeroth-order weights: -(score(z) . x_dot + sigma_dot (z . score(z) + d)) / sigma.
             weights = _log_density_tangent(score, z_at, sigma, x_dot, sigma_dot, elementwise=False)[:, None]
@@ -280,7 +302,7 @@ def _smoothed_flat(f_converted, num_consts, name, *, num_samples, estimator, noi
         def sample_jvp(v, dv):
             return jax.jvp(lambda u, *c: f_converted(u, *c), (v, *consts), (dv, *consts_dot))
 
-        values, terms = jax.vmap(sample_jvp)(perturbed, direction)
+        values, terms = over_samples(sample_jvp, perturbed, direction)
         anchor = checked(jnp.zeros((), x.dtype), x, sigma, values)
         weight = (ratio(z, x, sigma) + anchor)[:, None]
         tangent = jnp.mean(terms, axis=0) + jnp.mean((weight - 1.0) * (terms - first_order_baseline(terms)), axis=0)

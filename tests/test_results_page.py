@@ -126,6 +126,19 @@ def test_startup_goals_and_compile_share(records):
     assert "| 75% |" in row  # 15 s of 20 s compiling
 
 
+def test_schedules_table(records):
+    runs = {"decrease-only": {"command": "rsmooth control solo-lift --method rddp", "success_pct": 60.0, "wall_s": 1.0},
+            "reheating": {"command": "rsmooth control solo-lift --method rddp-reheating", "success_pct": None, "wall_s": 1.0,
+                          "error": "boom"}}
+    records["cpu"]["schedules"] = _record_of("schedules", {"quick": False, "comparisons": {
+        "solo": {"task": "Solo-12 lifts HR", "metric": "runs (%)", "runs": runs}}}, "python -m benchmarks schedules")
+    page = results_page.render(records)
+    (row,) = _lines_with(page, "| Solo-12 lifts HR |")
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[1:4] == ["runs (%)", "60 %", "not measured"]
+    assert "`rsmooth control solo-lift --method rddp-reheating`" in row
+
+
 def test_experiments_tables(records):
     page = results_page.render(records)
     exp = page.split("## Experiments")[1]
