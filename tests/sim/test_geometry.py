@@ -185,8 +185,9 @@ def test_distance_and_witnesses_match_mujoco(name1, name2):
         np.testing.assert_allclose(contacts.point2[apart, 0, 2] - contacts.point1[apart, 0, 2], expected[apart], atol=1e-6)
 
 
-CYLINDER_PAIRS = [("sphere", "cylinder"), ("capsule", "cylinder"), ("box", "cylinder"), ("cylinder", "cylinder"),
-                  ("cylinder", "mesh")]
+# Capsule and mesh against a cylinder take the same prism path as box against a cylinder and
+# as capsule and mesh against a box (all tested): left out to keep the suite's compile time.
+CYLINDER_PAIRS = [("sphere", "cylinder"), ("box", "cylinder"), ("cylinder", "cylinder")]
 
 
 @pytest.mark.parametrize("name1, name2", CYLINDER_PAIRS, ids=[f"{a}-{b}" for a, b in CYLINDER_PAIRS])

@@ -156,24 +156,17 @@ def test_step_jacobian_of_sliding_box_matches_finite_differences():
     v = jnp.array([0.5, 0.1, 0.0, 0.0, 0.0, 0.0])
     x = system.state(system.initial_configuration, v)
     u = jnp.array([0.2, -0.1, 0.3, 0.0, 0.0, 0.0])
-    step = eqx.filter_jit(lambda s, x_, u_: s.step(x_, u_))
-    fx, fu = eqx.filter_jit(lambda s, x_, u_: jax.jacfwd(s.step, argnums=(0, 1))(x_, u_))(system, x, u)
+    # step_and_jacobians: forward mode through the step here (the closed form is gated off)
+    _, fx, fu = eqx.filter_jit(lambda s, x_, u_: s.step_and_jacobians(x_, u_))(system, x, u)
     assert np.all(np.isfinite(fx)) and np.all(np.isfinite(fu))
-    mode = eqx.filter_jit(lambda s, x_, u_: s.step_with_info(x_, u_)[1].mode)(system, x, u)
-    np.testing.assert_array_equal(mode, [sim.SLIDING] * 4)
+    step_with_info = eqx.filter_jit(lambda s, x_, u_: s.step_with_info(x_, u_))
+    np.testing.assert_array_equal(step_with_info(system, x, u)[1].mode, [sim.SLIDING] * 4)
+    step = lambda x_, u_: step_with_info(system, x_, u_)[0]  # noqa: E731
     eps = 1e-5  # the solver's tolerance limits smaller steps
-    numeric_x = np.stack(
-        [(step(system, x + eps * e, u) - step(system, x - eps * e, u)) / (2 * eps) for e in np.eye(system.nx)], axis=1
-    )
-    numeric_u = np.stack(
-        [(step(system, x, u + eps * e) - step(system, x, u - eps * e)) / (2 * eps) for e in np.eye(system.nu)], axis=1
-    )
+    numeric_x = np.stack([(step(x + eps * e, u) - step(x - eps * e, u)) / (2 * eps) for e in np.eye(system.nx)], axis=1)
+    numeric_u = np.stack([(step(x, u + eps * e) - step(x, u - eps * e)) / (2 * eps) for e in np.eye(system.nu)], axis=1)
     np.testing.assert_allclose(fx, numeric_x, rtol=1e-4, atol=2e-5)
     np.testing.assert_allclose(fu, numeric_u, rtol=1e-4, atol=2e-5)
-    # step_and_jacobians (forward mode through the step's equations) agrees
-    _, fx2, fu2 = eqx.filter_jit(lambda s, x_, u_: s.step_and_jacobians(x_, u_))(system, x, u)
-    np.testing.assert_allclose(fx2, fx, atol=1e-9)
-    np.testing.assert_allclose(fu2, fu, atol=1e-9)
 
 
 def test_bad_input_names_the_argument():
@@ -201,5 +194,3 @@ def test_bad_input_names_the_argument():
         sim.bodies([sim.HalfSpace()], [1.0], [[0, 0, 0.1]])
     with pytest.raises(ValueError, match="positions"):
         sim.bodies([box], [1.0], [0, 0, 0.1])
-    with pytest.raises(ValueError, match=r"shapes\[0\] and shapes\[1\]"):
-        sim.bodies([sim.Cylinder(0.1, 0.1), box], [1.0, 1.0], [[0, 0, 0.1], [1, 0, 0.1]])
