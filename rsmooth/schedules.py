@@ -190,20 +190,34 @@ class Adaptive(Schedule):
     def update(self, state, signal=None, loss=None):
         ema = self._average(state, signal)
         step = state.step + 1
+        best, stalled = _progress(state, loss, self._stall_tolerance())
         reduce = (ema > 0) & (step >= self.patience) & (state.sigma > self.floor)
+        grow = self._grow(state, reduce, ema, stalled)
         sigma = jnp.where(reduce, jnp.maximum(state.sigma / self.factor, self.floor), state.sigma)
+        sigma = jnp.where(grow, self._grown_sigma(state.sigma), sigma)
         grown = jnp.minimum(state.num_samples * self.sample_growth, self.max_num_samples)
         num_samples = jnp.where(reduce, grown, state.num_samples)
-        best, stalled = _progress(state, loss)
-        # After a reduction the average restarts, and so does the patience count.
+        changed = reduce | grow
+        # A new sigma is a new smoothed problem: the average, the patience and the stall count
+        # restart (the best loss is kept: progress is judged on one scale throughout).
         return ScheduleState(
             sigma=sigma,
             num_samples=num_samples.astype(state.num_samples.dtype),
-            step=jnp.where(reduce, 0, step),
-            ema=jnp.where(reduce, 0.0, ema),
+            step=jnp.where(changed, 0, step),
+            ema=jnp.where(changed, 0.0, ema),
             best=best,
-            stalled=stalled,
+            stalled=jnp.where(changed, 0, stalled),
         )
+
+    # The sign rule only decreases sigma; Reheating overrides these three.
+    def _stall_tolerance(self) -> float:
+        return 0.0
+
+    def _grow(self, state, reduce, ema, stalled) -> Array:
+        return jnp.zeros((), bool)
+
+    def _grown_sigma(self, sigma) -> Array:
+        return sigma
 
 
 class Reheating(Adaptive):
@@ -239,8 +253,7 @@ class Reheating(Adaptive):
     stall_patience: int = 10
     stall_tolerance: float = 1e-3
 
-    def __check_init__(self):
-        super().__check_init__()
+    def __check_init__(self):  # equinox runs Adaptive's too
         if not self.growth > 1.0:
             raise ValueError(f"growth must be > 1, got {self.growth}")
         if not self.ceiling > 0:
@@ -252,23 +265,13 @@ class Reheating(Adaptive):
     def update(self, state, signal=None, loss=None):
         if loss is None:
             raise ValueError("Reheating.update needs loss, the loss at the current iterate")
-        ema = self._average(state, signal)
-        step = state.step + 1
-        best, stalled = _progress(state, loss, self.stall_tolerance)
-        reduce = (ema > 0) & (step >= self.patience) & (state.sigma > self.floor)
-        grow = ~reduce & (ema <= 0) & (stalled >= self.stall_patience) & (state.sigma < self.ceiling)
-        sigma = jnp.where(reduce, jnp.maximum(state.sigma / self.factor, self.floor), state.sigma)
-        sigma = jnp.where(grow, jnp.minimum(state.sigma * self.growth, self.ceiling), sigma)
-        grown = jnp.minimum(state.num_samples * self.sample_growth, self.max_num_samples)
-        num_samples = jnp.where(reduce, grown, state.num_samples)
-        changed = reduce | grow
-        # A new sigma is a new smoothed problem: the average, the patience and the stall count
-        # restart (the best loss is kept: progress is judged on one scale throughout).
-        return ScheduleState(
-            sigma=sigma,
-            num_samples=num_samples.astype(state.num_samples.dtype),
-            step=jnp.where(changed, 0, step),
-            ema=jnp.where(changed, 0.0, ema),
-            best=best,
-            stalled=jnp.where(changed, 0, stalled),
-        )
+        return super().update(state, signal, loss)
+
+    def _stall_tolerance(self) -> float:
+        return self.stall_tolerance
+
+    def _grow(self, state, reduce, ema, stalled) -> Array:
+        return ~reduce & (ema <= 0) & (stalled >= self.stall_patience) & (state.sigma < self.ceiling)
+
+    def _grown_sigma(self, sigma) -> Array:
+        return jnp.minimum(sigma * self.growth, self.ceiling)
