@@ -198,11 +198,12 @@ def smoothed_dynamics_jacobians(
         y = jnp.concatenate([x, u]) / scale
         estimate = method(h, key, y, sigma=eps, num_samples=num_samples, noise=noise, **options)
         jacobian = estimate.grad / scale[None, :]
-        return jacobian[:, :nx], jacobian[:, nx:], estimate.sigma_grad
+        if noise_effect:
+            return jacobian[:, :nx], jacobian[:, nx:], estimate.sigma_grad
+        return jacobian[:, :nx], jacobian[:, nx:]
 
     keys = jax.random.split(key, us.shape[0])
-    fx, fu, effect = map_nodes(node, (keys, xs[:-1], us), batch_size)
-    return (fx, fu, effect) if noise_effect else (fx, fu)
+    return map_nodes(node, (keys, xs[:-1], us), batch_size)
 
 
 class RDDP(DDP):
@@ -313,7 +314,7 @@ class RDDP(DDP):
         # The estimators check that sigma > 0 at run time: hand them 1 where eps = 0 (the
         # branch of lax.cond that does not run).
         sigma = jnp.where(state.noise > 0, state.noise, 1.0)
-        return smoothed_dynamics_jacobians(
+        jacobians = smoothed_dynamics_jacobians(
             problem,
             key,
             state.trajectory.xs,
@@ -325,8 +326,12 @@ class RDDP(DDP):
             state_noise_scale=self.state_noise_scale,
             control_noise_scale=self.control_noise_scale,
             batch_size=self._sample_node_batch(),
-            noise_effect=True,
+            noise_effect=self.schedule == "reheating",
         )
+        if self.schedule == "reheating":
+            return jacobians
+        fx, fu = jacobians  # the noise effect is read by the reheating rule only
+        return fx, fu, jnp.zeros(fx.shape[:2], fx.dtype)
 
     def _sample_node_batch(self) -> int | None:
         """``sample_node_batch_size`` with ``"auto"`` decided (when the solve is traced)."""
