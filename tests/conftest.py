@@ -9,8 +9,12 @@ import os
 # slower, the compile-bound ones up to 1.6x faster); the programs' HLO and so their results are
 # the same, up to rounding. Set here, before JAX starts its backend, and inherited by the
 # tests' subprocesses; a level already in XLA_FLAGS is kept.
-if "--xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_backend_optimization_level=0".strip()
+# XLA:CPU's MLIR fusion emitters take about twice as long to compile the large programs (a
+# DDP or R-DDP step through the contact solver) as its older loop emitters; the tests compile
+# with the older ones. Same rule: a setting already in XLA_FLAGS is kept.
+for _flag, _value in (("--xla_backend_optimization_level", "0"), ("--xla_cpu_use_fusion_emitters", "false")):
+    if _flag not in os.environ.get("XLA_FLAGS", ""):
+        os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_flag}={_value}".strip()
 
 # On a GPU, JAX takes 75 % of its memory when its backend starts: with `pytest -n 2` the second
 # worker then fails at start-up (CUDA_ERROR_OUT_OF_MEMORY; seen on an H200 with 8 workers).

@@ -118,7 +118,8 @@ def test_keep_best_holds_the_closest_iterate_among_the_iterates_and_their_averag
     np.testing.assert_array_equal(plain.reported(plain_state)["axis_angle"], plain_state.best_params["axis_angle"])
 
     state, iterates = run(averaged)
-    np.testing.assert_array_equal(iterates, plain_iterates)
+    # the same iterates, up to rounding: the two steps are different programs, fused differently
+    np.testing.assert_allclose(iterates, plain_iterates, rtol=1e-10, atol=1e-12)
     averages, average = [], np.zeros_like(iterates[0])
     for omega in iterates:
         average = 0.7 * average + 0.3 * omega
