@@ -16,6 +16,7 @@ MODULES = (
     "perturbed_argmax",
     "null_gradients",
     "solo12_sim",
+    "sim_scene",
     "landscape_stiffness",
     "landscape_chaos",
     "landscape_continuity",

@@ -8,7 +8,8 @@ implicitly (:func:`solve_ncp`); collision geometry (:class:`Sphere`, :class:`Cap
 :class:`Box`, :class:`Cylinder`, :class:`HalfSpace`, :class:`ConvexMesh`) gives contact
 manifolds between posed shapes (:func:`collide`, :func:`candidate_pairs`); :class:`RigidBodySystem` steps a system in time
 (its contacts: spheres against half-spaces, and any pairs of shapes, :class:`GeomPair`) and is the
-``Dynamics`` (``step(x, u)``, ``nx``, ``nu``) that rsmooth's optimizers consume.
+``Dynamics`` (``step(x, u)``, ``nx``, ``nu``) that rsmooth's optimizers consume; :func:`scene`
+builds one from a MuJoCo model (MJCF or URDF), its geoms paired as MuJoCo pairs them.
 """
 
 from rsmooth.sim._collision import (
@@ -72,6 +73,7 @@ from rsmooth.sim._mujoco import (
     from_mujoco as from_mujoco,
     load_mjcf as load_mjcf,
 )
+from rsmooth.sim._scene import scene as scene
 from rsmooth.sim._simulator import (
     SEPARATED as SEPARATED,
     SLIDING as SLIDING,

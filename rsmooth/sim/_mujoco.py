@@ -91,11 +91,15 @@ class MujocoModel(eqx.Module):
         geom_friction: ``(ngeom,)``, sliding friction coefficient.
         geom_contype: ``contype`` bit mask of every geom.
         geom_conaffinity: ``conaffinity`` bit mask of every geom.
+        geom_priority: ``priority`` of every geom (of two touching geoms, the friction of
+            the one of higher priority applies; the larger of the two at equal priority).
         geom_vertices: for a mesh geom, its vertices ``(nvert, 3)`` in the geom's frame
             (``mesh_vert``); ``None`` for other geoms.
         geom_faces: for a mesh geom, its triangles ``(nface, 3)``, indices into its vertices;
             ``None`` for other geoms.
         contact_pairs: explicit contact pairs ``(geom1, geom2)`` (``<contact><pair>``).
+        pair_friction: ``(npair,)``, sliding friction of every explicit pair (its own
+            ``friction``, which replaces the geoms').
         excluded_body_pairs: body pairs whose contacts are excluded (``<contact><exclude>``),
             as MuJoCo body ids.
         collision_pairs: every geom pair MuJoCo's collision detection may test, before any
@@ -114,6 +118,8 @@ class MujocoModel(eqx.Module):
             (``jnt_actfrcrange``), ``[-inf, inf]`` where unlimited.
         qpos0: ``(nq,)``, MuJoCo's reference configuration on hinges and slides (zero
             elsewhere), subtracted from ``qpos`` to give ``q``.
+        default_qpos: ``(nq,)``, MuJoCo's ``qpos0`` in full: the configuration the file
+            describes, every free joint at its body's pose in the world.
         free_joint_qpos: ``qpos`` offset of every free joint.
         free_joint_qvel: ``qvel`` offset of every free joint.
     """
@@ -133,9 +139,11 @@ class MujocoModel(eqx.Module):
     geom_friction: jax.Array
     geom_contype: tuple[int, ...] = eqx.field(static=True)
     geom_conaffinity: tuple[int, ...] = eqx.field(static=True)
+    geom_priority: tuple[int, ...] = eqx.field(static=True)
     geom_vertices: tuple[jax.Array | None, ...]
     geom_faces: tuple[jax.Array | None, ...]
     contact_pairs: tuple[tuple[int, int], ...] = eqx.field(static=True)
+    pair_friction: jax.Array
     excluded_body_pairs: tuple[tuple[int, int], ...] = eqx.field(static=True)
     collision_pairs: tuple[tuple[int, int], ...] = eqx.field(static=True)
     actuator_names: tuple[str, ...] = eqx.field(static=True)
@@ -146,6 +154,7 @@ class MujocoModel(eqx.Module):
     actuator_force_range: jax.Array
     dof_actuator_force_range: jax.Array
     qpos0: jax.Array
+    default_qpos: jax.Array
     free_joint_qpos: tuple[int, ...] = eqx.field(static=True)
     free_joint_qvel: tuple[int, ...] = eqx.field(static=True)
 
@@ -649,14 +658,17 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         geom_friction=_array(m.geom_friction[:, 0]),
         geom_contype=tuple(int(c) for c in m.geom_contype),
         geom_conaffinity=tuple(int(c) for c in m.geom_conaffinity),
+        geom_priority=tuple(int(p) for p in m.geom_priority),
         geom_vertices=tuple(vertices),
         geom_faces=tuple(faces),
         contact_pairs=tuple((int(a), int(b)) for a, b in zip(m.pair_geom1, m.pair_geom2)),
+        pair_friction=_array(m.pair_friction[:, 0]).reshape(-1),
         # MuJoCo packs an excluded pair as body1 << 16 | body2.
         excluded_body_pairs=tuple((int(s) >> 16, int(s) & 0xFFFF) for s in m.exclude_signature),
         collision_pairs=_collision_pairs(mj, m),
         **actuator_info,
         qpos0=_array(qpos0),
+        default_qpos=_array(m.qpos0),
         free_joint_qpos=tuple(free_qpos),
         free_joint_qvel=tuple(free_qvel),
     )

@@ -517,7 +517,7 @@ class RigidBodySystem(eqx.Module):
         limited = jnp.clip(u, -self.input_limit, self.input_limit)
         clipped = jnp.any(limited != u)
         if self.actuation == "joints":
-            tau = jnp.zeros(self.model.nv, u.dtype).at[np.asarray(self.actuated_dofs)].set(limited)
+            tau = jnp.zeros(self.model.nv, u.dtype).at[np.asarray(self.actuated_dofs, dtype=np.int64)].set(limited)
             return tau, clipped
         if kinematics is None:
             kinematics = _dynamics._kinematics(self.model, q)

@@ -1,0 +1,249 @@
+"""Experiment: simulate a MuJoCo scene (MJCF or URDF) under gravity and write an animation.
+
+The file is converted by :func:`rsmooth.sim.scene` (its geoms paired as MuJoCo pairs them) and
+simulated from MuJoCo's ``qpos0`` at rest, with zero input, with hard frictional contact. The
+metrics say whether the simulation stayed sane: the deepest penetration, the change of
+mechanical energy (with zero input it can only be dissipated by contacts and damping: a gain
+is energy injected by the time stepping), the contacts active per step and the contact solves
+that did not converge. The animation draws every geom as its triangulated shape (a
+matplotlib 3-D view, each face shaded by its angle to a light); the plot shows the energy and
+the active contacts over time. Without ``--file`` a built-in scene is simulated: a stack of two
+boxes, a ball, a capsule lying on its side, a brick and a cylinder on a floor."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from rsmooth import _checks, sim, viz
+from rsmooth.experiments import _protocol
+
+METRICS_DOC = """metrics.json keys: file (the scene simulated; 'built-in' for the default), steps,
+time_step (s), bodies (MuJoCo bodies, the world included), geom_pairs, candidate_contacts,
+max_penetration (deepest penetration over the run, m), energy_initial, energy_final (J),
+energy_change (final - initial, J), energy_max_gain (largest rise above the initial energy
+over the run, J: energy injected), contacts_active_mean, contacts_active_max (contacts with a
+normal impulse, per step), unconverged_steps, diverged_steps, wall_time_s (compile
+included)."""
+
+DEMO_SCENE = """<mujoco>
+  <option timestep="0.01"/>
+  <default><geom contype="2" conaffinity="0" friction="0.6"/></default>
+  <worldbody>
+    <geom name="floor" type="plane" size="1 1 0.1" contype="1" conaffinity="3" friction="0.8"/>
+    <body name="base" pos="0 0 0.06"><freejoint/>
+      <geom type="box" size="0.15 0.12 0.05" contype="1" conaffinity="1"/></body>
+    <body name="middle" pos="0 0 0.16" euler="0 0 30"><freejoint/>
+      <geom type="box" size="0.1 0.08 0.04" contype="1" conaffinity="1"/></body>
+    <body name="ball" pos="0.45 0 0.12"><freejoint/><geom type="sphere" size="0.07"/></body>
+    <body name="log" pos="0 0.45 0.1" euler="0 90 0"><freejoint/>
+      <geom type="capsule" size="0.04 0.1"/></body>
+    <body name="brick" pos="-0.45 0 0.1" euler="0 0 -20"><freejoint/>
+      <geom type="box" size="0.06 0.05 0.04"/></body>
+    <body name="can" pos="0 -0.45 0.12"><freejoint/><geom type="cylinder" size="0.05 0.06"/></body>
+  </worldbody>
+</mujoco>"""
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    file: str = _protocol.option(
+        "", "MJCF (.xml) or URDF (.urdf) file of the scene; empty: the built-in scene (a box stack, a ball, a "
+        "capsule, a brick and a cylinder dropped on a floor).")
+    steps: int = _protocol.option(200, "Time steps.", min=1)
+    time_step: float | None = _protocol.option(None, "Time step, s; default: the file's opt.timestep.", above=0.0)
+    frames: int = _protocol.option(40, "Frames of the animation.", min=2)
+
+    @classmethod
+    def quick(cls, **changes) -> "Config":
+        return dataclasses.replace(cls(steps=100, frames=20), **changes)
+
+    def __post_init__(self):
+        _protocol.check_options(self)
+        if self.file and not Path(self.file).is_file():
+            raise ValueError(f"file (--file) must be an existing MJCF or URDF file, got {self.file!r}")
+
+
+def _geom_mesh(loaded, geom: int):
+    """The triangles of a geom in its own frame, ``(vertices, faces)``; ``None`` for a plane
+    (drawn as the floor) and for height fields and SDFs."""
+    import trimesh
+
+    kind, size = loaded.geom_types[geom], np.asarray(loaded.geom_size[geom], dtype=np.float64)
+    if kind == "sphere":
+        mesh = trimesh.creation.icosphere(subdivisions=2, radius=size[0])
+    elif kind == "ellipsoid":
+        mesh = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
+        mesh.vertices *= size
+    elif kind == "capsule":
+        mesh = trimesh.creation.capsule(height=2 * size[1], radius=size[0], count=[12, 8])
+    elif kind == "cylinder":
+        mesh = trimesh.creation.cylinder(radius=size[0], height=2 * size[1], sections=16)
+    elif kind == "box":
+        mesh = trimesh.creation.box(extents=2 * size)
+    elif kind == "mesh":
+        return np.asarray(loaded.geom_vertices[geom]), np.asarray(loaded.geom_faces[geom])
+    else:
+        return None
+    return np.asarray(mesh.vertices), np.asarray(mesh.faces)
+
+
+def _colors(count: int) -> np.ndarray:
+    return np.asarray(viz.plt.get_cmap("tab10")(np.arange(count) % 10))[:, :3]
+
+
+def draw(loaded, rotations, translations, title: str, bounds) -> np.ndarray:
+    """An RGB image of the scene with its joints at ``(rotations, translations)`` (matplotlib,
+    3-D): every geom's triangles, each face shaded by its angle to a light from above."""
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    fig = viz.plt.figure(figsize=(5.6, 4.4), dpi=80)
+    ax = fig.add_subplot(projection="3d")
+    (low, high) = bounds
+    light = np.array([0.3, -0.4, 0.87])
+    colors = _colors(loaded.ngeom)
+    for geom in range(loaded.ngeom):
+        shape = _geom_mesh(loaded, geom)
+        if shape is None:
+            continue
+        vertices, faces = shape
+        joint = loaded.geom_joints[geom]
+        rotation = rotations[joint] @ np.asarray(loaded.geom_rotation[geom])
+        translation = rotations[joint] @ np.asarray(loaded.geom_translation[geom]) + translations[joint]
+        triangles = (vertices @ rotation.T + translation)[faces]
+        normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+        normals /= np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
+        brightness = 0.35 + 0.65 * np.clip(normals @ light, 0.0, 1.0)
+        ax.add_collection3d(Poly3DCollection(triangles, facecolors=brightness[:, None] * colors[geom], linewidths=0))
+    # the floor: a grey square under the scene
+    corners = np.array([[low[0], low[1], 0.0], [high[0], low[1], 0.0], [high[0], high[1], 0.0], [low[0], high[1], 0.0]])
+    ax.add_collection3d(Poly3DCollection([corners], facecolors="0.85", alpha=0.5, linewidths=0))
+    ax.set_xlim(low[0], high[0])
+    ax.set_ylim(low[1], high[1])
+    ax.set_zlim(low[2], high[2])
+    ax.set_box_aspect(tuple(np.asarray(high) - np.asarray(low)))
+    ax.set_title(title, fontsize=9)
+    fig.canvas.draw()
+    image = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+    viz.plt.close(fig)
+    return image
+
+
+def _bounds(loaded, placements) -> tuple[np.ndarray, np.ndarray]:
+    """A box that holds every moving geom's reach over the run, and the floor under it."""
+    rotations, translations = placements
+    moving = [g for g in range(loaded.ngeom) if loaded.geom_joints[g] != 0 and _geom_mesh(loaded, g) is not None]
+    static = [g for g in range(loaded.ngeom) if loaded.geom_joints[g] == 0 and loaded.geom_types[g] != "plane"]
+    points = [np.zeros((1, 3))]
+    for geom in moving:
+        reach = float(np.linalg.norm(loaded.geom_size[geom])) if loaded.geom_types[geom] != "mesh" else float(
+            np.max(np.linalg.norm(np.asarray(loaded.geom_vertices[geom]), axis=-1)))
+        joint = loaded.geom_joints[geom]
+        centres = np.einsum("tab,b->ta", rotations[:, joint], np.asarray(loaded.geom_translation[geom]))
+        centres = centres + translations[:, joint]
+        points += [centres - reach, centres + reach]
+    for geom in static:
+        reach = float(np.linalg.norm(loaded.geom_size[geom]))
+        points += [np.asarray(loaded.geom_translation[geom])[None] - reach, np.asarray(loaded.geom_translation[geom])[None] + reach]
+    points = np.concatenate(points)
+    low, high = points.min(axis=0), points.max(axis=0)
+    low[2] = min(low[2], 0.0)
+    margin = 0.05 * max(float(np.max(high - low)), 0.1)
+    return low - margin, high + margin
+
+
+def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
+    """Simulates, writes metrics.json, scene.png and scene.gif under `out`."""
+    del key  # the simulation is deterministic
+    out = Path(out)
+    start = time.perf_counter()
+    loaded = sim.load_mjcf(config.file or DEMO_SCENE)
+    system = sim.scene(loaded, time_step=config.time_step)
+    bar = tqdm(total=2 + config.frames, desc="sim scene", disable=not progress)
+
+    # The rollout's diagnostics are checked below (sim.check_steps): its program leaves out
+    # the steps' traced checks.
+    @jax.jit
+    @_checks.without_traced_checks()
+    def simulate(x0):
+        xs, infos = system.rollout(x0, jnp.zeros((config.steps, system.nu)))
+        energies = jax.vmap(lambda x: sim.energy(system, x))(xs)
+        placements = jax.vmap(lambda x: sim.forward_kinematics(system.model, system.split(x)[0]))(xs)
+        return xs, infos, energies, placements
+
+    xs, infos, energies, placements = simulate(system.initial_state())
+    xs = jax.block_until_ready(xs)
+    counts = sim.check_steps(infos, what=f"the scene {config.file or 'built-in'}")
+    bar.update()
+    distances = np.asarray(infos.distance).reshape(config.steps, -1)
+    active = np.sum(np.asarray(infos.mode) != sim.SEPARATED, axis=-1) if distances.shape[1] else np.zeros(config.steps)
+    energies = np.asarray(energies)
+    dt = float(system.time_step)
+    metrics = {
+        "file": config.file or "built-in",
+        "steps": config.steps,
+        "time_step": dt,
+        "bodies": len(loaded.body_names),
+        "geom_pairs": len(system.geom_pairs),
+        "candidate_contacts": system.num_contacts,
+        "max_penetration": float(max(0.0, -distances.min())) if distances.size else 0.0,
+        "energy_initial": float(energies[0]),
+        "energy_final": float(energies[-1]),
+        "energy_change": float(energies[-1] - energies[0]),
+        "energy_max_gain": float(np.max(energies - energies[0])),
+        "contacts_active_mean": float(np.mean(active)),
+        "contacts_active_max": int(np.max(active)),
+        "unconverged_steps": counts["unconverged_steps"],
+        "diverged_steps": counts["diverged_steps"],
+    }
+    times = np.arange(config.steps + 1) * dt
+    fig, (ax_energy, ax_contacts) = viz.plt.subplots(1, 2, figsize=(11, 3.6))
+    ax_energy.plot(times, energies - energies[0], color="k")
+    ax_energy.set_xlabel("time (s)")
+    ax_energy.set_ylabel("energy - initial (J)")
+    ax_energy.set_title(f"{metrics['file']}: mechanical energy")
+    ax_contacts.step(times[1:], active, where="post", color="tab:blue")
+    ax_contacts.set_xlabel("time (s)")
+    ax_contacts.set_ylabel("active contacts")
+    fig.tight_layout()
+    viz.save_figure(fig, out / "scene.png")
+    bar.update()
+    rotations, translations = (np.asarray(p) for p in placements)
+    bounds = _bounds(loaded, (rotations, translations))
+    frames = []
+    for k in np.linspace(0, config.steps, config.frames).round().astype(int):
+        frames.append(draw(loaded, rotations[k], translations[k], f"t = {k * dt:.2f} s", bounds))
+        bar.update()
+    bar.close()
+    viz.save_animation(frames, out / "scene.gif", fps=max(1, round(config.frames / (config.steps * dt))))
+    metrics["wall_time_s"] = time.perf_counter() - start
+    viz.write_metrics(out / "metrics.json", metrics)
+    return metrics
+
+
+def summary(metrics: dict) -> dict:
+    """The lines printed after a run: penetration, energy, contacts, the contact solver."""
+    return {
+        "max penetration (m)": f"{metrics['max_penetration']:.2e}",
+        "energy change (J)": f"{metrics['energy_change']:.3e} (largest gain {metrics['energy_max_gain']:.2e})",
+        "active contacts per step": f"{metrics['contacts_active_mean']:.1f} (max {metrics['contacts_active_max']})",
+        "unconverged / diverged steps": f"{metrics['unconverged_steps']} / {metrics['diverged_steps']}",
+    }
+
+
+EXPERIMENT = _protocol.Experiment(
+    command=("sim", "scene"),
+    name="scene",
+    config=Config,
+    run=run,
+    summary=summary,
+    help="Simulate a MuJoCo scene (MJCF or URDF file, or a built-in one) under gravity with hard frictional "
+    "contact and write an animation of its shapes.",
+    metrics_doc=METRICS_DOC,
+)

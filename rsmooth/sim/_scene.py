@@ -1,0 +1,250 @@
+"""A MuJoCo scene (MJCF, or URDF through MuJoCo's compiler) as a :class:`RigidBodySystem`.
+
+:func:`~rsmooth.sim.load_mjcf` converts a file into a :class:`~rsmooth.sim.MujocoModel`: the
+kinematic tree and the collision geometry as plain data. :func:`scene` turns that data into a
+system that steps with hard frictional contact, as MuJoCo would pair its geoms:
+
+- every geom of a colliding pair becomes a collision shape with MuJoCo's sizes (``geom_size``:
+  a plane is a :class:`~rsmooth.sim.HalfSpace`, infinite, ``z <= 0`` of its frame; a sphere
+  its radius; a capsule and a cylinder their radius and half length along their ``z`` axis; a
+  box its half extents; a mesh the :class:`~rsmooth.sim.ConvexMesh` of its vertices' convex
+  hull, the shape MuJoCo collides);
+- every pair of :attr:`MujocoModel.collision_pairs` (MuJoCo's filters: welded bodies, parent
+  and child, ``<exclude>``, ``contype``/``conaffinity``, explicit ``<pair>``) becomes one
+  :class:`~rsmooth.sim.GeomPair`: a geom on the world or on a body welded to it is fixed in the
+  world, any other is carried by the frame of its MuJoCo body (frame index = body id);
+- the pair's friction is MuJoCo's: an explicit pair's own, else the one of the geom of higher
+  ``priority``, else the larger of the two geoms' sliding coefficients.
+
+The collision detection has no broad phase: :class:`~rsmooth.sim.RigidBodySystem` computes the
+manifold of every pair at every step, so the cost of a step grows with the number of pairs
+(prune pairs that cannot touch with ``contype``/``conaffinity`` or ``<exclude>``, as in
+MuJoCo).
+"""
+
+from __future__ import annotations
+
+import pathlib
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from rsmooth.sim._collision import manifold_size
+from rsmooth.sim._contact import NCPSolver
+from rsmooth.sim._geometry import Box, Capsule, Cylinder, HalfSpace, Sphere, convex_mesh
+from rsmooth.sim._mujoco import MujocoModel, load_mjcf
+from rsmooth.sim._simulator import GeomPair, RigidBodySystem
+from rsmooth.sim._systems import _number
+
+__all__ = ["scene"]
+
+
+def _shape(loaded: MujocoModel, geom: int, meshes: dict[int, Any]):
+    """The collision shape of a geom, in the geom's frame; ``None`` where rsmooth has none."""
+    kind = loaded.geom_types[geom]
+    size = np.asarray(loaded.geom_size[geom], dtype=np.float64)
+    if kind == "plane":
+        return HalfSpace()
+    if kind == "sphere":
+        return Sphere(size[0])
+    if kind == "capsule":
+        return Capsule(size[0], size[1])
+    if kind == "cylinder":
+        return Cylinder(size[0], size[1])
+    if kind == "box":
+        return Box(size)
+    if kind == "mesh":
+        if geom not in meshes:
+            meshes[geom] = convex_mesh(np.asarray(loaded.geom_vertices[geom], dtype=np.float64))
+        return meshes[geom]
+    return None
+
+
+def _describe(loaded: MujocoModel, geom: int) -> str:
+    return f"geom {loaded.geom_names[geom]!r} ({loaded.geom_types[geom]})"
+
+
+def _placement(loaded: MujocoModel, geom: int) -> tuple[int | None, tuple[jnp.ndarray, jnp.ndarray]]:
+    """``(frame, placement)`` of a geom: ``None`` and its world pose for a geom that does not
+    move; otherwise its MuJoCo body's frame and its pose in that frame."""
+    rotation = np.asarray(loaded.geom_rotation[geom], dtype=np.float64)
+    translation = np.asarray(loaded.geom_translation[geom], dtype=np.float64)
+    if loaded.geom_joints[geom] == 0:
+        # joint 0 is the universe: the geom's placement in its joint's frame is its world pose
+        return None, (jnp.asarray(rotation), jnp.asarray(translation))
+    body = loaded.geom_bodies[geom]  # frames start with the bodies, in MuJoCo's order
+    body_rotation = np.asarray(loaded.model.frame_placement_rotation[body], dtype=np.float64)
+    body_translation = np.asarray(loaded.model.frame_placement_translation[body], dtype=np.float64)
+    return body, (jnp.asarray(body_rotation.T @ rotation), jnp.asarray(body_rotation.T @ (translation - body_translation)))
+
+
+def _pair_friction(loaded: MujocoModel, index: int, geom1: int, geom2: int) -> float:
+    """MuJoCo's sliding friction of collision pair ``index`` (``mj_contactParam``)."""
+    if index < len(loaded.contact_pairs):  # the explicit pairs come first
+        return float(loaded.pair_friction[index])
+    priority1, priority2 = loaded.geom_priority[geom1], loaded.geom_priority[geom2]
+    friction1, friction2 = float(loaded.geom_friction[geom1]), float(loaded.geom_friction[geom2])
+    if priority1 != priority2:
+        return friction1 if priority1 > priority2 else friction2
+    return max(friction1, friction2)
+
+
+def _actuation(loaded: MujocoModel) -> tuple[tuple[int, ...], np.ndarray]:
+    """The dofs the motors drive and the symmetric bound of the generalized force on each.
+
+    The range of each motor's generalized force is its control range times its gain, clipped
+    to its force range, times its gear (MuJoCo's ``qfrc_actuator``); the ranges of the motors
+    of one dof add up and are clipped to the dof's ``actfrcrange``.
+    """
+    dofs = tuple(sorted(set(loaded.actuator_dofs)))
+    ctrl = np.asarray(loaded.actuator_ctrl_range, dtype=np.float64).reshape(-1, 2)
+    force = np.asarray(loaded.actuator_force_range, dtype=np.float64).reshape(-1, 2)
+    gain = np.asarray(loaded.actuator_gain, dtype=np.float64)
+    gear = np.asarray(loaded.actuator_gear, dtype=np.float64)
+    dof_range = np.asarray(loaded.dof_actuator_force_range, dtype=np.float64).reshape(-1, 2)
+    limits = []
+    for dof in dofs:
+        low = high = 0.0
+        motors = [a for a, d in enumerate(loaded.actuator_dofs) if d == dof]
+        for a in motors:
+            # interval products; a zero gain or gear reaches nothing, even from an infinite range
+            reach = np.sort(gain[a] * ctrl[a]) if gain[a] != 0 else np.zeros(2)
+            reach = np.clip(reach, force[a, 0], force[a, 1])
+            reach = np.sort(gear[a] * reach) if gear[a] != 0 else np.zeros(2)
+            low, high = low + reach[0], high + reach[1]
+        low, high = max(low, dof_range[dof, 0]), min(high, dof_range[dof, 1])
+        if not (np.isclose(low, -high, rtol=1e-9, atol=1e-12) and high > 0):
+            names = ", ".join(repr(loaded.actuator_names[a]) for a in motors)
+            raise ValueError(
+                f"actuator {names}: the generalized force it can apply ranges over [{low}, {high}], not a range "
+                "symmetric about 0 of positive width; the system's inputs are generalized forces bounded symmetrically "
+                "(set symmetric ctrlrange/forcerange/actfrcrange, or leave them unlimited)"
+            )
+        limits.append(high)
+    return dofs, np.asarray(limits, dtype=np.float64)
+
+
+def scene(
+    source: str | pathlib.Path | Any,
+    *,
+    package_dirs=(),
+    floating_base: bool = False,
+    time_step: float | None = None,
+    friction: float | None = None,
+    margin: float = 0.01,
+    solver: NCPSolver = NCPSolver(sticking_guess=True, rank_deficient=True, polish=True, max_iterations=1000),
+    baumgarte: float = 0.2,
+) -> RigidBodySystem:
+    """A MuJoCo model (MJCF or URDF) as a system with hard frictional contact.
+
+    The kinematic tree, gravity, armature and joint damping are those of
+    :func:`~rsmooth.sim.load_mjcf`; every colliding geom pair of MuJoCo is a
+    :class:`~rsmooth.sim.GeomPair` with MuJoCo's friction (see the module's description for
+    the mapping of geoms, frames and frictions). The input ``u`` ``(nu,)`` holds the
+    generalized forces on the dofs the model's motors drive (``actuated_dofs``, in increasing
+    order; ``nu = 0`` without motors), not MuJoCo's controls:
+    :meth:`MujocoModel.ctrl_to_tau` gives the forces of given controls. Each is bounded by
+    what the dof's motors can apply, ``+inf`` where unlimited. ``initial_state()`` is MuJoCo's
+    ``qpos0`` (the configuration the file describes) at rest.
+
+    Not simulated, as :func:`~rsmooth.sim.load_mjcf` reads them: joint position limits (MuJoCo
+    enforces them as constraints; here they are only on the model), ``solref``/``solimp``,
+    ``condim`` (every contact has sliding friction, none torsional or rolling), geom margins
+    and gaps, MuJoCo's integrator and solver settings.
+
+    Args:
+        source: a path to an MJCF (``.xml``) or URDF (``.urdf``) file, MJCF text, a
+            ``mujoco.MjModel``, or a :class:`~rsmooth.sim.MujocoModel`.
+        package_dirs: folders holding the packages that ``package://`` URIs name (URDF).
+        floating_base: give the first body under the world a free joint (a file or text
+            only; see :func:`~rsmooth.sim.load_mjcf`).
+        time_step: ``h`` (s); ``None``: MuJoCo's ``opt.timestep``.
+        friction: Coulomb coefficient of every pair, ``>= 0``; ``None``: MuJoCo's per pair.
+        margin: distance within which manifold entries are candidate contacts
+            (:attr:`GeomPair.margin`, m).
+        solver: NCP solver configuration, that of :func:`~rsmooth.sim.bodies` by default.
+        baumgarte: penetration correction rate in ``[0, 1]``.
+
+    Returns:
+        The system; its frames are the model's (bodies first, by MuJoCo body id), its geometry
+        pairs in the order of :attr:`MujocoModel.collision_pairs`.
+
+    Raises:
+        ValueError: if the model cannot be loaded or converted (see
+            :func:`~rsmooth.sim.load_mjcf`), if a colliding pair involves a geom with no
+            rsmooth shape (an ellipsoid) or a pair of shapes without a collision function (the
+            message names the geoms and their types), if the motors of a dof can apply a
+            generalized force over a range that is not symmetric about zero (the message names
+            them), if ``floating_base`` or ``package_dirs`` is given with a converted model,
+            or if ``time_step``, ``friction`` or ``margin`` is out of range.
+
+    Example:
+        >>> import rsmooth.sim as sim
+        >>> system = sim.scene('''<mujoco><option timestep="0.005"/><worldbody>
+        ...   <geom name="floor" type="plane" size="1 1 0.1"/>
+        ...   <body name="ball" pos="0 0 0.1"><freejoint/><geom type="sphere" size="0.1"/></body>
+        ... </worldbody></mujoco>''')
+        >>> system.nx, system.nu, system.num_contacts, round(float(system.time_step), 6)
+        (13, 0, 1, 0.005)
+    """
+    if isinstance(source, MujocoModel):
+        if floating_base or tuple(package_dirs):
+            raise ValueError("floating_base and package_dirs apply to a file or XML text, not to a converted MujocoModel")
+        loaded = source
+    else:
+        loaded = load_mjcf(source, package_dirs=package_dirs, floating_base=floating_base)
+    h = loaded.timestep if time_step is None else _number("time_step", time_step)
+    if friction is not None:
+        friction = _number("friction", friction, zero=True)
+    if isinstance(margin, bool) or not (np.ndim(margin) == 0 and np.isfinite(margin) and margin >= 0):
+        raise ValueError(f"margin must be a non-negative, finite number (m), got {margin!r}")
+    meshes: dict[int, Any] = {}
+    pairs = []
+    for index, (geom1, geom2) in enumerate(loaded.collision_pairs):
+        shape1, shape2 = _shape(loaded, geom1, meshes), _shape(loaded, geom2, meshes)
+        for geom, shape, other in ((geom1, shape1, geom2), (geom2, shape2, geom1)):
+            if shape is None:
+                raise ValueError(
+                    f"MuJoCo model: {_describe(loaded, geom)} collides with {_describe(loaded, other)}, but rsmooth.sim "
+                    f"has no {loaded.geom_types[geom]} collision shape (supported: plane, sphere, capsule, box, "
+                    "cylinder, mesh); give it contype = conaffinity = 0 or replace it"
+                )
+        try:
+            manifold_size(shape1, shape2)
+        except NotImplementedError:
+            raise ValueError(
+                f"MuJoCo model: {_describe(loaded, geom1)} collides with {_describe(loaded, geom2)}, a pair of shapes "
+                "rsmooth.sim's collide does not support"
+            ) from None
+        frame1, placement1 = _placement(loaded, geom1)
+        frame2, placement2 = _placement(loaded, geom2)
+        mu = _pair_friction(loaded, index, geom1, geom2) if friction is None else friction
+        pairs.append(
+            GeomPair(
+                shape1, frame1, shape2, frame2, friction=mu, placement1=placement1, placement2=placement2, margin=margin
+            )
+        )
+    dofs, limits = _actuation(loaded)
+    model = loaded.model
+    return RigidBodySystem(
+        model=model,
+        sphere_frames=(),
+        sphere_offsets=jnp.zeros((0, 3)),
+        sphere_radii=jnp.zeros(0),
+        plane_normals=jnp.zeros((0, 3)),
+        plane_offsets=jnp.zeros(0),
+        friction=jnp.zeros(0),
+        time_step=jnp.asarray(float(h)),
+        contact="hard",
+        solver=solver,
+        baumgarte=baumgarte,
+        actuation="joints",
+        actuated_dofs=dofs,
+        wrench_frame=0,
+        wrench_components=(),
+        input_limit=jnp.asarray(limits),
+        geom_pairs=tuple(pairs),
+        joint_damping=jnp.asarray(loaded.damping),
+        initial_configuration=loaded.qpos_to_q(loaded.default_qpos),
+    )

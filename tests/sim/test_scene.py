@@ -1,0 +1,172 @@
+"""Tests of `sim.scene`: a MuJoCo scene as a `RigidBodySystem`. References: the analytic resting
+heights of the scene's bodies, and MuJoCo itself: the pairs and frictions of its contacts
+(`mj_forward`) and its signed distances (`mj_geomDistance`) at seeded random configurations."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+import rsmooth.sim as sim
+
+# A stack of two boxes of different sizes (the upper one turned) and, side by
+# side, a ball, a capsule lying on its side, a brick and a cylinder standing on its cap (its geom
+# off its body's origin), each 2 mm above what it falls on. The objects beside the stack collide
+# with the floor only (contype 2 meets the floor's conaffinity, nothing meets their
+# conaffinity 0), so that the scene has 7 pairs rather than 21. The ball's priority makes its
+# own friction apply against the floor; the capsule meets the floor through an explicit pair
+# with its own friction.
+SCENE = """<mujoco>
+  <option timestep="0.02"/>
+  <default><geom contype="2" conaffinity="0" friction="0.6"/></default>
+  <worldbody>
+    <geom name="floor" type="plane" size="2 2 0.1" contype="1" conaffinity="3" friction="0.8"/>
+    <body name="base" pos="0 0 0.052"><freejoint/>
+      <geom name="base" type="box" size="0.15 0.12 0.05" contype="1" conaffinity="1"/></body>
+    <body name="middle" pos="0 0 0.144" euler="0 0 30"><freejoint/>
+      <geom name="middle" type="box" size="0.1 0.08 0.04" contype="1" conaffinity="1" friction="0.9"/></body>
+    <body name="ball" pos="0.5 0 0.072"><freejoint/>
+      <geom name="ball" type="sphere" size="0.07" friction="0.3" priority="1"/></body>
+    <body name="log" pos="0 0.5 0.042" euler="0 90 0"><freejoint/>
+      <geom name="log" type="capsule" size="0.04 0.1"/></body>
+    <body name="brick" pos="-0.5 0 0.042" euler="0 0 -20"><freejoint/>
+      <geom name="brick" type="box" size="0.06 0.05 0.04"/></body>
+    <body name="can" pos="0 -0.5 0.062"><freejoint/>
+      <geom name="can" type="cylinder" size="0.05 0.06" pos="0.02 0 0"/></body>
+  </worldbody>
+  <contact><pair geom1="floor" geom2="log" friction="0.5 0.5"/></contact>
+</mujoco>"""
+BODIES = ("base", "middle", "ball", "log", "brick", "can")
+# Height of each body's frame above the floor at rest: the box stack's half heights, the
+# ball's radius, the lying capsule's radius, the brick's half height, the cylinder's half length.
+REST_HEIGHTS = np.array([0.05, 0.1 + 0.04, 0.07, 0.04, 0.04, 0.06])
+
+
+def test_scene_comes_to_rest_at_the_analytic_heights():
+    system = sim.scene(SCENE)
+    assert float(system.time_step) == 0.02  # MuJoCo's opt.timestep
+    assert (system.nx, system.nu, len(system.geom_pairs), system.num_contacts) == (78, 0, 7, 23)
+    assert isinstance(system.geom_pairs[0].shape2, sim.Capsule)  # the explicit pair comes first
+    steps = 100  # 2 s
+    xs, infos = eqx.filter_jit(lambda s, x: s.rollout(x, jnp.zeros((steps, 0))))(system, system.initial_state())
+    counts = sim.check_steps(infos, what="a MuJoCo scene settling")  # a warning is an error here
+    assert counts == {"steps": steps, "unconverged_steps": 0, "diverged_steps": 0}
+    xs = np.asarray(xs)
+    poses = xs[:, : system.model.nq].reshape(steps + 1, len(BODIES), 7)
+    # qpos0: every body 2 mm above what it falls on, as the file places it
+    np.testing.assert_allclose(poses[0, :, 2], REST_HEIGHTS + [0.002, 0.004, 0.002, 0.002, 0.002, 0.002], atol=1e-12)
+    np.testing.assert_allclose(poses[-1, :, 2], REST_HEIGHTS, atol=1e-3)
+    # they settle straight down, without sliding or turning
+    np.testing.assert_allclose(poses[-1, :, :2], poses[0, :, :2], atol=1e-3)
+    np.testing.assert_allclose(np.abs(np.sum(poses[-1, :, 3:] * poses[0, :, 3:], axis=-1)), 1.0, atol=1e-6)
+    assert np.max(np.abs(xs[-10:, system.model.nq :])) < 1e-3  # at rest over the last 0.2 s
+
+
+def _random_qpos(rng, count: int) -> np.ndarray:
+    """MuJoCo configurations of the scene: every body within 0.12 m of the origin sideways, its
+    centre from 5 cm below the floor to 20 cm above, turned at random."""
+    positions = np.concatenate(
+        [rng.uniform(-0.12, 0.12, size=(count, len(BODIES), 2)), rng.uniform(-0.05, 0.2, size=(count, len(BODIES), 1))],
+        axis=-1,
+    )
+    quaternions = rng.normal(size=(count, len(BODIES), 4))
+    quaternions /= np.linalg.norm(quaternions, axis=-1, keepdims=True)
+    return np.concatenate([positions, quaternions], axis=-1).reshape(count, -1)
+
+
+def _distances(m, loaded, system, qpos) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distances ``(N, pairs)`` of every collision pair at MuJoCo configurations ``qpos``
+    ``(N, nq)``: MuJoCo's (``mj_geomDistance``) and entry 0 of the system's manifolds (the
+    system's margin must exceed them, else it reports 10 m)."""
+    data = mujoco.MjData(m)
+    expected = []
+    for configuration in qpos:
+        data.qpos[:] = configuration
+        mujoco.mj_kinematics(m, data)
+        expected.append([mujoco.mj_geomDistance(m, data, g1, g2, 1.0, None) for g1, g2 in loaded.collision_pairs])
+    distances = jax.jit(jax.vmap(lambda q: system.contacts(q)[0]))(loaded.qpos_to_q(jnp.asarray(qpos)))
+    starts = np.cumsum([0] + [pair.size for pair in system.geom_pairs])[:-1]
+    return np.array(expected), np.asarray(distances)[:, starts]
+
+
+def test_pairs_frictions_and_distances_match_mujoco():
+    m = mujoco.MjModel.from_xml_string(SCENE)
+    loaded = sim.load_mjcf(m)
+    # a margin of 1 m makes entry 0 of every pair's manifold its signed distance in contacts()
+    system = sim.scene(loaded, margin=1.0)
+    names = [frozenset(loaded.geom_names[g] for g in pair) for pair in loaded.collision_pairs]
+    kinds = [(type(p.shape1).__name__, type(p.shape2).__name__) for p in system.geom_pairs]
+    expected_kinds = [(loaded.geom_types[a], loaded.geom_types[b]) for a, b in loaded.collision_pairs]
+    shape_of = {"HalfSpace": "plane", "Box": "box", "Sphere": "sphere", "Capsule": "capsule", "Cylinder": "cylinder"}
+    assert [(shape_of[a], shape_of[b]) for a, b in kinds] == expected_kinds
+    # geoms on the world are fixed there, the others ride on their body's frame
+    for (g1, g2), pair in zip(loaded.collision_pairs, system.geom_pairs):
+        for geom, frame in ((g1, pair.frame1), (g2, pair.frame2)):
+            body = loaded.geom_bodies[geom]
+            assert frame == (None if body == 0 else system.model.frame_id(loaded.body_names[body]))
+
+    # signed distances of every pair at random configurations, about half of them penetrating
+    expected, ours = _distances(m, loaded, system, _random_qpos(np.random.default_rng(0), 8))
+    assert 0.3 < np.mean(expected < 0) < 0.7
+    np.testing.assert_allclose(ours, expected, atol=1e-6)
+
+    # frictions: with every margin at 1 m, MuJoCo reports one contact per pair at qpos0
+    m.geom_margin[:] = 1.0
+    m.pair_margin[:] = 1.0
+    data = mujoco.MjData(m)
+    mujoco.mj_forward(m, data)
+    reported = {}
+    for contact in data.contact[: data.ncon]:
+        reported[frozenset(loaded.geom_names[g] for g in contact.geom)] = float(contact.friction[0])
+    assert set(reported) == set(names)
+    assert {name: float(pair.friction) for name, pair in zip(names, system.geom_pairs)} == pytest.approx(reported)
+    assert reported[frozenset(("floor", "ball"))] == 0.3 and reported[frozenset(("floor", "log"))] == 0.5
+    # a friction given overrides MuJoCo's
+    assert {float(p.friction) for p in sim.scene(loaded, friction=0.25).geom_pairs} == {0.25}
+
+
+# A hinged arm (its axis off the body's origin) whose capsule link swings through the floor,
+# with a hand welded to it, turned, carrying a box off its origin.
+ARM = """<mujoco><worldbody>
+  <geom name="floor" type="plane" size="1 1 0.1"/>
+  <body name="arm" pos="0 0 0.15" euler="10 0 0"><joint name="hinge" pos="0.05 0 0" axis="0 1 0" damping="0.3"/>
+    <geom name="link" type="capsule" size="0.05" fromto="0 0 0 0.5 0 0"/>
+    <body name="hand" pos="0.5 0 0" euler="0 30 45">
+      <geom name="hand" type="box" size="0.08 0.05 0.03" pos="0.05 0 0" euler="20 0 0"/></body>
+    {extra}
+  </body></worldbody>
+  <actuator><motor name="motor" joint="hinge" gear="2" ctrlrange="{low} 1"/></actuator>
+</mujoco>"""
+
+
+def test_hinged_and_welded_geoms_match_mujoco():
+    """Geoms on a hinged body and on a body welded to it ride on their bodies' frames, placed
+    as MuJoCo places them: MuJoCo's distances at random hinge angles."""
+    m = mujoco.MjModel.from_xml_string(ARM.format(extra="", low=-1))
+    loaded = sim.load_mjcf(m)
+    system = sim.scene(loaded, margin=1.0)
+    hand = system.model.frame_id("hand")
+    assert [(p.frame1, p.frame2) for p in system.geom_pairs] == [(None, system.model.frame_id("arm")), (None, hand)]
+    qpos = np.random.default_rng(1).uniform(-np.pi, np.pi, size=(16, 1))
+    expected, ours = _distances(m, loaded, system, qpos)
+    assert 0.2 < np.mean(expected < 0) < 0.8
+    np.testing.assert_allclose(ours, expected, atol=1e-6)
+
+
+def test_actuation_and_bad_input_are_named():
+    arm = sim.scene(ARM.format(extra="", low=-1))
+    assert arm.actuated_dofs == (0,) and arm.nu == 1
+    np.testing.assert_allclose(arm.input_limit, [2.0])  # ctrlrange times gear
+    np.testing.assert_allclose(arm.joint_damping, [0.3])
+    assert float(arm.time_step) == 0.002  # MuJoCo's default
+    with pytest.raises(ValueError, match=r"geom 'blob' \(ellipsoid\) collides with geom 'floor' \(plane\)"):
+        sim.scene(ARM.format(extra='<geom name="blob" type="ellipsoid" size="0.1 0.2 0.1"/>', low=-1))
+    with pytest.raises(ValueError, match=r"actuator 'motor'.*\[0.0, 2.0\].*symmetric"):
+        sim.scene(ARM.format(extra="", low=0))
+    for argument, value in (("time_step", 0.0), ("friction", -0.1), ("margin", -1.0)):
+        with pytest.raises(ValueError, match=argument):
+            sim.scene(ARM.format(extra="", low=-1), **{argument: value})
+    with pytest.raises(ValueError, match="floating_base"):
+        sim.scene(sim.load_mjcf(ARM.format(extra="", low=-1)), floating_base=True)
