@@ -92,6 +92,6 @@ if __name__ == "__main__":
     args = parser.parse_args()
     from rsmooth import _xla
 
-    _xla.apply_cpu_defaults()  # the settings `rsmooth render` runs with, before JAX starts
+    _xla.apply_cpu_defaults(render=True)  # the settings `rsmooth render` runs with, before JAX starts
     changes = {name: value for name, value in (("num_samples", args.samples), ("baseline", args.baseline)) if value is not None}
     main(tuple(args.seeds), tuple(args.runs), args.steps, args.json_path, **changes)

@@ -6,12 +6,20 @@ code unrolls its own sums, but the sums that autodiff inserts (transposes of bro
 go there; ``--xla_cpu_experimental_ynn_fusion_type=`` (an empty list of fusion types) turns
 the kernels off, which speeds up the renderer's batched forward and backward passes.
 
-XLA aborts the process on a flag it does not know, so the flag is added only for the jaxlib
+Its MLIR fusion emitters compile the large programs (a DDP or R-DDP step through the contact
+solver, a renderer's backward pass) about twice as slowly as the older loop emitters, for
+programs that run as fast either way (``python -m benchmarks startup``):
+``--xla_cpu_use_fusion_emitters=false`` (:data:`EMITTERS_FLAG`) halves what a first run of a
+command waits for.
+
+XLA aborts the process on a flag it does not know, so a flag is added only for the jaxlib
 versions known to have it (:data:`KNOWN_JAXLIB`), only when the user has not set it, and never
 by merely importing rsmooth (a library must not change its host's XLA configuration): the
-console entry point calls :func:`apply_cpu_defaults` for the ``rsmooth render`` commands only,
-before JAX creates its backend. Not for the simulator, whose batched step Jacobian is slower
-with the flag. ``RSMOOTH_XLA_DEFAULTS=0`` leaves ``XLA_FLAGS`` alone.
+console entry point calls :func:`apply_cpu_defaults` before JAX creates its backend, with the
+YNNPACK opt-out for the ``rsmooth render`` commands only (the simulator's batched step
+Jacobian is slower with it). ``RSMOOTH_XLA_DEFAULTS=0`` leaves ``XLA_FLAGS`` alone. A script
+or notebook that imports rsmooth sets the same flags itself, in ``XLA_FLAGS`` before JAX
+starts.
 
 :func:`on_accelerator` is what the solvers' ``"auto"`` batch sizes ask (``NCPSolver.chunk_size``,
 ``DDP.line_search_batch``, ``RDDP.sample_node_batch_size``): on a CPU a batch costs its
@@ -29,14 +37,17 @@ import jax
 import jax.numpy as jnp
 
 YNN_FLAG = "--xla_cpu_experimental_ynn_fusion_type"
-# jaxlib versions on which the flag exists and helps (see the module docstring)
+EMITTERS_FLAG = "--xla_cpu_use_fusion_emitters"
+# jaxlib versions on which the flags exist and help (see the module docstring)
 KNOWN_JAXLIB = ("0.10.",)
 
 
-def apply_cpu_defaults(environ: dict | None = None) -> bool:
-    """Add the YNNPACK opt-out to ``XLA_FLAGS`` when it is known to be safe; True if added.
+def apply_cpu_defaults(environ: dict | None = None, *, render: bool = False) -> bool:
+    """Add rsmooth's CPU flags to ``XLA_FLAGS`` where known to be safe; True if any was added.
 
-    Call it before the first JAX computation (XLA reads its flags when the backend starts).
+    The loop emitters (:data:`EMITTERS_FLAG`) always; the YNNPACK opt-out (:data:`YNN_FLAG`)
+    with ``render``. A flag the user has set, in any value, is kept. Call it before the first
+    JAX computation (XLA reads its flags when the backend starts).
     """
     environ = os.environ if environ is None else environ
     if environ.get("RSMOOTH_XLA_DEFAULTS", "1") == "0":
@@ -45,11 +56,14 @@ def apply_cpu_defaults(environ: dict | None = None) -> bool:
         version = importlib.metadata.version("jaxlib")
     except importlib.metadata.PackageNotFoundError:
         return False
-    flags = environ.get("XLA_FLAGS", "")
-    if not version.startswith(KNOWN_JAXLIB) or YNN_FLAG in flags:
+    if not version.startswith(KNOWN_JAXLIB):
         return False
-    environ["XLA_FLAGS"] = f"{flags} {YNN_FLAG}=".strip()
-    return True
+    flags = environ.get("XLA_FLAGS", "")
+    wanted = [(EMITTERS_FLAG, "false")] + ([(YNN_FLAG, "")] if render else [])
+    added = [f"{flag}={value}" for flag, value in wanted if flag not in flags]
+    if added:
+        environ["XLA_FLAGS"] = " ".join([flags, *added]).strip()
+    return bool(added)
 
 
 CACHE_VARIABLE = "RSMOOTH_COMPILATION_CACHE"

@@ -432,8 +432,8 @@ def main():  # the console-script entry point
     try:
         from rsmooth import _xla
 
-        if sys.argv[1:2] == ["render"]:
-            _xla.apply_cpu_defaults()  # before JAX starts its backend (see rsmooth._xla)
+        # before JAX starts its backend (see rsmooth._xla)
+        _xla.apply_cpu_defaults(render=sys.argv[1:2] == ["render"])
         _xla.enable_compilation_cache()
         app()
     except BaseException:

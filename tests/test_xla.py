@@ -14,13 +14,17 @@ def _version(monkeypatch, version):
     monkeypatch.setattr(importlib.metadata, "version", lambda name: version)
 
 
-def test_flag_added_once_on_a_known_jaxlib(monkeypatch):
+def test_flags_added_once_on_a_known_jaxlib(monkeypatch):
     _version(monkeypatch, "0.10.2")
     env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
-    assert _xla.apply_cpu_defaults(env)
-    assert env["XLA_FLAGS"] == f"--xla_force_host_platform_device_count=2 {_xla.YNN_FLAG}="
-    assert not _xla.apply_cpu_defaults(env)  # already there: unchanged
-    assert env["XLA_FLAGS"].count(_xla.YNN_FLAG) == 1
+    assert _xla.apply_cpu_defaults(env)  # every command: the loop emitters
+    assert env["XLA_FLAGS"] == f"--xla_force_host_platform_device_count=2 {_xla.EMITTERS_FLAG}=false"
+    assert _xla.apply_cpu_defaults(env, render=True)  # the render commands: and no YNNPACK
+    assert env["XLA_FLAGS"] == f"--xla_force_host_platform_device_count=2 {_xla.EMITTERS_FLAG}=false {_xla.YNN_FLAG}="
+    assert not _xla.apply_cpu_defaults(env, render=True)  # already there: unchanged
+    assert env["XLA_FLAGS"].count(_xla.YNN_FLAG) == 1 and env["XLA_FLAGS"].count(_xla.EMITTERS_FLAG) == 1
+    env = {"XLA_FLAGS": f"{_xla.EMITTERS_FLAG}=true"}  # the user's own choice is kept
+    assert _xla.apply_cpu_defaults(env, render=True) and env["XLA_FLAGS"] == f"{_xla.EMITTERS_FLAG}=true {_xla.YNN_FLAG}="
 
 
 @pytest.mark.parametrize(
@@ -29,13 +33,13 @@ def test_flag_added_once_on_a_known_jaxlib(monkeypatch):
         ("0.9.1", {}),  # a jaxlib not known to have the flag (XLA aborts on unknown flags)
         ("0.11.0", {}),
         ("0.10.2", {"RSMOOTH_XLA_DEFAULTS": "0"}),  # the opt-out
-        ("0.10.2", {"XLA_FLAGS": f"{_xla.YNN_FLAG}=reduce"}),  # the user's own choice
+        ("0.10.2", {"XLA_FLAGS": f"{_xla.YNN_FLAG}=reduce {_xla.EMITTERS_FLAG}=true"}),  # the user's own choice
     ],
 )
 def test_flags_left_alone(monkeypatch, version, env):
     _version(monkeypatch, version)
     before = dict(env)
-    assert not _xla.apply_cpu_defaults(env)
+    assert not _xla.apply_cpu_defaults(env, render=True)
     assert env == before
 
 
@@ -43,7 +47,7 @@ def test_installed_xla_accepts_what_is_added():
     # On the installed jaxlib: whatever apply_cpu_defaults adds, XLA must start with it (an
     # unknown flag aborts the process).
     code = (
-        "from rsmooth import _xla; added = _xla.apply_cpu_defaults(); "
+        "from rsmooth import _xla; added = _xla.apply_cpu_defaults(render=True); "
         "import jax.numpy as jnp; print(added, float(jnp.sum(jnp.arange(4.0))))"
     )
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "RSMOOTH_XLA_DEFAULTS")}
