@@ -17,11 +17,12 @@ import dataclasses
 import time
 from typing import Callable
 
+import equinox as eqx
 import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from rsmooth import control, viz
+from rsmooth import _checks, control, sim, viz
 from rsmooth.experiments import _protocol
 
 METHOD_CHOICES = ("ddp", "rddp", "rddp-reheating", "all")
@@ -136,16 +137,40 @@ def rddp_solver(config, control_noise_scale: float, state_noise_scale: tuple[flo
 
 
 def solve(name: str, solver: control.DDP, problem: control.ShootingProblem, us_init, key, callback=None) -> control.Solution:
-    """Runs one method; failures are reported in the solution, not raised."""
+    """Runs one method; failures are reported in the solution, not raised.
+
+    Where the dynamics is a simulator (:class:`rsmooth.sim.RigidBodySystem`), the solution's
+    controls are simulated again from its first state with the contact solver's diagnostics,
+    which the solvers' programs do not carry: ``solution.stats["contact"]`` holds
+    :func:`rsmooth.sim.check_steps`'s counts, and an unconverged or diverged step of the
+    returned trajectory is reported (a ``SimulationWarning``), not silent.
+    """
     solver = dataclasses.replace(solver, throw=False)
     if name == "ddp":
-        return control.ddp(problem, us_init, solver=solver, callback=callback)
-    return control.rddp(problem, key, us_init, solver=solver, callback=callback)
+        solution = control.ddp(problem, us_init, solver=solver, callback=callback)
+    else:
+        solution = control.rddp(problem, key, us_init, solver=solver, callback=callback)
+    if not isinstance(problem.dynamics, sim.RigidBodySystem):
+        return solution
+    infos = _rollout_infos(problem.dynamics, solution.xs[0], solution.us)
+    counts = sim.check_steps(infos, what=f"the {name} solution's trajectory")
+    return dataclasses.replace(solution, stats={**solution.stats, "contact": counts})
+
+
+@eqx.filter_jit
+@_checks.without_traced_checks()
+def _rollout_infos(system, x0, us):
+    """The step diagnostics of ``system.rollout(x0, us)``; one program per system and shapes
+    (its traced checks left out: :func:`rsmooth.sim.check_steps` reads the diagnostics)."""
+    return system.rollout(x0, us)[1]
 
 
 def solution_summary(solution: control.Solution) -> dict:
-    """The solver's part of a run's metrics."""
+    """The solver's part of a run's metrics (with the trajectory's contact solves that did
+    not converge, and its diverged steps, where :func:`solve` simulated it again)."""
+    contact = solution.stats.get("contact")
     return {
+        **({"unconverged_steps": contact["unconverged_steps"], "diverged_steps": contact["diverged_steps"]} if contact else {}),
         "final_cost": float(solution.cost),
         "iterations": solution.iterations,
         "converged": solution.converged,

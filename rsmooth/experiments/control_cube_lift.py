@@ -31,7 +31,8 @@ from rsmooth.experiments import _control, _protocol
 METRICS_DOC = """metrics.json keys: task, methods, seeds, target_height (m above the rest height),
 tolerance (m), and per method (ddp, rddp, rddp-geometric-D): success (first seed), final_cost,
 iterations, converged, result, wall_time_s (the solve, compilation included), time_per_iteration_s
-(median, compiled), final_height (m above rest), max_force (N), success_rate (over seeds),
+(median, compiled), unconverged_steps and diverged_steps (the
+returned trajectory simulated again: contact solves that did not converge, steps that diverged), final_height (m above rest), max_force (N), success_rate (over seeds),
 median_final_cost, median_iterations, per_seed (the runs). With --method ddp or rddp, the keys of
 that method are also at the top level."""
 

@@ -46,7 +46,8 @@ METRICS_DOC = """metrics.json keys: task, methods, seeds, target (x m, y m, yaw 
 at the origin with yaw 0), finger_gap (m), finger_y (m), position_tolerance (m),
 yaw_tolerance_deg, speed_tolerance (m/s), and per method (ddp, rddp, rddp-geometric-D): success
 (first seed), final_cost, iterations, converged, result, wall_time_s (the solve, compilation
-included), time_per_iteration_s (median, compiled), position_error (final box centre to target,
+included), time_per_iteration_s (median, compiled), unconverged_steps and diverged_steps (the
+returned trajectory simulated again: contact solves that did not converge, steps that diverged), position_error (final box centre to target,
 m), yaw_error_deg, final_box (x m, y m, yaw deg), final_speed (box, m/s), box_displacement
 (final box centre to its start, m), max_force (N), success_rate (over seeds), median_final_cost,
 median_iterations, per_seed (the runs). With --method ddp or rddp, the keys of that method are

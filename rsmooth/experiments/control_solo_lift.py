@@ -66,7 +66,8 @@ FEET = ("FL", "FR", "HL", "HR")
 METRICS_DOC = """metrics.json keys: task, foot, target_height (m above the foot's start), methods,
 seeds, and per method (ddp, rddp, rddp-geometric-D): success (first seed), final_cost,
 iterations, converged, result, wall_time_s (the solve, compilation included),
-time_per_iteration_s (median, compiled), foot_height (final height of the lifted foot above its
+time_per_iteration_s (median, compiled), unconverged_steps and diverged_steps (the
+returned trajectory simulated again: contact solves that did not converge, steps that diverged), foot_height (final height of the lifted foot above its
 start, m), other_feet_max_height (highest the other feet rose over the horizon, m),
 other_feet_max_slip (their largest horizontal displacement, m), base_tilt_deg (final angle of
 the base's vertical axis), base_drift (final base displacement, m), success_rate (over seeds),

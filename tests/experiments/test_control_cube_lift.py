@@ -21,6 +21,8 @@ def test_ddp_stays_at_rest_and_rddp_reaches_the_target(tmp_path, getkey):
     # R-DDP: lifted within tolerance, finished with eps = 0 on the true dynamics.
     assert rddp["success"] and abs(rddp["final_height"] - config.height) < config.tolerance
     assert rddp["converged"] and rddp["final_cost"] < 0.01 * ddp["final_cost"]
+    # both trajectories simulated again: every contact solve converged (a warning would fail here)
+    assert ddp["unconverged_steps"] == rddp["unconverged_steps"] == rddp["diverged_steps"] == 0
     written = json.loads((tmp_path / "metrics.json").read_text())
     assert written["rddp"]["success_rate"] == 1.0 and written["ddp"]["success_rate"] == 0.0
     assert (tmp_path / "cube_lift.png").stat().st_size > 0 and (tmp_path / "cube_lift.gif").stat().st_size > 0

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from rsmooth import sim
 from rsmooth.cli import app
 from rsmooth.experiments import control_pusher
 
@@ -14,13 +15,18 @@ from rsmooth.experiments import control_pusher
 @pytest.mark.slow
 def test_ddp_leaves_the_box_and_rddp_pushes_it_to_the_target(tmp_path, getkey):
     config = control_pusher.Config(seeds=1, geometric_decays=(), num_samples=8, max_iterations=8)
-    metrics = control_pusher.run(config, tmp_path, getkey(), progress=False)
+    # The R-DDP trajectory, simulated again, leaves a few contact solves just short of the
+    # solver's tolerance (ADMM's iteration cap on sliding contact): reported, as counted below.
+    with pytest.warns(sim.SimulationWarning, match="the rddp solution's trajectory"):
+        metrics = control_pusher.run(config, tmp_path, getkey(), progress=False)
     assert metrics["methods"] == ["ddp", "rddp"]
     ddp, rddp = metrics["ddp"], metrics["rddp"]
     # DDP: with the finger 3 cm away, the box's pose does not depend on the forces; the first
     # backward pass sees no descent direction and nothing moves.
     assert ddp["iterations"] == 1 and ddp["converged"] and ddp["max_force"] == 0.0
     assert ddp["box_displacement"] < 1e-6 and not ddp["success"]
+    assert ddp["unconverged_steps"] == ddp["diverged_steps"] == rddp["diverged_steps"] == 0
+    assert 0 < rddp["unconverged_steps"] <= config.horizon // 10
     np.testing.assert_allclose(ddp["position_error"], np.hypot(config.target_x, config.target_y), atol=1e-6)
     # R-DDP: the box pushed and turned onto the target, at rest.
     assert rddp["position_error"] < config.position_tolerance < ddp["position_error"]

@@ -23,6 +23,7 @@ def test_ddp_keeps_four_feet_down_and_rddp_lifts_the_foot(tmp_path, getkey):
     assert abs(rddp["foot_height"] - config.height) < config.tolerance
     assert rddp["other_feet_max_height"] < 1e-3 and rddp["other_feet_max_slip"] < 5e-3
     assert rddp["base_tilt_deg"] < 10.0 and rddp["final_cost"] < 0.5 * ddp["final_cost"]
+    assert ddp["unconverged_steps"] == rddp["unconverged_steps"] == rddp["diverged_steps"] == 0
     written = json.loads((tmp_path / "metrics.json").read_text())
     assert written["foot"] == "HR" and written["rddp"]["success_rate"] == 1.0
     assert (tmp_path / "solo_lift.png").stat().st_size > 0 and (tmp_path / "solo_lift.gif").stat().st_size > 0
