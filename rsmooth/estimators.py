@@ -18,7 +18,7 @@ and its gradient can be estimated from :math:`M` samples in two ways:
 The alpha-order estimator (Suh, Simchowitz, Zhang, Tedrake, "Do differentiable simulators
 give better policy gradients?", ICML 2022, Sec. 4) blends the two, computed on independent
 sample batches, choosing alpha from their empirical variances inside an empirical-bias trust
-region.
+region; or, with ``rule="inverse_variance"``, one weight per entry of the gradient.
 
 All estimators also return :math:`\partial f_\sigma / \partial \sigma`, which the adaptive
 noise schedules use.
@@ -63,7 +63,9 @@ class Estimate(eqx.Module):
             the difference of the two estimates), ``radius`` (confidence radius of the
             zeroth-order estimate), ``bias_radius`` (the bias sampling noise alone explains),
             ``gamma`` (the trust region used), ``variance_first``,
-            ``variance_zeroth``.
+            ``variance_zeroth``; with its ``rule="inverse_variance"``, ``alpha`` is the mean
+            of the per-entry weights ``alpha_entries`` (structure of `grad`), beside
+            ``trusted_fraction`` and without ``alpha_star`` and ``gamma``.
     """
 
     value: Array
@@ -195,6 +197,22 @@ def _mean_and_variance(a: Array, w: Array):
 
 
 LEAVE_ONE_OUT = "leave-one-out"
+INVERSE_VARIANCE = "inverse_variance"
+ALPHA_RULES = ("suh", INVERSE_VARIANCE)
+
+
+def check_alpha_rule(rule, gamma=None, name: str = "rule") -> str:
+    """``rule`` is one of :data:`ALPHA_RULES` (``ValueError`` naming the argument ``name``
+    otherwise), and ``gamma``, the trust region of the ``"suh"`` rule, is None with the
+    ``"inverse_variance"`` rule (which tests each entry's bias instead); returns ``rule``."""
+    if not isinstance(rule, str) or rule not in ALPHA_RULES:
+        raise ValueError(f"{name} must be one of {ALPHA_RULES}, got {rule!r}")
+    if rule == INVERSE_VARIANCE and gamma is not None:
+        raise ValueError(
+            f"gamma is the trust region of {name}='suh'; {name}={INVERSE_VARIANCE!r} tests each entry's bias "
+            "instead: leave gamma None"
+        )
+    return rule
 
 
 def check_baseline(baseline, num_samples: int):
@@ -326,7 +344,7 @@ def _first_order_terms(z, values, jacobians, antithetic) -> _FlatEstimate:
 
 def _alpha_order_flat(
     flat: _Flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta, *, devices=None,
-    sample_chunk=None,
+    sample_chunk=None, rule="suh",
 ):
     key_zeroth, key_first = jax.random.split(key)
     n_zeroth = num_samples // 2
@@ -338,12 +356,15 @@ def _alpha_order_flat(
     spread = dict(devices=devices, sample_chunk=sample_chunk)
     zeroth = _zeroth_order_flat(flat, key_zeroth, sigma, n_zeroth, noise, baseline, antithetic, **spread)
     first = _first_order_flat(flat, key_first, sigma, n_first, noise, antithetic, **spread)
-    return _alpha_blend(zeroth, first, n_zeroth, n_first, antithetic, gamma, lipschitz, delta)
+    return _alpha_blend(zeroth, first, n_zeroth, n_first, antithetic, gamma, lipschitz, delta, rule)
 
 
-def _alpha_blend(zeroth: _FlatEstimate, first: _FlatEstimate, n_zeroth, n_first, antithetic, gamma, lipschitz, delta):
+def _alpha_blend(
+    zeroth: _FlatEstimate, first: _FlatEstimate, n_zeroth, n_first, antithetic, gamma, lipschitz, delta, rule="suh"
+):
     """The alpha-order blend of independent zeroth- and first-order estimates (of ``n_zeroth``
-    and ``n_first`` samples): the estimate and the extra stats."""
+    and ``n_first`` samples) by ``rule`` (see :func:`alpha_order`): the estimate and the extra
+    stats (for ``"inverse_variance"``, ``alpha_entries`` is the flat (m, d) array)."""
     num_samples = n_zeroth + n_first
     var_zeroth = jnp.sum(zeroth.variance)
     var_first = jnp.sum(first.variance)
@@ -362,6 +383,8 @@ def _alpha_blend(zeroth: _FlatEstimate, first: _FlatEstimate, n_zeroth, n_first,
         radius = radius + 7.0 * 2.0 * lipschitz * zeroth.max_score_norm * log_term / (3.0 * max(n_units - 1, 1))
     # How large the empirical bias may be from sampling noise alone, were both unbiased.
     bias_radius = jnp.sqrt(2.0 * (var_zeroth + var_first) * log_term)
+    if rule == INVERSE_VARIANCE:
+        return _inverse_variance_blend(zeroth, first, n_zeroth, n_first, log_term, bias, radius, bias_radius)
     if gamma is None:
         # Default (our documented choice, scale-free): trust the first-order estimate, with
         # the variance-optimal alpha*, unless its gap to the unbiased zeroth-order estimate is
@@ -402,7 +425,48 @@ def _alpha_blend(zeroth: _FlatEstimate, first: _FlatEstimate, n_zeroth, n_first,
     return estimate, extra
 
 
-def _shared_sample_estimate(index, z, values, jacobians, reference, sigma, noise, gamma, lipschitz, delta, baseline=True):
+def _inverse_variance_blend(zeroth: _FlatEstimate, first: _FlatEstimate, n_zeroth, n_first, log_term, bias, radius,
+                            bias_radius):
+    """The per-entry (inverse-variance) blend of :func:`alpha_order` with
+    ``rule="inverse_variance"``; ``log_term`` is ``log(2 / delta)``, the other scalars are the
+    "suh" rule's stats, reported alike."""
+    var_zeroth, var_first = zeroth.variance, first.variance  # (m, d), entry by entry
+    total = var_zeroth + var_first
+    # Minimum-variance weights of two independent unbiased estimates of the same entry; where
+    # both variances are 0, 1, as the "suh" rule's alpha* (the bias test below then decides:
+    # its radius is 0, so alpha = 0 unless the two estimates agree exactly, and then any
+    # weight gives the same estimate).
+    alpha_star = jnp.where(total > 0, var_zeroth / jnp.where(total > 0, total, 1.0), 1.0)
+    # The "suh" rule's bias test, entry by entry: trust an entry's first-order estimate unless
+    # its gap to the zeroth-order one exceeds what sampling noise explains at level 1 - delta.
+    trusted = jnp.abs(first.jacobian - zeroth.jacobian) <= jnp.sqrt(2.0 * total * log_term)
+    alpha = jnp.clip(jnp.where(trusted, alpha_star, 0.0), 0.0, 1.0)
+    # d f_sigma / d sigma by first order, E[grad f(x + sigma z) . z], is biased wherever any
+    # entry of its row of the Jacobian is: each output takes the smallest weight of its row.
+    alpha_row = jnp.min(alpha, axis=1)
+    estimate = _FlatEstimate(
+        value=(n_zeroth * zeroth.value + n_first * first.value) / (n_zeroth + n_first),
+        jacobian=alpha * first.jacobian + (1.0 - alpha) * zeroth.jacobian,
+        sigma_grad=alpha_row * first.sigma_grad + (1.0 - alpha_row) * zeroth.sigma_grad,
+        variance=alpha**2 * first.variance + (1.0 - alpha) ** 2 * zeroth.variance,
+        max_score_norm=zeroth.max_score_norm,
+    )
+    extra = {
+        "alpha": jnp.mean(alpha),
+        "alpha_entries": alpha,
+        "trusted_fraction": jnp.mean(trusted.astype(alpha.dtype)),
+        "bias": bias,
+        "radius": radius,
+        "bias_radius": bias_radius,
+        "variance_first": jnp.sum(var_first),
+        "variance_zeroth": jnp.sum(var_zeroth),
+    }
+    return estimate, extra
+
+
+def _shared_sample_estimate(
+    index, z, values, jacobians, reference, sigma, noise, gamma, lipschitz, delta, baseline=True, rule="suh"
+):
     """The first- (``index`` 0), zeroth- (1) or alpha-order (2) estimate from one set of
     samples: the noise ``z`` (M, d) (independent draws, no antithetic pairs), the values
     ``f(x + sigma z)`` (M, m), their Jacobians (M, m, d) and ``f(x)`` ``reference`` (m,), the
@@ -412,8 +476,9 @@ def _shared_sample_estimate(index, z, values, jacobians, reference, sigma, noise
     Jacobian at the points, and one compiled program serves all three (a comparison of the
     estimators compiles the costly part once). First and zeroth order use all M samples;
     alpha order the first half for its zeroth-order estimate and the second half for its
-    first-order one (independent halves, as :func:`alpha_order`). Returns the estimate and
-    alpha (1 for first order, 0 for zeroth order)."""
+    first-order one (independent halves, as :func:`alpha_order`), blended by ``rule``. Returns
+    the estimate and alpha (1 for first order, 0 for zeroth order; the mean weight over the
+    entries for ``rule="inverse_variance"``)."""
     num_samples = z.shape[0]
     half = num_samples // 2
     one = jnp.ones((), z.dtype)
@@ -437,6 +502,7 @@ def _shared_sample_estimate(index, z, values, jacobians, reference, sigma, noise
             gamma,
             lipschitz,
             delta,
+            rule,
         )
         return estimate, extra["alpha"].astype(z.dtype)
 
@@ -602,6 +668,7 @@ def alpha_order(
     antithetic: bool = False,
     devices: str | Sequence[jax.Device] | None = None,
     sample_chunk: int | None = None,
+    rule: str = "suh",
 ) -> Estimate:
     r"""Alpha-order estimate: :math:`\alpha \hat g_1 + (1 - \alpha)\hat g_0` on independent batches.
 
@@ -616,6 +683,31 @@ def alpha_order(
     i.e. :math:`\alpha^* = \hat\sigma_0^2 / (\hat\sigma_0^2 + \hat\sigma_1^2)` when it satisfies
     the constraint, :math:`(\gamma - \varepsilon)/\hat B` when only a smaller alpha does, and 0
     when even :math:`\alpha = 0` violates it (the first-order estimate cannot be trusted).
+
+    With ``rule="inverse_variance"`` each entry :math:`k` of the flattened gradient (of the
+    Jacobian, for an array-valued `f`) gets its own weight, from the empirical variances
+    :math:`\hat v_{0,k}, \hat v_{1,k}` of that entry's two estimates:
+
+    .. math:: \alpha_k = \frac{\hat v_{0,k}}{\hat v_{0,k} + \hat v_{1,k}} \ \text{if}\
+        |\hat g_{1,k} - \hat g_{0,k}| \le \sqrt{2 (\hat v_{0,k} + \hat v_{1,k}) \log(2/\delta)},
+        \qquad \alpha_k = 0 \ \text{otherwise}.
+
+    The weight is the classical inverse-variance one: the minimum-variance unbiased
+    combination of two independent unbiased estimates of the same quantity. The safeguard is
+    the default ``"suh"`` rule's bias test applied to each entry: an entry whose first-order
+    estimate differs from the unbiased zeroth-order one by more than sampling noise explains
+    falls back to zeroth order, whatever the others do; where one scalar alpha must serve
+    every entry, a smooth coordinate and a jump in another share one compromise. The test
+    runs at level :math:`1 - \delta` per entry, without a correction for the number of
+    entries: a false alarm only costs one entry the variance of its zeroth-order estimate,
+    while a radius that grew with the dimension would let more first-order bias through.
+    Where both variances of an entry are 0, :math:`\alpha_k = 1` (as the ``"suh"`` rule's
+    :math:`\alpha^*`) and the test's radius is 0: the entry falls back to zeroth order
+    unless the two estimates agree exactly, when any weight gives the same estimate. The
+    estimate of :math:`\partial f_\sigma / \partial\sigma` of each output takes the
+    smallest weight of its row (its first-order estimate is biased wherever one of the row's
+    entries is). Onoda, Parmas et al. (2026) revisit the paper's discontinuous tasks with
+    this per-entry weighting.
 
     Args:
         f: function of `x` returning one floating array, differentiable by JAX.
@@ -637,14 +729,21 @@ def alpha_order(
         antithetic: antithetic pairs in both parts.
         devices, sample_chunk: where and how many samples at a time `f` is evaluated, for
             each part (as in :func:`zeroth_order`).
+        rule: ``"suh"`` (default): one alpha for the whole gradient, as above;
+            ``"inverse_variance"``: one weight per entry (above; `gamma` must then be None).
 
     Returns:
         An :class:`Estimate` whose `stats` hold `alpha`, `alpha_star`, `bias`, `radius`,
-        `bias_radius`, `gamma`, `variance_first`, `variance_zeroth`.
+        `bias_radius`, `gamma`, `variance_first`, `variance_zeroth`; with
+        ``rule="inverse_variance"``: `alpha` (the mean of the per-entry weights),
+        `alpha_entries` (the weights, structure of `grad`), `trusted_fraction` (the fraction
+        of entries whose bias test passed), `bias`, `radius`, `bias_radius`,
+        `variance_first`, `variance_zeroth`.
 
     Raises:
         ValueError: as :func:`zeroth_order` (its zeroth-order half needs `sigma` above the
-            resolution of `x`'s dtype too).
+            resolution of `x`'s dtype too); for an unknown `rule`, or a `gamma` with
+            ``rule="inverse_variance"``.
 
     Example:
         >>> import jax, jax.numpy as jnp, rsmooth
@@ -669,9 +768,12 @@ def alpha_order(
         raise ValueError(f"lipschitz must be positive, got {lipschitz}")
     if gamma is not None and not _checks.is_traced(gamma) and not float(gamma) >= 0:
         raise ValueError(f"gamma must be non-negative, got {gamma}")
+    check_alpha_rule(rule, gamma)
     spread = _check_spread(devices, sample_chunk)
     flat = _flatten_resolved(f, x, sigma)
     estimate, extra = _alpha_order_flat(
-        flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta, **spread
+        flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta, rule=rule, **spread
     )
+    if rule == INVERSE_VARIANCE:
+        extra["alpha_entries"] = _unflatten_jacobian(flat, extra["alpha_entries"])
     return _package(flat, estimate, extra)

@@ -78,6 +78,7 @@ def smooth(
     delta: float = 0.05,
     devices: str | Sequence[jax.Device] | None = None,
     sample_chunk: int | None = None,
+    alpha_rule: str = "suh",
 ) -> Callable:
     r"""Randomized smoothing of `f` as a differentiable function `g(key, x)`.
 
@@ -92,6 +93,9 @@ def smooth(
             :func:`rsmooth.zeroth_order`: True, False or ``"leave-one-out"``).
         gamma, lipschitz, delta: trust region of the alpha-order rule (see
             :func:`rsmooth.alpha_order`).
+        alpha_rule: how the alpha-order rule blends its two estimates: ``"suh"`` (one alpha)
+            or ``"inverse_variance"`` (one weight per entry of the Jacobian); the ``rule`` of
+            :func:`rsmooth.alpha_order`.
         devices: where `f` (and, for derivatives, its per-sample derivatives) is evaluated
             at the samples: ``None`` (default) on the default device; ``"all"`` or a sequence
             of devices: split over them, the value and its derivatives the one-device ones up
@@ -139,12 +143,13 @@ def smooth(
         delta=delta,
         devices=devices,
         sample_chunk=sample_chunk,
+        alpha_rule=alpha_rule,
     )
 
 
 def _smooth(
     f, name, *, sigma, num_samples, estimator="zeroth", noise=Gaussian(), baseline=True, antithetic=False,
-    gamma=None, lipschitz=None, delta=0.05, devices=None, sample_chunk=None,
+    gamma=None, lipschitz=None, delta=0.05, devices=None, sample_chunk=None, alpha_rule="suh",
 ):
     """:func:`smooth`, whose errors call the smoothed argument `name`."""
     if estimator not in ESTIMATORS:
@@ -162,6 +167,7 @@ def _smooth(
     _est.check_baseline(baseline, num_samples)
     if gamma is not None and _checks.is_traced(gamma):
         raise TypeError("gamma must be a Python float in smooth() (pass a traced one to alpha_order)")
+    _est.check_alpha_rule(alpha_rule, gamma, "alpha_rule")
     options = dict(
         num_samples=num_samples,
         estimator=estimator,
@@ -171,6 +177,7 @@ def _smooth(
         gamma=gamma,
         lipschitz=lipschitz,
         delta=delta,
+        alpha_rule=alpha_rule,
         **_est._check_spread(devices, sample_chunk),
     )
 
@@ -192,7 +199,7 @@ def _smooth(
 
 def _smoothed_flat(
     f_converted, num_consts, name, *, num_samples, estimator, noise, baseline, antithetic, gamma, lipschitz, delta,
-    devices, sample_chunk,
+    devices, sample_chunk, alpha_rule="suh",
 ):
     score = _derivative_score(noise)
     ratio = _likelihood_ratio(noise, score, elementwise=False)
@@ -240,7 +247,7 @@ def _smoothed_flat(
         flat = _est._Flat(x, lambda v: f_converted(v, *consts), None, ())
         estimate, _ = _est._alpha_order_flat(
             flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta, devices=devices,
-            sample_chunk=sample_chunk,
+            sample_chunk=sample_chunk, rule=alpha_rule,
         )
         tangent = _matmul(estimate.jacobian, x_dot) + estimate.sigma_grad * sigma_dot
         if num_consts:

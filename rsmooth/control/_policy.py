@@ -288,10 +288,10 @@ def _check_estimator(estimator: str, num_samples) -> None:
 def _estimate(problem, policy, key, theta, sigma, num_samples, estimator, noise, options) -> _estimators.Estimate:
     options = dict(options)
     if estimator == "first":
-        for name in ("baseline", "gamma", "lipschitz", "delta"):  # zeroth/alpha-order options
+        for name in ("baseline", "gamma", "lipschitz", "delta", "rule"):  # zeroth/alpha-order options
             options.pop(name, None)
     elif estimator == "zeroth":
-        for name in ("gamma", "lipschitz", "delta"):
+        for name in ("gamma", "lipschitz", "delta", "rule"):
             options.pop(name, None)
     return _METHODS[estimator](
         lambda th: _policy_cost(problem, policy, th), key, theta, sigma=sigma, num_samples=num_samples, noise=noise, **options
@@ -324,8 +324,9 @@ def policy_gradient(
             function with a baseline) or ``"alpha"`` (their blend).
         noise: the noise law of ``w``.
         **options: passed to the estimator (``antithetic``; ``baseline`` for ``"zeroth"``
-            and ``"alpha"``; ``gamma``, ``lipschitz``, ``delta`` for ``"alpha"``); those an
-            estimator does not take are ignored, so one set of options serves all three.
+            and ``"alpha"``; ``gamma``, ``lipschitz``, ``delta`` and ``rule``, ``"suh"`` or
+            ``"inverse_variance"``, for ``"alpha"``); those an estimator does not take are
+            ignored, so one set of options serves all three.
 
     Returns:
         An :class:`~rsmooth.estimators.Estimate`: ``value`` the smoothed cost, ``grad`` with
@@ -367,6 +368,10 @@ class PolicyGradient(eqx.Module):
             ``"leave-one-out"``, the mean of the other samples' costs; False, none.
         delta: the confidence level ``1 - delta`` of the alpha-order trust region.
         gamma: the alpha-order trust-region radius (``None``: the estimator's scale-free rule).
+        alpha_rule: how alpha order blends its two estimates: ``"suh"`` (one alpha) or
+            ``"inverse_variance"`` (one weight per parameter; ``gamma`` must be None); the
+            ``rule`` of :func:`rsmooth.alpha_order`. ``stats["alpha"]`` is then the mean
+            weight over the parameters.
         shared_samples: evaluate :math:`V` and its gradient at the same ``num_samples``
             points whatever the estimator, which is then chosen at run time: solvers that
             differ only in ``estimator`` share one compiled step (a comparison of the three
@@ -389,10 +394,12 @@ class PolicyGradient(eqx.Module):
     delta: float = eqx.field(static=True, default=0.05)
     gamma: float | None = eqx.field(static=True, default=None)
     shared_samples: bool = eqx.field(static=True, default=False)
+    alpha_rule: str = eqx.field(static=True, default="suh")
 
     def __check_init__(self):
         _check_estimator(self.estimator, self.num_samples)
         _estimators.check_baseline(self.baseline, self.num_samples)
+        _estimators.check_alpha_rule(self.alpha_rule, self.gamma, "alpha_rule")
         if self.shared_samples:
             if self.antithetic:
                 raise ValueError("shared_samples draws independent samples: it does not take antithetic=True")
@@ -412,7 +419,8 @@ class PolicyGradient(eqx.Module):
             raise ValueError(f"the {self.estimator}-order estimator needs a noise law with a score; {type(self.noise).__name__} has none")
 
     def options(self) -> dict:
-        return {"antithetic": self.antithetic, "baseline": self.baseline, "delta": self.delta, "gamma": self.gamma}
+        return {"antithetic": self.antithetic, "baseline": self.baseline, "delta": self.delta, "gamma": self.gamma,
+                "rule": self.alpha_rule}
 
 
 class PolicySolution(eqx.Module):
@@ -481,7 +489,7 @@ def _shared_sample_estimate(problem, policy, key, theta, sigma, solver: PolicyGr
     grads = _checks.check_finite(grads, _estimators._NONFINITE_GRAD)
     flat_estimate, alpha = _estimators._shared_sample_estimate(
         index, z, values[1:, None], grads[1:, None, :], values[:1], sigma, solver.noise, solver.gamma, None, solver.delta,
-        solver.baseline,
+        solver.baseline, solver.alpha_rule,
     )
     flat = _estimators._Flat(flat_theta, None, unravel, ())
     return _estimators._package(flat, flat_estimate, {"alpha": alpha}), values[0]

@@ -128,6 +128,7 @@ def smoothed_dynamics_jacobians(
     control_noise_scale: float | tuple[float, ...] = 1.0,
     batch_size: int | None = 1,
     noise_effect: bool = False,
+    alpha_rule: str = "suh",
 ) -> tuple[Array, Array] | tuple[Array, Array, Array]:
     r"""Monte-Carlo Jacobians of the smoothed dynamics at every node of a trajectory.
 
@@ -152,6 +153,9 @@ def smoothed_dynamics_jacobians(
             all nodes); the samples of a node are always batched with `vmap`.
         noise_effect: also return the estimators' :math:`\partial f_\varepsilon /
             \partial\varepsilon` at every node, ``(T, nx)``.
+        alpha_rule: for ``"alpha"``, how its two estimates are blended: ``"suh"`` (one alpha
+            per node) or ``"inverse_variance"`` (one weight per entry of the node's
+            Jacobian); the ``rule`` of :func:`rsmooth.alpha_order`.
 
     Returns:
         ``(fx, fu)``, shapes ``(T, nx, nx)`` and ``(T, nx, nu)`` (and the noise effect).
@@ -177,7 +181,8 @@ def smoothed_dynamics_jacobians(
         x = y[:nx] if project is None else project(y[:nx])
         return problem.dynamics.step(x, y[nx:])
 
-    options = {}
+    _estimators.check_alpha_rule(alpha_rule, name="alpha_rule")
+    options = {"rule": alpha_rule} if estimator == "alpha" else {}
     step_and_jacobians = getattr(problem.dynamics, "step_and_jacobians", None)
     if estimator == "first" and step_and_jacobians is not None:
 
@@ -214,6 +219,9 @@ class RDDP(DDP):
         num_samples: Monte-Carlo samples per node and iteration (>= 4 for ``"alpha"``).
         estimator: ``"first"`` (mean of sampled Jacobians, default), ``"zeroth"`` (score
             function: needs no derivative of the dynamics) or ``"alpha"`` (their blend).
+        alpha_rule: for ``"alpha"``: ``"suh"`` (one alpha per node, default) or
+            ``"inverse_variance"`` (one weight per entry of the node's Jacobian; see
+            :func:`rsmooth.alpha_order`).
         noise: the noise law (:mod:`rsmooth.noise`).
         state_noise_scale, control_noise_scale: the noise on ``x`` and ``u`` is
             ``eps * state_noise_scale * z`` and ``eps * control_noise_scale * w``: positive
@@ -255,6 +263,7 @@ class RDDP(DDP):
     stall_threshold: float = eqx.field(static=True, default=1e-3)
     max_smoothed_iterations: int | None = eqx.field(static=True, default=None)
     sample_node_batch_size: int | None | Literal["auto"] = eqx.field(static=True, default="auto")
+    alpha_rule: str = eqx.field(static=True, default="suh")
 
     _needs_key: ClassVar[bool] = True
 
@@ -263,6 +272,7 @@ class RDDP(DDP):
             raise ValueError(f"eps must be a finite number >= 0, got {self.eps!r}")
         if self.estimator not in ESTIMATORS:
             raise ValueError(f"estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
+        _estimators.check_alpha_rule(self.alpha_rule, name="alpha_rule")
         _checks.check_num_samples(self.num_samples, minimum=4 if self.estimator == "alpha" else 1)
         if not isinstance(self.noise, Noise):
             raise TypeError(f"noise must be an rsmooth.noise.Noise, got {self.noise!r}")
@@ -327,6 +337,7 @@ class RDDP(DDP):
             control_noise_scale=self.control_noise_scale,
             batch_size=self._sample_node_batch(),
             noise_effect=self.schedule == "reheating",
+            alpha_rule=self.alpha_rule,
         )
         if self.schedule == "reheating":
             return jacobians

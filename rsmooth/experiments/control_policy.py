@@ -51,7 +51,7 @@ METHOD_CHOICES = ("first", "zeroth", "alpha", "all")
 METRICS_DOC = """metrics.json keys: task, methods, seeds, success_criterion, speed (m/s),
 wall_distance (m), wall_height (m), theta0_deg, edge_deg (the lowest throw that clears the wall,
 on a 0.05 deg grid), best_cost (the lowest true cost on that grid), initial_cost, sigma,
-noise_schedule, sigma_final, num_samples, iterations, learning_rate, wall_time_s, and per method (first, zeroth,
+noise_schedule, sigma_final, num_samples, alpha_rule, iterations, learning_rate, wall_time_s, and per method (first, zeroth,
 alpha): final_cost_mean, final_cost_std (true cost -x_T of the final throw, over seeds),
 success_rate, final_angle_deg_mean, final_angle_deg_std, mean_alpha (weight of the first-order
 estimate, averaged over iterations and seeds: 1 for first, 0 for zeroth), gradient_variance (the
@@ -131,6 +131,9 @@ class Config:
     sigma_ceiling: float = _protocol.option(1.0, "Reheating: the noise's ceiling, rad.", above=0.0)
     stall_iterations: int = _protocol.option(10, "Reheating: iterations without a lower cost that make a stall.", min=1)
     num_samples: int = _protocol.option(64, "Rollouts per gradient estimate (alpha: half to each estimate).", flag="samples", min=4)
+    alpha_rule: str = _protocol.option(
+        "suh", "Alpha order's blend: suh (one alpha, Suh et al.) or inverse_variance (one weight per parameter; "
+        "rsmooth.alpha_order's rule).", choices=("suh", "inverse_variance"))
     learning_rate: float = _protocol.option(0.02, "Adam's learning rate, rad.", above=0.0)
     iterations: int = _protocol.option(100, "Adam steps per run.", min=1)
 
@@ -152,6 +155,7 @@ class Config:
             learning_rate=self.learning_rate,
             iterations=self.iterations,
             schedule=self.schedule(),
+            alpha_rule=self.alpha_rule,
         )
 
     def schedule(self) -> schedules.Schedule:
@@ -349,6 +353,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "sigma": config.sigma,
         "noise_schedule": config.noise_schedule,
         "num_samples": config.num_samples,
+        "alpha_rule": config.alpha_rule,
         "iterations": config.iterations,
         "learning_rate": config.learning_rate,
     }
