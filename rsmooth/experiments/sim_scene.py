@@ -8,7 +8,12 @@ is energy injected by the time stepping), the contacts active per step and the c
 that did not converge. The animation draws every geom as its triangulated shape (a
 matplotlib 3-D view, each face shaded by its angle to a light); the plot shows the energy and
 the active contacts over time. Without ``--file`` a built-in scene is simulated: a stack of two
-boxes, a ball, a capsule lying on its side, a brick and a cylinder on a floor."""
+boxes, a ball, a capsule lying on its side, a brick and a cylinder on a floor.
+
+A robot's URDF (e.g. one of example-robot-data) is not a scene: ``--floating-base`` frees its
+base, ``--floor`` puts a floor under it and ``--no-self-collision`` drops the contacts between
+its own links (see :func:`rsmooth.sim.scene`); with zero torque on its joints it is left to
+gravity and the floor."""
 
 from __future__ import annotations
 
@@ -59,6 +64,17 @@ class Config:
     steps: int = _protocol.option(200, "Time steps.", min=1)
     time_step: float | None = _protocol.option(None, "Time step, s; default: the file's opt.timestep.", above=0.0)
     frames: int = _protocol.option(40, "Frames of the animation.", min=2)
+    floating_base: bool = _protocol.option(
+        False, "Give the file's first body a free joint (a robot's base; a URDF has none of its own).")
+    floor: bool = _protocol.option(
+        False, "Add a floor (normal +z) touching the lowest point of the colliding geometry at the start, in "
+        "contact with every colliding geom that moves.")
+    self_collision: bool = _protocol.option(
+        True, "Keep the contacts between geoms of one robot or object (bodies under the same child of the world); "
+        "off: only contacts between different ones and with the world.")
+    package_dir: str = _protocol.option(
+        "", "Folder holding the packages that a URDF's package:// URIs name; empty: the folders above the file "
+        "(a package's own folder, as in example-robot-data).")
 
     @classmethod
     def quick(cls, **changes) -> "Config":
@@ -68,6 +84,15 @@ class Config:
         _protocol.check_options(self)
         if self.file and not Path(self.file).is_file():
             raise ValueError(f"file (--file) must be an existing MJCF or URDF file, got {self.file!r}")
+        if self.package_dir and not Path(self.package_dir).is_dir():
+            raise ValueError(f"package_dir (--package-dir) must be an existing folder, got {self.package_dir!r}")
+        needs_file = (
+            ("floating_base (--floating-base)", self.floating_base),
+            ("package_dir (--package-dir)", self.package_dir),
+        )
+        for name, given in needs_file:
+            if given and not self.file:
+                raise ValueError(f"{name} applies to a --file, not to the built-in scene")
 
 
 def _geom_mesh(loaded, geom: int):
@@ -98,9 +123,10 @@ def _colors(count: int) -> np.ndarray:
     return np.asarray(viz.plt.get_cmap("tab10")(np.arange(count) % 10))[:, :3]
 
 
-def draw(loaded, rotations, translations, title: str, bounds) -> np.ndarray:
+def draw(loaded, rotations, translations, title: str, bounds, floor_height: float = 0.0) -> np.ndarray:
     """An RGB image of the scene with its joints at ``(rotations, translations)`` (matplotlib,
-    3-D): every geom's triangles, each face shaded by its angle to a light from above."""
+    3-D): every geom's triangles, each face shaded by its angle to a light from above, over a
+    floor at ``z = floor_height``."""
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     fig = viz.plt.figure(figsize=(5.6, 4.4), dpi=80)
@@ -122,7 +148,8 @@ def draw(loaded, rotations, translations, title: str, bounds) -> np.ndarray:
         brightness = 0.35 + 0.65 * np.clip(normals @ light, 0.0, 1.0)
         ax.add_collection3d(Poly3DCollection(triangles, facecolors=brightness[:, None] * colors[geom], linewidths=0))
     # the floor: a grey square under the scene
-    corners = np.array([[low[0], low[1], 0.0], [high[0], low[1], 0.0], [high[0], high[1], 0.0], [low[0], high[1], 0.0]])
+    corners = np.array([[low[0], low[1]], [high[0], low[1]], [high[0], high[1]], [low[0], high[1]]])
+    corners = np.concatenate([corners, np.full((4, 1), floor_height)], axis=1)
     ax.add_collection3d(Poly3DCollection([corners], facecolors="0.85", alpha=0.5, linewidths=0))
     ax.set_xlim(low[0], high[0])
     ax.set_ylim(low[1], high[1])
@@ -135,7 +162,7 @@ def draw(loaded, rotations, translations, title: str, bounds) -> np.ndarray:
     return image
 
 
-def _bounds(loaded, placements) -> tuple[np.ndarray, np.ndarray]:
+def _bounds(loaded, placements, floor_height: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """A box that holds every moving geom's reach over the run, and the floor under it."""
     rotations, translations = placements
     moving = [g for g in range(loaded.ngeom) if loaded.geom_joints[g] != 0 and _geom_mesh(loaded, g) is not None]
@@ -153,7 +180,7 @@ def _bounds(loaded, placements) -> tuple[np.ndarray, np.ndarray]:
         points += [np.asarray(loaded.geom_translation[geom])[None] - reach, np.asarray(loaded.geom_translation[geom])[None] + reach]
     points = np.concatenate(points)
     low, high = points.min(axis=0), points.max(axis=0)
-    low[2] = min(low[2], 0.0)
+    low[2] = min(low[2], floor_height)
     margin = 0.05 * max(float(np.max(high - low)), 0.1)
     return low - margin, high + margin
 
@@ -163,8 +190,19 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     del key  # the simulation is deterministic
     out = Path(out)
     start = time.perf_counter()
-    loaded = sim.load_mjcf(config.file or DEMO_SCENE)
-    system = sim.scene(loaded, time_step=config.time_step)
+    if config.package_dir:
+        package_dirs = [config.package_dir]
+    else:
+        package_dirs = list(Path(config.file).resolve().parents) if config.file else []
+    loaded = sim.load_mjcf(config.file or DEMO_SCENE, package_dirs=package_dirs, floating_base=config.floating_base)
+    system = sim.scene(loaded, time_step=config.time_step, floor=config.floor, self_collision=config.self_collision)
+    if system.num_contacts == 0:  # the hard-contact step needs at least one candidate contact
+        raise ValueError(
+            f"file (--file): the scene {config.file} has no colliding geom pair, nothing for a contact simulation; "
+            "--floor puts a floor under its moving geoms"
+        )
+    # the floor scene() adds is the last pair's half-space (drawn where it is)
+    floor_height = float(system.geom_pairs[-1].placement1[1][2]) if config.floor else 0.0
     bar = tqdm(total=2 + config.frames, desc="sim scene", disable=not progress)
 
     # The rollout's diagnostics are checked below (sim.check_steps): its program leaves out
@@ -207,7 +245,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     ax_energy.plot(times, energies - energies[0], color="k")
     ax_energy.set_xlabel("time (s)")
     ax_energy.set_ylabel("energy - initial (J)")
-    ax_energy.set_title(f"{metrics['file']}: mechanical energy")
+    ax_energy.set_title(f"{Path(metrics['file']).name}: mechanical energy")
     ax_contacts.step(times[1:], active, where="post", color="tab:blue")
     ax_contacts.set_xlabel("time (s)")
     ax_contacts.set_ylabel("active contacts")
@@ -215,10 +253,10 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     viz.save_figure(fig, out / "scene.png")
     bar.update()
     rotations, translations = (np.asarray(p) for p in placements)
-    bounds = _bounds(loaded, (rotations, translations))
+    bounds = _bounds(loaded, (rotations, translations), floor_height)
     frames = []
     for k in np.linspace(0, config.steps, config.frames).round().astype(int):
-        frames.append(draw(loaded, rotations[k], translations[k], f"t = {k * dt:.2f} s", bounds))
+        frames.append(draw(loaded, rotations[k], translations[k], f"t = {k * dt:.2f} s", bounds, floor_height))
         bar.update()
     bar.close()
     viz.save_animation(frames, out / "scene.gif", fps=max(1, round(config.frames / (config.steps * dt))))

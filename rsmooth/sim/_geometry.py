@@ -268,13 +268,23 @@ class NonConvexMeshWarning(UserWarning):
     """The mesh given to :func:`convex_mesh` was not convex; its convex hull is used."""
 
 
+def _first_of_each_group(vectors: np.ndarray, same) -> np.ndarray:
+    """The vectors, in order, that are not ``same`` as one kept before them (greedy); ``same``
+    maps ``(vector, vectors)`` to a boolean mask. One vectorized test per kept vector, so that
+    hulls of thousands of faces are reduced in milliseconds."""
+    dropped = np.zeros(len(vectors), dtype=bool)
+    kept = []
+    for index, vector in enumerate(vectors):
+        if not dropped[index]:
+            kept.append(index)
+            dropped[index + 1 :] |= same(vector, vectors[index + 1 :])
+    return vectors[kept]
+
+
 def _unique_directions(directions: np.ndarray, tolerance: float) -> np.ndarray:
     """Unit directions, one per line through the origin (``d`` and ``-d`` are the same)."""
-    kept: list[np.ndarray] = []
-    for direction in directions:
-        if all(abs(abs(float(direction @ other)) - 1.0) > tolerance for other in kept):
-            kept.append(direction)
-    return np.array(kept).reshape(-1, 3)
+    directions = np.asarray(directions, dtype=float).reshape(-1, 3)
+    return _first_of_each_group(directions, lambda d, others: np.abs(np.abs(others @ d) - 1.0) <= tolerance)
 
 
 def convex_mesh(source) -> ConvexMesh:
@@ -370,8 +380,4 @@ def _face_polygon(vertices: np.ndarray, normal: np.ndarray, offset: float, toler
 
 
 def _unique_normals(normals: np.ndarray) -> np.ndarray:
-    kept: list[np.ndarray] = []
-    for normal in normals:
-        if all(float(normal @ other) < 1.0 - 1e-9 for other in kept):
-            kept.append(normal)
-    return np.array(kept)
+    return _first_of_each_group(np.asarray(normals, dtype=float), lambda n, others: others @ n >= 1.0 - 1e-9)

@@ -77,6 +77,7 @@ class MujocoModel(eqx.Module):
             ``-damping * v``); zero where dampers are disabled.
         timestep: ``opt.timestep``, in seconds.
         body_names: name of every MuJoCo body (``"world"`` first).
+        body_parents: MuJoCo parent body of every body (``body_parentid``; 0 for the world).
         body_joints: the rsmooth joint every MuJoCo body moves with (0 for the world and
             bodies welded to it).
         geom_names: name of every geom (``"geom <id>"`` when unnamed).
@@ -128,6 +129,7 @@ class MujocoModel(eqx.Module):
     damping: jax.Array
     timestep: float = eqx.field(static=True)
     body_names: tuple[str, ...] = eqx.field(static=True)
+    body_parents: tuple[int, ...] = eqx.field(static=True)
     body_joints: tuple[int, ...] = eqx.field(static=True)
     geom_names: tuple[str, ...] = eqx.field(static=True)
     geom_types: tuple[str, ...] = eqx.field(static=True)
@@ -647,6 +649,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         damping=_array(damping),
         timestep=float(m.opt.timestep),
         body_names=body_names,
+        body_parents=tuple(int(p) for p in m.body_parentid),
         body_joints=tuple(body_joint),
         geom_names=geom_names,
         geom_types=tuple(mj.mjtGeom(t).name.removeprefix("mjGEOM_").lower() for t in m.geom_type),

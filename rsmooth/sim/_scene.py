@@ -16,6 +16,15 @@ system that steps with hard frictional contact, as MuJoCo would pair its geoms:
 - the pair's friction is MuJoCo's: an explicit pair's own, else the one of the geom of higher
   ``priority``, else the larger of the two geoms' sliding coefficients.
 
+Two options change MuJoCo's set of pairs, for files that were not written as a scene (a robot's
+URDF has no floor, and MuJoCo pairs every two links but a parent and its child):
+
+- ``floor=True`` adds a half-space floor, normal ``+z``, at the height of the lowest point of the
+  colliding geometry at the initial configuration (so that nothing starts in penetration), in
+  contact with every colliding geom on a moving body;
+- ``self_collision=False`` drops the pairs of two geoms of one kinematic tree (bodies under the
+  same child of the world), keeping the pairs between different objects and with the world.
+
 The collision detection has no broad phase: :class:`~rsmooth.sim.RigidBodySystem` computes the
 manifold of every pair at every step, so the cost of a step grows with the number of pairs
 (prune pairs that cannot touch with ``contype``/``conaffinity`` or ``<exclude>``, as in
@@ -32,6 +41,7 @@ import numpy as np
 
 from rsmooth.sim._collision import manifold_size
 from rsmooth.sim._contact import NCPSolver
+from rsmooth.sim._dynamics import forward_kinematics
 from rsmooth.sim._geometry import Box, Capsule, Cylinder, HalfSpace, Sphere, convex_mesh
 from rsmooth.sim._mujoco import MujocoModel, load_mjcf
 from rsmooth.sim._simulator import GeomPair, RigidBodySystem
@@ -90,6 +100,67 @@ def _pair_friction(loaded: MujocoModel, index: int, geom1: int, geom2: int) -> f
     return max(friction1, friction2)
 
 
+def _check_pair(names: tuple[str, str], kinds: tuple[str, str], shapes: tuple) -> None:
+    """Refuses a pair with a geom that has no rsmooth shape (``None``), or a pair of shapes
+    that :func:`~rsmooth.sim.collide` does not support; ``names`` describe the two geoms."""
+    for side in (0, 1):
+        if shapes[side] is None:
+            raise ValueError(
+                f"MuJoCo model: {names[side]} collides with {names[1 - side]}, but rsmooth.sim has no {kinds[side]} "
+                "collision shape (supported: plane, sphere, capsule, box, cylinder, mesh); give it contype = "
+                "conaffinity = 0 or replace it"
+            )
+    try:
+        manifold_size(*shapes)
+    except NotImplementedError:
+        raise ValueError(
+            f"MuJoCo model: {names[0]} collides with {names[1]}, a pair of shapes rsmooth.sim's collide does not "
+            "support"
+        ) from None
+
+
+def _tree(loaded: MujocoModel, body: int) -> int:
+    """The child of the world whose subtree holds ``body`` (MuJoCo's ``body_rootid``); 0 for the
+    world itself."""
+    while body != 0 and loaded.body_parents[body] != 0:
+        body = loaded.body_parents[body]
+    return body
+
+
+def _lowest_point(loaded: MujocoModel, geom: int, rotation: np.ndarray, translation: np.ndarray) -> float:
+    """The smallest world ``z`` of a bounded geom at the pose ``(rotation, translation)``: the
+    support of its shape in the direction ``-z``."""
+    kind = loaded.geom_types[geom]
+    size = np.asarray(loaded.geom_size[geom], dtype=np.float64)
+    up = rotation[2]  # the world z axis in the geom's frame
+    if kind == "sphere":
+        depth = size[0]
+    elif kind == "capsule":
+        depth = size[1] * abs(up[2]) + size[0]
+    elif kind == "cylinder":
+        depth = size[1] * abs(up[2]) + size[0] * np.sqrt(max(0.0, 1.0 - up[2] ** 2))
+    elif kind == "box":
+        depth = float(np.abs(up) @ size)
+    elif kind == "ellipsoid":
+        depth = float(np.linalg.norm(up * size))
+    else:  # a mesh: its lowest vertex (also the lowest of its convex hull)
+        depth = -float(np.min(np.asarray(loaded.geom_vertices[geom], dtype=np.float64) @ up))
+    return float(translation[2] - depth)
+
+
+def _floor_height(loaded: MujocoModel, geoms: list[int], q: jnp.ndarray) -> float:
+    """The lowest point of ``geoms`` (no plane among them) at the configuration ``q``."""
+    rotations, translations = (np.asarray(a, dtype=np.float64) for a in forward_kinematics(loaded.model, q))
+    heights = []
+    for geom in geoms:
+        joint = loaded.geom_joints[geom]
+        rotation = rotations[joint] @ np.asarray(loaded.geom_rotation[geom], dtype=np.float64)
+        offset = np.asarray(loaded.geom_translation[geom], dtype=np.float64)
+        translation = rotations[joint] @ offset + translations[joint]
+        heights.append(_lowest_point(loaded, geom, rotation, translation))
+    return min(heights)
+
+
 def _actuation(loaded: MujocoModel) -> tuple[tuple[int, ...], np.ndarray]:
     """The dofs the motors drive and the symmetric bound of the generalized force on each.
 
@@ -135,6 +206,8 @@ def scene(
     margin: float = 0.01,
     solver: NCPSolver = NCPSolver(sticking_guess=True, rank_deficient=True, polish=True, max_iterations=1000),
     baumgarte: float = 0.2,
+    floor: bool = False,
+    self_collision: bool = True,
 ) -> RigidBodySystem:
     """A MuJoCo model (MJCF or URDF) as a system with hard frictional contact.
 
@@ -165,10 +238,19 @@ def scene(
             (:attr:`GeomPair.margin`, m).
         solver: NCP solver configuration, that of :func:`~rsmooth.sim.bodies` by default.
         baumgarte: penetration correction rate in ``[0, 1]``.
+        floor: add a floor, a :class:`~rsmooth.sim.HalfSpace` of normal ``+z`` (in addition
+            to the file's planes) whose plane touches the lowest point of the colliding geoms
+            (geoms with a nonzero ``contype`` or ``conaffinity``, or in a pair; planes left
+            out) at ``initial_configuration``, paired with every colliding geom on a moving
+            body; the friction of a floor pair is ``friction``, else the geom's own.
+        self_collision: ``False`` drops the pairs (explicit pairs included) of two geoms whose
+            bodies hang from the same child of the world (one robot, one object), keeping the
+            pairs between different trees and with geoms on the world body.
 
     Returns:
         The system; its frames are the model's (bodies first, by MuJoCo body id), its geometry
-        pairs in the order of :attr:`MujocoModel.collision_pairs`.
+        pairs in the order of :attr:`MujocoModel.collision_pairs` (those kept), then the
+        floor's, by geom id.
 
     Raises:
         ValueError: if the model cannot be loaded or converted (see
@@ -177,7 +259,9 @@ def scene(
             message names the geoms and their types), if the motors of a dof can apply a
             generalized force over a range that is not symmetric about zero (the message names
             them), if ``floating_base`` or ``package_dirs`` is given with a converted model,
-            or if ``time_step``, ``friction`` or ``margin`` is out of range.
+            if ``floor`` is asked of a scene with no colliding geom on a moving body, if
+            ``time_step``, ``friction`` or ``margin`` is out of range, or if ``floating_base``,
+            ``floor`` or ``self_collision`` is not a bool.
 
     Example:
         >>> import rsmooth.sim as sim
@@ -188,6 +272,9 @@ def scene(
         >>> system.nx, system.nu, system.num_contacts, round(float(system.time_step), 6)
         (13, 0, 1, 0.005)
     """
+    for name, value in (("floating_base", floating_base), ("floor", floor), ("self_collision", self_collision)):
+        if not isinstance(value, (bool, np.bool_)):
+            raise ValueError(f"{name} must be True or False, got {value!r}")
     if isinstance(source, MujocoModel):
         if floating_base or tuple(package_dirs):
             raise ValueError("floating_base and package_dirs apply to a file or XML text, not to a converted MujocoModel")
@@ -202,21 +289,12 @@ def scene(
     meshes: dict[int, Any] = {}
     pairs = []
     for index, (geom1, geom2) in enumerate(loaded.collision_pairs):
+        tree1, tree2 = _tree(loaded, loaded.geom_bodies[geom1]), _tree(loaded, loaded.geom_bodies[geom2])
+        if not self_collision and tree1 == tree2 != 0:
+            continue
         shape1, shape2 = _shape(loaded, geom1, meshes), _shape(loaded, geom2, meshes)
-        for geom, shape, other in ((geom1, shape1, geom2), (geom2, shape2, geom1)):
-            if shape is None:
-                raise ValueError(
-                    f"MuJoCo model: {_describe(loaded, geom)} collides with {_describe(loaded, other)}, but rsmooth.sim "
-                    f"has no {loaded.geom_types[geom]} collision shape (supported: plane, sphere, capsule, box, "
-                    "cylinder, mesh); give it contype = conaffinity = 0 or replace it"
-                )
-        try:
-            manifold_size(shape1, shape2)
-        except NotImplementedError:
-            raise ValueError(
-                f"MuJoCo model: {_describe(loaded, geom1)} collides with {_describe(loaded, geom2)}, a pair of shapes "
-                "rsmooth.sim's collide does not support"
-            ) from None
+        kinds = (loaded.geom_types[geom1], loaded.geom_types[geom2])
+        _check_pair((_describe(loaded, geom1), _describe(loaded, geom2)), kinds, (shape1, shape2))
         frame1, placement1 = _placement(loaded, geom1)
         frame2, placement2 = _placement(loaded, geom2)
         mu = _pair_friction(loaded, index, geom1, geom2) if friction is None else friction
@@ -225,6 +303,31 @@ def scene(
                 shape1, frame1, shape2, frame2, friction=mu, placement1=placement1, placement2=placement2, margin=margin
             )
         )
+    initial_configuration = loaded.qpos_to_q(loaded.default_qpos)
+    if floor:
+        paired = {geom for pair in loaded.collision_pairs for geom in pair}
+        colliding = [
+            g
+            for g in range(loaded.ngeom)
+            if (loaded.geom_contype[g] or loaded.geom_conaffinity[g] or g in paired) and loaded.geom_types[g] != "plane"
+        ]
+        moving = [g for g in colliding if loaded.geom_joints[g] != 0]
+        if not moving:
+            raise ValueError("floor: the scene has no colliding geom on a moving body for a floor to hold")
+        height = _floor_height(loaded, colliding, initial_configuration)
+        placement = (jnp.eye(3), jnp.asarray([0.0, 0.0, height]))
+        for geom in moving:
+            shape = _shape(loaded, geom, meshes)
+            names = ("the floor (plane, floor=True)", _describe(loaded, geom))
+            _check_pair(names, ("plane", loaded.geom_types[geom]), (HalfSpace(), shape))
+            frame, geom_placement = _placement(loaded, geom)
+            mu = float(loaded.geom_friction[geom]) if friction is None else friction
+            pairs.append(
+                GeomPair(
+                    HalfSpace(), None, shape, frame, friction=mu, placement1=placement, placement2=geom_placement,
+                    margin=margin,
+                )
+            )
     dofs, limits = _actuation(loaded)
     model = loaded.model
     return RigidBodySystem(
@@ -246,5 +349,5 @@ def scene(
         input_limit=jnp.asarray(limits),
         geom_pairs=tuple(pairs),
         joint_damping=jnp.asarray(loaded.damping),
-        initial_configuration=loaded.qpos_to_q(loaded.default_qpos),
+        initial_configuration=initial_configuration,
     )

@@ -1,7 +1,11 @@
-"""The MuJoCo-scene simulation experiment: a ball and a box dropped on a floor from a file."""
+"""The MuJoCo-scene simulation experiment: a ball and a box dropped on a floor from a file, and a
+robot's URDF given a free base and a floor."""
 
 import json
 
+import pytest
+
+import rsmooth.sim as sim
 from rsmooth.experiments import sim_scene
 
 # A ball and a box 5 cm above a floor, 10 ms steps: both land within 0.1 s.
@@ -26,3 +30,36 @@ def test_dropped_ball_and_box_land_without_sinking(tmp_path, getkey):
     assert metrics["unconverged_steps"] == 0 and metrics["diverged_steps"] == 0
     assert json.loads((tmp_path / "out" / "metrics.json").read_text())["steps"] == 20
     assert (tmp_path / "out" / "scene.gif").stat().st_size > 1000
+
+
+def test_options_that_need_a_file_are_refused_without_one(tmp_path):
+    for changes, message in (
+        ({"floating_base": True}, r"floating_base \(--floating-base\) applies to a --file"),
+        ({"package_dir": str(tmp_path)}, r"package_dir \(--package-dir\) applies to a --file"),
+        ({"file": __file__, "package_dir": str(tmp_path / "missing")}, r"package_dir \(--package-dir\) must be an"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            sim_scene.Config(**changes)
+    # a pendulum whose link collides with nothing: no contact to simulate
+    pendulum = tmp_path / "pendulum.xml"
+    pendulum.write_text(
+        '<mujoco><worldbody><body name="arm" pos="0 0 1"><joint type="hinge" axis="0 1 0"/><geom type="capsule" '
+        'size="0.05" fromto="0 0 0 0.5 0 0" contype="0" conaffinity="0"/></body></worldbody></mujoco>'
+    )
+    with pytest.raises(ValueError, match=r"file \(--file\): .* has no colliding geom pair.*--floor"):
+        sim_scene.run(sim_scene.Config(file=str(pendulum)), tmp_path / "out", None, progress=False)
+
+
+def test_solo12_urdf_stands_on_the_floor_put_under_it(tmp_path, getkey):
+    """Solo-12's URDF from example-robot-data, its package:// meshes found above the file, with
+    a free base, a floor and no self-collision: its 17 collision meshes meet the floor only."""
+    config = sim_scene.Config(
+        file=str(sim.solo12_urdf_path()), floating_base=True, floor=True, self_collision=False, steps=10, frames=2
+    )
+    metrics = sim_scene.run(config, tmp_path, getkey(), progress=False)
+    assert metrics["bodies"] == 18 and metrics["geom_pairs"] == 17 and metrics["candidate_contacts"] == 17 * 4
+    # q = 0, the legs straight down: the feet touch the floor from the first step, none sinks
+    assert metrics["contacts_active_max"] >= 4
+    assert metrics["max_penetration"] < 1e-2
+    assert metrics["unconverged_steps"] == 0 and metrics["diverged_steps"] == 0
+    assert metrics["energy_max_gain"] < 1e-4

@@ -170,3 +170,115 @@ def test_actuation_and_bad_input_are_named():
             sim.scene(ARM.format(extra="", low=-1), **{argument: value})
     with pytest.raises(ValueError, match="floating_base"):
         sim.scene(sim.load_mjcf(ARM.format(extra="", low=-1)), floating_base=True)
+
+
+# One free object per scene, turned by a known angle; its lowest point in closed form.
+# MuJoCo re-centres a mesh on its centroid and principal axes (geom_pos/geom_quat undo it):
+# the tetrahedron's lowest vertex is the one of smallest y in the file's coordinates, which a
+# quarter turn about x sends down.
+ONE_OBJECT = """<mujoco>
+  <asset><mesh name="tetrahedron" vertex="-0.1 -0.05 0  0.1 -0.05 0.02  0 0.2 0  0.03 0 0.3"/></asset>
+  <worldbody><body name="object" pos="0.2 -0.1 {z}"><freejoint/><geom {geom}/></body></worldbody>
+</mujoco>"""
+TILT = np.deg2rad(np.array([30.0, 40.0, 50.0]))
+LOWEST = {  # geom attributes -> lowest point below the body's origin
+    'type="capsule" size="0.05 0.2" axisangle="0 1 0 30"': 0.2 * np.cos(TILT[0]) + 0.05,
+    'type="box" size="0.1 0.2 0.3" axisangle="1 0 0 40"': 0.2 * np.sin(TILT[1]) + 0.3 * np.cos(TILT[1]),
+    'type="cylinder" size="0.1 0.15" axisangle="1 1 0 50"': 0.15 * np.cos(TILT[2]) + 0.1 * np.sin(TILT[2]),
+    'type="mesh" mesh="tetrahedron" axisangle="1 0 0 90"': 0.05,
+}
+
+
+def test_floor_touches_the_lowest_point_of_a_turned_shape():
+    for geom, depth in LOWEST.items():
+        system = sim.scene(ONE_OBJECT.format(z=1.0, geom=geom), floor=True, friction=0.3)
+        (pair,) = system.geom_pairs
+        assert isinstance(pair.shape1, sim.HalfSpace) and pair.frame1 is None and float(pair.friction) == 0.3
+        np.testing.assert_allclose(pair.placement1[0], np.eye(3), atol=0)
+        tolerance = 1e-8 if "mesh" in geom else 1e-12  # MuJoCo stores mesh vertices in float32
+        np.testing.assert_allclose(pair.placement1[1], [0.0, 0.0, 1.0 - depth], rtol=0, atol=tolerance, err_msg=geom)
+        # the collision code agrees: the shape touches the floor, nothing penetrates it
+        distances = np.asarray(jax.jit(lambda q: system.contacts(q)[0])(system.initial_configuration))
+        assert abs(distances.min()) < 1e-9, geom
+
+
+# A floor under a scene of several objects: a free ball whose own friction applies to the
+# floor, a visual geom far below (contype = conaffinity = 0: neither paired nor under the
+# floor), a static shelf on the world (the lowest colliding geom, not paired: it does not move)
+# and a hinged arm whose capsule (paired through an explicit pair only) hangs down.
+FLOOR_SCENE = """<mujoco><worldbody>
+  <geom name="shelf" type="box" size="0.2 0.2 0.05" pos="1 0 0.3"/>
+  <body name="ball" pos="0 0 0.5"><freejoint/>
+    <geom name="ball" type="sphere" size="0.1" friction="0.7"/>
+    <geom name="ghost" type="sphere" size="0.1" pos="0 0 -5" contype="0" conaffinity="0"/></body>
+  <body name="arm" pos="-1 0 0.8"><joint type="hinge" axis="0 1 0"/>
+    <geom name="link" type="capsule" size="0.04" fromto="0 0 0 0 0 -0.3" contype="0" conaffinity="0"
+          friction="0.2"/></body>
+</worldbody><contact><pair geom1="shelf" geom2="link"/></contact></mujoco>"""
+
+
+def test_floor_holds_the_moving_colliding_geoms_only():
+    loaded = sim.load_mjcf(FLOOR_SCENE)
+    plain = sim.scene(loaded)
+    system = sim.scene(loaded, floor=True)
+    floor_pairs = system.geom_pairs[len(plain.geom_pairs) :]
+    assert len(plain.geom_pairs) == 2  # shelf-ball, and the explicit shelf-link
+    # the ball and the link, by geom id; each with its geom's own friction
+    ball, arm = system.model.frame_id("ball"), system.model.frame_id("arm")
+    assert [(type(p.shape2).__name__, p.frame2, float(p.friction)) for p in floor_pairs] == [
+        ("Sphere", ball, 0.7),
+        ("Capsule", arm, 0.2),
+    ]
+    for pair in floor_pairs:  # under the shelf's bottom face, 0.3 - 0.05
+        np.testing.assert_allclose(pair.placement1[1], [0.0, 0.0, 0.25], rtol=0, atol=1e-12)
+
+
+def test_floor_and_self_collision_refuse_bad_input_by_name():
+    for argument, value in (("floor", 1), ("self_collision", "no"), ("floating_base", None)):
+        with pytest.raises(ValueError, match=rf"{argument} must be True or False"):
+            sim.scene(ARM.format(extra="", low=-1), **{argument: value})
+    with pytest.raises(ValueError, match=r"floor: the scene has no colliding geom on a moving body"):
+        sim.scene('<mujoco><worldbody><geom type="box" size="1 1 1"/></worldbody></mujoco>', floor=True)
+    blob = ONE_OBJECT.format(z=1.0, geom='name="blob" type="ellipsoid" size="0.1 0.2 0.1"')
+    sim.scene(blob)  # alone, it collides with nothing
+    with pytest.raises(ValueError, match=r"geom 'blob' \(ellipsoid\) collides with the floor.*no ellipsoid"):
+        sim.scene(blob, floor=True)
+
+
+# Two kinematic trees and the world. The world body carries a floor and a post; a fixed-base
+# arm (a base welded to the world, three hinged links in a chain) and a free chain of three
+# boxes (hinged to one another) are the trees. MuJoCo pairs every two geoms but those welded
+# together (floor, post, base) and, between two moving bodies, a parent and its child.
+TREES = """<mujoco><worldbody>
+  <geom name="floor" type="plane" size="2 2 0.1"/>
+  <geom name="post" type="sphere" size="0.05" pos="0 1 0.5"/>
+  <body name="base" pos="0 0 0.1"><geom name="base" type="cylinder" size="0.1 0.1"/>
+    <body name="l1" pos="0 0 0.2"><joint type="hinge" axis="0 1 0"/><geom name="l1" type="capsule" size="0.03 0.1"/>
+      <body name="l2" pos="0 0 0.2"><joint type="hinge" axis="0 1 0"/><geom name="l2" type="capsule" size="0.03 0.1"/>
+        <body name="l3" pos="0 0 0.2"><joint type="hinge" axis="0 1 0"/>
+          <geom name="l3" type="capsule" size="0.03 0.1"/></body></body></body></body>
+  <body name="c1" pos="1 0 0.5"><freejoint/><geom name="c1" type="box" size="0.05 0.05 0.05"/>
+    <body name="c2" pos="0.15 0 0"><joint type="hinge" axis="0 1 0"/><geom name="c2" type="box" size="0.05 0.05 0.05"/>
+      <body name="c3" pos="0.15 0 0"><joint type="hinge" axis="0 1 0"/>
+        <geom name="c3" type="box" size="0.05 0.05 0.05"/></body></body></body>
+</worldbody></mujoco>"""
+
+
+def test_without_self_collision_only_the_pairs_within_a_tree_are_dropped():
+    loaded = sim.load_mjcf(TREES)
+    names = [frozenset(loaded.geom_names[g] for g in pair) for pair in loaded.collision_pairs]
+    # 9 geoms, 36 pairs, less 3 welded to the world together (floor, post, base) and 4
+    # parent-child pairs of moving bodies (l1-l2, l2-l3, c1-c2, c2-c3)
+    assert len(names) == 36 - 3 - 4
+    within = {frozenset(p) for p in (("base", "l1"), ("base", "l2"), ("base", "l3"), ("l1", "l3"), ("c1", "c3"))}
+    assert within <= set(names)
+
+    def keys(system):  # the frames and shape types of a system's pairs: one key per geom pair here
+        return [(type(p.shape1).__name__, p.frame1, type(p.shape2).__name__, p.frame2) for p in system.geom_pairs]
+
+    every = keys(sim.scene(loaded))
+    assert len(every) == 29
+    kept = [key for key, name in zip(every, names) if name not in within]
+    assert keys(sim.scene(loaded, self_collision=False)) == kept and len(kept) == 24
+    # with a floor as well: its pairs (with the 6 moving geoms) come after those kept
+    assert len(sim.scene(loaded, self_collision=False, floor=True).geom_pairs) == 24 + 6
