@@ -583,7 +583,7 @@ class RigidBodySystem(eqx.Module):
     def _sphere_centres(self, kinematics) -> tuple[Array, np.ndarray]:
         """World centres of the spheres ``(S, 3)`` and the (static) joint carrying each."""
         model = self.model
-        sphere_frames = np.asarray(self.sphere_frames)
+        sphere_frames = np.asarray(self.sphere_frames, dtype=np.int64)  # int even when empty
         joints = np.asarray(model.frame_parents)[sphere_frames]
         rotation, translation = _dynamics._compose(
             kinematics.rotation[joints],
@@ -752,7 +752,14 @@ class RigidBodySystem(eqx.Module):
         # one triangular solve with 3 n columns where M^-1 Jᵀ takes two
         half = jax.scipy.linalg.solve_triangular(factor[0], jacobian.T, lower=True)  # (nv, 3n)
         delassus = half.T @ half
-        if isinstance(self.contact, str):
+        if distance.shape[0] == 0:
+            # no candidate contact (a body in free flight, a scene without a colliding pair):
+            # nothing to solve, and an empty problem is not one the NCP solver accepts
+            free_velocity = jacobian @ v_free
+            impulse = jnp.zeros(0, v_free.dtype)
+            zero = jnp.zeros((), v_free.dtype)
+            ncp = NCPInfo(jnp.zeros((), jnp.int32), zero, zero, zero, RESULTS.successful, zero)
+        elif isinstance(self.contact, str):
             free_velocity = corrected_free_velocity(jacobian @ v_free, distance, h, baumgarte=self.baumgarte)
             # From a finite but absurd state (a simulation that has already diverged: positions
             # of 1e8 m, velocities of 1e11 rad/s) the mass matrix loses definiteness to rounding
@@ -977,6 +984,8 @@ def _velocity_update_tangent(
     impulse = lax.stop_gradient(update.impulse)
     solve = many_column_solver(update.mass_factor, momentum_dot)
     free_motion_dot = -solve(momentum_dot)  # dv+ at fixed lambda
+    if impulse.shape[0] == 0:  # no contact: the free motion is the whole step
+        return free_motion_dot, jnp.zeros((0,) + free_motion_dot.shape[1:], free_motion_dot.dtype)
     minv_jt = solve(update.jacobian.T)  # primal: once for all tangents (a product where M^-1 is formed)
     velocity_dot = velocity_dot + update.jacobian @ free_motion_dot
     G, g, mu = update.delassus, update.free_velocity, update.mu

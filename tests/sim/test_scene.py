@@ -282,3 +282,22 @@ def test_without_self_collision_only_the_pairs_within_a_tree_are_dropped():
     assert keys(sim.scene(loaded, self_collision=False)) == kept and len(kept) == 24
     # with a floor as well: its pairs (with the 6 moving geoms) come after those kept
     assert len(sim.scene(loaded, self_collision=False, floor=True).geom_pairs) == 24 + 6
+
+
+def test_a_scene_without_contacts_falls_freely():
+    # No colliding pair (no floor): the step has no contact problem to solve. The ball falls by
+    # the time stepping's closed form, v_k = -g h k and z_k = z_0 - g h^2 k (k + 1) / 2, and the
+    # step's Jacobians (the implicit-derivative path) equal forward-mode autodiff.
+    system = sim.scene("""<mujoco><option timestep="0.01"/><worldbody>
+      <body name="ball" pos="0 0 1"><freejoint/><geom type="sphere" size="0.1"/></body></worldbody></mujoco>""")
+    assert system.num_contacts == 0 and system.nu == 0
+    steps, h, g = 10, 0.01, 9.81
+    xs, infos = system.rollout(system.initial_state(), jnp.zeros((steps, 0)))
+    assert sim.check_steps(infos) == {"steps": steps, "unconverged_steps": 0, "diverged_steps": 0}
+    k = np.arange(steps + 1)
+    np.testing.assert_allclose(xs[:, 2], 1.0 - g * h**2 * k * (k + 1) / 2, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(xs[:, 9], -g * h * k, rtol=0, atol=1e-12)  # v_z (body axes = world here)
+    x_next, fx, fu = system.step_and_jacobians(xs[3], jnp.zeros(0))
+    np.testing.assert_allclose(x_next, xs[4], atol=1e-14)
+    np.testing.assert_allclose(fx, jax.jacfwd(system.step)(xs[3], jnp.zeros(0)), atol=1e-12)
+    assert fu.shape == (system.nx, 0)
