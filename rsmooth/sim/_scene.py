@@ -45,7 +45,7 @@ from rsmooth.sim._dynamics import forward_kinematics
 from rsmooth.sim._geometry import Box, Capsule, Cylinder, HalfSpace, Sphere, convex_mesh
 from rsmooth.sim._mujoco import MujocoModel, load_mjcf
 from rsmooth.sim._simulator import GeomPair, RigidBodySystem
-from rsmooth.sim._systems import _number
+from rsmooth.sim._systems import _number, geom_pair_system
 
 __all__ = ["scene"]
 
@@ -330,24 +330,14 @@ def scene(
             )
     dofs, limits = _actuation(loaded)
     model = loaded.model
-    return RigidBodySystem(
-        model=model,
-        sphere_frames=(),
-        sphere_offsets=jnp.zeros((0, 3)),
-        sphere_radii=jnp.zeros(0),
-        plane_normals=jnp.zeros((0, 3)),
-        plane_offsets=jnp.zeros(0),
-        friction=jnp.zeros(0),
-        time_step=jnp.asarray(float(h)),
-        contact="hard",
+    return geom_pair_system(
+        model,
+        pairs,
+        time_step=h,
         solver=solver,
         baumgarte=baumgarte,
-        actuation="joints",
         actuated_dofs=dofs,
-        wrench_frame=0,
-        wrench_components=(),
-        input_limit=jnp.asarray(limits),
-        geom_pairs=tuple(pairs),
-        joint_damping=jnp.asarray(loaded.damping),
+        input_limit=limits,
         initial_configuration=initial_configuration,
+        joint_damping=loaded.damping,
     )

@@ -539,6 +539,25 @@ def bodies(
                 f"{type(shapes[j]).__name__}"
             ) from None
         pairs.append(GeomPair(shapes[i], names[i], shapes[j], names[j], friction=friction, margin=margin))
+    return geom_pair_system(
+        model,
+        pairs,
+        time_step=_number("time_step", time_step),
+        solver=solver,
+        baumgarte=baumgarte,
+        actuated_dofs=tuple(range(6 * n)),
+        input_limit=np.full(6 * n, np.inf),
+        initial_configuration=np.concatenate([positions, orientations], axis=1).reshape(-1),
+    )
+
+
+def geom_pair_system(
+    model: Model, pairs, *, time_step, solver, baumgarte, actuated_dofs, input_limit, initial_configuration,
+    joint_damping=None,
+) -> RigidBodySystem:
+    """A hard-contact system whose contacts are all :class:`GeomPair` manifolds (no contact
+    spheres or half-spaces of their own) and whose input ``u`` is the generalized force on
+    ``actuated_dofs``: what :func:`bodies` and :func:`~rsmooth.sim.scene` build."""
     return RigidBodySystem(
         model=model,
         sphere_frames=(),
@@ -547,17 +566,18 @@ def bodies(
         plane_normals=jnp.zeros((0, 3)),
         plane_offsets=jnp.zeros(0),
         friction=jnp.zeros(0),
-        time_step=jnp.asarray(_number("time_step", time_step)),
+        time_step=jnp.asarray(float(time_step)),
         contact="hard",
         solver=solver,
         baumgarte=baumgarte,
         actuation="joints",
-        actuated_dofs=tuple(range(6 * n)),
+        actuated_dofs=tuple(actuated_dofs),
         wrench_frame=0,
         wrench_components=(),
-        input_limit=jnp.full(6 * n, jnp.inf),
+        input_limit=jnp.asarray(input_limit),
         geom_pairs=tuple(pairs),
-        initial_configuration=jnp.asarray(np.concatenate([positions, orientations], axis=1).reshape(-1)),
+        **({} if joint_damping is None else {"joint_damping": jnp.asarray(joint_damping)}),
+        initial_configuration=jnp.asarray(initial_configuration),
     )
 
 
