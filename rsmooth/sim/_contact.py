@@ -253,7 +253,8 @@ def project_to_friction_cone(v: ArrayLike, mu: ArrayLike) -> Array:
     v, mu = jnp.asarray(v), jnp.asarray(mu)
     tangential, normal = v[..., :2], v[..., 2]
     tangential_norm = _safe_norm(tangential)
-    inside = tangential_norm <= mu * normal
+    # normal >= 0 too: without friction (mu = 0) the first test alone admits v = (0, 0, -a)
+    inside = (tangential_norm <= mu * normal) & (normal >= 0)
     polar = mu * tangential_norm <= -normal
     alpha = (mu * tangential_norm + normal) / (1.0 + mu * mu)
     positive = tangential_norm > 0

@@ -168,6 +168,19 @@ def test_cone_projection_is_a_projection(getkey):
     assert np.all(mu * r[:, 2] <= -jnp.linalg.norm(r[:, :2], axis=1) * mu**2 + 1e-10)
 
 
+def test_frictionless_cone_is_the_nonnegative_normal_ray():
+    # mu = 0: K = {(0, 0, a), a >= 0}; a vector with no tangential part and a negative normal
+    # one projects to 0 (a random test never draws a zero tangential part)
+    v = jnp.array([[0.0, 0.0, -1.5], [0.3, -0.2, -1.0], [0.3, 0.0, 2.0], [0.0, 0.0, 2.0]])
+    np.testing.assert_array_equal(project_to_friction_cone(v, jnp.zeros(4)), [[0, 0, 0], [0, 0, 0], [0, 0, 2], [0, 0, 2]])
+    # so a frictionless contact never pulls: two contacts, one closing and one opening
+    # (contact rows without tangential coupling, as a joint limit's)
+    G = jnp.diag(jnp.array([0.0, 0.0, 2.0, 0.0, 0.0, 2.0]))
+    impulse, info = solve_ncp(G, jnp.array([0.0, 0.0, -1.0, 0.0, 0.0, 3.0]), jnp.zeros(2))
+    assert bool(info.converged)
+    np.testing.assert_allclose(impulse, [0, 0, 0.5, 0, 0, 0], atol=1e-12)
+
+
 @pytest.mark.parametrize("n", [1, 2, 3, 4])
 def test_random_problems_satisfy_the_ncp(getkey, n):
     G, g, mu = problem_batch(getkey, n, 8)
