@@ -61,7 +61,9 @@ References:
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
+from collections.abc import Sequence
 from typing import Literal, NamedTuple, Union
 
 import equinox as eqx
@@ -318,6 +320,13 @@ class RigidBodySystem(eqx.Module):
         initial_configuration: the configuration ``q`` ``(nq,)`` that :meth:`initial_state`
             starts from, set by each factory (e.g. a cube resting on its floor); ``None``: the
             model's neutral configuration.
+        joint_limits: position limits enforced as unilateral constraints, ``((dof, side),
+            ...)`` (static): ``dof`` the velocity index of a revolute or prismatic joint,
+            ``side`` ``+1`` for its :attr:`Model.lower_position_limit` and ``-1`` for its upper
+            one, which must be finite. Each is a frictionless contact after the geometry pairs
+            (distance ``q - lower`` or ``upper - q``, in rad or m), solved with the contacts
+            in one NCP (hard contact only). :meth:`with_joint_limits` lists a model's finite
+            limits. Empty by default: a model's limits are not enforced unless asked.
         derivative: how ``step`` is differentiated with hard contact (static).
             ``"implicit"`` (default): the implicit function theorem on the step's own
             equations, momentum balance ``M (v+ - v) + h (b - tau) - Jᵀ lambda = 0`` and the
@@ -356,6 +365,7 @@ class RigidBodySystem(eqx.Module):
     joint_damping: Array | None = None
     max_motion_per_step: float = eqx.field(static=True, default=1.0)
     initial_configuration: Array | None = None
+    joint_limits: tuple[tuple[int, int], ...] = eqx.field(static=True, default=())
 
     def __check_init__(self):
         num_spheres, num_planes = len(self.sphere_frames), self.plane_normals.shape[0]
@@ -401,6 +411,9 @@ class RigidBodySystem(eqx.Module):
                 raise ValueError(f"box_spheres must index the spheres 0..{num_spheres - 1}, got {self.box_spheres}")
         if any(c not in range(6) for c in self.wrench_components):
             raise ValueError(f"wrench_components must be in 0..5, got {self.wrench_components}")
+        _limit_rows(self.model, self.joint_limits)  # raises on a bad entry
+        if self.joint_limits and not isinstance(self.contact, str):
+            raise ValueError("joint_limits are enforced by the hard-contact NCP: use contact='hard'")
         if not isinstance(self.geom_pairs, tuple) or not all(isinstance(p, GeomPair) for p in self.geom_pairs):
             raise ValueError(f"geom_pairs must be a tuple of GeomPair, got {self.geom_pairs!r}")
         for index, pair in enumerate(self.geom_pairs):
@@ -431,7 +444,44 @@ class RigidBodySystem(eqx.Module):
             len(self.sphere_frames) * self.plane_normals.shape[0]
             + len(self.box_spheres)
             + sum(pair.size for pair in self.geom_pairs)
+            + len(self.joint_limits)
         )
+
+    def with_joint_limits(self, joints: Sequence[str] | None = None) -> "RigidBodySystem":
+        """This system with its model's finite position limits enforced (:attr:`joint_limits`).
+
+        Args:
+            joints: names of the revolute or prismatic joints whose limits to enforce;
+                ``None``: every such joint with a finite limit.
+
+        Returns:
+            A copy whose steps keep those joints within their limits: a joint reaching one
+            stops there (an inelastic, frictionless unilateral constraint), a joint beyond one
+            is pushed back at the Baumgarte rate, like a penetrating contact.
+
+        Raises:
+            ValueError: on an unknown joint name, a joint that is not revolute or prismatic,
+                or a named joint without a finite limit.
+        """
+        model = self.model
+        lower, upper = np.asarray(model.lower_position_limit), np.asarray(model.upper_position_limit)
+        if joints is None:
+            names = [name for name, kind in zip(model.joint_names, model.joint_types) if kind in ("revolute", "prismatic")]
+        else:
+            names = list(joints)
+        limits = []
+        for name in names:
+            if name not in model.joint_names:
+                raise ValueError(f"joints: unknown joint {name!r}; the model's joints are {model.joint_names[1:]}")
+            joint = model.joint_names.index(name)
+            if model.joint_types[joint] not in ("revolute", "prismatic"):
+                raise ValueError(f"joints: {name!r} is a {model.joint_types[joint]} joint; only revolute and prismatic joints have position limits here")
+            dof, index = model.idx_v[joint], model.idx_q[joint]
+            sides = [side for side, bound in ((1, lower[index]), (-1, upper[index])) if np.isfinite(bound)]
+            if joints is not None and not sides:
+                raise ValueError(f"joints: {name!r} has no finite position limit in the model")
+            limits.extend((dof, side) for side in sides)
+        return dataclasses.replace(self, joint_limits=tuple(limits))
 
     def split(self, x: ArrayLike) -> tuple[Array, Array]:
         """``(q, v)`` from a state ``x`` of shape ``(..., nx)``."""
@@ -541,6 +591,23 @@ class RigidBodySystem(eqx.Module):
         (relative to the box's material point there, for box contacts; of shape 2's witness
         point relative to shape 1's, for geometry pairs).
         """
+        distance, frames, jacobian = self._shape_contacts(q, kinematics)
+        if not self.joint_limits:
+            return distance, frames, jacobian
+        # Joint limits: frictionless contacts whose normal is the joint's own coordinate.
+        indices, dofs, sides = _limit_rows(self.model, self.joint_limits)
+        lower, upper = self.model.lower_position_limit[indices], self.model.upper_position_limit[indices]
+        limit_distance = jnp.where(sides > 0, q[indices] - lower, upper - q[indices])
+        rows = jnp.zeros((len(dofs), 3, self.model.nv), jacobian.dtype).at[np.arange(len(dofs)), 2, dofs].set(sides)
+        eye = jnp.broadcast_to(jnp.eye(3, dtype=frames.dtype), (len(dofs), 3, 3))
+        return (
+            jnp.concatenate([distance, limit_distance.astype(distance.dtype)]),
+            jnp.concatenate([frames, eye]),
+            jnp.concatenate([jacobian, rows.reshape(-1, self.model.nv)]),
+        )
+
+    def _shape_contacts(self, q: Array, kinematics=None) -> tuple[Array, Array, Array]:
+        """The contacts of :meth:`contacts` between shapes (all but the joint limits)."""
         model = self.model
         if kinematics is None:
             kinematics = _dynamics._kinematics(model, q)
@@ -728,7 +795,8 @@ class RigidBodySystem(eqx.Module):
         return jnp.concatenate([
             jnp.repeat(self.friction[None, :], len(self.sphere_frames), axis=0).reshape(-1),
             jnp.full(len(self.box_spheres), self.box_friction, self.friction.dtype),
-        ] + [jnp.full(pair.size, pair.friction, self.friction.dtype) for pair in self.geom_pairs])
+        ] + [jnp.full(pair.size, pair.friction, self.friction.dtype) for pair in self.geom_pairs]
+          + [jnp.zeros(len(self.joint_limits), self.friction.dtype)])
 
     def _velocity_update(self, q: Array, v: Array, u: Array, warm_start) -> _VelocityUpdate:
         """The velocity update of one step and the quantities its derivative reuses."""
@@ -884,6 +952,30 @@ class RigidBodySystem(eqx.Module):
                 "the rollout has a diverged step or an unconverged contact solve (infos.diverged, infos.ncp.result)",
             )
         return xs, infos
+
+
+def _limit_rows(model: Model, joint_limits) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Configuration indices, velocity indices and sides (``+1`` lower, ``-1`` upper) of
+    :attr:`RigidBodySystem.joint_limits`, checked against the model."""
+    if not isinstance(joint_limits, tuple):
+        raise ValueError(f"joint_limits must be a tuple of (dof, side) pairs, got {joint_limits!r}")
+    owner = {model.idx_v[j]: j for j in range(1, len(model.joint_types)) if model.joint_types[j] in ("revolute", "prismatic")}
+    indices, dofs, sides = [], [], []
+    for entry in joint_limits:
+        if not (isinstance(entry, tuple) and len(entry) == 2 and entry[0] in owner and entry[1] in (1, -1)):
+            raise ValueError(
+                f"joint_limits entries must be (dof, side) with dof the velocity index of a revolute or "
+                f"prismatic joint ({sorted(owner)}) and side +1 (lower) or -1 (upper), got {entry!r}"
+            )
+        joint = owner[entry[0]]
+        bound = model.lower_position_limit if entry[1] > 0 else model.upper_position_limit
+        if not _checks.is_traced(bound) and not np.isfinite(np.asarray(bound)[model.idx_q[joint]]):
+            side = "lower" if entry[1] > 0 else "upper"
+            raise ValueError(f"joint_limits: joint {model.joint_names[joint]!r} has no finite {side} position limit")
+        indices.append(model.idx_q[joint])
+        dofs.append(entry[0])
+        sides.append(entry[1])
+    return np.asarray(indices, np.int64), np.asarray(dofs, np.int64), np.asarray(sides, np.int64)
 
 
 def _check_physical(system: RigidBodySystem) -> None:

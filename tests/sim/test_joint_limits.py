@@ -1,0 +1,109 @@
+"""Joint position limits as frictionless unilateral constraints of the contact NCP: a joint
+stops at its limit and is held there by the closed-form static torque, a joint beyond its limit
+is pushed back at the Baumgarte rate, and the step's derivative through an active limit is the
+constrained one."""
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from rsmooth import sim
+
+G = 9.81
+H = 0.01
+MASS, LENGTH, LOWER, UPPER = 1.0, 0.5, -30.0, 45.0
+
+# A horizontal rod on a hinge about y: gravity turns it towards +q (its tip goes down).
+ARM = f"""<mujoco><option timestep="{H}"/><worldbody><body name="arm" pos="0 0 1">
+<joint name="hinge" type="hinge" axis="0 1 0" limited="true" range="{LOWER} {UPPER}"/>
+<geom type="capsule" fromto="0 0 0 {LENGTH} 0 0" size="0.01" mass="{MASS}" contype="0" conaffinity="0"/>
+</body></worldbody></mujoco>"""
+
+# A block on a vertical slider whose lower limit is 0.3 m below its start.
+SLIDER = f"""<mujoco><option timestep="{H}"/><worldbody><body name="block" pos="0 0 1">
+<joint name="slide" type="slide" axis="0 0 1" limited="true" range="-0.3 0.2"/>
+<geom type="box" size="0.05 0.05 0.05" mass="2" contype="0" conaffinity="0"/>
+</body></worldbody></mujoco>"""
+
+
+def _rollout(system, x0, steps, us=None):
+    us = jnp.zeros((steps, system.nu)) if us is None else us
+    return eqx.filter_jit(system.rollout)(x0, us)
+
+
+def test_a_falling_arm_stops_at_its_limit_and_is_held_by_the_static_torque():
+    free = sim.scene(ARM)
+    system = free.with_joint_limits()
+    assert system.joint_limits == ((0, 1), (0, -1)) and system.num_contacts == free.num_contacts + 2
+    xs, infos = _rollout(system, system.initial_state(), 80)
+    sim.check_steps(infos, what="the limited arm")
+    q = np.asarray(xs[:, 0])
+    upper = np.radians(UPPER)
+    # speculative constraint: the joint reaches the limit within the step it would cross it,
+    # and never passes it (to the solver's tolerance times h)
+    assert q.max() <= upper + 1e-9 and np.isclose(q[-1], upper, atol=1e-9)
+    # without the limit the same arm swings through it
+    xs_free, _ = _rollout(free, free.initial_state(), 80)
+    assert np.max(np.asarray(xs_free[:, 0])) > upper + 0.3
+    # at rest on the limit: the constraint carries gravity's torque about the hinge, m g (L/2)
+    # cos(q) (the capsule's caps are symmetric about its centre, which sits at L / 2)
+    assert np.max(np.abs(np.asarray(xs[-10:, 1]))) < 1e-9
+    force = np.asarray(infos.force[-1])
+    np.testing.assert_allclose(force[-1], [0.0, 0.0, MASS * G * LENGTH / 2 * np.cos(upper)], rtol=1e-6)
+    np.testing.assert_array_equal(force[-2], 0.0)  # the lower limit is far
+    assert int(infos.mode[-1][-1]) != sim.SEPARATED and int(infos.mode[-1][-2]) == sim.SEPARATED
+
+
+def test_a_slider_lands_on_its_lower_limit_inelastically_and_is_pushed_out_at_the_baumgarte_rate():
+    system = sim.scene(SLIDER).with_joint_limits(["slide"])
+    lower = -0.3
+    xs, infos = _rollout(system, system.initial_state(), 40)
+    sim.check_steps(infos, what="the limited slider")
+    q, v = np.asarray(xs[:, 0]), np.asarray(xs[:, 1])
+    assert q.min() >= lower - 1e-9 and np.isclose(q[-1], lower, atol=1e-9)
+    landed = int(np.argmax(np.isclose(q, lower, atol=1e-9)))
+    # the step that lands moves it exactly onto the limit (v+ = -phi / h); from the next
+    # one on it is at rest: no bounce
+    assert landed > 0 and np.max(np.abs(v[landed + 1 :])) < 1e-9
+    np.testing.assert_allclose(np.asarray(infos.force[-1])[0, 2], 2.0 * G, rtol=1e-9)  # holds the weight
+    # from 1 cm beyond the limit, at rest: c_N + beta phi / h = 0 moves it by -beta phi
+    phi = -0.01
+    x0 = system.state(jnp.array([lower + phi]))
+    x1 = system.step(x0, jnp.zeros(system.nu))
+    np.testing.assert_allclose(float(x1[0]) - lower, (1.0 - system.baumgarte) * phi, rtol=1e-9)
+
+
+def test_the_step_derivative_through_an_active_limit_is_the_constrained_one():
+    system = sim.scene(SLIDER).with_joint_limits()
+    rest = system.state(jnp.array([-0.3]))
+    actuated = dataclasses.replace(system, actuated_dofs=(0,), input_limit=jnp.array([100.0]), actuation="joints")
+    # resting on its lower limit, a small push down changes nothing; a push up above its
+    # weight lifts it at (u - m g) / m: derivatives 0 and h / m of the next velocity
+    for u, expected in ((5.0, 0.0), (30.0, H / 2.0)):
+        _, fx, fu = actuated.step_and_jacobians(rest, jnp.array([u]))
+        np.testing.assert_allclose(np.asarray(fu)[1, 0], expected, atol=1e-9)
+        eps = 1e-6
+        finite = (actuated.step(rest, jnp.array([u + eps])) - actuated.step(rest, jnp.array([u - eps]))) / (2 * eps)
+        np.testing.assert_allclose(np.asarray(fu)[:, 0], np.asarray(finite), atol=1e-7)
+        np.testing.assert_allclose(fx, jax.jacfwd(actuated.step)(rest, jnp.array([u])), atol=1e-9)
+
+
+def test_bad_joint_limits_are_refused_by_name():
+    system = sim.scene(ARM)
+    with pytest.raises(ValueError, match="unknown joint 'elbow'"):
+        system.with_joint_limits(["elbow"])
+    with pytest.raises(ValueError, match=r"joint_limits entries must be \(dof, side\)"):
+        dataclasses.replace(system, joint_limits=((0, 2),))
+    unlimited = sim.scene(ARM.replace(f'limited="true" range="{LOWER} {UPPER}"', ""))
+    assert unlimited.with_joint_limits().joint_limits == ()
+    with pytest.raises(ValueError, match="'hinge' has no finite position limit"):
+        unlimited.with_joint_limits(["hinge"])
+    with pytest.raises(ValueError, match="no finite upper position limit"):
+        dataclasses.replace(unlimited, joint_limits=((0, -1),))
+    floating = sim.scene(ARM.replace('<joint name="hinge"', '<freejoint name="root"/><!--').replace(f'{UPPER}"/>', f'{UPPER}"/>-->'))
+    with pytest.raises(ValueError, match="'root' is a free_flyer joint"):
+        floating.with_joint_limits(["root"])
