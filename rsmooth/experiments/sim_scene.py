@@ -34,8 +34,9 @@ time_step (s), bodies (MuJoCo bodies, the world included), geom_pairs, candidate
 max_penetration (deepest penetration over the run, m), energy_initial, energy_final (J),
 energy_change (final - initial, J), energy_max_gain (largest rise above the initial energy
 over the run, J: energy injected), contacts_active_mean, contacts_active_max (contacts with a
-normal impulse, per step), unconverged_steps, diverged_steps, wall_time_s (compile
-included)."""
+normal impulse, per step), joint_limits (limit constraints enforced), max_limit_violation
+(deepest excursion beyond a joint limit, rad or m), limits_active_max (limits holding a joint,
+per step), unconverged_steps, diverged_steps, wall_time_s (compile included)."""
 
 DEMO_SCENE = """<mujoco>
   <option timestep="0.01"/>
@@ -72,6 +73,9 @@ class Config:
     self_collision: bool = _protocol.option(
         True, "Keep the contacts between geoms of one robot or object (bodies under the same child of the world); "
         "off: only contacts between different ones and with the world.")
+    joint_limits: bool = _protocol.option(
+        True, "Enforce the file's joint position limits (MuJoCo's limited hinge and slide joints), as MuJoCo "
+        "does; off: the joints move freely.")
     package_dir: str = _protocol.option(
         "", "Folder holding the packages that a URDF's package:// URIs name; empty: the folders above the file "
         "(a package's own folder, as in example-robot-data).")
@@ -196,6 +200,9 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         package_dirs = list(Path(config.file).resolve().parents) if config.file else []
     loaded = sim.load_mjcf(config.file or DEMO_SCENE, package_dirs=package_dirs, floating_base=config.floating_base)
     system = sim.scene(loaded, time_step=config.time_step, floor=config.floor, self_collision=config.self_collision)
+    if config.joint_limits:
+        system = system.with_joint_limits()
+    limits = len(system.joint_limits)  # the last candidate contacts (RigidBodySystem.contacts)
     # the floor scene() adds is the last pair's half-space (drawn where it is)
     floor_height = float(system.geom_pairs[-1].placement1[1][2]) if config.floor else 0.0
     bar = tqdm(total=2 + config.frames, desc="sim scene", disable=not progress)
@@ -215,7 +222,9 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     counts = sim.check_steps(infos, what=f"the scene {config.file or 'built-in'}")
     bar.update()
     distances = np.asarray(infos.distance).reshape(config.steps, -1)
-    active = np.sum(np.asarray(infos.mode) != sim.SEPARATED, axis=-1) if distances.shape[1] else np.zeros(config.steps)
+    touching = np.asarray(infos.mode).reshape(config.steps, -1) != sim.SEPARATED
+    distances, limit_distances = distances[:, : distances.shape[1] - limits], distances[:, distances.shape[1] - limits :]
+    active, limits_active = touching[:, : touching.shape[1] - limits].sum(axis=-1), touching[:, touching.shape[1] - limits :].sum(axis=-1)
     energies = np.asarray(energies)
     dt = float(system.time_step)
     metrics = {
@@ -224,8 +233,11 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         "time_step": dt,
         "bodies": len(loaded.body_names),
         "geom_pairs": len(system.geom_pairs),
-        "candidate_contacts": system.num_contacts,
+        "candidate_contacts": system.num_contacts - limits,
         "max_penetration": float(max(0.0, -distances.min())) if distances.size else 0.0,
+        "joint_limits": limits,
+        "max_limit_violation": float(max(0.0, -limit_distances.min())) if limits else 0.0,
+        "limits_active_max": int(limits_active.max()) if limits else 0,
         "energy_initial": float(energies[0]),
         "energy_final": float(energies[-1]),
         "energy_change": float(energies[-1] - energies[0]),

@@ -51,6 +51,14 @@ def test_options_that_need_a_file_are_refused_without_one(tmp_path):
     # released horizontal, it swings 0.1 s: the time stepping (h = 2 ms, first order) loses a
     # little energy and never gains any; the bound is 1 % of m g L / 2 (4.45 kg, L = 0.5 m)
     assert metrics["energy_max_gain"] <= 1e-9 and 0.0 < -metrics["energy_change"] < 0.01 * 4.45 * 9.81 * 0.25
+    assert metrics["joint_limits"] == 0
+    # the same pendulum limited to 5 degrees below horizontal (reached in about 0.08 s): it swings onto its limit and
+    # stays there (the limit holds it; the file's other side, -10 degrees, never acts)
+    pendulum.write_text(pendulum.read_text().replace('axis="0 1 0"', 'axis="0 1 0" limited="true" range="-10 5"'))
+    metrics = sim_scene.run(sim_scene.Config(file=str(pendulum), steps=50, frames=2), tmp_path / "out", None, progress=False)
+    assert metrics["joint_limits"] == 2 and metrics["limits_active_max"] == 1
+    assert metrics["max_limit_violation"] < 1e-9 and metrics["unconverged_steps"] == 0
+    assert metrics["energy_max_gain"] <= 1e-9
 
 
 def test_solo12_urdf_stands_on_the_floor_put_under_it(tmp_path, getkey):
