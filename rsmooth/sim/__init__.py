@@ -69,6 +69,7 @@ from rsmooth.sim._model import (
     solo12_urdf_path as solo12_urdf_path,
 )
 from rsmooth.sim._mujoco import (
+    MujocoLoadWarning as MujocoLoadWarning,
     MujocoModel as MujocoModel,
     from_mujoco as from_mujoco,
     load_mjcf as load_mjcf,

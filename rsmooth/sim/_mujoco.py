@@ -5,7 +5,9 @@ MuJoCo compiles the file (defaults, ``fromto``, mesh inertia, angle units...) in
 (the kinematic tree, inertias, limits, armature, gravity) plus what the tree does not hold: the
 joint damping, the time step, the direct joint motors, and the collision geometry as plain data.
 The conversion is checked once on the host and refuses, by name, what rsmooth's dynamics do not
-model (as MJX's ``put_model`` does), instead of simulating something else silently.
+model (as MJX's ``put_model`` does), instead of simulating something else silently; two of
+these, joint equalities (a URDF ``<mimic>``) and dry joint friction, :func:`load_mjcf` drops on
+request, with a warning.
 
 Joint mapping. Every MuJoCo joint becomes one rsmooth joint, in MuJoCo's order, so rsmooth
 joint ``j + 1`` is MuJoCo joint ``j`` and ``q``/``v`` have the layout of ``qpos``/``qvel``:
@@ -36,7 +38,10 @@ keyframes.
 
 from __future__ import annotations
 
+import os
 import pathlib
+import re
+import warnings
 from typing import Any
 
 import equinox as eqx
@@ -405,14 +410,31 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
         joint = joint_names[m.dof_jntid[d]]
         if m.dof_frictionloss[d] != 0:
             raise ValueError(
-                f"MuJoCo model: joint {joint!r} has frictionloss (dry joint friction), which rsmooth.sim does not "
-                "model (supported: frictionloss 0)"
+                f"MuJoCo model: joint {joint!r} has frictionloss (dry joint friction; a URDF's <dynamics friction>), "
+                "which rsmooth.sim does not model (supported: frictionloss 0): remove it from the file, or load it "
+                "with load_mjcf(..., drop_frictionloss=True), which drops it with a warning"
             )
         if np.any(m.dof_dampingpoly[d] != 0):
             raise ValueError(
                 f"MuJoCo model: joint {joint!r} has nonlinear damping (dampingpoly); rsmooth.sim supports linear "
                 "damping only"
             )
+    for e in range(m.neq):
+        if int(m.eq_type[e]) != int(mj.mjtEq.mjEQ_JOINT):
+            continue
+        # A URDF <mimic> becomes a joint equality: say which joints and what the user can do.
+        name = mj.mj_id2name(m, mj.mjtObj.mjOBJ_EQUALITY, e)
+        name = repr(name) if name else f"{e} (unnamed)"
+        joint1, joint2 = int(m.eq_obj1id[e]), int(m.eq_obj2id[e])
+        coupled = f"couples joint {joint_names[joint1]!r} to joint {joint_names[joint2]!r}" if joint2 >= 0 else (
+            f"holds joint {joint_names[joint1]!r} at a position"
+        )
+        raise ValueError(
+            f"MuJoCo model: the joint equality constraint {name} {coupled} (a URDF <mimic> becomes one); "
+            "rsmooth.sim does not support equality constraints: remove the <mimic> (or <equality><joint>) from the "
+            "file, or load it with load_mjcf(..., drop_mimic=True), which drops joint equalities with a warning "
+            "(the joints then move independently)"
+        )
     counts = [
         ("ntendon", "tendons", mj.mjtObj.mjOBJ_TENDON),
         ("neq", "equality constraints", mj.mjtObj.mjOBJ_EQUALITY),
@@ -766,8 +788,6 @@ def _resolve_packages(text: str, package_dirs, path: pathlib.Path) -> str:
     """``text`` with every ``package://NAME/REST`` URI replaced by an absolute path: the first
     ``DIR/NAME/REST`` that exists for ``DIR`` in ``package_dirs`` (ROS's convention: folders
     that hold packages), or ``DIR/REST`` where ``DIR`` is itself named ``NAME``."""
-    import re
-
     dirs = [pathlib.Path(d) for d in package_dirs]
 
     def resolve(match):
@@ -804,7 +824,221 @@ def _read_urdf(mj, path: pathlib.Path, package_dirs) -> Any:
     return spec
 
 
-def load_mjcf(source: str | pathlib.Path | Any, *, package_dirs=(), floating_base: bool = False) -> MujocoModel:
+class MujocoLoadWarning(UserWarning):
+    """What :func:`load_mjcf` changed in a model to load it: the visual geoms it dropped, the
+    inertias ``boundinertia`` raised, the joint couplings and dry friction ``drop_mimic`` and
+    ``drop_frictionloss`` dropped."""
+
+
+# MuJoCo's compile errors that load_mjcf explains: a mesh file in a format it has no decoder
+# for (the element is the mesh asset), and a rotational inertia that is not positive definite.
+_NO_DECODER = re.compile(r"no decoder found for mesh file '(?P<file>[^']*)'\s*\nElement name '(?P<name>[^']*)', id (?P<id>\d+)")
+_BAD_INERTIA = re.compile(r"inertia must have positive eigenvalues.*?\nElement name '(?P<name>[^']*)'", re.S)
+
+
+def _geom_label(geom: Any) -> str:
+    return f"geom {geom.name!r}" if geom.name else f"an unnamed geom of body {geom.parent.name!r}"
+
+
+def _why_kept(mj: Any, spec: Any, geom: Any) -> str | None:
+    """Why a geom is needed by the physics (``None`` if it is visual only): it collides, or its
+    body's inertia is computed from it (MuJoCo's ``inertiafromgeom``, ``inertiagrouprange``)."""
+    if geom.contype or geom.conaffinity:
+        return f"it collides (contype {geom.contype}, conaffinity {geom.conaffinity})"
+    if geom.name and any(geom.name in (pair.geomname1, pair.geomname2) for pair in spec.pairs):
+        return "it is in an explicit contact pair"
+    mode, body = spec.compiler.inertiafromgeom, geom.parent
+    low, high = spec.compiler.inertiagrouprange
+    inferred = mode == mj.mjtInertiaFromGeom.mjINERTIAFROMGEOM_TRUE or (
+        mode == mj.mjtInertiaFromGeom.mjINERTIAFROMGEOM_AUTO and not body.explicitinertial
+    )
+    massive = geom.mass > 0 if np.isfinite(geom.mass) else geom.density > 0
+    if inferred and massive and low <= geom.group <= high:
+        return f"the inertia of body {body.name!r} is computed from it (no explicit inertial)"
+    return None
+
+
+def _undecodable_mesh(spec: Any, match: re.Match) -> Any:
+    """The mesh asset MuJoCo's 'no decoder' error names (by name, else by id)."""
+    if match["name"]:
+        return spec.mesh(match["name"])
+    meshes = list(spec.meshes)
+    index = int(match["id"])
+    return meshes[index] if index < len(meshes) else None
+
+
+def _load_error(mj: Any, spec: Any, where: str, error: ValueError) -> ValueError:
+    """MuJoCo's compile error, with what the user can do about the two that load_mjcf knows."""
+    message = f"MuJoCo could not load {where}: {error}"
+    decoder = _NO_DECODER.search(str(error))
+    inertia = _BAD_INERTIA.search(str(error))
+    if decoder is not None:
+        mesh = _undecodable_mesh(spec, decoder)
+        users = [g for g in spec.geoms if mesh is not None and g.meshname == mesh.name]
+        needed = [(g, _why_kept(mj, spec, g)) for g in users]
+        needed = [(g, why) for g, why in needed if why is not None]
+        suffix = pathlib.Path(decoder["file"]).suffix or "extension-less"
+        if needed:
+            geom, why = needed[0]
+            message += (
+                f"\nMuJoCo has no decoder for {suffix} mesh files, and {_geom_label(geom)}, which uses "
+                f"{decoder['file']!r}, cannot be dropped: {why}; convert the file to a format MuJoCo reads (STL, OBJ)"
+            )
+        else:
+            message += (
+                f"\nMuJoCo has no decoder for {suffix} mesh files; the geoms that use {decoder['file']!r} are visual "
+                "only: pass visuals='auto' to drop the visual geoms whose meshes MuJoCo cannot decode, or "
+                "visuals=False to drop every visual geom"
+            )
+    elif inertia is not None:
+        body = spec.body(inertia["name"]) if inertia["name"] else None
+        given = ""
+        if body is not None:
+            full = np.asarray(body.fullinertia, dtype=np.float64)
+            values = full if np.all(np.isfinite(full)) else np.asarray(body.inertia, dtype=np.float64)
+            given = f" (mass {body.mass:g}, inertia {values.tolist()})"
+        message += (
+            f"\nbody {inertia['name']!r} has a rotational inertia that is not positive definite{given}: correct its "
+            "inertial in the file, or pass boundinertia, a small lower bound in kg m^2 (e.g. 1e-9) on every body's "
+            "principal moments of inertia (MuJoCo's compiler boundinertia; a warning names the bodies it raises)"
+        )
+    return ValueError(message)
+
+
+def _drop_joint_equalities(mj: Any, spec: Any, where: str) -> None:
+    """Deletes the joint equality constraints of ``spec`` (a URDF ``<mimic>`` becomes one),
+    with a warning naming the joints they coupled."""
+    dropped = []
+    for equality in list(spec.equalities):
+        if equality.type != mj.mjtEq.mjEQ_JOINT:
+            continue
+        couple = f"{equality.name1!r} to {equality.name2!r}" if equality.name2 else f"{equality.name1!r} to a constant"
+        dropped.append(couple)
+        spec.delete(equality)
+    if dropped:
+        warnings.warn(
+            f"{where}: drop_mimic=True dropped the joint equality constraints coupling joint {'; '.join(dropped)}: "
+            "these joints move independently",
+            MujocoLoadWarning,
+            stacklevel=4,
+        )
+
+
+def _drop_frictionloss(spec: Any, where: str) -> None:
+    """Zeroes the dry friction (``frictionloss``) of every joint of ``spec``, with a warning
+    naming the joints and the values dropped."""
+    dropped = []
+    for joint in spec.joints:
+        if joint.frictionloss != 0:
+            dropped.append(f"{joint.name!r} ({joint.frictionloss:g})")
+            joint.frictionloss = 0.0
+    if dropped:
+        warnings.warn(
+            f"{where}: drop_frictionloss=True dropped the dry friction (frictionloss) of {len(dropped)} joints: "
+            f"{', '.join(dropped)}",
+            MujocoLoadWarning,
+            stacklevel=4,
+        )
+
+
+def _raised_inertias(spec: Any, compiled: Any, bound: float) -> list[str]:
+    """The bodies whose principal moments of inertia ``boundinertia`` raised: an explicit
+    inertia with a principal moment under the bound (MuJoCo may then rebalance it, see
+    ``balanceinertia``), or a compiled one with a moment at the bound."""
+    names = []
+    for body in list(spec.bodies)[1:]:
+        raised = np.min(compiled.body_inertia[body.id]) <= bound
+        if body.explicitinertial:
+            full = np.asarray(body.fullinertia, dtype=np.float64)
+            if np.all(np.isfinite(full)):
+                matrix = np.array([[full[0], full[3], full[4]], [full[3], full[1], full[5]], [full[4], full[5], full[2]]])
+                moments = np.linalg.eigvalsh(matrix)
+            else:
+                moments = np.asarray(body.inertia, dtype=np.float64)
+            raised = raised or np.min(moments) < bound
+        if raised:
+            names.append(body.name or f"body {body.id}")
+    return names
+
+
+def _compile(mj: Any, spec: Any, where: str, *, visuals, boundinertia, drop_mimic: bool, drop_frictionloss: bool) -> Any:
+    """Compiles ``spec`` with load_mjcf's options (see there), warning of what they changed."""
+    if drop_mimic:
+        _drop_joint_equalities(mj, spec, where)
+    if drop_frictionloss:
+        _drop_frictionloss(spec, where)
+    if boundinertia is not None:
+        spec.compiler.boundinertia = boundinertia
+    if visuals is False:
+        try:
+            spec.discard_visual()
+        except ValueError as error:
+            raise _load_error(mj, spec, where, error) from None
+    dropped: dict[str, list[str]] = {}
+    while True:
+        try:
+            compiled = spec.compile()
+            break
+        except ValueError as error:
+            match = _NO_DECODER.search(str(error))
+            mesh = _undecodable_mesh(spec, match) if match is not None and visuals == "auto" else None
+            users = [g for g in spec.geoms if mesh is not None and g.meshname == mesh.name]
+            if mesh is None or any(_why_kept(mj, spec, g) is not None for g in users):
+                raise _load_error(mj, spec, where, error) from None
+            # Visual only: drop the geoms and the mesh; each pass removes one mesh, so this ends.
+            labels = [f"{g.name!r} on {g.parent.name!r}" if g.name else repr(g.parent.name) for g in users]
+            dropped.setdefault(match["file"], []).extend(labels)
+            for geom in users:
+                spec.delete(geom)
+            spec.delete(mesh)
+    if dropped:
+        count = sum(len(geoms) for geoms in dropped.values())
+        folder = os.path.commonpath([os.path.dirname(file) for file in dropped])
+        listing = "; ".join(
+            f"{os.path.relpath(file, folder) if folder else file} (on {', '.join(geoms)})" if geoms else f"{file} (unused)"
+            for file, geoms in dropped.items()
+        )
+        warnings.warn(
+            f"{where}: dropped {count} visual geoms whose mesh files MuJoCo has no decoder for (visuals='auto'; "
+            f"visuals=False drops every visual geom, converting the files to STL or OBJ keeps them), in {folder or '.'}: "
+            f"{listing}",
+            MujocoLoadWarning,
+            stacklevel=3,
+        )
+    if boundinertia is not None:
+        raised = _raised_inertias(spec, compiled, boundinertia)
+        if raised:
+            warnings.warn(
+                f"{where}: boundinertia={boundinertia:g} raised the principal moments of inertia of "
+                f"{len(raised)} bodies to at least {boundinertia:g} kg m^2: {', '.join(map(repr, raised))}",
+                MujocoLoadWarning,
+                stacklevel=3,
+            )
+    return compiled
+
+
+def _check_options(visuals, boundinertia, drop_mimic, drop_frictionloss) -> None:
+    if visuals is not True and visuals is not False and visuals != "auto":
+        raise ValueError(f"visuals must be True, False or 'auto', got {visuals!r}")
+    if boundinertia is not None and (
+        isinstance(boundinertia, bool) or not (np.ndim(boundinertia) == 0 and np.isfinite(boundinertia) and boundinertia > 0)
+    ):
+        raise ValueError(f"boundinertia must be None or a positive, finite number (kg m^2), got {boundinertia!r}")
+    for name, value in (("drop_mimic", drop_mimic), ("drop_frictionloss", drop_frictionloss)):
+        if not isinstance(value, (bool, np.bool_)):
+            raise ValueError(f"{name} must be True or False, got {value!r}")
+
+
+def load_mjcf(
+    source: str | pathlib.Path | Any,
+    *,
+    package_dirs=(),
+    floating_base: bool = False,
+    visuals: bool | str = "auto",
+    boundinertia: float | None = None,
+    drop_mimic: bool = False,
+    drop_frictionloss: bool = False,
+) -> MujocoModel:
     """Loads a model with MuJoCo's compiler and converts it (:func:`from_mujoco`).
 
     A URDF file (``.urdf``) is read as MuJoCo reads URDF, with three differences that a robot
@@ -813,6 +1047,14 @@ def load_mjcf(source: str | pathlib.Path | Any, *, package_dirs=(), floating_bas
     world) and visual meshes and mesh paths are kept; unless the file has its own
     ``<mujoco>`` element, which then decides.
 
+    Visual geoms (a URDF's ``<visual>``; in MJCF, geoms that do not collide and do not give
+    their body its inertia) matter to drawing only, and robot descriptions often ship them in
+    formats MuJoCo cannot decode (Collada ``.dae``). By default (``visuals="auto"``) they are
+    kept where MuJoCo decodes their meshes and dropped, with a :class:`MujocoLoadWarning` that
+    names the files, where it cannot; a geom the physics needs (it collides, or its body's
+    inertia is computed from it) is never dropped: its undecodable mesh is an error naming the
+    file and the geom.
+
     Args:
         source: path to an MJCF or URDF file, the MJCF text itself (a string whose first
             non-blank character is ``<``), or a ``mujoco.MjModel``.
@@ -820,6 +1062,23 @@ def load_mjcf(source: str | pathlib.Path | Any, *, package_dirs=(), floating_bas
             contains a folder per package, or is the package's own folder).
         floating_base: give the first body under the world a free joint named
             ``"root_joint"`` (a legged robot's base; a URDF has no free joint of its own).
+        visuals: ``"auto"``: drop the visual geoms whose meshes MuJoCo has no decoder for (see
+            above); ``True``: keep every visual geom (an undecodable mesh is an error);
+            ``False``: drop every visual geom (MuJoCo's ``MjSpec.discard_visual``: the geoms
+            that do not collide and are not referenced, after it has taken any inertia they
+            give their body). A compiled ``mujoco.MjModel`` is converted with the geoms it has.
+        boundinertia: ``None``, or a lower bound (kg m^2, > 0) that MuJoCo's compiler puts on
+            the principal moments of inertia of every body (its ``boundinertia``), for a file
+            whose inertial is not positive definite (Go1's ``base`` link: every entry
+            ``1e-6``). It changes the physics of the bodies it raises (massless bodies too):
+            a :class:`MujocoLoadWarning` names them. Prefer a small value (``1e-9``).
+        drop_mimic: drop the joint equality constraints (what MuJoCo makes of a URDF
+            ``<mimic>``: a gripper's second finger), which rsmooth.sim does not model, with
+            a :class:`MujocoLoadWarning` naming the joints: they then move independently.
+            Other equality constraints are still refused.
+        drop_frictionloss: drop the dry joint friction (``frictionloss``; what MuJoCo makes of
+            a URDF's ``<dynamics friction>``), which rsmooth.sim does not model, with a
+            :class:`MujocoLoadWarning` naming the joints and values.
 
     Returns:
         The converted model.
@@ -828,8 +1087,11 @@ def load_mjcf(source: str | pathlib.Path | Any, *, package_dirs=(), floating_bas
         FileNotFoundError: if the path does not exist, or a ``package://`` URI cannot be
             resolved (the message names the URI and the folders searched).
         ValueError: if MuJoCo cannot compile the source (MuJoCo's message is included, with
-            the path: a malformed file, a missing mesh file...), if ``source`` is of another
-            type, if ``floating_base`` is asked of a model whose first body already has a
+            the path: a malformed file, a missing mesh file, a mesh file it cannot decode that
+            is needed or kept, an inertia that is not positive definite, each with what can be
+            done), if ``source`` is of another type or an option is out of range, if
+            ``floating_base``, ``boundinertia``, ``drop_mimic`` or ``drop_frictionloss`` is asked of a compiled
+            ``mujoco.MjModel`` or ``floating_base`` of a model whose first body already has a
             joint, or if the model uses a feature rsmooth.sim does not support (see
             :func:`from_mujoco`).
 
@@ -841,9 +1103,12 @@ def load_mjcf(source: str | pathlib.Path | Any, *, package_dirs=(), floating_bas
         (('universe', 'hinge'), 'revolute', ('capsule',))
     """
     mj = _mujoco()
+    _check_options(visuals, boundinertia, drop_mimic, drop_frictionloss)
     if isinstance(source, mj.MjModel):
-        if floating_base:
-            raise ValueError("floating_base applies to a file or XML text, not to a compiled mujoco.MjModel")
+        given = (floating_base, boundinertia is not None, drop_mimic, drop_frictionloss)
+        for name, given in zip(("floating_base", "boundinertia", "drop_mimic", "drop_frictionloss"), given):
+            if given:
+                raise ValueError(f"{name} applies to a file or XML text, not to a compiled mujoco.MjModel")
         return from_mujoco(source)
     if isinstance(source, str) and source.lstrip().startswith("<"):
         where = "the XML text"
@@ -872,18 +1137,7 @@ def load_mjcf(source: str | pathlib.Path | Any, *, package_dirs=(), floating_bas
         if body.first_joint() is not None:
             raise ValueError(f"floating_base: the first body of {where}, {body.name!r}, already has a joint")
         body.add_freejoint(name="root_joint")
-    try:
-        compiled = spec.compile()
-    except ValueError as error:
-        raise ValueError(f"MuJoCo could not load {where}: {error}") from None
-    return from_mujoco(compiled)
-    if not isinstance(source, (str, pathlib.Path)):
-        raise ValueError(f"source must be a file path, XML text or a mujoco.MjModel, got {type(source).__name__}")
-    path = pathlib.Path(source)
-    if not path.is_file():
-        raise FileNotFoundError(f"MJCF file not found: {path}")
-    try:
-        compiled = mj.MjModel.from_xml_path(str(path))
-    except ValueError as error:
-        raise ValueError(f"MuJoCo could not load {path}: {error}") from None
+    compiled = _compile(
+        mj, spec, where, visuals=visuals, boundinertia=boundinertia, drop_mimic=drop_mimic, drop_frictionloss=drop_frictionloss
+    )
     return from_mujoco(compiled)

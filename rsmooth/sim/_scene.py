@@ -201,6 +201,10 @@ def scene(
     *,
     package_dirs=(),
     floating_base: bool = False,
+    visuals: bool | str = False,
+    boundinertia: float | None = None,
+    drop_mimic: bool = False,
+    drop_frictionloss: bool = False,
     time_step: float | None = None,
     friction: float | None = None,
     margin: float = 0.01,
@@ -232,6 +236,17 @@ def scene(
         package_dirs: folders holding the packages that ``package://`` URIs name (URDF).
         floating_base: give the first body under the world a free joint (a file or text
             only; see :func:`~rsmooth.sim.load_mjcf`).
+        visuals: which visual geoms to keep (:func:`~rsmooth.sim.load_mjcf`'s option; a file
+            or text only). ``False`` by default: the system is built from the colliding geoms
+            alone, so visual ones would only cost loading time (MuJoCo keeps the inertia they
+            give their body).
+        boundinertia: lower bound on the principal moments of inertia of every body, for a
+            file with an inertia that is not positive definite (see
+            :func:`~rsmooth.sim.load_mjcf`; a file or text only).
+        drop_mimic: drop joint equality constraints (a URDF ``<mimic>``) with a warning (see
+            :func:`~rsmooth.sim.load_mjcf`; a file or text only).
+        drop_frictionloss: drop dry joint friction with a warning (see
+            :func:`~rsmooth.sim.load_mjcf`; a file or text only).
         time_step: ``h`` (s); ``None``: MuJoCo's ``opt.timestep``.
         friction: Coulomb coefficient of every pair, ``>= 0``; ``None``: MuJoCo's per pair.
         margin: distance within which manifold entries are candidate contacts
@@ -258,7 +273,8 @@ def scene(
             rsmooth shape (an ellipsoid) or a pair of shapes without a collision function (the
             message names the geoms and their types), if the motors of a dof can apply a
             generalized force over a range that is not symmetric about zero (the message names
-            them), if ``floating_base`` or ``package_dirs`` is given with a converted model,
+            them), if ``floating_base``, ``package_dirs``, ``visuals``, ``boundinertia``,
+            ``drop_mimic`` or ``drop_frictionloss`` is given with a converted model,
             if ``floor`` is asked of a scene with no colliding geom on a moving body, if
             ``time_step``, ``friction`` or ``margin`` is out of range, or if ``floating_base``,
             ``floor`` or ``self_collision`` is not a bool.
@@ -276,11 +292,28 @@ def scene(
         if not isinstance(value, (bool, np.bool_)):
             raise ValueError(f"{name} must be True or False, got {value!r}")
     if isinstance(source, MujocoModel):
-        if floating_base or tuple(package_dirs):
-            raise ValueError("floating_base and package_dirs apply to a file or XML text, not to a converted MujocoModel")
+        given = {
+            "floating_base": floating_base,
+            "package_dirs": bool(tuple(package_dirs)),
+            "visuals": visuals is not False,
+            "boundinertia": boundinertia is not None,
+            "drop_mimic": drop_mimic,
+            "drop_frictionloss": drop_frictionloss,
+        }
+        if any(given.values()):
+            names = ", ".join(name for name, value in given.items() if value)
+            raise ValueError(f"{names}: these options apply to a file or XML text, not to a converted MujocoModel")
         loaded = source
     else:
-        loaded = load_mjcf(source, package_dirs=package_dirs, floating_base=floating_base)
+        loaded = load_mjcf(
+            source,
+            package_dirs=package_dirs,
+            floating_base=floating_base,
+            visuals=visuals,
+            boundinertia=boundinertia,
+            drop_mimic=drop_mimic,
+            drop_frictionloss=drop_frictionloss,
+        )
     h = loaded.timestep if time_step is None else _number("time_step", time_step)
     if friction is not None:
         friction = _number("friction", friction, zero=True)

@@ -4,10 +4,14 @@ On seeded random states, MuJoCo's mass matrix, bias forces, accelerations and bo
 geom placements are compared with rsmooth's (``crba``, ``nonlinear_effects``,
 ``forward_dynamics``, ``forward_kinematics``) after the change of velocity basis of free
 joints; Solo-12's URDF loaded by MuJoCo is also compared with ``load_urdf``'s model (loaded by
-Pinocchio). Each model's functions are jitted once and vmapped over the states.
+Pinocchio), and Panda, Go1, Go2 and the Allegro hand of example-robot-data, loaded by
+``load_mjcf`` with the options they need, with the same URDFs compiled by MuJoCo itself. Each
+model's functions are jitted once and vmapped over the states.
 """
 
 import pathlib
+import re
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -15,7 +19,7 @@ import numpy as np
 import pytest
 
 from rsmooth import sim
-from rsmooth.sim._mujoco import GEOM_TYPES, MujocoModel, from_mujoco, load_mjcf
+from rsmooth.sim._mujoco import GEOM_TYPES, MujocoLoadWarning, MujocoModel, from_mujoco, load_mjcf
 
 mujoco = pytest.importorskip("mujoco")
 
@@ -554,3 +558,155 @@ def test_urdf_file_through_mujoco_matches_load_urdf(tmp_path):
         q, v = jnp.array(q), jnp.array(v)
         assert_close(sim.crba(loaded.model, q), sim.crba(reference, q))
         assert_close(sim.nonlinear_effects(loaded.model, q, v), sim.nonlinear_effects(reference, q, v))
+
+
+# Robots of example-robot-data: the URDF (under robots/), whether it has a floating base, the
+# load_mjcf options it needs, the warnings they give, and the compiler attributes of MuJoCo's
+# own reading that match those options. Panda's finger joint mimics the other; Go1's base link
+# has an inertia that is not positive definite (every entry 1e-6) and its joints, as the
+# Allegro hand's, have dry friction; Panda's and Go2's visual meshes are Collada files, which
+# MuJoCo cannot decode (Go1's too: visuals=False there drops its visual boxes as well).
+ROBOTS = {
+    "panda": (
+        "panda_description/urdf/panda.urdf",
+        False,
+        dict(drop_mimic=True),
+        ("no decoder", "'panda_finger_joint2' to 'panda_finger_joint1'"),
+        "",
+    ),
+    "go1": (
+        "go1_description/urdf/go1.urdf",
+        True,
+        dict(visuals=False, boundinertia=1e-9, drop_frictionloss=True),
+        ("frictionloss.*'FR_hip_joint' \\(0.2\\)", "boundinertia=1e-09 raised .*'base'"),
+        'boundinertia="1e-9"',
+    ),
+    "go2": ("go2_description/urdf/go2.urdf", True, {}, ("no decoder.*base.dae \\(on 'base'\\)",), ""),
+    "allegro": (
+        "allegro_hand_description/urdf/allegro_right_hand.urdf",
+        False,
+        dict(visuals=False, drop_frictionloss=True),
+        ("frictionloss",),
+        "",
+    ),
+}
+
+
+def robot_mujoco(path: pathlib.Path, floating_base: bool, attributes: str):
+    """A URDF of example-robot-data compiled by MuJoCo itself: mesh paths rewritten, static
+    bodies kept, visual geoms discarded by its URDF reader, free joint named as Pinocchio's."""
+    root = sim.example_robot_data_root()
+    text = path.read_text().replace("package://example-robot-data/", f"{root}/")
+    start = text.index(">", text.index("<robot")) + 1
+    options = (f'<mujoco><compiler balanceinertia="true" discardvisual="true" fusestatic="false" meshdir="{path.parent}" '
+               f'{attributes}/></mujoco>')
+    spec = mujoco.MjSpec.from_string(text[:start] + options + text[start:])
+    if floating_base:
+        spec.worldbody.first_body().add_freejoint(name="root_joint")
+    return spec.compile()
+
+
+@pytest.mark.parametrize("name", sorted(ROBOTS))
+def test_example_robots_match_mujoco(name):
+    relative, floating_base, options, messages, attributes = ROBOTS[name]
+    root = sim.example_robot_data_root()
+    path = root / "robots" / relative
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        loaded = load_mjcf(path, package_dirs=[root.parent], floating_base=floating_base, **options)
+    said = [str(w.message) for w in caught if issubclass(w.category, MujocoLoadWarning)]
+    assert len(said) == len(messages) == len(caught)
+    for message in messages:
+        assert any(re.search(message, text) for text in said), (message, said)
+    m = robot_mujoco(path, floating_base, attributes)
+    # The same bodies and colliding geoms as MuJoCo's own reading without visuals (Panda's
+    # and Go2's visuals are all Collada files, dropped by visuals="auto").
+    assert loaded.body_names == tuple(m.body(b).name for b in range(m.nbody))
+    assert loaded.ngeom == m.ngeom and all(loaded.geom_contype)
+    check_against_mujoco(m, loaded, seed=sorted(ROBOTS).index(name))
+
+
+def test_example_robots_without_their_options_say_which_to_pass():
+    root = sim.example_robot_data_root()
+    robots = root / "robots"
+    mimic = "'panda_finger_joint2' to joint 'panda_finger_joint1'.*<mimic>.*drop_mimic=True"
+    with pytest.raises(ValueError, match=mimic):
+        load_mjcf(robots / ROBOTS["panda"][0], package_dirs=[root.parent], visuals=False)
+    inertia = "(?s)inertia must have positive eigenvalues.*body 'base'.*not positive definite.*boundinertia"
+    with pytest.raises(ValueError, match=inertia):
+        load_mjcf(robots / ROBOTS["go1"][0], package_dirs=[root.parent], visuals=False, floating_base=True)
+    with pytest.warns(MujocoLoadWarning, match="boundinertia"), pytest.raises(
+        ValueError, match="joint 'FR_hip_joint' has frictionloss.*drop_frictionloss=True"
+    ):
+        load_mjcf(robots / ROBOTS["go1"][0], package_dirs=[root.parent], visuals=False, boundinertia=1e-9)
+    with pytest.warns(MujocoLoadWarning, match="drop_mimic"), pytest.raises(
+        ValueError, match="(?s)no decoder found.*link0.dae.*visual only: pass visuals='auto'"
+    ):
+        load_mjcf(robots / ROBOTS["panda"][0], package_dirs=[root.parent], visuals=True, drop_mimic=True)
+
+
+def robot_urdf(tmp_path, visual: str, collision: str) -> pathlib.Path:
+    """A one-link URDF with the given visual and collision geometry, and a mesh file shape.dae
+    (a Collada file, which MuJoCo has no decoder for) beside it."""
+    (tmp_path / "shape.dae").write_text("<COLLADA/>")
+    path = tmp_path / "robot.urdf"
+    path.write_text(f"""<robot name="r"><link name="base">
+      <inertial><mass value="1"/><inertia ixx="0.1" ixy="0" ixz="0" iyy="0.1" iyz="0" izz="0.1"/></inertial>
+      <visual><geometry>{visual}</geometry></visual><collision><geometry>{collision}</geometry></collision>
+    </link></robot>""")
+    return path
+
+
+def test_undecodable_visual_mesh_is_dropped_with_a_warning(tmp_path):
+    path = robot_urdf(tmp_path, '<mesh filename="shape.dae"/>', '<box size="0.2 0.2 0.2"/>')
+    dropped = "dropped 1 visual geoms whose mesh files MuJoCo has no decoder for.*shape.dae \\(on 'base'\\)"
+    with pytest.warns(MujocoLoadWarning, match=dropped):
+        loaded = load_mjcf(path, floating_base=True)
+    assert loaded.geom_types == ("box",) and loaded.geom_contype == (1,)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert load_mjcf(path, floating_base=True, visuals=False).geom_types == ("box",)
+    with pytest.raises(ValueError, match="(?s)robot.urdf.*no decoder found.*shape.dae.*visual only: pass visuals='auto'"):
+        load_mjcf(path, floating_base=True, visuals=True)
+    # A decodable visual is kept by "auto".
+    path = robot_urdf(tmp_path, '<sphere radius="0.1"/>', '<box size="0.2 0.2 0.2"/>')
+    assert load_mjcf(path, floating_base=True).geom_types == ("sphere", "box")
+
+
+def test_undecodable_mesh_the_physics_needs_is_an_error(tmp_path):
+    path = robot_urdf(tmp_path, '<box size="0.2 0.2 0.2"/>', '<mesh filename="shape.dae"/>')
+    for visuals in ("auto", True, False):
+        with pytest.raises(ValueError, match=r"no decoder for \.dae mesh files, and an unnamed geom of body 'base', which "
+                           r"uses '.*shape.dae', cannot be dropped: it collides .*convert the file"):
+            load_mjcf(path, floating_base=True, visuals=visuals)
+    # A geom that does not collide but gives its body its inertia (no explicit inertial).
+    (tmp_path / "shape.dae").write_text("<COLLADA/>")
+    xml = f"""<mujoco><compiler meshdir="{tmp_path}"/><asset><mesh file="shape.dae"/></asset><worldbody>
+      <body name="link"><joint/><geom name="look" type="mesh" mesh="shape" contype="0" conaffinity="0"/>
+      <geom type="box" size="0.1 0.1 0.1"/></body></worldbody></mujoco>"""
+    with pytest.raises(ValueError, match="geom 'look'.*cannot be dropped: the inertia of body 'link' is computed from it"):
+        load_mjcf(xml)
+
+
+def test_loading_options_are_checked():
+    xml = wrap("<body><joint/><geom size='0.1'/></body>")
+    for options, message in (
+        (dict(visuals="none"), "visuals must be True, False or 'auto', got 'none'"),
+        (dict(boundinertia=0.0), "boundinertia must be None or a positive"),
+        (dict(drop_mimic=1), "drop_mimic must be True or False"),
+        (dict(drop_frictionloss=None), "drop_frictionloss must be True or False"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            load_mjcf(xml, **options)
+    compiled = mujoco.MjModel.from_xml_string(xml)
+    for name, value in (("boundinertia", 1e-9), ("drop_mimic", True), ("drop_frictionloss", True)):
+        with pytest.raises(ValueError, match=f"{name} applies to a file or XML text"):
+            load_mjcf(compiled, **{name: value})
+    # drop_mimic drops joint equalities only; the others are still refused by name.
+    equalities = "<equality><joint name='mimic' joint1='j2' joint2='j1'/><weld name='weld' body1='b'/></equality>"
+    bodies = "<body name='b'><joint name='j1'/><geom size='0.1'/><body><joint name='j2'/><geom size='0.1'/></body></body>"
+    two = wrap(bodies, equalities)
+    with pytest.raises(ValueError, match="joint equality constraint 'mimic' couples joint 'j2' to joint 'j1'"):
+        load_mjcf(two)
+    with pytest.warns(MujocoLoadWarning, match="'j2' to 'j1'"), pytest.raises(ValueError, match="equality constraints .*'weld'"):
+        load_mjcf(two, drop_mimic=True)

@@ -301,3 +301,24 @@ def test_a_scene_without_contacts_falls_freely():
     np.testing.assert_allclose(x_next, xs[4], atol=1e-14)
     np.testing.assert_allclose(fx, jax.jacfwd(system.step)(xs[3], jnp.zeros(0)), atol=1e-12)
     assert fu.shape == (system.nx, 0)
+
+
+def test_a_robot_with_undecodable_visual_meshes_stands_on_a_floor():
+    # Go2 of example-robot-data: Collada visual meshes, which MuJoCo cannot decode; scene drops
+    # every visual geom by default (visuals=False), without a warning (warnings are errors
+    # here), and keeps its 19 collision meshes: each paired with the floor put under it.
+    root = sim.example_robot_data_root()
+    path = root / "robots" / "go2_description" / "urdf" / "go2.urdf"
+    system = sim.scene(path, package_dirs=[root.parent], floating_base=True, floor=True, self_collision=False)
+    assert (system.model.nq, system.model.nv) == (19, 18)
+    assert len(system.geom_pairs) == 19
+    assert all(isinstance(pair.shape1, sim.HalfSpace) and isinstance(pair.shape2, sim.ConvexMesh) for pair in system.geom_pairs)
+
+
+def test_loading_options_are_refused_with_a_converted_model():
+    loaded = sim.load_mjcf(ARM.format(extra="", low=-1))
+    for options in (dict(visuals="auto"), dict(boundinertia=1e-9, drop_mimic=True), dict(drop_frictionloss=True)):
+        with pytest.raises(ValueError, match=f"{', '.join(options)}: these options apply to a file or XML text"):
+            sim.scene(loaded, **options)
+    with pytest.raises(ValueError, match="visuals must be True, False or 'auto'"):
+        sim.scene(ARM.format(extra="", low=-1), visuals=None)
