@@ -79,7 +79,7 @@ _apply = spatial.inertia_apply
 
 def supported(system) -> bool:
     """Whether :func:`configuration_jacobian` handles ``system`` (else use forward mode)."""
-    return system.actuation == "joints" and not system.box_spheres and not system.geom_pairs and not system.joint_limits
+    return system.actuation == "joints" and not system.box_spheres and not system.geom_pairs and not system.joint_limits and not len(_dynamics._tree(system.model).spherical)
 
 
 def _take(inertia: spatial.SpatialInertia, index) -> spatial.SpatialInertia:

@@ -32,7 +32,7 @@ import numpy as np
 from jax.typing import ArrayLike
 
 from rsmooth.sim import _spatial as spatial
-from rsmooth.sim._model import FREE_FLYER, JOINT_NV, PRISMATIC, REVOLUTE, Model
+from rsmooth.sim._model import FREE_FLYER, JOINT_NV, PRISMATIC, REVOLUTE, SPHERICAL, Model
 
 Reference = Literal["local_world_aligned", "local", "world"]
 _REFERENCES = ("local_world_aligned", "local", "world")
@@ -52,11 +52,14 @@ class _Tree(NamedTuple):
     revolute: np.ndarray  # joint indices by type
     prismatic: np.ndarray
     free_flyer: np.ndarray
-    assemble: np.ndarray  # permutation: [universe, revolute, prismatic, free flyers] -> joints
+    spherical: np.ndarray
+    assemble: np.ndarray  # permutation: [universe, revolute, prismatic, free flyers, spherical] -> joints
     dof_owner: np.ndarray  # (nv,) joint moved by each dof
     dof_is_revolute: np.ndarray  # (nv, 1) bool
     dof_is_prismatic: np.ndarray  # (nv, 1) bool
-    free_flyer_basis: np.ndarray  # (nv, 6) unit twists of free-flyer dofs, zeros elsewhere
+    twist_basis: np.ndarray  # (nv, 6) unit twists of free-flyer and spherical dofs, zeros elsewhere
+    rotation_q: np.ndarray  # configuration offset of every joint's unit quaternion (free flyer, spherical)
+    rotation_v: np.ndarray  # velocity offset of its angular velocity
     support: np.ndarray  # (njoints, nv) bool: dof moves body i (its joint is i or an ancestor)
     subtree: np.ndarray  # (njoints, njoints) float: subtree[j, i] = 1 if body i is j or below j
     dof_ancestor: np.ndarray  # (nv, nv) bool: owner(a) is owner(b) or an ancestor of it
@@ -82,17 +85,26 @@ def _tree_structure(
         level_parents.append(np.array([position[parents[j]] for j in level], dtype=np.int32))
     by_type = {
         kind: np.array([j for j in range(1, njoints) if joint_types[j] == kind], dtype=np.int32)
-        for kind in (REVOLUTE, PRISMATIC, FREE_FLYER)
+        for kind in (REVOLUTE, PRISMATIC, FREE_FLYER, SPHERICAL)
     }
-    order = np.concatenate([[0], by_type[REVOLUTE], by_type[PRISMATIC], by_type[FREE_FLYER]]).astype(np.int32)
+    order = np.concatenate(
+        [[0], by_type[REVOLUTE], by_type[PRISMATIC], by_type[FREE_FLYER], by_type[SPHERICAL]]
+    ).astype(np.int32)
     nv = sum(JOINT_NV[kind] for kind in joint_types)
     dof_owner = np.zeros(nv, dtype=np.int32)
-    free_flyer_basis = np.zeros((nv, 6))
+    twist_basis = np.zeros((nv, 6))
+    rotation_q, rotation_v = [], []
     for joint in range(1, njoints):
         dofs = slice(idx_v[joint], idx_v[joint] + JOINT_NV[joint_types[joint]])
         dof_owner[dofs] = joint
         if joint_types[joint] == FREE_FLYER:
-            free_flyer_basis[dofs] = np.eye(6)
+            twist_basis[dofs] = np.eye(6)
+            rotation_q.append(idx_q[joint] + 3)
+            rotation_v.append(idx_v[joint] + 3)
+        elif joint_types[joint] == SPHERICAL:
+            twist_basis[dofs] = np.eye(6)[3:]  # angular velocity in the joint frame
+            rotation_q.append(idx_q[joint])
+            rotation_v.append(idx_v[joint])
     ancestor_or_self = np.zeros((njoints, njoints), dtype=bool)  # [a, b]: a is b or above b
     for joint in range(1, njoints):
         ancestor = joint
@@ -107,11 +119,14 @@ def _tree_structure(
         revolute=by_type[REVOLUTE],
         prismatic=by_type[PRISMATIC],
         free_flyer=by_type[FREE_FLYER],
+        spherical=by_type[SPHERICAL],
         assemble=np.argsort(order).astype(np.int32),
         dof_owner=dof_owner,
         dof_is_revolute=np.array([joint_types[j] == REVOLUTE for j in dof_owner])[:, None],
         dof_is_prismatic=np.array([joint_types[j] == PRISMATIC for j in dof_owner])[:, None],
-        free_flyer_basis=free_flyer_basis,
+        twist_basis=twist_basis,
+        rotation_q=np.asarray(rotation_q, dtype=np.int64),
+        rotation_v=np.asarray(rotation_v, dtype=np.int64),
         support=ancestor_or_self[dof_owner, :].T,
         subtree=ancestor_or_self.astype(np.float64),
         dof_ancestor=ancestor_or_self[np.ix_(dof_owner, dof_owner)],
@@ -199,17 +214,20 @@ def _local_placements(model: Model, q: jax.Array) -> tuple[jax.Array, jax.Array]
     revolute_angles = q[np.asarray(model.idx_q)[tree.revolute]]
     prismatic_offsets = q[np.asarray(model.idx_q)[tree.prismatic]]
     free_flyer_q = q[np.asarray(model.idx_q)[tree.free_flyer][:, None] + np.arange(7)]
+    spherical_q = q[np.asarray(model.idx_q)[tree.spherical][:, None] + np.arange(4)]
     identity = jnp.eye(3, dtype=dtype)
     rotations = [
         identity[None],
         jax.vmap(spatial.rotation_about_axis)(axes[tree.revolute], revolute_angles),
         jnp.broadcast_to(identity, (len(tree.prismatic), 3, 3)),
         jax.vmap(spatial.quaternion_to_rotation)(free_flyer_q[:, 3:]),
+        jax.vmap(spatial.quaternion_to_rotation)(spherical_q),
     ]
     translations = [
         jnp.zeros((1 + len(tree.revolute), 3), dtype=dtype),
         axes[tree.prismatic] * prismatic_offsets[:, None],
         free_flyer_q[:, :3],
+        jnp.zeros((len(tree.spherical), 3), dtype=dtype),
     ]
     joint_rotation = jnp.concatenate(rotations)[tree.assemble]
     joint_translation = jnp.concatenate(translations)[tree.assemble]
@@ -251,11 +269,12 @@ def _kinematics(model: Model, q: jax.Array) -> _Kinematics:
     tree = _tree(model)
     rotation, translation = _world_placements(model, q)
     # Joint-frame motion subspaces: [0, axis] (revolute), [axis, 0] (prismatic), unit twists
-    # (free flyer); then expressed in the world frame by the owning joint's placement.
+    # (free flyer), angular unit twists (spherical); then expressed in the world frame by the
+    # owning joint's placement.
     dof_axes = model.joint_axes[tree.dof_owner]
     local_subspace = jnp.concatenate(
         [jnp.where(tree.dof_is_prismatic, dof_axes, 0.0), jnp.where(tree.dof_is_revolute, dof_axes, 0.0)], axis=1
-    ) + tree.free_flyer_basis
+    ) + tree.twist_basis
     world_subspace = _transform_motions(rotation[tree.dof_owner], translation[tree.dof_owner], local_subspace)
     return _Kinematics(rotation, translation, world_subspace)
 
@@ -612,6 +631,13 @@ def integrate(model: Model, q: ArrayLike, v: ArrayLike, dt: ArrayLike = 1.0) -> 
         # pinocchio::quaternion::firstOrderNormalize: q (3 - |q|^2) / 2.
         new_quaternion = new_quaternion * (0.5 * (3.0 - jnp.sum(new_quaternion * new_quaternion)))
         result = result.at[start_q : start_q + 7].set(jnp.concatenate([position, new_quaternion]))
+    for joint in tree.spherical:
+        start_q, start_v = model.idx_q[joint], model.idx_v[joint]
+        increment = spatial.quaternion_exp(step[start_v : start_v + 3])
+        new_quaternion = spatial.quaternion_multiply(q[start_q : start_q + 4], increment)
+        new_quaternion = jnp.where(increment[3] < 0.0, -new_quaternion, new_quaternion)
+        new_quaternion = new_quaternion * (0.5 * (3.0 - jnp.sum(new_quaternion * new_quaternion)))
+        result = result.at[start_q : start_q + 4].set(new_quaternion)
     return result
 
 
@@ -644,6 +670,10 @@ def difference(model: Model, q0: ArrayLike, q1: ArrayLike) -> jax.Array:
         relative_position = spatial.rotate_inverse(spatial.quaternion_to_rotation(quaternion0), position1 - position0)
         linear = spatial.left_jacobian_so3_inverse_apply(angular, relative_position)
         result = result.at[start_v : start_v + 6].set(jnp.concatenate([linear, angular]))
+    for joint in tree.spherical:
+        start_q, start_v = model.idx_q[joint], model.idx_v[joint]
+        relative = spatial.quaternion_multiply(spatial.quaternion_conjugate(q0[start_q : start_q + 4]), q1[start_q : start_q + 4])
+        result = result.at[start_v : start_v + 3].set(spatial.quaternion_log(relative))
     return result
 
 

@@ -25,14 +25,15 @@ import jax.numpy as jnp
 import numpy as np
 
 FREE_FLYER = "free_flyer"
+SPHERICAL = "spherical"
 REVOLUTE = "revolute"
 PRISMATIC = "prismatic"
 UNIVERSE = "universe"
 
 # Tangent dimension of each supported joint type (the configuration dimension is the same,
 # except for the free flyer whose orientation is a quaternion: nq = 7, nv = 6).
-JOINT_NV = {UNIVERSE: 0, FREE_FLYER: 6, REVOLUTE: 1, PRISMATIC: 1}
-JOINT_NQ = {UNIVERSE: 0, FREE_FLYER: 7, REVOLUTE: 1, PRISMATIC: 1}
+JOINT_NV = {UNIVERSE: 0, FREE_FLYER: 6, SPHERICAL: 3, REVOLUTE: 1, PRISMATIC: 1}
+JOINT_NQ = {UNIVERSE: 0, FREE_FLYER: 7, SPHERICAL: 4, REVOLUTE: 1, PRISMATIC: 1}
 
 _UNIT_AXES = {"X": (1.0, 0.0, 0.0), "Y": (0.0, 1.0, 0.0), "Z": (0.0, 0.0, 1.0)}
 
@@ -45,12 +46,13 @@ class Model(eqx.Module):
     joint_placement_translation[i])``. Index 0 is the universe (fixed world, no body).
 
     Supported joints: ``"free_flyer"`` (``q = [x, y, z, qx, qy, qz, qw]``, ``v = [linear,
-    angular]`` in the joint frame, as Pinocchio), ``"revolute"`` about ``joint_axes[i]``,
-    ``"prismatic"`` along ``joint_axes[i]``.
+    angular]`` in the joint frame, as Pinocchio), ``"spherical"`` (a ball joint: ``q = [qx, qy,
+    qz, qw]``, ``v`` the angular velocity in the joint frame, as Pinocchio's and MuJoCo's),
+    ``"revolute"`` about ``joint_axes[i]``, ``"prismatic"`` along ``joint_axes[i]``.
 
     Attributes:
         joint_names: name of every joint, ``joint_names[0] == "universe"``.
-        joint_types: ``"universe"``, ``"free_flyer"``, ``"revolute"`` or ``"prismatic"``.
+        joint_types: ``"universe"``, ``"free_flyer"``, ``"spherical"``, ``"revolute"`` or ``"prismatic"``.
         parents: parent joint index of every joint (``parents[0] == 0``).
         idx_q: offset of every joint in the configuration vector.
         idx_v: offset of every joint in the velocity vector.
@@ -112,7 +114,7 @@ class Model(eqx.Module):
         next_q = next_v = 0
         for i in range(1, njoints):
             kind = self.joint_types[i]
-            if kind not in (FREE_FLYER, REVOLUTE, PRISMATIC):
+            if kind not in (FREE_FLYER, SPHERICAL, REVOLUTE, PRISMATIC):
                 raise ValueError(f"joint {self.joint_names[i]!r} has unsupported type {kind!r}")
             if not 0 <= self.parents[i] < i:
                 raise ValueError(f"joint {self.joint_names[i]!r}: parent must precede the joint")
@@ -306,6 +308,8 @@ def _joint_type_and_axis(joint_model: Any, name: str) -> tuple[str, tuple[float,
     shortname = joint_model.shortname()
     if shortname == "JointModelFreeFlyer":
         return FREE_FLYER, (0.0, 0.0, 0.0)
+    if shortname == "JointModelSpherical":
+        return SPHERICAL, (0.0, 0.0, 0.0)
     for prefix, kind in (("JointModelR", REVOLUTE), ("JointModelP", PRISMATIC)):
         suffix = shortname[len(prefix) :]
         if shortname.startswith(prefix) and suffix in _UNIT_AXES:
@@ -316,7 +320,7 @@ def _joint_type_and_axis(joint_model: Any, name: str) -> tuple[str, tuple[float,
         return kind, tuple(float(a) for a in axis / np.linalg.norm(axis))
     raise ValueError(
         f"joint {name!r} has type {shortname}, which rsmooth.sim does not support "
-        "(supported: free-flyer, revolute and prismatic joints; continuous URDF joints become "
+        "(supported: free-flyer, spherical, revolute and prismatic joints; continuous URDF joints become "
         "unbounded revolute joints in Pinocchio and are not supported either)"
     )
 

@@ -11,7 +11,8 @@ request, with a warning.
 
 Joint mapping. Every MuJoCo joint becomes one rsmooth joint, in MuJoCo's order, so rsmooth
 joint ``j + 1`` is MuJoCo joint ``j`` and ``q``/``v`` have the layout of ``qpos``/``qvel``:
-``hinge`` is ``"revolute"``, ``slide`` is ``"prismatic"``, ``free`` is ``"free_flyer"``. A hinge
+``hinge`` is ``"revolute"``, ``slide`` is ``"prismatic"``, ``ball`` is ``"spherical"``, ``free`` is
+``"free_flyer"``. A hinge
 turns about ``jnt_axis`` through ``jnt_pos`` (in its body's frame), so its rsmooth joint frame
 is the body frame moved to ``jnt_pos``; the body, its inertia, geoms and sites are placed
 relative to that frame. A body with several joints becomes a chain of rsmooth joints whose
@@ -24,7 +25,9 @@ element is called ``"<kind> <id>"``, e.g. ``"body 3"``).
 Conventions that differ (see :meth:`MujocoModel.qpos_to_q` and friends): MuJoCo's free joint
 has ``qpos = [x, y, z, qw, qx, qy, qz]`` and ``qvel = [linear velocity in world axes,
 angular velocity in body axes]``; rsmooth's has ``q = [x, y, z, qx, qy, qz, qw]`` and
-``v = [linear, angular]`` both in body axes. A hinge or slide with a reference position
+``v = [linear, angular]`` both in body axes. A ball joint's ``qpos = [qw, qx, qy, qz]`` is
+rsmooth's ``[qx, qy, qz, qw]``; its ``qvel``, the angular velocity in the joint frame, is
+rsmooth's ``v``. A hinge or slide with a reference position
 (``ref``, MuJoCo's ``qpos0``) has ``q = qpos - qpos0``. Because rsmooth's free-joint basis turns
 with the body, accelerations carry a transport term (:meth:`MujocoModel.qacc_to_a`) and
 ``nonlinear_effects`` equals ``T^T (qfrc_bias + M dT/dt v)`` rather than ``T^T qfrc_bias``.
@@ -51,7 +54,7 @@ import numpy as np
 from jax.typing import ArrayLike
 
 from rsmooth.sim import _spatial as spatial
-from rsmooth.sim._model import FREE_FLYER, PRISMATIC, REVOLUTE, UNIVERSE, Model
+from rsmooth.sim._model import FREE_FLYER, PRISMATIC, REVOLUTE, SPHERICAL, UNIVERSE, Model
 
 # The geom types a collision routine may meet; height fields and SDFs are accepted only
 # when they cannot collide (purely visual), so that geom indices stay MuJoCo's.
@@ -128,6 +131,7 @@ class MujocoModel(eqx.Module):
             describes, every free joint at its body's pose in the world.
         free_joint_qpos: ``qpos`` offset of every free joint.
         free_joint_qvel: ``qvel`` offset of every free joint.
+        ball_joint_qpos: ``qpos`` offset of every ball joint.
     """
 
     model: Model
@@ -164,6 +168,7 @@ class MujocoModel(eqx.Module):
     default_qpos: jax.Array
     free_joint_qpos: tuple[int, ...] = eqx.field(static=True)
     free_joint_qvel: tuple[int, ...] = eqx.field(static=True)
+    ball_joint_qpos: tuple[int, ...] = eqx.field(static=True, default=())
 
     @property
     def ngeom(self) -> int:
@@ -186,7 +191,8 @@ class MujocoModel(eqx.Module):
 
         Free joints: ``[x, y, z, qw, qx, qy, qz]`` becomes ``[x, y, z, qx, qy, qz, qw]`` with the
         quaternion normalized (MuJoCo normalizes it before use; a zero quaternion is the
-        identity, as in MuJoCo). Hinges and slides: ``qpos - qpos0``.
+        identity, as in MuJoCo); ball joints: ``[qw, qx, qy, qz]`` becomes ``[qx, qy, qz, qw]``,
+        normalized the same way. Hinges and slides: ``qpos - qpos0``.
 
         Args:
             qpos: shape ``(..., nq)``.
@@ -199,6 +205,9 @@ class MujocoModel(eqx.Module):
         for adr in self.free_joint_qpos:
             quaternion = jnp.concatenate([qpos[..., adr + 4 : adr + 7], qpos[..., adr + 3 : adr + 4]], axis=-1)
             q = q.at[..., adr + 3 : adr + 7].set(_normalized_quaternion(quaternion))
+        for adr in self.ball_joint_qpos:
+            quaternion = jnp.concatenate([qpos[..., adr + 1 : adr + 4], qpos[..., adr : adr + 1]], axis=-1)
+            q = q.at[..., adr : adr + 4].set(_normalized_quaternion(quaternion))
         return q
 
     def q_to_qpos(self, q: ArrayLike) -> jax.Array:
@@ -216,6 +225,8 @@ class MujocoModel(eqx.Module):
         for adr in self.free_joint_qpos:
             quaternion = jnp.concatenate([q[..., adr + 6 : adr + 7], q[..., adr + 3 : adr + 6]], axis=-1)
             qpos = qpos.at[..., adr + 3 : adr + 7].set(quaternion)
+        for adr in self.ball_joint_qpos:
+            qpos = qpos.at[..., adr : adr + 4].set(jnp.concatenate([q[..., adr + 3 : adr + 4], q[..., adr : adr + 3]], axis=-1))
         return qpos
 
     def qvel_to_v(self, qpos: ArrayLike, qvel: ArrayLike) -> jax.Array:
@@ -394,12 +405,11 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
     """Raises a ValueError naming the first element rsmooth cannot model faithfully."""
     joint_names = _names(m, "joint", m.njnt)
     body_names = _names(m, "body", m.nbody)
-    supported_joints = "supported: hinge, slide and free joints"
     for j in range(m.njnt):
-        if int(m.jnt_type[j]) == int(mj.mjtJoint.mjJNT_BALL):
+        if int(m.jnt_type[j]) == int(mj.mjtJoint.mjJNT_BALL) and m.jnt_limited[j]:
             raise ValueError(
-                f"MuJoCo model: joint {joint_names[j]!r} is a ball joint, which rsmooth.sim does not support "
-                f"({supported_joints})"
+                f"MuJoCo model: ball joint {joint_names[j]!r} has a range (a limit on its rotation angle), which "
+                "rsmooth.sim does not enforce (supported: unlimited ball joints; limits on hinges and slides)"
             )
         if m.jnt_stiffness[j] != 0 or np.any(m.jnt_stiffnesspoly[j] != 0):
             raise ValueError(
@@ -545,6 +555,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
     m = mj_model
     _reject_unsupported(mj, m)
     free, hinge, slide = (int(mj.mjtJoint.mjJNT_FREE), int(mj.mjtJoint.mjJNT_HINGE), int(mj.mjtJoint.mjJNT_SLIDE))
+    ball = int(mj.mjtJoint.mjJNT_BALL)
     body_names = _names(m, "body", m.nbody)
     joint_names = _names(m, "joint", m.njnt)
     site_names = _names(m, "site", m.nsite)
@@ -577,7 +588,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
                 placement = _compose(frame, (np.eye(3), new_anchor - anchor))
                 anchor = new_anchor
                 axes[j + 1] = m.jnt_axis[j]
-            types[j + 1] = {free: FREE_FLYER, hinge: REVOLUTE, slide: PRISMATIC}[kind]
+            types[j + 1] = {free: FREE_FLYER, ball: SPHERICAL, hinge: REVOLUTE, slide: PRISMATIC}[kind]
             parents[j + 1] = joint
             placements[j + 1] = placement
             joint, frame = j + 1, _IDENTITY
@@ -595,9 +606,12 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
 
     qpos0 = np.zeros(m.nq)
     lower, upper = np.full(m.nq, -np.inf), np.full(m.nq, np.inf)
-    free_qpos, free_qvel = [], []
+    free_qpos, free_qvel, ball_qpos = [], [], []
     for j in range(m.njnt):
         adr = m.jnt_qposadr[j]
+        if int(m.jnt_type[j]) == ball:
+            ball_qpos.append(int(adr))  # [qw, qx, qy, qz]; qvel: angular velocity in the joint frame, as rsmooth's
+            continue
         if int(m.jnt_type[j]) == free:
             free_qpos.append(int(adr))
             free_qvel.append(int(m.jnt_dofadr[j]))
@@ -696,6 +710,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         default_qpos=_array(m.qpos0),
         free_joint_qpos=tuple(free_qpos),
         free_joint_qvel=tuple(free_qvel),
+        ball_joint_qpos=tuple(ball_qpos),
     )
 
 

@@ -519,8 +519,7 @@ class RigidBodySystem(eqx.Module):
         if self.initial_configuration is not None:
             return self.state(self.initial_configuration)
         q = np.zeros(self.model.nq)
-        for joint in _dynamics._tree(self.model).free_flyer:
-            q[int(self.model.idx_q[joint]) + 6] = 1.0  # quaternion [x, y, z, w] = identity
+        q[_dynamics._tree(self.model).rotation_q + 3] = 1.0  # quaternions [x, y, z, w] = identity
         return self.state(jnp.asarray(q, self.time_step.dtype))
 
     def project_state(self, x: ArrayLike) -> Array:
@@ -541,8 +540,8 @@ class RigidBodySystem(eqx.Module):
         """
         x = jnp.asarray(x)
         tree = _dynamics._tree(self.model)
-        for joint in tree.free_flyer:
-            start = int(self.model.idx_q[joint]) + 3
+        for start in tree.rotation_q:
+            start = int(start)
             quaternion = x[..., start : start + 4]
             norm = jnp.sqrt(spatial.sum_last(quaternion * quaternion))[..., None]
             x = x.at[..., start : start + 4].set(quaternion / norm)
@@ -1128,7 +1127,8 @@ def _step_and_jacobians(system: RigidBodySystem, q: Array, v: Array, u: Array) -
 
 
 def _integrate_decoupled(model: Model, q: Array, v: Array, h: Array) -> Array:
-    """``q (+) h v`` with free flyers on ``R^3 x SO(3)`` (see the module docstring)."""
+    """``q (+) h v`` with free flyers on ``R^3 x SO(3)`` and spherical joints on ``SO(3)`` (see
+    the module docstring)."""
     tree = _dynamics._tree(model)
     step = v * h
     result = q.at[tree.vector_q].add(step[tree.vector_v])
@@ -1140,6 +1140,10 @@ def _integrate_decoupled(model: Model, q: Array, v: Array, h: Array) -> Array:
         quaternion = spatial.quaternion_multiply(quaternion, spatial.quaternion_exp(angular))
         quaternion = quaternion / jnp.sqrt(spatial.sum_last(quaternion * quaternion))
         result = result.at[start_q : start_q + 7].set(jnp.concatenate([position, quaternion]))
+    for joint in tree.spherical:
+        start_q, start_v = model.idx_q[joint], model.idx_v[joint]
+        quaternion = spatial.quaternion_multiply(q[start_q : start_q + 4], spatial.quaternion_exp(step[start_v : start_v + 3]))
+        result = result.at[start_q : start_q + 4].set(quaternion / jnp.sqrt(spatial.sum_last(quaternion * quaternion)))
     return result
 
 

@@ -41,6 +41,9 @@ def random_configuration(pin_model, rng):
         if name == "JointModelFreeFlyer":
             quaternion = rng.normal(size=4)
             q[joint.idx_q : joint.idx_q + 7] = np.concatenate([rng.uniform(-1, 1, 3), quaternion / np.linalg.norm(quaternion)])
+        elif name == "JointModelSpherical":
+            quaternion = rng.normal(size=4)
+            q[joint.idx_q : joint.idx_q + 4] = quaternion / np.linalg.norm(quaternion)
         elif name.startswith("JointModelP"):
             q[joint.idx_q] = rng.uniform(-1, 1)
         else:
@@ -314,6 +317,38 @@ def test_synthetic_tree_matches_pinocchio():
     model = sim.from_pinocchio(pin_model)
     assert model.joint_types[1:] == ("revolute", "prismatic", "revolute", "prismatic", "revolute", "prismatic")
     compare_with_pinocchio(model, pin_model, random_states(pin_model, seed=3), ("tip", "hand"))
+
+
+def test_ball_joints_match_pinocchio():
+    """Spherical (ball) joints, in a fixed chain and below a free flyer: kinematics, dynamics,
+    frame Jacobians, integrate and difference as Pinocchio's JointModelSpherical."""
+    rng = np.random.default_rng(11)
+    pin_model = pin.Model()
+
+    def add(parent, joint_model, name):
+        joint = pin_model.addJoint(parent, joint_model, _placement(rng), name)
+        root = rng.normal(size=(3, 3))
+        inertia = pin.Inertia(rng.uniform(0.5, 2.0), rng.normal(size=3) * 0.3, root @ root.T + 0.1 * np.eye(3))
+        pin_model.appendBodyToJoint(joint, inertia, pin.SE3.Identity())
+        return joint
+
+    shoulder = add(0, pin.JointModelSpherical(), "shoulder")
+    elbow = add(shoulder, pin.JointModelRY(), "elbow")
+    wrist = add(elbow, pin.JointModelSpherical(), "wrist")
+    base = add(0, pin.JointModelFreeFlyer(), "base")
+    neck = add(base, pin.JointModelSpherical(), "neck")
+    pin_model.addFrame(pin.Frame("hand", wrist, _placement(rng), pin.FrameType.OP_FRAME))
+    pin_model.addFrame(pin.Frame("head", neck, _placement(rng), pin.FrameType.OP_FRAME))
+    model = sim.from_pinocchio(pin_model)
+    assert model.joint_types[1:] == ("spherical", "revolute", "spherical", "free_flyer", "spherical")
+    assert (model.nq, model.nv) == (4 + 1 + 4 + 7 + 4, 3 + 1 + 3 + 6 + 3)
+    states = random_states(pin_model, seed=5)
+    compare_with_pinocchio(model, pin_model, states, ("hand", "head"))
+    qs, vs = states[0], states[1]
+    for k in range(len(qs)):
+        q1 = pin.integrate(pin_model, qs[k], 0.3 * vs[k])
+        assert_close(sim.integrate(model, qs[k], vs[k], 0.3), q1)
+        assert_close(sim.difference(model, qs[k], q1), pin.difference(pin_model, qs[k], q1))
 
 
 # --------------------------------------------------------------------------------------

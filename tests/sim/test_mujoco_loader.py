@@ -123,7 +123,34 @@ TREE = """
 </mujoco>
 """
 
-MODELS = {"double_pendulum": DOUBLE_PENDULUM, "cart_pole": CART_POLE, "floating_box": FLOATING_BOX, "tree": TREE}
+# Ball joints: a fixed two-link chain (anchors off the bodies' origins, armature and damping),
+# and a ball-jointed head on a free base.
+BALLS = """
+<mujoco model="balls">
+  <compiler angle="radian"/>
+  <option gravity="0.2 0.1 -9.81"/>
+  <worldbody>
+    <body name="upper" pos="0 0 1" quat="0.9 0.3 0.1 0.2">
+      <joint name="shoulder" type="ball" pos="0 0 0.05" armature="0.02" damping="0.1"/>
+      <geom name="upper" type="capsule" fromto="0 0 0 0.3 0.1 0" size="0.03" mass="0.8"/>
+      <body name="lower" pos="0.3 0.1 0" euler="0.2 0.1 0">
+        <joint name="elbow" type="ball" pos="0.02 0 0"/>
+        <geom name="lower" type="box" size="0.1 0.03 0.02" pos="0.1 0 0" mass="0.4"/>
+      </body>
+    </body>
+    <body name="torso" pos="1 0 1">
+      <freejoint name="root"/>
+      <geom name="torso" type="box" size="0.2 0.1 0.3" mass="5"/>
+      <body name="head" pos="0 0 0.35">
+        <joint name="neck" type="ball" pos="0 0 -0.05"/>
+        <geom name="head" type="sphere" size="0.08" pos="0.02 0 0.05" mass="1"/>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+MODELS = {"double_pendulum": DOUBLE_PENDULUM, "cart_pole": CART_POLE, "floating_box": FLOATING_BOX, "tree": TREE, "balls": BALLS}
 
 
 def assert_close(actual, expected, tolerance=TOLERANCE):
@@ -146,7 +173,8 @@ def solo12_mujoco():
 
 
 def random_states(m, seed):
-    """MuJoCo states: hinges in [-pi, pi], slides in [-1, 1] m, random base poses, normal
+    """MuJoCo states: hinges in [-pi, pi], slides in [-1, 1] m, random base poses and ball
+    joint rotations, normal
     velocities and controls (large enough that some controls are clipped)."""
     rng = np.random.default_rng(seed)
     qpos = np.zeros((NUM_STATES, m.nq))
@@ -156,6 +184,9 @@ def random_states(m, seed):
             quaternion = rng.normal(size=(NUM_STATES, 4))
             qpos[:, adr : adr + 3] = rng.uniform(-1, 1, (NUM_STATES, 3))
             qpos[:, adr + 3 : adr + 7] = quaternion / np.linalg.norm(quaternion, axis=1, keepdims=True)
+        elif m.jnt_type[j] == mujoco.mjtJoint.mjJNT_BALL:
+            quaternion = rng.normal(size=(NUM_STATES, 4))
+            qpos[:, adr : adr + 4] = quaternion / np.linalg.norm(quaternion, axis=1, keepdims=True)
         elif m.jnt_type[j] == mujoco.mjtJoint.mjJNT_SLIDE:
             qpos[:, adr] = rng.uniform(-1, 1, NUM_STATES)
         else:
@@ -368,7 +399,7 @@ def wrap(body, extra=""):
 
 HINGE_BODY = "<body name='b'><joint name='j'/><geom name='g' size='0.1'/><site name='s'/></body>"
 UNSUPPORTED = {
-    "ball": (wrap("<body><joint name='shoulder' type='ball'/><geom size='0.1'/></body>"), "joint 'shoulder' is a ball joint"),
+    "ball_limit": (wrap("<body><joint name='shoulder' type='ball' range='0 1'/><geom size='0.1'/></body>"), "ball joint 'shoulder' has a range"),
     "tendon": (wrap(HINGE_BODY, "<tendon><fixed name='t'><joint joint='j' coef='1'/></fixed></tendon>"), "tendons .*'t'"),
     "equality": (wrap(HINGE_BODY, "<equality><weld name='e' body1='b'/></equality>"), "equality constraints .*'e'"),
     "spring": (wrap("<body><joint name='j' stiffness='3'/><geom size='0.1'/></body>"), "joint 'j' has a spring"),

@@ -322,3 +322,36 @@ def test_loading_options_are_refused_with_a_converted_model():
             sim.scene(loaded, **options)
     with pytest.raises(ValueError, match="visuals must be True, False or 'auto'"):
         sim.scene(ARM.format(extra="", low=-1), visuals=None)
+
+
+# A spherical double pendulum (ball joints, damping on the first), colliding with nothing.
+BALL_CHAIN = """<mujoco><option timestep="0.005" integrator="Euler"/><worldbody>
+<body name="upper" pos="0 0 1"><joint name="shoulder" type="ball" damping="0.05"/>
+<geom type="capsule" fromto="0 0 0 0.3 0.1 0" size="0.03" mass="0.8" contype="0" conaffinity="0"/>
+<body name="lower" pos="0.3 0.1 0"><joint name="elbow" type="ball"/>
+<geom type="box" size="0.1 0.03 0.02" pos="0.1 0 0" mass="0.4" contype="0" conaffinity="0"/></body></body>
+</worldbody></mujoco>"""
+
+
+def test_ball_joints_step_as_mujoco_euler():
+    """Without contact, a step is MuJoCo's semi-implicit Euler step (implicit damping, the
+    quaternion turned by exp(h omega / 2)), so the trajectories agree to rounding."""
+    m = mujoco.MjModel.from_xml_string(BALL_CHAIN)
+    d = mujoco.MjData(m)
+    d.qvel[:] = [0.5, -1.0, 2.0, 1.0, 0.3, -0.5]
+    loaded = sim.load_mjcf(BALL_CHAIN)
+    system = sim.scene(loaded)
+    assert system.model.joint_types[1:] == ("spherical", "spherical")
+    qpos0 = jnp.asarray(d.qpos)
+    x0 = system.state(loaded.qpos_to_q(qpos0), loaded.qvel_to_v(qpos0, jnp.asarray(d.qvel)))
+    steps = 200
+    expected = []
+    for _ in range(steps):
+        mujoco.mj_step(m, d)
+        expected.append(d.qpos.copy())
+    xs, infos = eqx.filter_jit(system.rollout)(x0, jnp.zeros((steps, 0)))
+    ours = jax.vmap(loaded.q_to_qpos)(xs[1:, : system.model.nq])
+    np.testing.assert_allclose(ours, np.array(expected), rtol=0, atol=1e-11)
+    x_next, fx, _ = system.step_and_jacobians(xs[50], jnp.zeros(0))
+    np.testing.assert_allclose(x_next, xs[51], atol=1e-14)
+    np.testing.assert_allclose(fx, jax.jacfwd(system.step)(xs[50], jnp.zeros(0)), atol=1e-10)
