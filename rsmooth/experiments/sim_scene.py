@@ -76,6 +76,15 @@ class Config:
     joint_limits: bool = _protocol.option(
         True, "Enforce the file's joint position limits (MuJoCo's limited hinge and slide joints), as MuJoCo "
         "does; off: the joints move freely.")
+    drop_mimic: bool = _protocol.option(
+        False, "Drop the file's joint couplings (a URDF <mimic>, e.g. Panda's fingers), with a warning: the coupled "
+        "joints then move independently.")
+    drop_frictionloss: bool = _protocol.option(
+        False, "Drop the file's dry joint friction (frictionloss, a URDF <dynamics friction>), which is not simulated, "
+        "with a warning.")
+    boundinertia: float | None = _protocol.option(
+        None, "Lower bound (kg m^2) on every body's principal moments of inertia, for a file whose inertia is not "
+        "positive definite (e.g. 1e-9; a warning names the bodies raised).", above=0.0)
     package_dir: str = _protocol.option(
         "", "Folder holding the packages that a URDF's package:// URIs name; empty: the folders above the file "
         "(a package's own folder, as in example-robot-data).")
@@ -93,6 +102,9 @@ class Config:
         needs_file = (
             ("floating_base (--floating-base)", self.floating_base),
             ("package_dir (--package-dir)", self.package_dir),
+            ("drop_mimic (--drop-mimic)", self.drop_mimic),
+            ("drop_frictionloss (--drop-frictionloss)", self.drop_frictionloss),
+            ("boundinertia (--boundinertia)", self.boundinertia is not None),
         )
         for name, given in needs_file:
             if given and not self.file:
@@ -198,10 +210,14 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         package_dirs = [config.package_dir]
     else:
         package_dirs = list(Path(config.file).resolve().parents) if config.file else []
-    loaded = sim.load_mjcf(config.file or DEMO_SCENE, package_dirs=package_dirs, floating_base=config.floating_base)
-    system = sim.scene(loaded, time_step=config.time_step, floor=config.floor, self_collision=config.self_collision)
-    if config.joint_limits:
-        system = system.with_joint_limits()
+    loaded = sim.load_mjcf(
+        config.file or DEMO_SCENE, package_dirs=package_dirs, floating_base=config.floating_base,
+        boundinertia=config.boundinertia, drop_mimic=config.drop_mimic, drop_frictionloss=config.drop_frictionloss,
+    )
+    system = sim.scene(
+        loaded, time_step=config.time_step, floor=config.floor, self_collision=config.self_collision,
+        joint_limits=config.joint_limits,
+    )
     limits = len(system.joint_limits)  # the last candidate contacts (RigidBodySystem.contacts)
     # the floor scene() adds is the last pair's half-space (drawn where it is)
     floor_height = float(system.geom_pairs[-1].placement1[1][2]) if config.floor else 0.0

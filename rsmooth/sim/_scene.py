@@ -212,6 +212,7 @@ def scene(
     baumgarte: float = 0.2,
     floor: bool = False,
     self_collision: bool = True,
+    joint_limits: bool = True,
 ) -> RigidBodySystem:
     """A MuJoCo model (MJCF or URDF) as a system with hard frictional contact.
 
@@ -225,9 +226,9 @@ def scene(
     what the dof's motors can apply, ``+inf`` where unlimited. ``initial_state()`` is MuJoCo's
     ``qpos0`` (the configuration the file describes) at rest.
 
-    Not simulated, as :func:`~rsmooth.sim.load_mjcf` reads them: joint position limits (MuJoCo
-    enforces them as constraints; here they are only on the model), ``solref``/``solimp``,
-    ``condim`` (every contact has sliding friction, none torsional or rolling), geom margins
+    The limits of limited hinges and slides are enforced as MuJoCo does, as hard constraints
+    here (:meth:`~rsmooth.sim.RigidBodySystem.with_joint_limits`). Not simulated, as
+    :func:`~rsmooth.sim.load_mjcf` reads them: ``solref``/``solimp``, ``condim`` (every contact has sliding friction, none torsional or rolling), geom margins
     and gaps, MuJoCo's integrator and solver settings.
 
     Args:
@@ -261,6 +262,9 @@ def scene(
         self_collision: ``False`` drops the pairs (explicit pairs included) of two geoms whose
             bodies hang from the same child of the world (one robot, one object), keeping the
             pairs between different trees and with geoms on the world body.
+        joint_limits: enforce the position limits of the limited hinges and slides (the
+            system's :attr:`~rsmooth.sim.RigidBodySystem.joint_limits`, frictionless contacts
+            after the geometry pairs); ``False``: the joints move freely.
 
     Returns:
         The system; its frames are the model's (bodies first, by MuJoCo body id), its geometry
@@ -288,7 +292,9 @@ def scene(
         >>> system.nx, system.nu, system.num_contacts, round(float(system.time_step), 6)
         (13, 0, 1, 0.005)
     """
-    for name, value in (("floating_base", floating_base), ("floor", floor), ("self_collision", self_collision)):
+    for name, value in (
+        ("floating_base", floating_base), ("floor", floor), ("self_collision", self_collision), ("joint_limits", joint_limits)
+    ):
         if not isinstance(value, (bool, np.bool_)):
             raise ValueError(f"{name} must be True or False, got {value!r}")
     if isinstance(source, MujocoModel):
@@ -363,7 +369,7 @@ def scene(
             )
     dofs, limits = _actuation(loaded)
     model = loaded.model
-    return geom_pair_system(
+    system = geom_pair_system(
         model,
         pairs,
         time_step=h,
@@ -374,3 +380,4 @@ def scene(
         initial_configuration=initial_configuration,
         joint_damping=loaded.damping,
     )
+    return system.with_joint_limits() if joint_limits else system

@@ -36,6 +36,8 @@ def test_options_that_need_a_file_are_refused_without_one(tmp_path):
     for changes, message in (
         ({"floating_base": True}, r"floating_base \(--floating-base\) applies to a --file"),
         ({"package_dir": str(tmp_path)}, r"package_dir \(--package-dir\) applies to a --file"),
+        ({"drop_mimic": True}, r"drop_mimic \(--drop-mimic\) applies to a --file"),
+        ({"boundinertia": 1e-9}, r"boundinertia \(--boundinertia\) applies to a --file"),
         ({"file": __file__, "package_dir": str(tmp_path / "missing")}, r"package_dir \(--package-dir\) must be an"),
     ):
         with pytest.raises(ValueError, match=message):

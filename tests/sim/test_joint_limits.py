@@ -36,9 +36,10 @@ def _rollout(system, x0, steps, us=None):
 
 
 def test_a_falling_arm_stops_at_its_limit_and_is_held_by_the_static_torque():
-    free = sim.scene(ARM)
+    free = sim.scene(ARM, joint_limits=False)
     system = free.with_joint_limits()
     assert system.joint_limits == ((0, 1), (0, -1)) and system.num_contacts == free.num_contacts + 2
+    assert sim.scene(ARM).joint_limits == system.joint_limits  # scene enforces them by default, as MuJoCo
     xs, infos = _rollout(system, system.initial_state(), 80)
     sim.check_steps(infos, what="the limited arm")
     q = np.asarray(xs[:, 0])
