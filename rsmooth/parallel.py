@@ -12,7 +12,10 @@ Two ways, for two kinds of batch:
   samples at a time (``sample_chunk``, with :func:`jax.lax.map`), for sample counts whose
   intermediate values do not fit in memory at once. The estimators (:func:`rsmooth.zeroth_order`,
   :func:`rsmooth.first_order`, :func:`rsmooth.alpha_order`) and :func:`rsmooth.smooth` take
-  ``devices`` and ``sample_chunk`` and pass them here.
+  ``devices`` and ``sample_chunk`` and pass them here; so do R-DDP's sampled linearization
+  (:class:`rsmooth.control.RDDP`, :func:`rsmooth.control.smoothed_dynamics_jacobians`: one map
+  over all the (node, sample) pairs) and the policy gradients
+  (:class:`rsmooth.control.PolicyGradient`, :func:`rsmooth.control.policy_gradient`).
 * :func:`vmap_samples` is `jax.vmap` with the batch axis laid out across the devices by a
   sharding constraint, for XLA's SPMD partitioner to split the vmapped program: for batches
   of independent problems without data-dependent loops (`rsmooth render pose` and `rsmooth
@@ -65,7 +68,10 @@ import numpy as np
 from jax import lax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-__all__ = ["AXIS", "check_sample_chunk", "map_samples", "resolve_devices", "sample_mesh", "shard_leading", "vmap_samples"]
+__all__ = [
+    "AXIS", "check_sample_chunk", "map_samples", "resolve_devices", "sample_mesh", "shard_leading", "static_devices",
+    "vmap_samples",
+]
 
 AXIS = "samples"
 
@@ -119,6 +125,19 @@ def resolve_devices(devices: Any, name: str = "devices") -> Mesh | None:
     if len(set(listed)) != len(listed):
         raise ValueError(f"{name} must not repeat a device, got {listed!r}")
     return sample_mesh(listed)
+
+
+def static_devices(devices: Any) -> Any:
+    """``devices`` as a hashable value, for a static field of a solver (a jitted program is
+    keyed by its static fields): a sequence of devices becomes a tuple; ``None``, a string, a
+    mesh, and anything not iterable (left for :func:`resolve_devices` to refuse) are returned
+    as they are."""
+    if devices is None or isinstance(devices, (str, Mesh)):
+        return devices
+    try:
+        return tuple(devices)
+    except TypeError:
+        return devices
 
 
 def check_sample_chunk(sample_chunk: Any, name: str = "sample_chunk") -> int | None:

@@ -68,9 +68,10 @@ import numpy as np
 import optax
 from jax import Array, lax
 from jax.flatten_util import ravel_pytree
+from jax.sharding import Mesh
 from jax.typing import ArrayLike
 
-from rsmooth import _checks
+from rsmooth import _checks, parallel
 from rsmooth import estimators as _estimators
 from rsmooth._results import RESULTS
 from rsmooth import schedules as _schedules
@@ -323,8 +324,11 @@ def policy_gradient(
         estimator: ``"first"`` (mean of sampled exact gradients), ``"zeroth"`` (score
             function with a baseline) or ``"alpha"`` (their blend).
         noise: the noise law of ``w``.
-        **options: passed to the estimator (``antithetic``; ``baseline`` for ``"zeroth"``
-            and ``"alpha"``; ``gamma``, ``lipschitz``, ``delta`` and ``rule``, ``"suh"`` or
+        **options: passed to the estimator (``antithetic``; ``devices`` and
+            ``sample_chunk``, where and how many rollouts at a time are evaluated: the
+            samples split over devices, each device rolling out its share, as in
+            :func:`rsmooth.zeroth_order`; ``baseline`` for ``"zeroth"`` and ``"alpha"``;
+            ``gamma``, ``lipschitz``, ``delta`` and ``rule``, ``"suh"`` or
             ``"inverse_variance"``, for ``"alpha"``); those an estimator does not take are
             ignored, so one set of options serves all three.
 
@@ -334,8 +338,9 @@ def policy_gradient(
         ``"alpha"``).
 
     Raises:
-        ValueError: on ``sigma <= 0``, too few ``num_samples``, an unknown ``estimator``, or a
-            ``theta`` of the wrong shapes or not finite.
+        ValueError: on ``sigma <= 0``, too few ``num_samples``, an unknown ``estimator``, a
+            ``theta`` of the wrong shapes or not finite, or bad ``devices`` or
+            ``sample_chunk``.
 
     References:
         H. J. T. Suh, M. Simchowitz, K. Zhang, R. Tedrake, "Do differentiable simulators give
@@ -380,6 +385,17 @@ class PolicyGradient(eqx.Module):
             samples; alpha order gives the first half to its zeroth-order estimate and the
             second half to its first-order one. Needs an even ``num_samples >= 4``, a noise
             law with a score, and no ``antithetic``.
+        devices: where the rollouts of every estimate (and, with ``shared_samples``, the
+            rollout at ``theta``) are evaluated: ``None`` (default) on the default device;
+            ``"all"``, a sequence of devices or a one-dimensional mesh: the samples split
+            over them, each device rolling out its share (:mod:`rsmooth.parallel`). The
+            samples are drawn from the key as on one device: the estimates, and so the
+            iterates, are the one-device ones up to rounding (for rollouts whose value at a
+            sample does not depend on the samples evaluated with it; see
+            :mod:`rsmooth.parallel`).
+        sample_chunk: the most rollouts evaluated at once on a device: bounds the memory of
+            the rollouts' intermediate values. ``None``: a device's whole share, except on
+            several CPU devices, one at a time (:mod:`rsmooth.parallel`).
     """
 
     estimator: str = eqx.field(static=True, default="alpha")
@@ -395,9 +411,15 @@ class PolicyGradient(eqx.Module):
     gamma: float | None = eqx.field(static=True, default=None)
     shared_samples: bool = eqx.field(static=True, default=False)
     alpha_rule: str = eqx.field(static=True, default="suh")
+    devices: str | tuple[jax.Device, ...] | Mesh | None = eqx.field(
+        static=True, default=None, converter=parallel.static_devices
+    )
+    sample_chunk: int | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         _check_estimator(self.estimator, self.num_samples)
+        parallel.resolve_devices(self.devices, "devices")
+        parallel.check_sample_chunk(self.sample_chunk, "sample_chunk")
         _estimators.check_baseline(self.baseline, self.num_samples)
         _estimators.check_alpha_rule(self.alpha_rule, self.gamma, "alpha_rule")
         if self.shared_samples:
@@ -420,7 +442,7 @@ class PolicyGradient(eqx.Module):
 
     def options(self) -> dict:
         return {"antithetic": self.antithetic, "baseline": self.baseline, "delta": self.delta, "gamma": self.gamma,
-                "rule": self.alpha_rule}
+                "rule": self.alpha_rule, "devices": self.devices, "sample_chunk": self.sample_chunk}
 
 
 class PolicySolution(eqx.Module):
@@ -481,9 +503,13 @@ def _shared_sample_estimate(problem, policy, key, theta, sigma, solver: PolicyGr
     sigma = sigma.astype(flat_theta.dtype)
     z, points = _estimators.perturbed_points(solver.noise, key, flat_theta, sigma, solver.num_samples, False)
     # V and its gradient at theta (the baseline and the true cost) and at the perturbed points,
-    # in one batch: the gradient at theta is not needed, but one batch is one rollout program.
-    values, grads = jax.vmap(jax.value_and_grad(lambda v: _policy_cost(problem, policy, unravel(v))))(
-        jnp.concatenate([flat_theta[None], points])
+    # in one batch: the gradient at theta is not needed, but one batch is one rollout program
+    # (split over the solver's devices as the separate estimators split theirs).
+    values, grads = parallel.map_samples(
+        jax.value_and_grad(lambda v: _policy_cost(problem, policy, unravel(v))),
+        jnp.concatenate([flat_theta[None], points]),
+        devices=solver.devices,
+        sample_chunk=solver.sample_chunk,
     )
     values = _checks.check_finite(values, _estimators._NONFINITE_F)
     grads = _checks.check_finite(grads, _estimators._NONFINITE_GRAD)

@@ -9,9 +9,11 @@ discontinuous derivatives) by those of its randomized smoothing
 estimated by Monte-Carlo at every node of the current trajectory with one of the estimators
 of :mod:`rsmooth.estimators` (first order: mean of sampled Jacobians; zeroth order: score
 function; alpha order: their blend), the samples batched with `vmap`, a fresh key per
-iteration (``fold_in(key, iteration)``, split over the nodes). ``s_x`` and ``s_u``
-(``state_noise_scale``, ``control_noise_scale``) set the relative size of the noise on the
-state and the control. An iteration costs ``T * num_samples`` evaluations of the dynamics
+iteration (``fold_in(key, iteration)``, split over the nodes). With ``devices``, the
+``T * num_samples`` (node, sample) evaluations of an iteration are one batch split over
+several devices or hosts (:func:`rsmooth.parallel.map_samples`), for the same Jacobians.
+``s_x`` and ``s_u`` (``state_noise_scale``, ``control_noise_scale``) set the relative size
+of the noise on the state and the control. An iteration costs ``T * num_samples`` evaluations of the dynamics
 (with their Jacobians for the first-order estimator). Everything else is the DDP of :func:`rsmooth.control.ddp`: the
 forward pass and the line search use the TRUE dynamics and the true cost, so every accepted
 step decreases the true cost.
@@ -76,15 +78,18 @@ References:
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable, ClassVar, Literal
+import functools
+import inspect
+from typing import Callable, ClassVar, Literal, Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array, lax
+from jax.sharding import Mesh
 
-from rsmooth import _checks, _xla
+from rsmooth import _checks, _xla, parallel
 from rsmooth import estimators as _estimators
 from rsmooth.control._ddp import DDP, DDPState, Solution, dynamics_jacobians, map_nodes, solve
 from rsmooth.control._problem import ShootingProblem
@@ -129,6 +134,8 @@ def smoothed_dynamics_jacobians(
     batch_size: int | None = 1,
     noise_effect: bool = False,
     alpha_rule: str = "suh",
+    devices: str | Sequence[jax.Device] | Mesh | None = None,
+    sample_chunk: int | None = None,
 ) -> tuple[Array, Array] | tuple[Array, Array, Array]:
     r"""Monte-Carlo Jacobians of the smoothed dynamics at every node of a trajectory.
 
@@ -156,10 +163,30 @@ def smoothed_dynamics_jacobians(
         alpha_rule: for ``"alpha"``, how its two estimates are blended: ``"suh"`` (one alpha
             per node) or ``"inverse_variance"`` (one weight per entry of the node's
             Jacobian); the ``rule`` of :func:`rsmooth.alpha_order`.
+        devices: where the dynamics are evaluated at the samples: ``None`` (default) on the
+            default device, node by node as ``batch_size`` says; ``"all"``, a sequence of
+            devices or a one-dimensional mesh: the ``T x num_samples`` (node, sample) pairs
+            are one batch split over the devices by :func:`rsmooth.parallel.map_samples`,
+            each device evaluating its share (its own contact-solver loops included), and
+            the per-node means summed across devices. The samples are drawn from ``key`` as
+            on one device, so the Jacobians are the one-device ones up to rounding (for
+            dynamics whose value at a sample does not depend on the samples evaluated with
+            it; see :mod:`rsmooth.parallel`). ``batch_size`` does not apply then. With one
+            device (``"all"`` on a one-device machine), as ``None``.
+        sample_chunk: the most (node, sample) pairs evaluated at once on a device, for the
+            one batch of pairs above (given alone, on the default device): bounds the
+            memory of the dynamics' intermediate values. ``None``: a device's whole share,
+            except on several CPU devices, one pair at a time (see :mod:`rsmooth.parallel`).
 
     Returns:
         ``(fx, fu)``, shapes ``(T, nx, nx)`` and ``(T, nx, nu)`` (and the noise effect).
+
+    Raises:
+        ValueError: for bad ``devices`` or ``sample_chunk`` (naming the argument), noise
+            scales of the wrong size, or an unknown ``alpha_rule``.
     """
+    mesh = parallel.resolve_devices(devices, "devices")
+    chunk = parallel.check_sample_chunk(sample_chunk, "sample_chunk")
     nx, nu = problem.nx, problem.nu
     dtype = xs.dtype
     scale = jnp.concatenate(
@@ -199,6 +226,18 @@ def smoothed_dynamics_jacobians(
 
         options["value_and_jacobian"] = value_and_jacobian
 
+    if mesh is not None or chunk is not None:  # (devices="all" on one device: as None)
+        given = options.get("value_and_jacobian") or functools.partial(_estimators.value_and_jacobian, h)
+
+        def jacobian_fn(y):
+            value, jacobian = given(y)
+            return value.astype(y.dtype), jacobian.astype(y.dtype)
+
+        spread = dict(devices=mesh, sample_chunk=chunk)
+        return _spread_jacobians(
+            h, jacobian_fn, key, xs, us, scale, eps, num_samples, estimator, noise, noise_effect, alpha_rule, spread
+        )
+
     def node(key, x, u):
         y = jnp.concatenate([x, u]) / scale
         estimate = method(h, key, y, sigma=eps, num_samples=num_samples, noise=noise, **options)
@@ -209,6 +248,90 @@ def smoothed_dynamics_jacobians(
 
     keys = jax.random.split(key, us.shape[0])
     return map_nodes(node, (keys, xs[:-1], us), batch_size)
+
+
+def _spread_jacobians(h, jacobian_fn, key, xs, us, scale, eps, num_samples, estimator, noise, noise_effect,
+                      alpha_rule, spread):
+    """:func:`smoothed_dynamics_jacobians` with its ``devices`` or ``sample_chunk``: the
+    estimators' samples of every node drawn as they draw them (one key per node, split in two
+    for alpha order), the dynamics evaluated at all the (node, sample) pairs in one
+    :func:`rsmooth.parallel.map_samples` (one for each part of alpha order), and each node's
+    estimate formed from its own pairs by the estimators' formulas. ``h`` is the dynamics in
+    the scaled variable ``y = (x, u) / scale``, ``jacobian_fn(y) -> (h(y), dh/dy)``."""
+    _checks.check_key(key)
+    nx = xs.shape[1]
+    nodes = us.shape[0]
+    ys = jnp.concatenate([xs[:-1], us], axis=1) / scale[None, :]
+    # The estimators' host and run-time checks, once for all the nodes: eps positive (named
+    # sigma, as the estimators name it), a noise law with a score for the score-function
+    # estimates; the trajectory finite and, for those estimates, eps above the resolution of
+    # the nodes' dtype (tested at the node of largest min |y_k|, the first to fail).
+    eps, num_samples = _estimators._check_options(
+        eps, num_samples, noise, needs_score=estimator != "first", minimum=4 if estimator == "alpha" else 1
+    )
+    conditions = []
+    if estimator != "first":
+        conditions.append(_checks.resolution_failure(ys[jnp.argmax(jnp.min(jnp.abs(ys), axis=1))], eps))
+    # (tied to a zero added to ys rather than to ys itself: a run-time check runs on one device,
+    # and ys is then laid out across the devices)
+    zero = _checks.check_all(jnp.zeros((), ys.dtype), [(ys, _estimators._NONFINITE_X)], conditions)
+    ys = ys + zero
+    keys = jax.random.split(key, nodes)
+
+    def draw(keys, count):
+        # (T, count, d) noise and points: perturbed_points of each node, as its estimator draws them
+        return jax.vmap(lambda k, y: _estimators.perturbed_points(noise, k, y, eps, count, False))(keys, ys)
+
+    def pairs(points):
+        return points.reshape((-1, points.shape[-1]))
+
+    def values_at(points):
+        """h at every (node, sample) point and at every node (the zeroth-order baseline)."""
+        count = points.shape[1]
+        values = parallel.map_samples(lambda y: h(y).astype(y.dtype), jnp.concatenate([pairs(points), ys]), **spread)
+        (samples,) = _estimators._checked_samples((values[: nodes * count], _estimators._NONFINITE_F))
+        return samples.reshape((nodes, count, nx)), values[nodes * count :]
+
+    def jacobians_at(points):
+        count = points.shape[1]
+        values, jacobians = parallel.map_samples(jacobian_fn, pairs(points), **spread)
+        values, jacobians = _estimators._checked_samples(
+            (values, _estimators._NONFINITE_F), (jacobians, _estimators._NONFINITE_GRAD)
+        )
+        return values.reshape((nodes, count, nx)), jacobians.reshape((nodes, count) + jacobians.shape[1:])
+
+    def zeroth(z, values, reference):
+        return _estimators._zeroth_order_terms(z, values, reference[None], eps, noise, False)
+
+    def first(z, values, jacobians):
+        return _estimators._first_order_terms(z, values, jacobians, False)
+
+    if estimator == "first":
+        z, points = draw(keys, num_samples)
+        estimate = jax.vmap(first)(z, *jacobians_at(points))
+    elif estimator == "zeroth":
+        z, points = draw(keys, num_samples)
+        estimate = jax.vmap(zeroth)(z, *values_at(points))
+    else:
+        halves = jax.vmap(jax.random.split)(keys)
+        n_zeroth = num_samples // 2
+        n_first = num_samples - n_zeroth
+        z0, points0 = draw(halves[:, 0], n_zeroth)
+        z1, points1 = draw(halves[:, 1], n_first)
+        estimates0 = jax.vmap(zeroth)(z0, *values_at(points0))
+        estimates1 = jax.vmap(first)(z1, *jacobians_at(points1))
+        # alpha_order's own defaults (gamma, lipschitz, delta), as the per-node estimate uses
+        defaults = inspect.signature(_estimators.alpha_order).parameters
+        estimate, _ = jax.vmap(
+            lambda e0, e1: _estimators._alpha_blend(
+                e0, e1, n_zeroth, n_first, False, defaults["gamma"].default, defaults["lipschitz"].default,
+                defaults["delta"].default, alpha_rule,
+            )
+        )(estimates0, estimates1)
+    jacobian = estimate.jacobian / scale[None, None, :]
+    if noise_effect:
+        return jacobian[:, :, :nx], jacobian[:, :, nx:], estimate.sigma_grad
+    return jacobian[:, :, :nx], jacobian[:, :, nx:]
 
 
 class RDDP(DDP):
@@ -246,6 +369,18 @@ class RDDP(DDP):
             samples of a node are already one batch, and batching the nodes too makes every
             contact solve wait for the slowest of ``T x num_samples``; on a GPU one node at a
             time is ``T`` launches of a small batch (benchmarks/RESULTS.md).
+        devices: where the dynamics are evaluated at the samples of the smoothed
+            linearization: ``None`` (default) on the default device; ``"all"``, a sequence of
+            devices or a one-dimensional mesh: the ``T x num_samples`` (node, sample) pairs of
+            an iteration split over them, each device evaluating its share (see
+            :func:`smoothed_dynamics_jacobians`; ``sample_node_batch_size`` does not apply
+            then). The rest of the iteration (the eps = 0 iterations, the backward and forward
+            passes) is unchanged: the Jacobians, and so the iterates for a given key, are
+            those of one device up to rounding.
+        sample_chunk: the most (node, sample) pairs evaluated at once on a device (given
+            alone, on the default device, in one batch of pairs): bounds the memory of the
+            dynamics' intermediate values. ``None``: a device's whole share, except on several
+            CPU devices, one pair at a time (:mod:`rsmooth.parallel`).
     """
 
     eps: float = eqx.field(static=True, default=1.0)
@@ -264,6 +399,10 @@ class RDDP(DDP):
     max_smoothed_iterations: int | None = eqx.field(static=True, default=None)
     sample_node_batch_size: int | None | Literal["auto"] = eqx.field(static=True, default="auto")
     alpha_rule: str = eqx.field(static=True, default="suh")
+    devices: str | tuple[jax.Device, ...] | Mesh | None = eqx.field(
+        static=True, default=None, converter=parallel.static_devices
+    )
+    sample_chunk: int | None = eqx.field(static=True, default=None)
 
     _needs_key: ClassVar[bool] = True
 
@@ -301,6 +440,8 @@ class RDDP(DDP):
             raise ValueError(f"sample_node_batch_size must be an int >= 1, None or 'auto', got {self.sample_node_batch_size!r}")
         if self.sample_node_batch_size not in (None, "auto"):
             _checks.check_num_samples(self.sample_node_batch_size, "sample_node_batch_size", minimum=1)
+        parallel.resolve_devices(self.devices, "devices")
+        parallel.check_sample_chunk(self.sample_chunk, "sample_chunk")
         if self.approximation != "gauss_newton":
             raise ValueError(
                 "RDDP supports approximation='gauss_newton' only: second derivatives of the "
@@ -338,6 +479,8 @@ class RDDP(DDP):
             batch_size=self._sample_node_batch(),
             noise_effect=self.schedule == "reheating",
             alpha_rule=self.alpha_rule,
+            devices=self.devices,
+            sample_chunk=self.sample_chunk,
         )
         if self.schedule == "reheating":
             return jacobians
