@@ -190,18 +190,29 @@ def sphere_halfspace_contacts(
     return ContactPoints(distance=distance, point=point, frame=frame)
 
 
+# The contact skin of corrected_free_velocity (m): resting distances are rounding-sized, 1e-12
+# to 1e-8 m; a gap of a micrometre is nothing to the motion.
+CONTACT_SKIN = 1e-6
+
+
 def corrected_free_velocity(
-    free_velocity: ArrayLike, distance: ArrayLike, time_step: ArrayLike, *, baumgarte=0.2
+    free_velocity: ArrayLike, distance: ArrayLike, time_step: ArrayLike, *, baumgarte=0.2, skin=CONTACT_SKIN
 ) -> Array:
     """Adds the position term to the normal free velocity, ``g_N + phi / h``-style.
 
-    The NCP constrains the normal velocity ``c_N >= 0``. Replacing ``c_N`` by
-    ``c_N + phi_+ / h + beta phi_- / h`` (``phi_+ = max(phi, 0)``, ``phi_- = min(phi, 0)``)
-    makes a contact detected at a positive distance act only if the gap would close within
-    the step (speculative contact: no force at a distance), and pushes a penetration out at
-    the Baumgarte rate ``beta / h`` (``beta = 1`` removes it in one step, which injects
-    energy; smaller values spread it). At ``phi = 0`` the derivative is the one-sided
-    derivative of ``phi <= 0`` (``beta / h``).
+    The NCP constrains the normal velocity ``c_N >= 0``. Replacing ``c_N`` by ``c_N + r(phi)
+    / h`` with ``r(phi) = beta phi`` for ``phi <= s`` and ``r(phi) = phi - (1 - beta) s``
+    beyond (``s`` the contact skin) makes a contact detected at a distance act only if the
+    gap would close within the step, to within the skin (speculative contact: no force at a
+    distance beyond it), and pushes a penetration out at the Baumgarte rate ``beta / h``
+    (``beta = 1`` removes it in one step, which injects energy; smaller values spread it).
+
+    Why a skin: resting contacts sit at distances of rounding size on both sides of zero (a
+    box on four corners tilted by 1e-9 rad). With the rate ``1 / h`` above zero and
+    ``beta / h`` below, their targets are not those of one rigid motion: the sticking
+    equations have no solution and the solver stalls at its iteration cap. Within the skin
+    the correction is linear, so they do; ``r`` is continuous and its derivative at
+    ``phi = 0`` is ``beta / h`` from both sides.
 
     Args:
         free_velocity: contact-frame free velocities, flat ``(3 n,)`` ordered
@@ -209,6 +220,9 @@ def corrected_free_velocity(
         distance: signed distances, shape ``(n,)``.
         time_step: the step ``h > 0``.
         baumgarte: ``beta`` in ``[0, 1]``.
+        skin: ``s >= 0`` (m, or rad for a joint limit); far below any gap that matters to
+            the motion (a contact stops approaching at ``(1 - beta) s``, then closes the rest
+            at the Baumgarte rate), far above the rounding of resting distances.
 
     Returns:
         The corrected free velocity ``g``, shape ``(3 n,)``, to pass to :func:`solve_ncp`.
@@ -223,10 +237,7 @@ def corrected_free_velocity(
             f"free_velocity must have shape (3 n,) and distance (n,), got "
             f"{free_velocity.shape} and {distance.shape}."
         )
-    # phi = 0 counts as touching: its derivative is the penetration side's, beta / h (that of
-    # the resting states a simulation reaches, which sit at phi <= 0 while the Baumgarte term
-    # decays), not the mean of the two sides that max/min's derivatives would give.
-    correction = jnp.where(distance > 0, distance, baumgarte * distance) / time_step
+    correction = jnp.where(distance > skin, distance - (1.0 - baumgarte) * skin, baumgarte * distance) / time_step
     return free_velocity.reshape(-1, 3).at[:, 2].add(correction).reshape(-1)
 
 

@@ -149,8 +149,21 @@ def test_sphere_halfspace_contacts_rejects_bad_input():
 
 def test_corrected_free_velocity():
     g = jnp.array([1.0, 2.0, -0.5, 0.0, 0.0, 0.0])
-    corrected = corrected_free_velocity(g, jnp.array([0.01, -0.02]), 0.01, baumgarte=0.5)
-    np.testing.assert_allclose(corrected, [1.0, 2.0, 0.5, 0.0, 0.0, -1.0], atol=1e-12)
+    # a gap beyond the skin closes to (1 - beta) s within the step; a penetration is pushed
+    # out at beta / h
+    corrected = corrected_free_velocity(g, jnp.array([0.01, -0.02]), 0.01, baumgarte=0.5, skin=1e-3)
+    np.testing.assert_allclose(corrected, [1.0, 2.0, -0.5 + (0.01 - 0.5e-3) / 0.01, 0.0, 0.0, -1.0], atol=1e-12)
+    # continuous, and linear through zero within the skin: the derivative at 0 is beta / h
+    # from both sides, and distances of either sign within the skin (resting contacts, tilted
+    # by rounding) get the targets of one rigid motion
+    distance = jnp.array([-1e-9, 0.0, 1e-9, 1e-3 - 1e-15, 1e-3 + 1e-15])
+    r = corrected_free_velocity(jnp.zeros(15), distance, 0.01, baumgarte=0.5, skin=1e-3)[2::3]
+    np.testing.assert_allclose(r[:4], 0.5 * distance[:4] / 0.01, rtol=1e-12)
+    np.testing.assert_allclose(r[4], r[3], atol=1e-9)
+    slope = jax.vmap(jax.grad(lambda d: corrected_free_velocity(jnp.zeros(3), d[None], 0.01, baumgarte=0.5)[2]))(
+        jnp.array([-1e-9, 0.0, 1e-9])
+    )
+    np.testing.assert_allclose(slope, 50.0, rtol=1e-12)
 
 
 # ----------------------------------------------------------------------------- the NCP
