@@ -611,16 +611,11 @@ class RigidBodySystem(eqx.Module):
         if kinematics is None:
             kinematics = _dynamics._kinematics(model, q)
         if not self.sphere_frames:
-            distances, frames, jacobians = [], [], []
-            for pair in self.geom_pairs:
-                distance, rotation, jacobian = self._geom_pair_contacts(kinematics, pair)
-                distances.append(distance)
-                frames.append(rotation)
-                jacobians.append(jacobian)
-            if not distances:
+            if not self.geom_pairs:
                 dtype = kinematics.translation.dtype
                 return jnp.zeros(0, dtype), jnp.zeros((0, 3, 3), dtype), jnp.zeros((0, model.nv), dtype)
-            return jnp.concatenate(distances), jnp.concatenate(frames), jnp.concatenate(jacobians).reshape(-1, model.nv)
+            distance, frames, jacobians = self._geom_pairs_contacts(kinematics)
+            return distance, frames, jacobians.reshape(-1, model.nv)
         # All spheres at once (one batched expression per quantity, not one per sphere: the
         # traced graph, and the compile time of every solver built on the step, would grow
         # with the number of spheres). The contact -> joint map is static.
@@ -638,8 +633,8 @@ class RigidBodySystem(eqx.Module):
             distances.append(distance[None])
             frames.append(rotation[None])
             jacobians.append(jacobian[None])
-        for pair in self.geom_pairs:
-            distance, rotation, jacobian = self._geom_pair_contacts(kinematics, pair)
+        if self.geom_pairs:
+            distance, rotation, jacobian = self._geom_pairs_contacts(kinematics)
             distances.append(distance)
             frames.append(rotation)
             jacobians.append(jacobian)
@@ -713,6 +708,57 @@ class RigidBodySystem(eqx.Module):
             model, kinematics.rotation, kinematics.translation, model.frame_id(frame)
         )
         return spatial.compose(rotation, translation, placement[0], placement[1])
+
+    def _geom_pairs_contacts(self, kinematics) -> tuple[Array, Array, Array]:
+        """:meth:`_geom_pair_contacts` of every geometry pair, concatenated in pair order.
+
+        Pairs that differ only in their arrays (shape sizes, placements, frames: see
+        :func:`_pair_groups`) are evaluated by one ``vmap``-ed collision: the traced program
+        holds one copy of each pair type's collision code rather than one per pair, which keeps
+        the compile time of a scene of many bodies from growing with the number of pairs (a
+        box-box pair is about 3,000 lines of HLO)."""
+        model = self.model
+        sizes = [pair.size for pair in self.geom_pairs]
+        offsets = np.cumsum([0] + sizes)
+        parts, positions = [], []
+        for group in _pair_groups(self.geom_pairs):
+            pairs = [self.geom_pairs[i] for i in group]
+            positions.extend(np.arange(offsets[i], offsets[i + 1]) for i in group)
+            if len(pairs) == 1:
+                parts.append(self._geom_pair_contacts(kinematics, pairs[0]))
+                continue
+            first, size = pairs[0], pairs[0].size
+            shape1, shape2, placement1, placement2 = (
+                jax.tree.map(lambda *leaves: jnp.stack(leaves), *items)
+                for items in zip(*[(p.shape1, p.shape2, p.placement1, p.placement2) for p in pairs])
+            )
+
+            def poses(frames, placements):
+                if frames[0] is None:
+                    return placements
+                ids = np.asarray([model.frame_id(frame) for frame in frames], dtype=np.int64)
+                joints = np.asarray(model.frame_parents)[ids]
+                frame_pose = _compose_batch(
+                    kinematics.rotation[joints], kinematics.translation[joints],
+                    model.frame_placement_rotation[ids], model.frame_placement_translation[ids],
+                )
+                return _compose_batch(*frame_pose, *placements)
+
+            pose1 = poses([pair.frame1 for pair in pairs], placement1)
+            pose2 = poses([pair.frame2 for pair in pairs], placement2)
+            manifold = jax.vmap(lambda a, pa, b, pb: collide(a, pa, b, pb, margin=first.margin))(shape1, pose1, shape2, pose2)
+            distance = jnp.where(manifold.active, manifold.distance, _INACTIVE_DISTANCE).reshape(-1)
+            rotations = contact_frame(manifold.normal.reshape(-1, 3))  # (count k, 3, 3)
+            velocity = 0.0  # (count k, nv, 3)
+            for frames, points, sign in (([p.frame2 for p in pairs], manifold.point2, 1.0), ([p.frame1 for p in pairs], manifold.point1, -1.0)):
+                if frames[0] is not None:
+                    joints = np.repeat([model.frame_parents[model.frame_id(frame)] for frame in frames], size)
+                    velocity = velocity + sign * _dynamics._point_velocity_columns(model, kinematics, joints, points.reshape(-1, 3))
+            jacobians = sum(rotations[:, j, :, None] * velocity[:, None, :, j] for j in range(3))  # (count k, 3, nv)
+            parts.append((distance, rotations, jacobians))
+        order = np.argsort(np.concatenate(positions))  # group-major -> pair order
+        distance, rotations, jacobians = (jnp.concatenate(part)[order] for part in zip(*parts))
+        return distance, rotations, jacobians
 
     def _geom_pair_contacts(self, kinematics, pair: GeomPair) -> tuple[Array, Array, Array]:
         """Signed distances ``(k,)``, contact frames ``(k, 3, 3)`` and relative contact
@@ -951,6 +997,24 @@ class RigidBodySystem(eqx.Module):
                 "the rollout has a diverged step or an unconverged contact solve (infos.diverged, infos.ncp.result)",
             )
         return xs, infos
+
+
+_compose_batch = jax.vmap(spatial.compose)
+
+
+def _pair_groups(pairs: tuple[GeomPair, ...]) -> list[list[int]]:
+    """The indices of the geometry pairs, grouped so that one ``vmap``-ed collision evaluates
+    each group: the same shape classes with the same static fields and array shapes (a convex
+    mesh's vertex and face counts included), each shape in a moving frame or fixed alike, and
+    the same margin. Groups in order of their first pair."""
+    groups: dict = {}
+    for index, pair in enumerate(pairs):
+        key = tuple(
+            (jax.tree.structure(shape), tuple(np.shape(leaf) for leaf in jax.tree.leaves(shape)))
+            for shape in (pair.shape1, pair.shape2)
+        ) + (pair.frame1 is None, pair.frame2 is None, pair.margin)
+        groups.setdefault(key, []).append(index)
+    return list(groups.values())
 
 
 def _limit_rows(model: Model, joint_limits) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
