@@ -286,10 +286,9 @@ def _placement(rng):
     return pin.SE3(pin.exp3(rng.normal(size=3)), rng.normal(size=3))
 
 
-def synthetic_pin_model():
-    rng = np.random.default_rng(7)
-    pin_model = pin.Model()
-    pin_model.gravity = pin.Motion(np.array([0.5, -1.0, -9.0, 0.0, 0.0, 0.0]))
+def _joint_adder(pin_model, rng):
+    """``add(parent, joint_model, name)``: a joint at a random placement carrying a body of
+    random mass, centre of mass and inertia; returns its index."""
 
     def add(parent, joint_model, name):
         joint = pin_model.addJoint(parent, joint_model, _placement(rng), name)
@@ -297,6 +296,16 @@ def synthetic_pin_model():
         inertia = pin.Inertia(rng.uniform(0.5, 2.0), rng.normal(size=3) * 0.3, root @ root.T + 0.1 * np.eye(3))
         pin_model.appendBodyToJoint(joint, inertia, pin.SE3.Identity())
         return joint
+
+    return add
+
+
+def synthetic_pin_model():
+    rng = np.random.default_rng(7)
+    pin_model = pin.Model()
+    pin_model.gravity = pin.Motion(np.array([0.5, -1.0, -9.0, 0.0, 0.0, 0.0]))
+
+    add = _joint_adder(pin_model, rng)
 
     axis = rng.normal(size=3)
     first = add(0, pin.JointModelRevoluteUnaligned(axis / np.linalg.norm(axis)), "hinge")
@@ -325,12 +334,7 @@ def test_ball_joints_match_pinocchio():
     rng = np.random.default_rng(11)
     pin_model = pin.Model()
 
-    def add(parent, joint_model, name):
-        joint = pin_model.addJoint(parent, joint_model, _placement(rng), name)
-        root = rng.normal(size=(3, 3))
-        inertia = pin.Inertia(rng.uniform(0.5, 2.0), rng.normal(size=3) * 0.3, root @ root.T + 0.1 * np.eye(3))
-        pin_model.appendBodyToJoint(joint, inertia, pin.SE3.Identity())
-        return joint
+    add = _joint_adder(pin_model, rng)
 
     shoulder = add(0, pin.JointModelSpherical(), "shoulder")
     elbow = add(shoulder, pin.JointModelRY(), "elbow")
