@@ -747,15 +747,7 @@ class RigidBodySystem(eqx.Module):
             pose1 = poses([pair.frame1 for pair in pairs], placement1)
             pose2 = poses([pair.frame2 for pair in pairs], placement2)
             manifold = jax.vmap(lambda a, pa, b, pb: collide(a, pa, b, pb, margin=first.margin))(shape1, pose1, shape2, pose2)
-            distance = jnp.where(manifold.active, manifold.distance, _INACTIVE_DISTANCE).reshape(-1)
-            rotations = contact_frame(manifold.normal.reshape(-1, 3))  # (count k, 3, 3)
-            velocity = 0.0  # (count k, nv, 3)
-            for frames, points, sign in (([p.frame2 for p in pairs], manifold.point2, 1.0), ([p.frame1 for p in pairs], manifold.point1, -1.0)):
-                if frames[0] is not None:
-                    joints = np.repeat([model.frame_parents[model.frame_id(frame)] for frame in frames], size)
-                    velocity = velocity + sign * _dynamics._point_velocity_columns(model, kinematics, joints, points.reshape(-1, 3))
-            jacobians = sum(rotations[:, j, :, None] * velocity[:, None, :, j] for j in range(3))  # (count k, 3, nv)
-            parts.append((distance, rotations, jacobians))
+            parts.append(self._manifold_contacts(kinematics, manifold, [p.frame1 for p in pairs], [p.frame2 for p in pairs], size))
         order = np.argsort(np.concatenate(positions))  # group-major -> pair order
         distance, rotations, jacobians = (jnp.concatenate(part)[order] for part in zip(*parts))
         return distance, rotations, jacobians
@@ -767,21 +759,28 @@ class RigidBodySystem(eqx.Module):
         body at its witness point (none for a world-fixed shape), so the normal velocity
         (along the normal from shape 1 to shape 2) is positive where they separate. Entries
         that are not contacts of the manifold get a distance of 10 m (:data:`_INACTIVE_DISTANCE`)."""
-        model = self.model
         pose1 = self._geom_pose(kinematics, pair.frame1, pair.placement1)
         pose2 = self._geom_pose(kinematics, pair.frame2, pair.placement2)
         manifold = collide(pair.shape1, pose1, pair.shape2, pose2, margin=pair.margin)
-        distance = jnp.where(manifold.active, manifold.distance, _INACTIVE_DISTANCE)
-        rotations = contact_frame(manifold.normal)  # (k, 3, 3)
-        velocity = 0.0  # (k, nv, 3): world velocity of point 2 relative to point 1
-        if pair.frame2 is not None:
-            joints = np.full(pair.size, model.frame_parents[model.frame_id(pair.frame2)])
-            velocity = velocity + _dynamics._point_velocity_columns(model, kinematics, joints, manifold.point2)
-        if pair.frame1 is not None:
-            joints = np.full(pair.size, model.frame_parents[model.frame_id(pair.frame1)])
-            velocity = velocity - _dynamics._point_velocity_columns(model, kinematics, joints, manifold.point1)
+        return self._manifold_contacts(kinematics, manifold, [pair.frame1], [pair.frame2], pair.size)
+
+    def _manifold_contacts(self, kinematics, manifold, frames1, frames2, size: int) -> tuple[Array, Array, Array]:
+        """Distances, contact frames and Jacobians (:meth:`_geom_pair_contacts`) of the
+        manifolds of one or several pairs (``manifold``'s arrays with a leading pair axis or
+        none), flattened: ``frames1``/``frames2`` the frame of each pair's shapes (all
+        ``None`` or none), ``size`` entries per pair."""
+        model = self.model
+        distance = jnp.where(manifold.active, manifold.distance, _INACTIVE_DISTANCE).reshape(-1)
+        rotations = contact_frame(manifold.normal.reshape(-1, 3))  # (n k, 3, 3)
+        velocity = 0.0  # (n k, nv, 3): world velocity of point 2 relative to point 1
+        if frames2[0] is not None:
+            joints = np.repeat([model.frame_parents[model.frame_id(frame)] for frame in frames2], size)
+            velocity = velocity + _dynamics._point_velocity_columns(model, kinematics, joints, manifold.point2.reshape(-1, 3))
+        if frames1[0] is not None:
+            joints = np.repeat([model.frame_parents[model.frame_id(frame)] for frame in frames1], size)
+            velocity = velocity - _dynamics._point_velocity_columns(model, kinematics, joints, manifold.point1.reshape(-1, 3))
         # R^T J, unrolled over the 3-axis as in contacts()
-        jacobians = sum(rotations[:, j, :, None] * velocity[:, None, :, j] for j in range(3))  # (k, 3, nv)
+        jacobians = sum(rotations[:, j, :, None] * velocity[:, None, :, j] for j in range(3))  # (n k, 3, nv)
         return distance, rotations, jacobians
 
     def step_with_info(self, x: ArrayLike, u: ArrayLike, *, warm_start: ArrayLike | None = None) -> tuple[Array, StepInfo]:
