@@ -36,7 +36,9 @@ energy_change (final - initial, J), energy_max_gain (largest rise above the init
 over the run, J: energy injected), contacts_active_mean, contacts_active_max (contacts with a
 normal impulse, per step), joint_limits (limit constraints enforced), max_limit_violation
 (deepest excursion beyond a joint limit, rad or m), limits_active_max (limits holding a joint,
-per step), unconverged_steps, diverged_steps, wall_time_s (compile included)."""
+per step), unconverged_steps, diverged_steps, max_contacts (the contact budget; null: none),
+dropped_contact_steps (steps where the budget left out a closing contact), wall_time_s
+(compile included)."""
 
 DEMO_SCENE = """<mujoco>
   <option timestep="0.01"/>
@@ -76,6 +78,10 @@ class Config:
     joint_limits: bool = _protocol.option(
         True, "Enforce the file's joint position limits (MuJoCo's limited hinge and slide joints), as MuJoCo "
         "does; off: the joints move freely.")
+    max_contacts: int | None = _protocol.option(
+        None, "Solve at most this many contacts between shapes per step, the closest candidates (a robot's meshes "
+        "give hundreds of candidates, of which a few touch); a step that leaves out a closing contact is reported. "
+        "Default: all.", min=1)
     drop_mimic: bool = _protocol.option(
         False, "Drop the file's joint couplings (a URDF <mimic>, e.g. Panda's fingers), with a warning: the coupled "
         "joints then move independently.")
@@ -216,7 +222,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     )
     system = sim.scene(
         loaded, time_step=config.time_step, floor=config.floor, self_collision=config.self_collision,
-        joint_limits=config.joint_limits,
+        joint_limits=config.joint_limits, max_contacts=config.max_contacts,
     )
     limits = len(system.joint_limits)  # the last candidate contacts (RigidBodySystem.contacts)
     # the floor scene() adds is the last pair's half-space (drawn where it is)
@@ -262,6 +268,8 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         "contacts_active_max": int(np.max(active)),
         "unconverged_steps": counts["unconverged_steps"],
         "diverged_steps": counts["diverged_steps"],
+        "max_contacts": config.max_contacts,
+        "dropped_contact_steps": counts["dropped_contact_steps"],
     }
     times = np.arange(config.steps + 1) * dt
     fig, (ax_energy, ax_contacts) = viz.plt.subplots(1, 2, figsize=(11, 3.6))

@@ -79,7 +79,11 @@ _apply = spatial.inertia_apply
 
 def supported(system) -> bool:
     """Whether :func:`configuration_jacobian` handles ``system`` (else use forward mode)."""
-    return system.actuation == "joints" and not system.box_spheres and not system.geom_pairs and not system.joint_limits and not len(_dynamics._tree(system.model).spherical)
+    return (
+        system.actuation == "joints" and not system.box_spheres and not system.geom_pairs and not system.joint_limits
+        and not len(_dynamics._tree(system.model).spherical)
+        and (system.max_contacts is None or system.max_contacts >= system.num_contacts)
+    )
 
 
 def _take(inertia: spatial.SpatialInertia, index) -> spatial.SpatialInertia:

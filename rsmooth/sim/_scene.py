@@ -213,6 +213,7 @@ def scene(
     floor: bool = False,
     self_collision: bool = True,
     joint_limits: bool = True,
+    max_contacts: int | None = None,
 ) -> RigidBodySystem:
     """A MuJoCo model (MJCF or URDF) as a system with hard frictional contact.
 
@@ -265,6 +266,9 @@ def scene(
         joint_limits: enforce the position limits of the limited hinges and slides (the
             system's :attr:`~rsmooth.sim.RigidBodySystem.joint_limits`, frictionless contacts
             after the geometry pairs); ``False``: the joints move freely.
+        max_contacts: solve at most this many contacts between shapes per step, the closest
+            candidates (:attr:`~rsmooth.sim.RigidBodySystem.max_contacts`): a robot's meshes
+            give hundreds of candidates of which a few touch; ``None``: all.
 
     Returns:
         The system; its frames are the model's (bodies first, by MuJoCo body id), its geometry
@@ -380,4 +384,5 @@ def scene(
         initial_configuration=initial_configuration,
         joint_damping=loaded.damping,
     )
+    system = system.with_contact_budget(max_contacts)
     return system.with_joint_limits() if joint_limits else system

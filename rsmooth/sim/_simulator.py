@@ -126,6 +126,8 @@ class StepInfo(eqx.Module):
             metre per step, where the step's linearizations of the motion and the contacts
             fail and semi-implicit Euler injects energy). :meth:`RigidBodySystem.rollout`
             holds the state from such a step on; treat the rest of that trajectory as invalid.
+        dropped_contacts: how many candidates :attr:`RigidBodySystem.max_contacts` left out
+            of the solve although the step closes their gap (int, ``()``); 0 without a budget.
     """
 
     distance: Array
@@ -135,30 +137,38 @@ class StepInfo(eqx.Module):
     diverged: Array
     force: Array
     mode: Array
+    dropped_contacts: Array
 
 
 class _VelocityUpdate(NamedTuple):
     """One step's velocity update and the quantities its implicit derivative reuses."""
 
     v_next: Array
-    impulse: Array
-    distance: Array
+    impulse: Array  # (3 n,): every candidate's (zero where the budget left it out)
+    distance: Array  # (n,)
     ncp: NCPInfo
     clipped: Array
     mass_factor: tuple[Array, bool]  # Cholesky factor of M (jax.scipy.linalg.cho_factor)
     jacobian: Array  # contact Jacobian J, (3 n, nv)
-    delassus: Array  # G = J M^-1 Jᵀ
-    free_velocity: Array  # g: the NCP's free contact velocity (hard contact)
-    mu: Array  # friction coefficient per contact
+    delassus: Array  # G = J_s M^-1 J_sᵀ of the solved contacts s (all, or the selection)
+    free_velocity: Array  # g: the NCP's free contact velocity (hard contact), solved contacts
+    mu: Array  # friction coefficient per solved contact
     kinematics: _dynamics._Kinematics  # at q
     inertias: spatial.SpatialInertia  # world-frame body inertias at q
     mass: Array  # W = M + diag(armature + h damping), the matrix of mass_factor
 
     frames: Array  # contact frames (n, 3, 3), columns [t1, t2, n] in world axes
+    selection: Array | None  # the solved contacts' indices (K,) under a budget; None: all
+    dropped: Array  # StepInfo.dropped_contacts
 
-    def public(self) -> tuple[Array, Array, Array, NCPInfo, Array, tuple[Array, Array]]:
+    def solved(self, rows: Array) -> Array:
+        """``rows`` (flat ``[t1, t2, n]`` per candidate, leading axis) of the solved contacts."""
+        return rows if self.selection is None else rows[_flat_rows(self.selection)]
+
+    def public(self) -> tuple[Array, Array, Array, NCPInfo, Array, tuple[Array, Array, Array]]:
         # the contact frames and end-of-step contact velocities J v+ for the diagnostics
-        return self.v_next, self.impulse, self.distance, self.ncp, self.clipped, (self.frames, self.jacobian @ self.v_next)
+        diagnostics = (self.frames, self.jacobian @ self.v_next, self.dropped)
+        return self.v_next, self.impulse, self.distance, self.ncp, self.clipped, diagnostics
 
 
 _SHAPES = (Sphere, Capsule, Box, Cylinder, HalfSpace, ConvexMesh)
@@ -327,6 +337,17 @@ class RigidBodySystem(eqx.Module):
             (distance ``q - lower`` or ``upper - q``, in rad or m), solved with the contacts
             in one NCP (hard contact only). :meth:`with_joint_limits` lists a model's finite
             limits. Empty by default: a model's limits are not enforced unless asked.
+        max_contacts: a budget on the contacts the NCP solves (static; hard contact only):
+            at each step the ``max_contacts`` candidates between shapes with the smallest
+            signed distance (ties to the lower index), plus every joint limit. The others get
+            zero impulse; a left-out candidate whose gap the step would close (its corrected
+            free normal velocity negative, so the solve would have had to act on it) is
+            counted in :attr:`StepInfo.dropped_contacts` and reported by :func:`check_steps`.
+            A scene of many shapes has far more candidates (every manifold entry of every
+            pair) than touching points; the solve's cost grows with the cube of the contacts
+            it holds. The selection is piecewise constant in the state: derivatives are those
+            of the selected problem. ``None`` (default): every candidate. See
+            :meth:`with_contact_budget`.
         derivative: how ``step`` is differentiated with hard contact (static).
             ``"implicit"`` (default): the implicit function theorem on the step's own
             equations, momentum balance ``M (v+ - v) + h (b - tau) - Jᵀ lambda = 0`` and the
@@ -366,6 +387,7 @@ class RigidBodySystem(eqx.Module):
     max_motion_per_step: float = eqx.field(static=True, default=1.0)
     initial_configuration: Array | None = None
     joint_limits: tuple[tuple[int, int], ...] = eqx.field(static=True, default=())
+    max_contacts: int | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         num_spheres, num_planes = len(self.sphere_frames), self.plane_normals.shape[0]
@@ -412,6 +434,11 @@ class RigidBodySystem(eqx.Module):
         if any(c not in range(6) for c in self.wrench_components):
             raise ValueError(f"wrench_components must be in 0..5, got {self.wrench_components}")
         _limit_rows(self.model, self.joint_limits)  # raises on a bad entry
+        if self.max_contacts is not None:
+            if isinstance(self.max_contacts, bool) or not isinstance(self.max_contacts, (int, np.integer)) or self.max_contacts < 1:
+                raise ValueError(f"max_contacts must be a positive integer or None, got {self.max_contacts!r}")
+            if not isinstance(self.contact, str):
+                raise ValueError("max_contacts budgets the hard-contact NCP: use contact='hard'")
         if self.joint_limits and not isinstance(self.contact, str):
             raise ValueError("joint_limits are enforced by the hard-contact NCP: use contact='hard'")
         if not isinstance(self.geom_pairs, tuple) or not all(isinstance(p, GeomPair) for p in self.geom_pairs):
@@ -482,6 +509,26 @@ class RigidBodySystem(eqx.Module):
                 raise ValueError(f"joints: {name!r} has no finite position limit in the model")
             limits.extend((dof, side) for side in sides)
         return dataclasses.replace(self, joint_limits=tuple(limits))
+
+    def with_contact_budget(self, max_contacts: int | None) -> "RigidBodySystem":
+        """This system with at most ``max_contacts`` contacts between shapes in each step's
+        solve (:attr:`max_contacts`; ``None`` removes the budget).
+
+        Raises:
+            ValueError: unless ``max_contacts`` is a positive integer or ``None``, or with a
+                compliant contact law.
+        """
+        return dataclasses.replace(self, max_contacts=max_contacts)
+
+    def _contact_selection(self, distance: Array) -> Array | None:
+        """Indices ``(K,)`` (ascending) of the candidates the NCP solves under
+        :attr:`max_contacts`, or ``None`` where the budget holds every candidate."""
+        shapes = distance.shape[0] - len(self.joint_limits)
+        if self.max_contacts is None or self.max_contacts >= shapes:
+            return None
+        _, closest = lax.top_k(-lax.stop_gradient(distance[:shapes]), self.max_contacts)
+        limits = jnp.arange(shapes, distance.shape[0], dtype=closest.dtype)
+        return jnp.concatenate([jnp.sort(closest), limits])
 
     def split(self, x: ArrayLike) -> tuple[Array, Array]:
         """``(q, v)`` from a state ``x`` of shape ``(..., nx)``."""
@@ -810,9 +857,11 @@ class RigidBodySystem(eqx.Module):
         v_next = _dynamics._free_flyer_new_axes(self.model, v_next, self.time_step)
         x_next = jnp.concatenate([q_next, v_next])
         diverged = ~jnp.all(jnp.isfinite(x_next)) | ~(jnp.max(jnp.abs(v_next)) * self.time_step <= self.max_motion_per_step)
-        force, mode = self._contact_diagnostics(impulse, *lax.stop_gradient(contact))
+        frames, velocity, dropped = lax.stop_gradient(contact)
+        force, mode = self._contact_diagnostics(impulse, frames, velocity)
         info = StepInfo(
-            distance=distance, impulse=impulse, ncp=ncp, torque_clipped=clipped, diverged=diverged, force=force, mode=mode
+            distance=distance, impulse=impulse, ncp=ncp, torque_clipped=clipped, diverged=diverged, force=force,
+            mode=mode, dropped_contacts=dropped,
         )
         return x_next, info
 
@@ -860,19 +909,31 @@ class RigidBodySystem(eqx.Module):
         v_free = v_start + h * jax.scipy.linalg.cho_solve(factor, tau - bias)
         distance, frames, jacobian = self.contacts(q, kinematics)
         mu = self.contact_friction()
+        # the contacts the NCP solves: every candidate, or the budget's closest ones
+        selection = self._contact_selection(distance) if isinstance(self.contact, str) else None
+        dropped = jnp.zeros((), jnp.int32)
+        if selection is not None:
+            rows = _flat_rows(selection)
+            corrected = corrected_free_velocity(jacobian @ v_free, distance, h, baumgarte=self.baumgarte)
+            closes = lax.stop_gradient(corrected[2::3]) < 0  # the solve would have had to act on it
+            dropped = jnp.sum(closes.at[selection].set(False), dtype=jnp.int32)
+            solved_distance, solved_jacobian, mu = distance[selection], jacobian[rows], mu[selection]
+            warm_start = None if warm_start is None else jnp.asarray(warm_start)[rows]
+        else:
+            solved_distance, solved_jacobian = distance, jacobian
         # X = L^-1 Jᵀ: G = Xᵀ X (symmetric by construction) and M^-1 Jᵀ lambda = L^-T (X lambda),
         # one triangular solve with 3 n columns where M^-1 Jᵀ takes two
-        half = jax.scipy.linalg.solve_triangular(factor[0], jacobian.T, lower=True)  # (nv, 3n)
+        half = jax.scipy.linalg.solve_triangular(factor[0], solved_jacobian.T, lower=True)  # (nv, 3n)
         delassus = half.T @ half
         if distance.shape[0] == 0:
             # no candidate contact (a body in free flight, a scene without a colliding pair):
             # nothing to solve, and an empty problem is not one the NCP solver accepts
-            free_velocity = jacobian @ v_free
+            free_velocity = solved_jacobian @ v_free
             impulse = jnp.zeros(0, v_free.dtype)
             zero = jnp.zeros((), v_free.dtype)
             ncp = NCPInfo(jnp.zeros((), jnp.int32), zero, zero, zero, RESULTS.successful, zero)
         elif isinstance(self.contact, str):
-            free_velocity = corrected_free_velocity(jacobian @ v_free, distance, h, baumgarte=self.baumgarte)
+            free_velocity = corrected_free_velocity(solved_jacobian @ v_free, solved_distance, h, baumgarte=self.baumgarte)
             # From a finite but absurd state (a simulation that has already diverged: positions
             # of 1e8 m, velocities of 1e11 rad/s) the mass matrix loses definiteness to rounding
             # and the contact problem is not finite. That is the step's divergence, which it
@@ -891,9 +952,11 @@ class RigidBodySystem(eqx.Module):
             zero = jnp.zeros((), distance.dtype)
             ncp = NCPInfo(jnp.zeros((), jnp.int32), zero, zero, zero, RESULTS.successful, zero)
         v_next = v_free + jax.scipy.linalg.solve_triangular(factor[0], half @ impulse, lower=True, trans="T")
+        if selection is not None:  # every candidate's impulse, zero where left out
+            impulse = jnp.zeros(jacobian.shape[0], impulse.dtype).at[rows].set(impulse)
         return _VelocityUpdate(
             v_next, impulse, distance, ncp, clipped, factor, jacobian, delassus, free_velocity, mu, kinematics, inertias,
-            mass, frames,
+            mass, frames, selection, dropped,
         )
 
     def _compliant_impulse(self, distance: Array, free_velocity: Array, delassus: Array, h: Array) -> Array:
@@ -1001,6 +1064,11 @@ class RigidBodySystem(eqx.Module):
 _compose_batch = jax.vmap(spatial.compose)
 
 
+def _flat_rows(contacts: Array) -> Array:
+    """The rows ``[t1, t2, n]`` of ``contacts`` in a flat ``(3 n, ...)`` contact array."""
+    return (3 * contacts[:, None] + jnp.arange(3, dtype=contacts.dtype)[None, :]).reshape(-1)
+
+
 def _pair_groups(pairs: tuple[GeomPair, ...]) -> list[list[int]]:
     """The indices of the geometry pairs, grouped so that one ``vmap``-ed collision evaluates
     each group: the same shape classes with the same static fields and array shapes (a convex
@@ -1093,7 +1161,7 @@ def _implicit_velocity_update_jvp(primals, tangents):
     )
     v_next_dot, impulse_dot = _velocity_update_tangent(system, update, momentum_dot, velocity_dot, mu_dot)
     no_tangent = jax.tree.map(lambda _: None, update.ncp)  # diagnostics: symbolic zeros
-    return update.public(), (v_next_dot, impulse_dot, distance_dot, no_tangent, None, (None, None))
+    return update.public(), (v_next_dot, impulse_dot, distance_dot, no_tangent, None, (None, None, None))
 
 
 def _step_residuals(update: _VelocityUpdate):
@@ -1103,7 +1171,7 @@ def _step_residuals(update: _VelocityUpdate):
     ``residuals(system, q, v, u, geometry=None)``: ``geometry`` is what depends on ``q`` only,
     ``(kinematics, inertias, distance, J)``; pass the primal one (``update``'s) to differentiate
     with respect to ``v`` or ``u`` without tracing the kinematics again."""
-    v_next, impulse = lax.stop_gradient(update.v_next), lax.stop_gradient(update.impulse)
+    v_next, impulse = lax.stop_gradient(update.v_next), lax.stop_gradient(update.solved(update.impulse))
 
     def residuals(system: RigidBodySystem, q: Array, v: Array, u: Array, geometry=None):
         model, h = system.model, system.time_step
@@ -1122,11 +1190,14 @@ def _step_residuals(update: _VelocityUpdate):
             + system.damping() * v_next  # implicit damping: dE/dv+ = M + h D, the factored W
         )
         tau, _ = system.generalized_forces(q, u, kinematics)
+        solved_distance, mu = distance, system.contact_friction()
+        if update.selection is not None:  # the solved contacts' equations (a fixed selection)
+            solved_distance, jacobian, mu = distance[update.selection], update.solved(jacobian), mu[update.selection]
         # J^T lambda as an unrolled sum of rows: under jacfwd/vmap a dot transposes J's
         # batch and a reduction goes to YNNPACK, both several times slower on CPU (_spatial)
         momentum = h * (inverse_dynamics - tau) - sum(impulse[i] * jacobian[i] for i in range(impulse.shape[0]))
-        velocity = corrected_free_velocity(jacobian @ v_next, distance, h, baumgarte=system.baumgarte)
-        return momentum, velocity, distance, system.contact_friction()
+        velocity = corrected_free_velocity(jacobian @ v_next, solved_distance, h, baumgarte=system.baumgarte)
+        return momentum, velocity, distance, mu
 
     return residuals
 
@@ -1134,14 +1205,17 @@ def _step_residuals(update: _VelocityUpdate):
 def _velocity_update_tangent(
     system: RigidBodySystem, update: _VelocityUpdate, momentum_dot: Array, velocity_dot: Array, mu_dot: Array
 ) -> tuple[Array, Array]:
-    """``(dv+, dlambda)`` from the change of the step's equations at fixed ``(v+, lambda)``."""
-    impulse = lax.stop_gradient(update.impulse)
+    """``(dv+, dlambda)`` from the change of the step's equations at fixed ``(v+, lambda)``
+    (``velocity_dot`` and ``mu_dot``: those of the solved contacts; ``dlambda``: every
+    candidate's, zero where a budget left it out)."""
+    impulse = lax.stop_gradient(update.solved(update.impulse))
+    jacobian = update.solved(update.jacobian)
     solve = many_column_solver(update.mass_factor, momentum_dot)
     free_motion_dot = -solve(momentum_dot)  # dv+ at fixed lambda
     if impulse.shape[0] == 0:  # no contact: the free motion is the whole step
         return free_motion_dot, jnp.zeros((0,) + free_motion_dot.shape[1:], free_motion_dot.dtype)
-    minv_jt = solve(update.jacobian.T)  # primal: once for all tangents (a product where M^-1 is formed)
-    velocity_dot = velocity_dot + update.jacobian @ free_motion_dot
+    minv_jt = solve(jacobian.T)  # primal: once for all tangents (a product where M^-1 is formed)
+    velocity_dot = velocity_dot + jacobian @ free_motion_dot
     G, g, mu = update.delassus, update.free_velocity, update.mu
     step_sizes = fixed_point_step_sizes(G, mu.shape[0])
     # dF at fixed lambda, as explicit (3 n x 3 n) and (3 n x n) matrices so that the
@@ -1153,7 +1227,11 @@ def _velocity_update_tangent(
     impulse_dot = implicit_impulse_tangent(
         system.solver.implicit_regularization, impulse, G, g, mu, step_sizes, rhs
     )
-    return free_motion_dot + minv_jt @ impulse_dot, impulse_dot
+    v_next_dot = free_motion_dot + minv_jt @ impulse_dot
+    if update.selection is not None:
+        full = jnp.zeros((update.impulse.shape[0],) + impulse_dot.shape[1:], impulse_dot.dtype)
+        impulse_dot = full.at[_flat_rows(update.selection)].set(impulse_dot)
+    return v_next_dot, impulse_dot
 
 
 def _step_and_jacobians(system: RigidBodySystem, q: Array, v: Array, u: Array) -> tuple[Array, Array, Array]:
@@ -1232,8 +1310,9 @@ class SimulationWarning(UserWarning):
 
 
 def check_steps(infos: StepInfo, *, what: str = "the simulation") -> dict[str, int]:
-    """Counts the steps whose contact solve did not succeed and those that diverged, and
-    warns (:class:`SimulationWarning`) if there is any.
+    """Counts the steps whose contact solve did not succeed, those that diverged and those
+    whose contact budget left out a closing contact, and warns (:class:`SimulationWarning`)
+    if there is any.
 
     Host-side, on concrete diagnostics (e.g. the ``infos`` of :meth:`RigidBodySystem.rollout`,
     any batch shape): the experiments call it on their rollouts, so that such steps are never
@@ -1246,8 +1325,10 @@ def check_steps(infos: StepInfo, *, what: str = "the simulation") -> dict[str, i
         what: the name of the simulation, for the message.
 
     Returns:
-        ``{"steps", "unconverged_steps", "diverged_steps"}``: ``unconverged_steps`` counts
-        the contact solves whose result is not ``RESULTS.successful``.
+        ``{"steps", "unconverged_steps", "diverged_steps", "dropped_contact_steps"}``:
+        ``unconverged_steps`` counts the contact solves whose result is not
+        ``RESULTS.successful``, ``dropped_contact_steps`` the steps with
+        ``infos.dropped_contacts > 0`` (:attr:`RigidBodySystem.max_contacts` too small).
     """
     result = infos.ncp.result
     diverged = np.asarray(infos.diverged)
@@ -1260,7 +1341,16 @@ def check_steps(infos: StepInfo, *, what: str = "the simulation") -> dict[str, i
         "steps": int(successful.size),
         "unconverged_steps": int(np.sum(~successful)),
         "diverged_steps": int(np.sum(diverged)),
+        "dropped_contact_steps": int(np.sum(np.asarray(infos.dropped_contacts) > 0)),
     }
+    if counts["dropped_contact_steps"]:
+        warnings.warn(
+            f"{what}: in {counts['dropped_contact_steps']} of {counts['steps']} steps the contact budget "
+            f"(max_contacts) left out contacts whose gap the step closes (StepInfo.dropped_contacts, "
+            f"at most {int(np.max(np.asarray(infos.dropped_contacts)))} in a step): raise max_contacts",
+            SimulationWarning,
+            stacklevel=2,
+        )
     if counts["unconverged_steps"] or counts["diverged_steps"]:
         reasons = "".join(
             f"; {count} {name}: {RESULTS[getattr(RESULTS, name)]}" for name, count in failures.items() if count

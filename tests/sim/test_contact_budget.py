@@ -1,0 +1,82 @@
+"""The contact budget (`RigidBodySystem.max_contacts`): a budget that holds every touching
+contact changes nothing (states, impulses, step Jacobians), a budget that leaves out a closing
+contact is counted and reported, and bad budgets are refused by name."""
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import rsmooth.sim as sim
+
+
+def _bodies(max_contacts=None):
+    """Two balls and a capsule lying on a floor, apart: four floor candidates, all touching
+    (a ball's one point, the capsule's two ends), and three between the bodies, not touching.
+    Each body's contact forces are determinate (a box's four corners are not: a budget would
+    only change which of the equivalent force splits the solver returns)."""
+    shapes = [sim.Sphere(0.1), sim.Sphere(0.05), sim.Capsule(0.05, 0.2)]
+    positions = [[0.0, 0.0, 0.1], [0.5, 0.0, 0.05], [1.0, 0.1, 0.05]]
+    lying = [np.sin(np.pi / 4), 0.0, 0.0, np.cos(np.pi / 4)]  # the capsule's axis along y
+    return sim.bodies(
+        shapes, [1.0, 0.5, 0.3], positions, orientations=[[0, 0, 0, 1], [0, 0, 0, 1], lying], max_contacts=max_contacts
+    )
+
+
+def _sliding_state(system):
+    """The bodies sliding at different speeds and spinning about the vertical."""
+    x = np.array(system.initial_state())
+    v = x[system.model.nq :].reshape(3, 6)
+    v[:, :3] = [[0.6, 0.0, 0.0], [-0.3, 0.4, 0.0], [0.0, -0.5, 0.0]]
+    v[:, 5] = [1.0, -2.0, 0.5]
+    return jnp.asarray(np.concatenate([x[: system.model.nq], v.reshape(-1)]))
+
+
+def _rollout(system, x0, steps):
+    us = jnp.zeros((steps, system.nu))
+    return eqx.filter_jit(lambda s, x: s.rollout(x, us))(system, x0)
+
+
+def test_a_budget_holding_every_touching_contact_changes_nothing():
+    full, budget = _bodies(), _bodies(max_contacts=4)
+    assert full.num_contacts == budget.num_contacts == 7
+    x0 = _sliding_state(full)
+    xs_full, infos_full = _rollout(full, x0, 30)
+    xs, infos = _rollout(budget, x0, 30)
+    assert sim.check_steps(infos)["dropped_contact_steps"] == 0  # no warning: errors in the suite
+    # the same contact problems, solved to the solver's tolerance (1e-10 in impulse residual)
+    np.testing.assert_allclose(np.asarray(xs), np.asarray(xs_full), atol=1e-8)
+    np.testing.assert_allclose(np.asarray(infos.impulse), np.asarray(infos_full.impulse), atol=1e-8)
+    # the left-out candidates (between the bodies, 0.3 m apart) have no impulse
+    assert np.all(np.asarray(infos.mode)[:, 4:] == sim.SEPARATED)
+    # the step Jacobians are those of the selected problem, equal to the full one's here
+    x, u = xs[10], jnp.zeros(budget.nu)
+    step_jacobians = eqx.filter_jit(lambda s, x_, u_: s.step_and_jacobians(x_, u_))
+    _, fx, fu = step_jacobians(budget, x, u)
+    _, fx_full, fu_full = step_jacobians(full, x, u)
+    np.testing.assert_allclose(np.asarray(fx), np.asarray(fx_full), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(fu), np.asarray(fu_full), atol=1e-6)
+
+
+def test_a_budget_too_small_reports_the_contacts_it_leaves_out():
+    """Two of the four resting contacts: the two left out close under gravity within the
+    step, so they are counted, and check_steps warns."""
+    system = _bodies(max_contacts=2)
+    _, infos = _rollout(system, system.initial_state(), 3)
+    assert np.all(np.asarray(infos.dropped_contacts) == 2)
+    assert np.all(np.sum(np.asarray(infos.impulse).reshape(3, -1, 3)[..., 2] > 0, axis=1) <= 2)
+    with pytest.warns(sim.SimulationWarning, match="max_contacts"):
+        counts = sim.check_steps(infos)
+    assert counts["dropped_contact_steps"] == 3
+
+
+@pytest.mark.parametrize("bad", [0, -3, 2.5, True, "8"])
+def test_bad_budgets_are_refused_by_name(bad):
+    with pytest.raises(ValueError, match="max_contacts must be a positive integer or None"):
+        _bodies().with_contact_budget(bad)
+
+
+def test_a_budget_needs_hard_contact():
+    compliant = sim.ball(contact=sim.SpringDamper(stiffness=1e4, damping=10.0, friction=0.3))
+    with pytest.raises(ValueError, match="max_contacts budgets the hard-contact NCP"):
+        compliant.with_contact_budget(1)
