@@ -82,6 +82,9 @@ class Config:
         None, "Solve at most this many contacts between shapes per step, the closest candidates (a robot's meshes "
         "give hundreds of candidates, of which a few touch); a step that leaves out a closing contact is reported. "
         "Default: all.", min=1)
+    max_hull_vertices: int | None = _protocol.option(
+        None, "Bound on the vertices of each mesh's convex hull, the shape collided (MuJoCo's maxhullvert; 16 to 32 "
+        "make a robot's meshes tractable). Default: the whole hull.", min=4)
     drop_mimic: bool = _protocol.option(
         False, "Drop the file's joint couplings (a URDF <mimic>, e.g. Panda's fingers), with a warning: the coupled "
         "joints then move independently.")
@@ -219,6 +222,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     loaded = sim.load_mjcf(
         config.file or DEMO_SCENE, package_dirs=package_dirs, floating_base=config.floating_base,
         boundinertia=config.boundinertia, drop_mimic=config.drop_mimic, drop_frictionloss=config.drop_frictionloss,
+        max_hull_vertices=config.max_hull_vertices,
     )
     system = sim.scene(
         loaded, time_step=config.time_step, floor=config.floor, self_collision=config.self_collision,

@@ -106,6 +106,9 @@ class MujocoModel(eqx.Module):
             (``mesh_vert``); ``None`` for other geoms.
         geom_faces: for a mesh geom, its triangles ``(nface, 3)``, indices into its vertices;
             ``None`` for other geoms.
+        geom_hull: for a mesh geom that MuJoCo collides, the vertices of the convex hull it
+            collides (``mesh_graph``: at most the mesh's ``maxhullvert``, see
+            :func:`load_mjcf`'s ``max_hull_vertices``), ``(nhull, 3)``; else its vertices.
         contact_pairs: explicit contact pairs ``(geom1, geom2)`` (``<contact><pair>``).
         pair_friction: ``(npair,)``, sliding friction of every explicit pair (its own
             ``friction``, which replaces the geoms').
@@ -153,6 +156,7 @@ class MujocoModel(eqx.Module):
     geom_priority: tuple[int, ...] = eqx.field(static=True)
     geom_vertices: tuple[jax.Array | None, ...]
     geom_faces: tuple[jax.Array | None, ...]
+    geom_hull: tuple[jax.Array | None, ...]
     contact_pairs: tuple[tuple[int, int], ...] = eqx.field(static=True)
     pair_friction: jax.Array
     excluded_body_pairs: tuple[tuple[int, int], ...] = eqx.field(static=True)
@@ -668,15 +672,26 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
     )
 
     geom_poses = [_compose(body_in_joint[m.geom_bodyid[g]], _pose(m.geom_pos[g], m.geom_quat[g])) for g in range(m.ngeom)]
-    vertices, faces = [], []
+    vertices, faces, hulls = [], [], []
     for g in range(m.ngeom):
         mesh = m.geom_dataid[g]
         if int(m.geom_type[g]) != int(mj.mjtGeom.mjGEOM_MESH) or mesh < 0:
             vertices.append(None)
             faces.append(None)
+            hulls.append(None)
             continue
         start, count = m.mesh_vertadr[mesh], m.mesh_vertnum[mesh]
-        vertices.append(_array(m.mesh_vert[start : start + count]))
+        mesh_vertices = np.asarray(m.mesh_vert[start : start + count])
+        vertices.append(_array(mesh_vertices))
+        # MuJoCo's hull (mesh_graph: numvert, numface, vert_edgeadr[numvert],
+        # vert_globalid[numvert], ...), which maxhullvert bounds
+        graph = int(m.mesh_graphadr[mesh])
+        if graph >= 0:
+            hull_count = int(m.mesh_graph[graph])
+            ids = np.asarray(m.mesh_graph[graph + 2 + hull_count : graph + 2 + 2 * hull_count], dtype=np.int64)
+            hulls.append(_array(mesh_vertices[ids]))
+        else:
+            hulls.append(vertices[-1])
         start, count = m.mesh_faceadr[mesh], m.mesh_facenum[mesh]
         faces.append(jnp.asarray(np.asarray(m.mesh_face[start : start + count], dtype=np.int32)))
     damping = np.zeros(m.nv) if disabled & int(mj.mjtDisableBit.mjDSBL_DAMPER) else np.asarray(m.dof_damping, dtype=np.float64)
@@ -700,6 +715,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         geom_priority=tuple(int(p) for p in m.geom_priority),
         geom_vertices=tuple(vertices),
         geom_faces=tuple(faces),
+        geom_hull=tuple(hulls),
         contact_pairs=tuple((int(a), int(b)) for a, b in zip(m.pair_geom1, m.pair_geom2)),
         pair_friction=_array(m.pair_friction[:, 0]).reshape(-1),
         # MuJoCo packs an excluded pair as body1 << 16 | body2.
@@ -1053,6 +1069,7 @@ def load_mjcf(
     boundinertia: float | None = None,
     drop_mimic: bool = False,
     drop_frictionloss: bool = False,
+    max_hull_vertices: int | None = None,
 ) -> MujocoModel:
     """Loads a model with MuJoCo's compiler and converts it (:func:`from_mujoco`).
 
@@ -1094,6 +1111,13 @@ def load_mjcf(
         drop_frictionloss: drop the dry joint friction (``frictionloss``; what MuJoCo makes of
             a URDF's ``<dynamics friction>``), which rsmooth.sim does not model, with a
             :class:`MujocoLoadWarning` naming the joints and values.
+        max_hull_vertices: ``None``, or the most vertices (``>= 4``) of the convex hull
+            MuJoCo takes of each mesh (its ``maxhullvert``, for meshes that do not set their
+            own), which is what both MuJoCo and :func:`~rsmooth.sim.scene` collide
+            (:attr:`MujocoModel.geom_hull`). A robot's collision meshes have hulls of a
+            hundred or more vertices; the separating-axis test between two meshes costs
+            the product of their edge counts, so 16 to 32 vertices make a scene of meshes
+            tractable, at the cost of a coarser shape.
 
     Returns:
         The converted model.
@@ -1105,7 +1129,7 @@ def load_mjcf(
             the path: a malformed file, a missing mesh file, a mesh file it cannot decode that
             is needed or kept, an inertia that is not positive definite, each with what can be
             done), if ``source`` is of another type or an option is out of range, if
-            ``floating_base``, ``boundinertia``, ``drop_mimic`` or ``drop_frictionloss`` is asked of a compiled
+            ``floating_base``, ``boundinertia``, ``drop_mimic``, ``drop_frictionloss`` or ``max_hull_vertices`` is asked of a compiled
             ``mujoco.MjModel`` or ``floating_base`` of a model whose first body already has a
             joint, or if the model uses a feature rsmooth.sim does not support (see
             :func:`from_mujoco`).
@@ -1119,9 +1143,14 @@ def load_mjcf(
     """
     mj = _mujoco()
     _check_options(visuals, boundinertia, drop_mimic, drop_frictionloss)
+    if max_hull_vertices is not None and (
+        isinstance(max_hull_vertices, bool) or not isinstance(max_hull_vertices, (int, np.integer)) or max_hull_vertices < 4
+    ):
+        raise ValueError(f"max_hull_vertices must be None or an integer >= 4, got {max_hull_vertices!r}")
     if isinstance(source, mj.MjModel):
-        given = (floating_base, boundinertia is not None, drop_mimic, drop_frictionloss)
-        for name, given in zip(("floating_base", "boundinertia", "drop_mimic", "drop_frictionloss"), given):
+        given = (floating_base, boundinertia is not None, drop_mimic, drop_frictionloss, max_hull_vertices is not None)
+        names = ("floating_base", "boundinertia", "drop_mimic", "drop_frictionloss", "max_hull_vertices")
+        for name, given in zip(names, given):
             if given:
                 raise ValueError(f"{name} applies to a file or XML text, not to a compiled mujoco.MjModel")
         return from_mujoco(source)
@@ -1152,6 +1181,10 @@ def load_mjcf(
         if body.first_joint() is not None:
             raise ValueError(f"floating_base: the first body of {where}, {body.name!r}, already has a joint")
         body.add_freejoint(name="root_joint")
+    if max_hull_vertices is not None:
+        for mesh in spec.meshes:
+            if mesh.maxhullvert < 0:  # a mesh's own bound stays
+                mesh.maxhullvert = int(max_hull_vertices)
     compiled = _compile(
         mj, spec, where, visuals=visuals, boundinertia=boundinertia, drop_mimic=drop_mimic, drop_frictionloss=drop_frictionloss
     )

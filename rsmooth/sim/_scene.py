@@ -66,7 +66,7 @@ def _shape(loaded: MujocoModel, geom: int, meshes: dict[int, Any]):
         return Box(size)
     if kind == "mesh":
         if geom not in meshes:
-            meshes[geom] = convex_mesh(np.asarray(loaded.geom_vertices[geom], dtype=np.float64))
+            meshes[geom] = convex_mesh(np.asarray(loaded.geom_hull[geom], dtype=np.float64))
         return meshes[geom]
     return None
 
@@ -144,7 +144,7 @@ def _lowest_point(loaded: MujocoModel, geom: int, rotation: np.ndarray, translat
     elif kind == "ellipsoid":
         depth = float(np.linalg.norm(up * size))
     else:  # a mesh: its lowest vertex (also the lowest of its convex hull)
-        depth = -float(np.min(np.asarray(loaded.geom_vertices[geom], dtype=np.float64) @ up))
+        depth = -float(np.min(np.asarray(loaded.geom_hull[geom], dtype=np.float64) @ up))
     return float(translation[2] - depth)
 
 
@@ -205,6 +205,7 @@ def scene(
     boundinertia: float | None = None,
     drop_mimic: bool = False,
     drop_frictionloss: bool = False,
+    max_hull_vertices: int | None = None,
     time_step: float | None = None,
     friction: float | None = None,
     margin: float = 0.01,
@@ -249,6 +250,8 @@ def scene(
             :func:`~rsmooth.sim.load_mjcf`; a file or text only).
         drop_frictionloss: drop dry joint friction with a warning (see
             :func:`~rsmooth.sim.load_mjcf`; a file or text only).
+        max_hull_vertices: bound on the vertices of each mesh's convex hull, the shape
+            collided (see :func:`~rsmooth.sim.load_mjcf`; a file or text only).
         time_step: ``h`` (s); ``None``: MuJoCo's ``opt.timestep``.
         friction: Coulomb coefficient of every pair, ``>= 0``; ``None``: MuJoCo's per pair.
         margin: distance within which manifold entries are candidate contacts
@@ -282,7 +285,7 @@ def scene(
             message names the geoms and their types), if the motors of a dof can apply a
             generalized force over a range that is not symmetric about zero (the message names
             them), if ``floating_base``, ``package_dirs``, ``visuals``, ``boundinertia``,
-            ``drop_mimic`` or ``drop_frictionloss`` is given with a converted model,
+            ``drop_mimic``, ``drop_frictionloss`` or ``max_hull_vertices`` is given with a converted model,
             if ``floor`` is asked of a scene with no colliding geom on a moving body, if
             ``time_step``, ``friction`` or ``margin`` is out of range, or if ``floating_base``,
             ``floor`` or ``self_collision`` is not a bool.
@@ -309,6 +312,7 @@ def scene(
             "boundinertia": boundinertia is not None,
             "drop_mimic": drop_mimic,
             "drop_frictionloss": drop_frictionloss,
+            "max_hull_vertices": max_hull_vertices is not None,
         }
         if any(given.values()):
             names = ", ".join(name for name, value in given.items() if value)
@@ -323,6 +327,7 @@ def scene(
             boundinertia=boundinertia,
             drop_mimic=drop_mimic,
             drop_frictionloss=drop_frictionloss,
+            max_hull_vertices=max_hull_vertices,
         )
     h = loaded.timestep if time_step is None else _number("time_step", time_step)
     if friction is not None:
