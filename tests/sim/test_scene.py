@@ -388,3 +388,40 @@ def test_bounded_mesh_hulls_are_what_mujoco_collides():
     np.testing.assert_allclose(ours, expected, atol=1e-6)
     with pytest.raises(ValueError, match="max_hull_vertices must be None or an integer >= 4"):
         sim.load_mjcf(xml, max_hull_vertices=3)
+
+
+def test_padded_meshes_collide_as_the_originals_and_share_groups():
+    """Meshes padded to shared array sizes (scene() does it) give the same manifolds as the
+    originals, separated or penetrating, and meshes of nearly equal sizes then share one
+    vmapped collision group."""
+    import trimesh
+    from scipy.spatial.transform import Rotation
+
+    from rsmooth.sim._scene import padded_mesh
+    from rsmooth.sim._simulator import _pair_groups
+
+    rng = np.random.default_rng(5)
+    pebble = sim.convex_mesh(trimesh.creation.icosphere(subdivisions=1, radius=0.1).vertices * [1.0, 0.6, 0.4])
+    rock = sim.convex_mesh(rng.normal(size=(30, 3)) * 0.08)
+    padded = [padded_mesh(mesh) for mesh in (pebble, rock)]
+    assert all(leaf.shape[0] % 8 == 0 for mesh in padded for leaf in jax.tree.leaves(mesh))
+    rotations = jnp.asarray(Rotation.from_quat(rng.normal(size=(16, 4))).as_matrix())
+    translations = jnp.asarray(rng.uniform(-0.2, 0.2, size=(16, 3)))
+    identity = (jnp.eye(3), jnp.zeros(3))
+
+    @jax.jit
+    def manifolds(a, b):
+        return jax.vmap(lambda r, t: sim.collide(a, identity, b, (r, t), margin=0.05))(rotations, translations)
+
+    original, ours = manifolds(pebble, rock), manifolds(*padded)
+    assert 0.2 < np.mean(np.asarray(original.distance[:, 0]) < 0) < 0.8
+    active = np.asarray(original.active)
+    np.testing.assert_array_equal(np.asarray(ours.active), active)
+    for field in ("distance", "normal", "point1", "point2"):  # of the manifolds' contacts
+        expected, actual = np.asarray(getattr(original, field))[active], np.asarray(getattr(ours, field))[active]
+        np.testing.assert_allclose(actual, expected, rtol=0, atol=1e-12, err_msg=field)
+    # two hulls whose sizes differ by a few: two groups as they are, one once padded
+    other = sim.convex_mesh(np.asarray(rock.vertices)[:-1])
+    pair = lambda mesh: sim.GeomPair(pebble, None, mesh, 1, friction=0.5)
+    assert len(_pair_groups((pair(rock), pair(other)))) == 2
+    assert len(_pair_groups((pair(padded_mesh(rock, 64)), pair(padded_mesh(other, 64))))) == 1
