@@ -21,18 +21,9 @@ from rsmooth.sim._collision import (
 )
 from rsmooth.sim._contact import (
     ContactPoints as ContactPoints,
-    LogBarrier as LogBarrier,
-    NCPInfo as NCPInfo,
-    NCPSolver as NCPSolver,
-    SpringDamper as SpringDamper,
     contact_frame as contact_frame,
     corrected_free_velocity as corrected_free_velocity,
-    log_barrier_force as log_barrier_force,
-    ncp_residuals as ncp_residuals,
-    project_to_friction_cone as project_to_friction_cone,
-    solve_ncp as solve_ncp,
     sphere_halfspace_contacts as sphere_halfspace_contacts,
-    spring_damper_force as spring_damper_force,
 )
 from rsmooth.sim._dynamics import (
     crba as crba,
@@ -57,6 +48,12 @@ from rsmooth.sim._geometry import (
     Sphere as Sphere,
     convex_mesh as convex_mesh,
 )
+from rsmooth.sim._laws import (
+    LogBarrier as LogBarrier,
+    SpringDamper as SpringDamper,
+    log_barrier_force as log_barrier_force,
+    spring_damper_force as spring_damper_force,
+)
 from rsmooth.sim._model import (
     Model as Model,
     example_robot_data_root as example_robot_data_root,
@@ -73,6 +70,13 @@ from rsmooth.sim._mujoco import (
     MujocoModel as MujocoModel,
     from_mujoco as from_mujoco,
     load_mjcf as load_mjcf,
+)
+from rsmooth.sim._ncp import (
+    NCPInfo as NCPInfo,
+    NCPSolver as NCPSolver,
+    ncp_residuals as ncp_residuals,
+    project_to_friction_cone as project_to_friction_cone,
+    solve_ncp as solve_ncp,
 )
 from rsmooth.sim._scene import scene as scene
 from rsmooth.sim._simulator import (

@@ -40,10 +40,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from rsmooth.sim._collision import manifold_size
-from rsmooth.sim._contact import NCPSolver
 from rsmooth.sim._dynamics import forward_kinematics
 from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, HalfSpace, Sphere, convex_mesh
 from rsmooth.sim._mujoco import MujocoModel, load_mjcf
+from rsmooth.sim._ncp import NCPSolver
 from rsmooth.sim._simulator import GeomPair, RigidBodySystem
 from rsmooth.sim._systems import _number, geom_pair_system
 

@@ -78,22 +78,20 @@ from rsmooth import _checks
 from rsmooth._results import RESULTS
 from rsmooth.sim import _derivatives, _dynamics
 from rsmooth.sim import _spatial as spatial
-from rsmooth.sim._contact import (
-    LogBarrier,
+from rsmooth.sim._contact import contact_frame, corrected_free_velocity
+from rsmooth.sim._collision import collide, manifold_size
+from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, HalfSpace, Sphere
+from rsmooth.sim._laws import LogBarrier, SpringDamper
+from rsmooth.sim._model import Model
+from rsmooth.sim._ncp import (
     NCPInfo,
     NCPSolver,
-    SpringDamper,
-    contact_frame,
-    corrected_free_velocity,
     fixed_point_step_sizes,
     implicit_impulse_tangent,
     many_column_solver,
     natural_map_of_velocity,
     solve_ncp,
 )
-from rsmooth.sim._collision import collide, manifold_size
-from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, HalfSpace, Sphere
-from rsmooth.sim._model import Model
 
 Array = jax.Array
 ContactLaw = Union[Literal["hard"], SpringDamper, LogBarrier]

@@ -17,11 +17,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from rsmooth.sim import _dynamics
-from rsmooth.sim._contact import LogBarrier, NCPSolver, SpringDamper
+from rsmooth.sim._laws import LogBarrier, SpringDamper
 from rsmooth.sim._model import FREE_FLYER, PRISMATIC, UNIVERSE, Model, free_body, load_urdf, solo12_standing_configuration, solo12_urdf_path
 from rsmooth.sim._collision import manifold_size
 from rsmooth.sim._contact import contact_frame
 from rsmooth.sim._geometry import Box, Capsule, Cylinder, HalfSpace, Sphere
+from rsmooth.sim._ncp import NCPSolver
 from rsmooth.sim._simulator import ContactLaw, GeomPair, RigidBodySystem, _point_jacobian
 
 __all__ = [

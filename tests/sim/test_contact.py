@@ -11,22 +11,17 @@ import numpy as np
 import pytest
 
 from rsmooth import RESULTS
-from rsmooth.sim import _contact
-from rsmooth.sim._contact import (
-    LogBarrier,
+from rsmooth.sim import _ncp
+from rsmooth.sim._contact import contact_frame, corrected_free_velocity, sphere_halfspace_contacts
+from rsmooth.sim._laws import LogBarrier, SpringDamper, log_barrier_force, spring_damper_force
+from rsmooth.sim._ncp import (
     NCPSolver,
-    SpringDamper,
     cholesky_inverse,
-    contact_frame,
-    corrected_free_velocity,
     fixed_point_step_sizes,
     implicit_impulse_tangent,
-    log_barrier_force,
     ncp_residuals,
     project_to_friction_cone,
     solve_ncp,
-    sphere_halfspace_contacts,
-    spring_damper_force,
 )
 
 TIGHT = NCPSolver(tolerance=1e-13, max_iterations=20000)
@@ -535,7 +530,7 @@ def test_polish_equations_have_the_closed_form_jacobian(getkey):
 
     def equations(x, mode):
         direction = jnp.stack([jnp.cos(x[:, 1]), jnp.sin(x[:, 1])], axis=-1)
-        return _contact._mode_equations(x, direction, mode, G, g, mu)
+        return _ncp._mode_equations(x, direction, mode, G, g, mu)
 
     for _ in range(4):
         mode = jnp.asarray(generator.integers(0, 3, size=4))
