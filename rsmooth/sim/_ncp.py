@@ -483,8 +483,9 @@ class NCPSolver(eqx.Module):
             inside smoothed or batched rollouts one unconverged sample would abort the whole
             batch; check ``info.result`` (or ``info.converged``) instead.
         sticking_guess: where the warm start (or zero) is not already a solution, try the
-            impulse that makes every contact whose free normal velocity closes (``g_N < 0``)
-            stick and leaves the others without impulse, ``P_K(-G_AA^{-1} g_A)`` on that active
+            impulse that makes every contact whose free normal velocity does not open
+            (``g_N`` at most the square root of the tolerance) stick and leaves the others
+            without impulse, ``P_K(-G_AA^{-1} g_A)`` on that active
             set (one Cholesky factorization); where it solves the problem (a robot standing on
             sticking feet) the solve ends there. Otherwise ADMM starts from the warm start or,
             without one, from the guess (from zero with ``rank_deficient``).
@@ -589,10 +590,14 @@ class NCPSolver(eqx.Module):
             given = project_to_friction_cone(warm_start.reshape(n, 3), mu).reshape(-1)
         if not self.sticking_guess:
             return candidate(given)
-        # Contacts whose free normal velocity closes stick (c_i = 0), the others carry no
-        # impulse: solve G_AA lambda_A = -g_A on that active set A. A guess that is not
-        # finite or not a solution is not used.
-        active = jnp.repeat(g.reshape(n, 3)[:, 2] < 0, 3)
+        # Contacts whose free normal velocity does not open stick (c_i = 0), the others carry
+        # no impulse: solve G_AA lambda_A = -g_A on that active set A. "Does not open" is
+        # g_N at most the square root of the solver's tolerance (1e-5 m/s in float64, the
+        # slip below which StepInfo reports sticking), not g_N < 0: in a stack the bodies
+        # fall together, so every contact but the floor's has g_N = 0 up to rounding and a
+        # rocking of nanometres per step, and must stick to carry the weight above it. A
+        # guess that is not finite or not a solution is not used.
+        active = jnp.repeat(g.reshape(n, 3)[:, 2] <= self.tolerance_for(g.dtype) ** 0.5, 3)
         rhs = jnp.where(active, g, 0.0)
         if self.rank_deficient:
             # The minimum-norm sticking impulse, by the pseudo-inverse of G_AA (eigenvalues
@@ -600,7 +605,10 @@ class NCPSolver(eqx.Module):
             eigenvalues, eigenvectors = jnp.linalg.eigh(jnp.where(active[:, None] & active[None, :], G, 0.0))
             keep = eigenvalues > 1e-9 * jnp.maximum(eigenvalues[-1], jnp.finfo(G.dtype).tiny ** 0.5)
             inverse = jnp.where(keep, 1.0 / jnp.where(keep, eigenvalues, 1.0), 0.0)
-            sticking = -eigenvectors @ (inverse * (eigenvectors.T @ rhs))
+            # exactly zero off A: the eigenvectors mix A's null space with the inactive
+            # coordinates, and a rounding-sized impulse there times a speculative contact's
+            # large g_N (a gap of metres over h) fails the complementarity test
+            sticking = jnp.where(active, -eigenvectors @ (inverse * (eigenvectors.T @ rhs)), 0.0)
         else:
             # Rows and columns of the inactive contacts replaced by the identity; a diagonal
             # shift of 1e-12 of G's scale keeps the factorization finite for a singular G, and

@@ -81,6 +81,30 @@ def test_equal_boxes_stacked_off_centre_rest():
     np.testing.assert_allclose(force[2], [0, 0, G], atol=0.01)
 
 
+def test_a_tower_written_in_mjcf_rests_without_solver_iterations():
+    """Five cubes stacked on a floor (MJCF, every pair of boxes collided, a contact budget of
+    40): for 2 s each box stays at its analytic height, and every step's contact problem is
+    solved by the sticking guess alone. Only the floor's contacts close under free motion
+    (the boxes fall together); those between boxes carry the weight above them with a free
+    normal velocity of zero, so the guess must hold them as sticking too."""
+    n, half = 5, 0.05
+    bodies = "".join(
+        f'<body pos="0 0 {half * (2 * i + 1)}"><freejoint/><geom type="box" size="{half} {half} {half}" mass="1"/></body>'
+        for i in range(n)
+    )
+    system = sim.scene(f'<mujoco><option timestep="{H}"/><worldbody><geom type="plane" size="1 1 0.1"/>{bodies}'
+                       "</worldbody></mujoco>", max_contacts=8 * n)
+    assert len(system.geom_pairs) == n + n * (n - 1) // 2
+    xs, infos = _rollout(system, system.initial_state(), 200)
+    assert sim.check_steps(infos) == {"steps": 200, "unconverged_steps": 0, "diverged_steps": 0, "dropped_contact_steps": 0}
+    assert np.max(np.asarray(infos.ncp.iterations)) == 0
+    heights = xs[:, : 7 * n].reshape(-1, n, 7)[:, :, 2]
+    np.testing.assert_allclose(heights, np.broadcast_to(half * (2 * np.arange(n) + 1), heights.shape), rtol=0, atol=1e-9)
+    # the floor carries the whole tower (to 1e-8 of its weight: rounding in the rank-deficient
+    # split of the force over four corners)
+    np.testing.assert_allclose(np.asarray(infos.force[-1])[:4].sum(axis=0), [0, 0, n * G], atol=1e-8 * n * G)
+
+
 def test_pairs_of_one_type_are_evaluated_together_with_the_same_contacts(getkey):
     """Geometry pairs that differ only in their arrays go through one vmapped collision
     (`_pair_groups`); the contacts equal each pair's own, in pair order, at random poses of
