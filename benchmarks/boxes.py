@@ -1,0 +1,141 @@
+"""Box towers: rsmooth's whole step (collision, contact solve, integration) against MuJoCo C's
+``mj_step``, for towers of N boxes.
+
+A tower of N cubes (side 10 cm, 1 kg, friction 0.5) resting on a floor, written in MJCF and
+loaded by both (``sim.scene`` for rsmooth), time step 0.01 s. MuJoCo: its default solver and
+soft contacts, ``mj_step`` on one ``MjData`` reset to the resting tower before each call (C,
+one thread), per step. rsmooth: hard contact, float64, with a contact budget of
+``max_contacts = 8 N`` (the resting tower touches at 4 N corners among ``4 N + 2 N (N - 1)``
+candidates; every pair of boxes is collided, as the pairs MuJoCo's filters keep), timed as
+``jit(vmap(step))`` over a batch of ``BATCH`` copies of the resting tower, per env; also the
+compile time of that program (lower and compile). Medians of ``repeats`` calls after warm-up.
+
+Ratios: ours per env / ``mj_step`` (the issue's goal: <= 2 in a batch of 64), and the growth
+of each with N, the log-log slope of time per step from the smallest to the largest N (the
+goal: ours no steeper than MuJoCo's). Sanity: after ``SETTLE`` steps both towers stand, each
+box's height within a millimetre of ``(i + 1/2) 10 cm`` (MuJoCo's soft contacts sink by a
+fraction of that). MJX has no release for this MuJoCo version here: not measured.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from benchmarks._timing import fmt, machine, median_time  # noqa: E402
+from rsmooth import sim  # noqa: E402
+
+BATCH = 64
+HALF = 0.05
+DT = 0.01
+SETTLE = 50
+SIZES = (2, 4, 8, 16)
+QUICK_SIZES = (2, 4, 8)
+
+
+def tower(n: int) -> str:
+    """The MJCF of a tower of ``n`` cubes resting on a floor, each on the one below."""
+    bodies = "".join(
+        f'<body name="box{i}" pos="0 0 {HALF * (2 * i + 1):.3f}"><freejoint/>'
+        f'<geom type="box" size="{HALF} {HALF} {HALF}" mass="1" friction="0.5"/></body>'
+        for i in range(n)
+    )
+    return (
+        f'<mujoco><option timestep="{DT}"/><worldbody><geom name="floor" type="plane" size="2 2 0.1" friction="0.5"/>'
+        f"{bodies}</worldbody></mujoco>"
+    )
+
+
+def _heights_error(heights: np.ndarray) -> float:
+    return float(np.max(np.abs(heights - HALF * (2 * np.arange(len(heights)) + 1))))
+
+
+def measure(n: int, repeats: int) -> dict:
+    import mujoco
+
+    xml = tower(n)
+    system = sim.scene(xml, max_contacts=8 * n)
+    x0 = system.initial_state()
+    xs = jnp.tile(x0, (BATCH, 1))
+    us = jnp.zeros((BATCH, system.nu))
+    step_batch = jax.jit(jax.vmap(lambda x, u: system.step(x, u)))
+    start = time.perf_counter()
+    compiled = step_batch.lower(xs, us).compile()
+    compile_s = time.perf_counter() - start
+    ours = median_time(compiled, xs, us, repeats=repeats) / BATCH
+    rollout = jax.jit(lambda x: system.rollout(x, jnp.zeros((SETTLE, system.nu))))
+    states, infos = rollout(x0)
+    counts = sim.check_steps(infos, what=f"the tower of {n} boxes")
+    ours_error = _heights_error(np.asarray(states[-1, : 7 * n]).reshape(n, 7)[:, 2])
+
+    model = mujoco.MjModel.from_xml_string(xml)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    state0 = np.empty(mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_FULLPHYSICS))
+    mujoco.mj_getState(model, data, state0, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+
+    def one_step():
+        mujoco.mj_setState(model, data, state0, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+        mujoco.mj_step(model, data)
+
+    reference = median_time(one_step, repeats=max(repeats, 200))
+    mujoco.mj_setState(model, data, state0, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+    for _ in range(SETTLE):
+        mujoco.mj_step(model, data)
+    mujoco_error = _heights_error(np.asarray(data.qpos).reshape(n, 7)[:, 2])
+    return {
+        "candidates": system.num_contacts,
+        "pairs": len(system.geom_pairs),
+        "max_contacts": system.max_contacts,
+        "ours_step_batch": ours,
+        "ours_compile_s": compile_s,
+        "mj_step": reference,
+        "ratio": ours / reference,
+        "ours_height_error": ours_error,
+        "mujoco_height_error": mujoco_error,
+        "ours_unconverged_steps": counts["unconverged_steps"],
+        "ours_dropped_contact_steps": counts["dropped_contact_steps"],
+    }
+
+
+def _slope(sizes, times) -> float:
+    return math.log(times[-1] / times[0]) / math.log(sizes[-1] / sizes[0])
+
+
+def main(repeats: int = 30, quick: bool = False) -> dict:
+    sizes = QUICK_SIZES if quick else SIZES
+    repeats = min(repeats, 5) if quick else max(3, repeats // 3)
+    print(f"machine: {machine()}")
+    print(
+        f"towers of N cubes ({2 * HALF} m, 1 kg, mu 0.5) on a floor, dt = {DT} s; ours: float64, "
+        f"jit(vmap(step)) over {BATCH}, per env, max_contacts = 8 N; MuJoCo: mj_step, one thread; "
+        f"median of {repeats} calls\n"
+    )
+    cases = {}
+    header = f"{'N':>3} {'pairs':>6} {'cand.':>6} {'ours/env':>10} {'mj_step':>10} {'ratio':>8} {'compile':>9} {'height err ours / mj':>22}"
+    print(header)
+    for n in sizes:
+        case = measure(n, repeats)
+        cases[str(n)] = case
+        print(
+            f"{n:>3} {case['pairs']:>6} {case['candidates']:>6} {fmt(case['ours_step_batch']):>10} {fmt(case['mj_step']):>10} "
+            f"{case['ratio']:>8.1f} {case['ours_compile_s']:>8.1f}s "
+            f"{case['ours_height_error'] * 1e3:>10.3f} / {case['mujoco_height_error'] * 1e3:.3f} mm",
+            flush=True,
+        )
+    ours = [cases[str(n)]["ours_step_batch"] for n in sizes]
+    reference = [cases[str(n)]["mj_step"] for n in sizes]
+    growth = {"ours": _slope(sizes, ours), "mj_step": _slope(sizes, reference)}
+    print(
+        f"\ngrowth with N (log-log slope, N = {sizes[0]} to {sizes[-1]}): ours {growth['ours']:.2f}, "
+        f"mj_step {growth['mj_step']:.2f} (goal: ours <= mj_step's)"
+    )
+    print("goal: ours per env / mj_step <= 2 in a batch of 64 (ratio column)")
+    return {"batch": BATCH, "sizes": list(sizes), "cases": cases, "growth": growth}
