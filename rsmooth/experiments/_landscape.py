@@ -7,7 +7,11 @@ in seconds and runs in milliseconds). :func:`value_and_derivative` is one jitted
 estimator evaluates its value, the first-order one its value and derivative (the estimator's
 ``value_and_jacobian`` option) and the landscape both, all under the same two vmaps (repeats,
 samples) with batches of the same shape: they share one compiled program, for every value of
-the parameter (a stiffness).
+the parameter (a stiffness). That program is traced without rsmooth's traced checks
+(:func:`rsmooth._checks.without_traced_checks`): a check is a host callback, and JAX's
+persistent compilation cache does not keep a program with one, so every run would compile the
+rollout again. The estimators check their samples, and :func:`evaluate_in_batches` its
+values, for NaN and inf.
 """
 
 from __future__ import annotations
@@ -18,21 +22,28 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rsmooth import _checks
+
 
 def value_and_derivative(objective: Callable) -> Callable:
     """``jit((parameter, x) -> (objective(parameter, x), d objective / d x))`` for a scalar
-    ``x``, by one forward-mode pass (the derivative has the shape of the value)."""
+    ``x``, by one forward-mode pass (the derivative has the shape of the value), traced
+    without the traced checks (see the module docstring)."""
 
     def both(parameter, x):
         return jax.jvp(lambda y: objective(parameter, y), (x,), (jnp.ones_like(x),))
 
-    return jax.jit(both)
+    return jax.jit(_checks.without_traced_checks()(both))
 
 
 def evaluate_in_batches(compiled: Callable, parameter, points: np.ndarray, batch_shape: tuple[int, int]):
     """Values and derivatives of ``compiled(parameter, .)`` at `points` (1-D), evaluated in
     batches of ``batch_shape`` (a vmap of a vmap, as the estimators run it under a vmap over
-    repeats: the same compiled program). The last batch is padded with its last point."""
+    repeats: the same compiled program). The last batch is padded with its last point.
+
+    Raises:
+      FloatingPointError: a value or derivative is NaN or inf.
+    """
     size = int(np.prod(batch_shape))
     points = np.asarray(points, dtype=np.float64)
     count = points.shape[0]
@@ -42,6 +53,7 @@ def evaluate_in_batches(compiled: Callable, parameter, points: np.ndarray, batch
     for start in range(0, padded.shape[0], size):
         chunk = jnp.asarray(padded[start : start + size]).reshape(batch_shape)
         value, derivative = batched(chunk)
+        _checks.check_outputs_on_host((value, derivative), "the landscape's rollouts")
         values.append(np.asarray(value).reshape((size,) + value.shape[2:]))
         derivatives.append(np.asarray(derivative).reshape((size,) + derivative.shape[2:]))
     return np.concatenate(values)[:count], np.concatenate(derivatives)[:count]

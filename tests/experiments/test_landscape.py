@@ -5,11 +5,12 @@ import json
 import math
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from jax.scipy.stats import norm
 
-from rsmooth.experiments import landscape_chaos, landscape_continuity, landscape_stiffness
+from rsmooth.experiments import _landscape, landscape_chaos, landscape_continuity, landscape_stiffness
 
 
 @pytest.mark.slow
@@ -88,6 +89,24 @@ def test_continuity_half_plane_is_lipschitz_the_edge_jumps_and_smoothing_bounds_
     far = np.abs(tilts - 45) > 2.5 * 6
     assert np.max(np.abs(np.asarray(smoothed["smoothed"])[far] - final_x[far])) < 0.02
     assert (tmp_path / "continuity.png").stat().st_size > 10_000
+
+
+def test_the_rollout_program_has_no_host_callback_and_its_values_are_checked_on_the_host():
+    """A host callback (a traced check) keeps JAX's persistent compilation cache from storing a
+    program: the shared rollout program leaves them out, and a NaN is caught on the host."""
+    config = landscape_stiffness.Config(steps=5, lead=0.01)
+    system = landscape_stiffness.wall_system(config)
+
+    def objective(k, x):
+        return landscape_stiffness.final_velocity(system, config, k, x)
+
+    assert "callback" in jax.jit(objective).lower(1e3, 0.0).as_text()  # the rollout's own checks
+    assert "callback" not in _landscape.value_and_derivative(objective).lower(1e3, 0.0).as_text()
+    root = _landscape.value_and_derivative(lambda _, x: jnp.sqrt(x))
+    values, derivatives = _landscape.evaluate_in_batches(root, 0.0, np.array([1.0, 4.0, 9.0]), (1, 2))
+    assert values == pytest.approx([1.0, 2.0, 3.0]) and derivatives == pytest.approx([0.5, 0.25, 1 / 6])
+    with pytest.raises(FloatingPointError, match="landscape"):
+        _landscape.evaluate_in_batches(root, 0.0, np.array([1.0, -1.0]), (1, 2))
 
 
 def test_configs_reject_inconsistent_options():
