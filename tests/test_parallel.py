@@ -262,7 +262,10 @@ _FOUR_DEVICES = textwrap.dedent(
         lambda k, u: rsmooth.first_order(pushed, k, u, sigma=1.0, num_samples=6, **spread)
     )(jax.random.key(0), push)
     spread, alone = run(devices="all"), run(sample_chunk=1)
-    same(spread, alone)  # the same samples, each solved alone: equal to rounding
+    # the same samples, each solved alone: equal to within the contact solve's accuracy (1e-10 in
+    # impulse residual; four corners make the cube's problem rank-deficient, so the two
+    # compiled layouts' rounding moves the sticking solution within it)
+    same(spread, alone, tol=1e-8)
     assert float(jnp.max(jnp.abs(alone.grad))) > 1e-5  # a non-trivial estimate
     # vmapped on one device, a batch's solver loops run until its slowest sample converges:
     # the estimate moves within the solver's tolerance, not more
