@@ -1,6 +1,6 @@
 """`python -m benchmarks NAME [--repeats N] [--quick] [--solo12-model FILE] [--json DIR]`.
 
-NAME is an area (core, render, sim, boxes, control, startup, scale, schedules, alpha-rules), `all` (each area in its own process, one after
+NAME is an area (core, render, sim, boxes, throughput, control, startup, scale, schedules, alpha-rules), `all` (each area in its own process, one after
 the other), `render-results` (benchmarks/RESULTS.md from the JSON records of
 benchmarks/results/) or `experiments` (the experiments' metrics.json files into one record).
 With --json DIR, each area also writes DIR/AREA.json (benchmarks._record; alpha-rules: DIR/alpha_rules.json).
@@ -14,11 +14,11 @@ import subprocess
 import sys
 import time
 
-NAMES = ("core", "render", "sim", "boxes", "control", "startup", "scale", "schedules", "alpha-rules")
+NAMES = ("core", "render", "sim", "boxes", "throughput", "control", "startup", "scale", "schedules", "alpha-rules")
 # A control iteration takes up to seconds, a startup run tens of seconds: fewer repeats there;
 # scale starts a process per device count and times estimates of up to 256 rollouts; schedules
 # runs experiments (success rates, no timing repeats), and so does alpha-rules.
-DEFAULT_REPEATS = {"control": 5, "startup": 3, "scale": 5, "schedules": 1, "alpha-rules": 1}
+DEFAULT_REPEATS = {"throughput": 10, "control": 5, "startup": 3, "scale": 5, "schedules": 1, "alpha-rules": 1}
 
 
 def _transform(name: str):
@@ -62,7 +62,7 @@ def run_all(args) -> int:
         command = [sys.executable, "-m", "benchmarks", name]
         if args.repeats is not None:
             command += ["--repeats", str(args.repeats)]
-        if args.quick and name in ("sim", "boxes", "control", "startup", "scale", "schedules", "alpha-rules"):
+        if args.quick and name in ("sim", "boxes", "throughput", "control", "startup", "scale", "schedules", "alpha-rules"):
             command.append("--quick")
         if args.solo12_model:
             command += ["--solo12-model", args.solo12_model]
@@ -87,7 +87,7 @@ def main():
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("name", choices=NAMES + ("all", "render-results", "experiments"))
     parser.add_argument("--repeats", type=int, default=None, help="timed calls per measurement (median); default 30, control 5")
-    parser.add_argument("--quick", action="store_true", help="a reduced size (the benchmarks that have one: sim, boxes, control, startup, scale, schedules, alpha-rules)")
+    parser.add_argument("--quick", action="store_true", help="a reduced size (the benchmarks that have one: sim, boxes, throughput, control, startup, scale, schedules, alpha-rules)")
     parser.add_argument(
         "--solo12-model", metavar="FILE",
         help="sim, control: a Solo-12 model file written by rsmooth.sim.save_model, used instead of loading the URDF "

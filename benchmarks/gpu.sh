@@ -18,6 +18,9 @@
 #       shutil.copy(source / name, target / name)
 #   EOF
 #   pip download --no-deps --only-binary=:all: --python-version 3.12 -d .gpu/whl trimesh  # the renderer's primitives
+#   # MJX for the throughput rows: a mujoco and mujoco-mjx pair of one version (the machine has JAX, etils, scipy)
+#   pip download --no-deps --only-binary=:all: --python-version 3.12 --platform manylinux_2_28_x86_64 -d .gpu/whl \
+#       mujoco==3.17.0 mujoco-mjx==3.17.0
 # then run `bash benchmarks/gpu.sh` on the GPU machine with .gpu beside it. Each phase has
 # its own time limit, so that one that hangs or fails leaves the others' numbers; the logs go
 # to $OUT (default .gpu/out). The limits add up to over 20 min: where one call may run 10,
@@ -32,8 +35,8 @@ JSON_DIR=${JSON_DIR:-benchmarks/results/gpu}
 mkdir -p "$OUT" "$JSON_DIR"
 export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD:$PWD/.gpu:$PWD/.gpu/site" RSMOOTH_BENCHMARK_SOLO12_MODEL="$PWD/.gpu/solo12.npz"
 PY=${PYTHON:-python3}
-PHASES=${PHASES:-"info render control control-batched tests core sim pose"}
-# other phases, by name only: pose-samples control-default reconstruct-seeds
+PHASES=${PHASES:-"info throughput render control control-batched tests core sim pose"}
+# other phases, by name only: throughput-float32 pose-samples control-default reconstruct-seeds
 if compgen -G ".gpu/whl/*.whl" > /dev/null; then
   $PY -m pip install -q --no-index --no-deps --no-compile --upgrade --target .gpu/site .gpu/whl/*.whl
 fi
@@ -52,6 +55,9 @@ phase() {  # phase NAME LIMIT_SECONDS COMMAND...
 
 phase info 30 bash -c "nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv; \
   $PY -c 'import jax, jaxlib, equinox, optax; print(\"jax\", jax.__version__, \"equinox\", equinox.__version__, \"optax\", optax.__version__, jax.devices())'"
+# Solo-12 steps per second at 1k, 4k and 16k environments, rsmooth against MJX (float64, then float32)
+phase throughput 200 $PY -m benchmarks.throughput --json "$JSON_DIR"
+phase throughput-float32 150 $PY -m benchmarks.throughput --float32 --json "$JSON_DIR"
 phase render 300 $PY -m benchmarks render --repeats 10 --json "$JSON_DIR"
 # R-DDP's samples of all nodes at once (--rddp-node-batch none: on the CPU one node at a time is
 # faster); then all ten line-search step sizes at once too (DDP.line_search_batch). The first

@@ -126,6 +126,25 @@ def test_startup_goals_and_compile_share(records):
     assert "| 75% |" in row  # 15 s of 20 s compiling
 
 
+def test_throughput_ratios_come_from_the_times(records):
+    rows = [{"batch": 1000, "ours": {"step_s": 2e-3, "step_jac_s": 5e-3, "unconverged": 0}, "mjx": {"step_s": 8e-3},
+             "ours_over_mjx": 999.0, "jacobian_over_step": 999.0},
+            {"batch": 4000, "ours": {"step_s": 4e-3, "step_jac_s": 16e-3, "unconverged": 2}, "mjx": None}]
+    records["gpu"]["throughput"] = _record_of("throughput", {"dtype": "float64", "rows": rows, "notes": ["MJX unavailable: x"]},
+                                              "python -m benchmarks.throughput --json DIR")
+    page = results_page.render(records)
+    (small,) = _lines_with(page, "| 1,000 |")
+    assert "| 500,000 |" in small and "| 125,000 |" in small  # steps per second from the times
+    assert "| 2.50 | ≤ 3: met |" in small and "| 4.00 | ≥ 1: met |" in small  # not the recorded 999
+    (large,) = _lines_with(page, "| 4,000 |")
+    assert "| 4.00 | ≤ 3: not met |" in large and "| 2 |" in large and "not measured" in large
+    (summary,) = _lines_with(page, "| throughput: Solo-12 steps per second, rsmooth / MJX")
+    assert summary.endswith("| not measured | not measured |")  # the largest batch has no MJX time
+    (jacobians,) = _lines_with(page, "| throughput: `step_and_jacobians` / step")
+    assert jacobians.endswith("| not measured | 4.00 (not met) |")
+    assert "- MJX unavailable: x" in page
+
+
 def test_schedules_table(records):
     runs = {"decrease-only": {"command": "rsmooth control solo-lift --method rddp", "success_pct": 60.0, "wall_s": 1.0},
             "reheating": {"command": "rsmooth control solo-lift --method rddp-reheating", "success_pct": None, "wall_s": 1.0,
