@@ -37,8 +37,9 @@ over the run, J: energy injected), contacts_active_mean, contacts_active_max (co
 normal impulse, per step), joint_limits (limit constraints enforced), max_limit_violation
 (deepest excursion beyond a joint limit, rad or m), limits_active_max (limits holding a joint,
 per step), unconverged_steps, diverged_steps, max_contacts (the contact budget; null: none),
-dropped_contact_steps (steps where the budget left out a closing contact), wall_time_s
-(compile included)."""
+dropped_contact_steps (steps where the budget left out a closing contact), max_pairs (the
+broad phase's pairs per group; null: all), skipped_pair_steps (steps where it left out a pair
+within its margin), wall_time_s (compile included)."""
 
 DEMO_SCENE = """<mujoco>
   <option timestep="0.01"/>
@@ -82,6 +83,10 @@ class Config:
         None, "Solve at most this many contacts between shapes per step, the closest candidates (a robot's meshes "
         "give hundreds of candidates, of which a few touch); a step that leaves out a closing contact is reported. "
         "Default: all.", min=1)
+    max_pairs: int | None = _protocol.option(
+        None, "Broad phase: collide at most this many pairs of each group of alike geom pairs per step, those whose "
+        "bounding spheres are closest (exact while no more are within their margin; a step that leaves out one is "
+        "reported). Default: all.", min=1)
     max_hull_vertices: int | None = _protocol.option(
         None, "Bound on the vertices of each mesh's convex hull, the shape collided (MuJoCo's maxhullvert; 16 to 32 "
         "make a robot's meshes tractable). Default: the whole hull.", min=4)
@@ -227,6 +232,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     system = sim.scene(
         loaded, time_step=config.time_step, floor=config.floor, self_collision=config.self_collision,
         joint_limits=config.joint_limits, max_contacts=config.max_contacts,
+        max_pairs=config.max_pairs,
     )
     limits = len(system.joint_limits)  # the last candidate contacts (RigidBodySystem.contacts)
     # the floor scene() adds is the last pair's half-space (drawn where it is)
@@ -274,6 +280,8 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         "diverged_steps": counts["diverged_steps"],
         "max_contacts": config.max_contacts,
         "dropped_contact_steps": counts["dropped_contact_steps"],
+        "max_pairs": config.max_pairs,
+        "skipped_pair_steps": counts["skipped_pair_steps"],
     }
     times = np.arange(config.steps + 1) * dt
     fig, (ax_energy, ax_contacts) = viz.plt.subplots(1, 2, figsize=(11, 3.6))

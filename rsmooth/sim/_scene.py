@@ -244,6 +244,7 @@ def scene(
     self_collision: bool = True,
     joint_limits: bool = True,
     max_contacts: int | None = None,
+    max_pairs: int | None = None,
 ) -> RigidBodySystem:
     """A MuJoCo model (MJCF or URDF) as a system with hard frictional contact.
 
@@ -301,6 +302,9 @@ def scene(
         max_contacts: solve at most this many contacts between shapes per step, the closest
             candidates (:attr:`~rsmooth.sim.RigidBodySystem.max_contacts`): a robot's meshes
             give hundreds of candidates of which a few touch; ``None``: all.
+        max_pairs: collide at most this many pairs of each pair group per step, those whose
+            bounding spheres are closest (:attr:`~rsmooth.sim.RigidBodySystem.max_pairs`,
+            exact while no more are within the margin); ``None``: all.
 
     Returns:
         The system; its frames are the model's (bodies first, by MuJoCo body id), its geometry
@@ -418,5 +422,5 @@ def scene(
         initial_configuration=initial_configuration,
         joint_damping=loaded.damping,
     )
-    system = system.with_contact_budget(max_contacts)
+    system = system.with_contact_budget(max_contacts, max_pairs)
     return system.with_joint_limits() if joint_limits else system

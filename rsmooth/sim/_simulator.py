@@ -79,7 +79,7 @@ from rsmooth._results import RESULTS
 from rsmooth.sim import _derivatives, _dynamics
 from rsmooth.sim import _spatial as spatial
 from rsmooth.sim._contact import contact_frame, corrected_free_velocity
-from rsmooth.sim._collision import collide, manifold_size
+from rsmooth.sim._collision import Contacts, collide, manifold_size
 from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, HalfSpace, Sphere
 from rsmooth.sim._laws import LogBarrier, SpringDamper
 from rsmooth.sim._model import Model
@@ -126,6 +126,9 @@ class StepInfo(eqx.Module):
             holds the state from such a step on; treat the rest of that trajectory as invalid.
         dropped_contacts: how many candidates :attr:`RigidBodySystem.max_contacts` left out
             of the solve although the step closes their gap (int, ``()``); 0 without a budget.
+        skipped_pairs: how many geometry pairs :attr:`RigidBodySystem.max_pairs` left out of
+            the collision although their bounding volumes were within their margin (int,
+            ``()``; :meth:`RigidBodySystem.skipped_pairs`); 0 without the limit.
     """
 
     distance: Array
@@ -136,6 +139,7 @@ class StepInfo(eqx.Module):
     force: Array
     mode: Array
     dropped_contacts: Array
+    skipped_pairs: Array
 
 
 class _VelocityUpdate(NamedTuple):
@@ -346,6 +350,16 @@ class RigidBodySystem(eqx.Module):
             it holds. The selection is piecewise constant in the state: derivatives are those
             of the selected problem. ``None`` (default): every candidate. See
             :meth:`with_contact_budget`.
+        max_pairs: a broad phase (static): in each group of geometry pairs that one
+            vectorized collision evaluates (pairs of the same shape types and sizes), the
+            narrow phase runs on the ``max_pairs`` pairs whose bounding spheres are closest
+            (against a half-space: the sphere's height above its plane); the other pairs'
+            manifold entries are inactive. A pair whose bounding gap exceeds its margin cannot
+            touch, so this is exact while at most ``max_pairs`` pairs of a group are within
+            their margin; beyond that the surplus is counted in
+            :attr:`StepInfo.skipped_pairs` and reported by :func:`check_steps`. The narrow
+            phase (a mesh pair's separating-axis test) is most of a scene's collision cost.
+            ``None`` (default): every pair. See :meth:`with_contact_budget`.
         derivative: how ``step`` is differentiated with hard contact (static).
             ``"implicit"`` (default): the implicit function theorem on the step's own
             equations, momentum balance ``M (v+ - v) + h (b - tau) - Jᵀ lambda = 0`` and the
@@ -386,6 +400,7 @@ class RigidBodySystem(eqx.Module):
     initial_configuration: Array | None = None
     joint_limits: tuple[tuple[int, int], ...] = eqx.field(static=True, default=())
     max_contacts: int | None = eqx.field(static=True, default=None)
+    max_pairs: int | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         num_spheres, num_planes = len(self.sphere_frames), self.plane_normals.shape[0]
@@ -437,6 +452,10 @@ class RigidBodySystem(eqx.Module):
                 raise ValueError(f"max_contacts must be a positive integer or None, got {self.max_contacts!r}")
             if not isinstance(self.contact, str):
                 raise ValueError("max_contacts budgets the hard-contact NCP: use contact='hard'")
+        if self.max_pairs is not None and (
+            isinstance(self.max_pairs, bool) or not isinstance(self.max_pairs, (int, np.integer)) or self.max_pairs < 1
+        ):
+            raise ValueError(f"max_pairs must be a positive integer or None, got {self.max_pairs!r}")
         if self.joint_limits and not isinstance(self.contact, str):
             raise ValueError("joint_limits are enforced by the hard-contact NCP: use contact='hard'")
         if not isinstance(self.geom_pairs, tuple) or not all(isinstance(p, GeomPair) for p in self.geom_pairs):
@@ -508,15 +527,16 @@ class RigidBodySystem(eqx.Module):
             limits.extend((dof, side) for side in sides)
         return dataclasses.replace(self, joint_limits=tuple(limits))
 
-    def with_contact_budget(self, max_contacts: int | None) -> "RigidBodySystem":
+    def with_contact_budget(self, max_contacts: int | None, max_pairs: int | None = None) -> "RigidBodySystem":
         """This system with at most ``max_contacts`` contacts between shapes in each step's
-        solve (:attr:`max_contacts`; ``None`` removes the budget).
+        solve (:attr:`max_contacts`) and at most ``max_pairs`` pairs of each pair group
+        collided (:attr:`max_pairs`); ``None`` removes a limit.
 
         Raises:
-            ValueError: unless ``max_contacts`` is a positive integer or ``None``, or with a
-                compliant contact law.
+            ValueError: unless each is a positive integer or ``None``, or a contact budget
+                with a compliant contact law.
         """
-        return dataclasses.replace(self, max_contacts=max_contacts)
+        return dataclasses.replace(self, max_contacts=max_contacts, max_pairs=max_pairs)
 
     def _contact_selection(self, distance: Array) -> Array | None:
         """Indices ``(K,)`` (ascending) of the candidates the NCP solves under
@@ -761,8 +781,9 @@ class RigidBodySystem(eqx.Module):
         :func:`_pair_groups`) are evaluated by one ``vmap``-ed collision: the traced program
         holds one copy of each pair type's collision code rather than one per pair, which keeps
         the compile time of a scene of many bodies from growing with the number of pairs (a
-        box-box pair is about 3,000 lines of HLO)."""
-        model = self.model
+        box-box pair is about 3,000 lines of HLO). Under :attr:`max_pairs` the collision runs
+        on a group's ``max_pairs`` pairs of smallest bounding gap (:meth:`_group_gaps`); the
+        other pairs' entries are inactive."""
         sizes = [pair.size for pair in self.geom_pairs]
         offsets = np.cumsum([0] + sizes)
         parts, positions = [], []
@@ -772,30 +793,71 @@ class RigidBodySystem(eqx.Module):
             if len(pairs) == 1:
                 parts.append(self._geom_pair_contacts(kinematics, pairs[0]))
                 continue
-            first, size = pairs[0], pairs[0].size
-            shape1, shape2, placement1, placement2 = (
-                jax.tree.map(lambda *leaves: jnp.stack(leaves), *items)
-                for items in zip(*[(p.shape1, p.shape2, p.placement1, p.placement2) for p in pairs])
-            )
-
-            def poses(frames, placements):
-                if frames[0] is None:
-                    return placements
-                ids = np.asarray([model.frame_id(frame) for frame in frames], dtype=np.int64)
-                joints = np.asarray(model.frame_parents)[ids]
-                frame_pose = _compose_batch(
-                    kinematics.rotation[joints], kinematics.translation[joints],
-                    model.frame_placement_rotation[ids], model.frame_placement_translation[ids],
+            first = pairs[0]
+            shape1, pose1, shape2, pose2 = self._group_shapes(kinematics, pairs)
+            collide_all = jax.vmap(lambda a, pa, b, pb: collide(a, pa, b, pb, margin=first.margin))
+            if self.max_pairs is None or len(pairs) <= self.max_pairs:
+                manifold = collide_all(shape1, pose1, shape2, pose2)
+            else:
+                gaps = lax.stop_gradient(_bounding_gaps(shape1, pose1, shape2, pose2))
+                _, chosen = lax.top_k(-gaps, self.max_pairs)
+                take = lambda tree: jax.tree.map(lambda leaf: leaf[chosen], tree)  # noqa: E731
+                evaluated = collide_all(take(shape1), take(pose1), take(shape2), take(pose2))
+                # the pairs not evaluated: inactive entries with finite values (normal +z)
+                empty = Contacts(
+                    distance=jnp.full(evaluated.distance.shape[1:], _INACTIVE_DISTANCE, evaluated.distance.dtype),
+                    normal=jnp.zeros_like(evaluated.normal[0]).at[:, 2].set(1.0),
+                    point1=jnp.zeros_like(evaluated.point1[0]), point2=jnp.zeros_like(evaluated.point2[0]),
+                    active=jnp.zeros_like(evaluated.active[0]),
                 )
-                return _compose_batch(*frame_pose, *placements)
-
-            pose1 = poses([pair.frame1 for pair in pairs], placement1)
-            pose2 = poses([pair.frame2 for pair in pairs], placement2)
-            manifold = jax.vmap(lambda a, pa, b, pb: collide(a, pa, b, pb, margin=first.margin))(shape1, pose1, shape2, pose2)
-            parts.append(self._manifold_contacts(kinematics, manifold, [p.frame1 for p in pairs], [p.frame2 for p in pairs], size))
+                manifold = jax.tree.map(
+                    lambda full, part: jnp.broadcast_to(full, (len(pairs),) + full.shape).at[chosen].set(part), empty, evaluated
+                )
+            parts.append(self._manifold_contacts(kinematics, manifold, [p.frame1 for p in pairs], [p.frame2 for p in pairs], first.size))
         order = np.argsort(np.concatenate(positions))  # group-major -> pair order
         distance, rotations, jacobians = (jnp.concatenate(part)[order] for part in zip(*parts))
         return distance, rotations, jacobians
+
+    def _group_shapes(self, kinematics, pairs: list[GeomPair]) -> tuple:
+        """``(shape1, pose1, shape2, pose2)`` of a group of pairs (:func:`_pair_groups`), the
+        shapes' arrays and world poses stacked along a leading pair axis."""
+        model = self.model
+        shape1, shape2, placement1, placement2 = (
+            jax.tree.map(lambda *leaves: jnp.stack(leaves), *items)
+            for items in zip(*[(p.shape1, p.shape2, p.placement1, p.placement2) for p in pairs])
+        )
+
+        def poses(frames, placements):
+            if frames[0] is None:
+                return placements
+            ids = np.asarray([model.frame_id(frame) for frame in frames], dtype=np.int64)
+            joints = np.asarray(model.frame_parents)[ids]
+            frame_pose = _compose_batch(
+                kinematics.rotation[joints], kinematics.translation[joints],
+                model.frame_placement_rotation[ids], model.frame_placement_translation[ids],
+            )
+            return _compose_batch(*frame_pose, *placements)
+
+        pose1 = poses([pair.frame1 for pair in pairs], placement1)
+        pose2 = poses([pair.frame2 for pair in pairs], placement2)
+        return shape1, pose1, shape2, pose2
+
+    def skipped_pairs(self, q: ArrayLike) -> Array:
+        """How many geometry pairs :attr:`max_pairs` leaves out although their bounding
+        volumes are within the pair's margin (they may touch, and are not collided), summed
+        over the pair groups, at configuration ``q`` (int, ``()``; 0 without the limit)."""
+        count = jnp.zeros((), jnp.int32)
+        if self.max_pairs is None:
+            return count
+        kinematics = _dynamics._kinematics(self.model, jnp.asarray(q))
+        for group in _pair_groups(self.geom_pairs):
+            if len(group) <= self.max_pairs:
+                continue
+            pairs = [self.geom_pairs[i] for i in group]
+            gaps = lax.stop_gradient(_bounding_gaps(*self._group_shapes(kinematics, pairs)))
+            near = jnp.sum(gaps <= pairs[0].margin, dtype=jnp.int32)
+            count = count + jnp.maximum(near - self.max_pairs, 0)
+        return count
 
     def _geom_pair_contacts(self, kinematics, pair: GeomPair) -> tuple[Array, Array, Array]:
         """Signed distances ``(k,)``, contact frames ``(k, 3, 3)`` and relative contact
@@ -826,6 +888,10 @@ class RigidBodySystem(eqx.Module):
             velocity = velocity - _dynamics._point_velocity_columns(model, kinematics, joints, manifold.point1.reshape(-1, 3))
         # R^T J, unrolled over the 3-axis as in contacts()
         jacobians = sum(rotations[:, j, :, None] * velocity[:, None, :, j] for j in range(3))  # (n k, 3, nv)
+        # An inactive entry gets no impulse (its 10 m gap does not close in a step): zero rows
+        # keep it out of the Delassus matrix, so that where its witness points lie (a far
+        # pair's, or none for a pair the broad phase skipped) does not change the problem.
+        jacobians = jnp.where(manifold.active.reshape(-1)[:, None, None], jacobians, 0.0)
         return distance, rotations, jacobians
 
     def step_with_info(self, x: ArrayLike, u: ArrayLike, *, warm_start: ArrayLike | None = None) -> tuple[Array, StepInfo]:
@@ -859,7 +925,7 @@ class RigidBodySystem(eqx.Module):
         force, mode = self._contact_diagnostics(impulse, frames, velocity)
         info = StepInfo(
             distance=distance, impulse=impulse, ncp=ncp, torque_clipped=clipped, diverged=diverged, force=force,
-            mode=mode, dropped_contacts=dropped,
+            mode=mode, dropped_contacts=dropped, skipped_pairs=self.skipped_pairs(q),
         )
         return x_next, info
 
@@ -1060,6 +1126,21 @@ class RigidBodySystem(eqx.Module):
 
 
 _compose_batch = jax.vmap(spatial.compose)
+
+
+def _bounding_gaps(shape1, pose1, shape2, pose2) -> Array:
+    """Lower bounds ``(P,)`` on the signed distances of ``P`` pairs of shapes (arrays stacked
+    along a leading axis, one class per side): the gap between their bounding spheres about
+    the shapes' frame origins, or where shape 1 is a half-space, the height of shape 2's
+    bounding sphere above its plane. A pair whose gap exceeds its margin has no contact."""
+    centre = pose2[1] - pose1[1]
+    if isinstance(shape2, HalfSpace):
+        return _bounding_gaps(shape2, pose2, shape1, pose1)
+    radius2 = jnp.broadcast_to(shape2.bounding_radius, centre.shape[:1])
+    if isinstance(shape1, HalfSpace):
+        return jnp.sum(centre * pose1[0][:, :, 2], axis=-1) - radius2
+    radius1 = jnp.broadcast_to(shape1.bounding_radius, centre.shape[:1])
+    return jnp.sqrt(jnp.sum(centre**2, axis=-1)) - radius1 - radius2
 
 
 def _flat_rows(contacts: Array) -> Array:
@@ -1308,8 +1389,9 @@ class SimulationWarning(UserWarning):
 
 
 def check_steps(infos: StepInfo, *, what: str = "the simulation") -> dict[str, int]:
-    """Counts the steps whose contact solve did not succeed, those that diverged and those
-    whose contact budget left out a closing contact, and warns (:class:`SimulationWarning`)
+    """Counts the steps whose contact solve did not succeed, those that diverged, those
+    whose contact budget left out a closing contact and those whose broad phase left out a
+    pair that may touch, and warns (:class:`SimulationWarning`)
     if there is any.
 
     Host-side, on concrete diagnostics (e.g. the ``infos`` of :meth:`RigidBodySystem.rollout`,
@@ -1323,10 +1405,12 @@ def check_steps(infos: StepInfo, *, what: str = "the simulation") -> dict[str, i
         what: the name of the simulation, for the message.
 
     Returns:
-        ``{"steps", "unconverged_steps", "diverged_steps", "dropped_contact_steps"}``:
-        ``unconverged_steps`` counts the contact solves whose result is not
-        ``RESULTS.successful``, ``dropped_contact_steps`` the steps with
-        ``infos.dropped_contacts > 0`` (:attr:`RigidBodySystem.max_contacts` too small).
+        ``{"steps", "unconverged_steps", "diverged_steps", "dropped_contact_steps",
+        "skipped_pair_steps"}``: ``unconverged_steps`` counts the contact solves whose result
+        is not ``RESULTS.successful``, ``dropped_contact_steps`` the steps with
+        ``infos.dropped_contacts > 0`` (:attr:`RigidBodySystem.max_contacts` too small),
+        ``skipped_pair_steps`` those with ``infos.skipped_pairs > 0``
+        (:attr:`RigidBodySystem.max_pairs` too small).
     """
     result = infos.ncp.result
     diverged = np.asarray(infos.diverged)
@@ -1340,7 +1424,16 @@ def check_steps(infos: StepInfo, *, what: str = "the simulation") -> dict[str, i
         "unconverged_steps": int(np.sum(~successful)),
         "diverged_steps": int(np.sum(diverged)),
         "dropped_contact_steps": int(np.sum(np.asarray(infos.dropped_contacts) > 0)),
+        "skipped_pair_steps": int(np.sum(np.asarray(infos.skipped_pairs) > 0)),
     }
+    if counts["skipped_pair_steps"]:
+        warnings.warn(
+            f"{what}: in {counts['skipped_pair_steps']} of {counts['steps']} steps the broad phase (max_pairs) "
+            f"left out geometry pairs within their margin (StepInfo.skipped_pairs, at most "
+            f"{int(np.max(np.asarray(infos.skipped_pairs)))} in a step): raise max_pairs",
+            SimulationWarning,
+            stacklevel=2,
+        )
     if counts["dropped_contact_steps"]:
         warnings.warn(
             f"{what}: in {counts['dropped_contact_steps']} of {counts['steps']} steps the contact budget "

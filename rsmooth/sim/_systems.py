@@ -450,6 +450,7 @@ def bodies(
     solver: NCPSolver = NCPSolver(sticking_guess=True, rank_deficient=True, polish=True, max_iterations=1000),
     baumgarte: float = 0.2,
     max_contacts: int | None = None,
+    max_pairs: int | None = None,
 ) -> RigidBodySystem:
     """Free rigid bodies among half-spaces and fixed obstacles, colliding with all of them and
     with each other (hard contact).
@@ -486,6 +487,10 @@ def bodies(
             (:attr:`~rsmooth.sim.RigidBodySystem.max_contacts`): ``n`` boxes have
             ``2 n (n - 1) + 4 n`` candidates on a floor, of which about ``4 n`` touch when
             they rest; ``None``: all.
+        max_pairs: collide at most this many pairs of each pair group per step, those whose
+            bounding spheres are closest (:attr:`~rsmooth.sim.RigidBodySystem.max_pairs`,
+            exact while no more are within the margin): ``n`` boxes have ``n (n - 1) / 2``
+            box pairs, of which about ``n`` touch in a stack; ``None``: all.
 
     Returns:
         The system; its frames are ``"body0"``, ``"body1"``, ...
@@ -554,7 +559,7 @@ def bodies(
         actuated_dofs=tuple(range(6 * n)),
         input_limit=np.full(6 * n, np.inf),
         initial_configuration=np.concatenate([positions, orientations], axis=1).reshape(-1),
-    ).with_contact_budget(max_contacts)
+    ).with_contact_budget(max_contacts, max_pairs)
 
 
 def geom_pair_system(

@@ -1,6 +1,7 @@
-"""The contact budget (`RigidBodySystem.max_contacts`): a budget that holds every touching
-contact changes nothing (states, impulses, step Jacobians), a budget that leaves out a closing
-contact is counted and reported, and bad budgets are refused by name."""
+"""The contact budget (`RigidBodySystem.max_contacts`) and the broad phase
+(`RigidBodySystem.max_pairs`): a limit that holds every touching contact or every pair within
+its margin changes nothing (states, impulses, step Jacobians), one that leaves some out counts
+and reports them, and bad limits are refused by name."""
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -80,3 +81,49 @@ def test_a_budget_needs_hard_contact():
     compliant = sim.ball(contact=sim.SpringDamper(stiffness=1e4, damping=10.0, friction=0.3))
     with pytest.raises(ValueError, match="max_contacts budgets the hard-contact NCP"):
         compliant.with_contact_budget(1)
+
+
+def _balls(max_pairs=None):
+    """Four balls on a floor: ball 0 rolls into ball 1 (touching), balls 2 and 3 lie apart.
+    Two pair groups: ball-floor (4 pairs, all touching) and ball-ball (6 pairs, one near)."""
+    positions = [[0.0, 0.0, 0.1], [0.2, 0.0, 0.1], [1.0, 0.3, 0.1], [2.0, -0.4, 0.1]]
+    system = sim.bodies([sim.Sphere(0.1)] * 4, [1.0, 0.5, 0.7, 0.3], positions, max_pairs=max_pairs)
+    x = np.array(system.initial_state())
+    v = x[system.model.nq :].reshape(4, 6)
+    v[0, 0], v[2, 1], v[3, 5] = 0.8, -0.2, 3.0
+    return system, jnp.asarray(np.concatenate([x[: system.model.nq], v.reshape(-1)]))
+
+
+def test_a_pair_limit_holding_every_near_pair_changes_nothing():
+    # max_pairs = 4 collides every ball-floor pair and the 4 closest of the 6 ball-ball pairs:
+    # the two left out are more than 0.5 m apart, so they have no contact anyway
+    (full, x0), (limited, _) = _balls(), _balls(max_pairs=4)
+    xs_full, infos_full = _rollout(full, x0, 40)
+    xs, infos = _rollout(limited, x0, 40)
+    assert sim.check_steps(infos)["skipped_pair_steps"] == 0  # no warning: errors in the suite
+    assert float(jnp.max(jnp.abs(xs[-1, 0:3] - xs[0, 0:3]))) > 0.05  # ball 0 moved and pushed ball 1
+    # the same contact problems (a left-out pair's entries, like a far pair's, are inactive
+    # rows of zeros): equal up to the rounding of the two compiled programs
+    np.testing.assert_allclose(np.asarray(xs), np.asarray(xs_full), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(infos.impulse), np.asarray(infos_full.impulse), rtol=0, atol=1e-12)
+    step_jacobians = eqx.filter_jit(lambda s, x_, u_: s.step_and_jacobians(x_, u_))
+    for a, b in zip(step_jacobians(limited, xs[5], jnp.zeros(limited.nu)), step_jacobians(full, xs[5], jnp.zeros(full.nu))):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-10)
+
+
+def test_a_pair_limit_too_small_reports_the_pairs_it_leaves_out():
+    # max_pairs = 1: of the 4 touching ball-floor pairs 3 are not collided (the balls fall
+    # through the floor there); the ball-ball group has one near pair, which it collides
+    system, x0 = _balls(max_pairs=1)
+    assert int(system.skipped_pairs(x0[: system.model.nq])) == 3
+    _, infos = _rollout(system, x0, 3)
+    assert np.all(np.asarray(infos.skipped_pairs) == 3)
+    with pytest.warns(sim.SimulationWarning, match="max_pairs"):
+        counts = sim.check_steps(infos)
+    assert counts["skipped_pair_steps"] == 3
+
+
+@pytest.mark.parametrize("bad", [0, -3, 2.5, True, "8"])
+def test_bad_pair_limits_are_refused_by_name(bad):
+    with pytest.raises(ValueError, match="max_pairs must be a positive integer or None"):
+        _bodies().with_contact_budget(None, bad)
