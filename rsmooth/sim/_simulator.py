@@ -1136,10 +1136,11 @@ def _bounding_gaps(shape1, pose1, shape2, pose2) -> Array:
     centre = pose2[1] - pose1[1]
     if isinstance(shape2, HalfSpace):
         return _bounding_gaps(shape2, pose2, shape1, pose1)
-    radius2 = jnp.broadcast_to(shape2.bounding_radius, centre.shape[:1])
+    radius = jax.vmap(lambda shape: shape.bounding_radius)  # per pair (a stacked shape's own would pool them)
+    radius2 = radius(shape2)
     if isinstance(shape1, HalfSpace):
         return jnp.sum(centre * pose1[0][:, :, 2], axis=-1) - radius2
-    radius1 = jnp.broadcast_to(shape1.bounding_radius, centre.shape[:1])
+    radius1 = radius(shape1)
     return jnp.sqrt(jnp.sum(centre**2, axis=-1)) - radius1 - radius2
 
 

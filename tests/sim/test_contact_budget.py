@@ -4,6 +4,7 @@ its margin changes nothing (states, impulses, step Jacobians), one that leaves s
 and reports them, and bad limits are refused by name."""
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -127,3 +128,26 @@ def test_a_pair_limit_too_small_reports_the_pairs_it_leaves_out():
 def test_bad_pair_limits_are_refused_by_name(bad):
     with pytest.raises(ValueError, match="max_pairs must be a positive integer or None"):
         _bodies().with_contact_budget(None, bad)
+
+
+def test_bounding_gaps_bound_each_pairs_distance():
+    # a group of box pairs of different sizes at random poses: each pair's gap is its own
+    # bounding spheres' (not a radius pooled over the group) and never above its distance
+    from rsmooth.sim import _spatial, _simulator
+
+    rng = np.random.default_rng(3)
+    count = 12
+    boxes = [sim.Box(rng.uniform(0.02, 0.3, 3)) for _ in range(2 * count)]
+    rotations = np.stack([np.asarray(_spatial.exp3(jnp.asarray(rng.normal(size=3)))) for _ in range(2 * count)])
+    translations = rng.uniform(-0.6, 0.6, (2 * count, 3))
+    stack = lambda items: jax.tree.map(lambda *leaves: jnp.stack(leaves), *items)  # noqa: E731
+    shape1, shape2 = stack(boxes[:count]), stack(boxes[count:])
+    pose1 = (jnp.asarray(rotations[:count]), jnp.asarray(translations[:count]))
+    pose2 = (jnp.asarray(rotations[count:]), jnp.asarray(translations[count:]))
+    gaps = np.asarray(_simulator._bounding_gaps(shape1, pose1, shape2, pose2))
+    for k in range(count):
+        expected = (np.linalg.norm(translations[count + k] - translations[k])
+                    - np.linalg.norm(boxes[k].half_extents) - np.linalg.norm(boxes[count + k].half_extents))
+        np.testing.assert_allclose(gaps[k], expected, rtol=1e-12)
+        distance = sim.collide(boxes[k], (pose1[0][k], pose1[1][k]), boxes[count + k], (pose2[0][k], pose2[1][k])).distance[0]
+        assert gaps[k] <= float(distance) + 1e-12
