@@ -12,11 +12,18 @@ programs that run as fast either way (``python -m benchmarks startup``):
 ``--xla_cpu_use_fusion_emitters=false`` (:data:`EMITTERS_FLAG`) halves what a first run of a
 command waits for.
 
+Its concurrency-optimized scheduler (on by default) can leave a program waiting forever on
+its own thread pool: ``jit(vmap(step_and_jacobians))`` of 64 Solo-12 states, called
+repeatedly, stopped with every worker thread idle in most runs, and so did a batched step of a
+16-box tower on its first call; with ``--xla_cpu_enable_concurrency_optimized_scheduler=false``
+(:data:`SCHEDULER_FLAG`) the same programs ran to the end (``--xla_cpu_multi_thread_eigen=false``
+and synchronous dispatch did not help).
+
 XLA aborts the process on a flag it does not know, so a flag is added only for the jaxlib
 versions known to have it (:data:`KNOWN_JAXLIB`), only when the user has not set it, and never
 by merely importing rsmooth (a library must not change its host's XLA configuration): the
-console entry point calls :func:`apply_cpu_defaults` before JAX creates its backend, with the
-YNNPACK opt-out for the ``rsmooth render`` commands only (the simulator's batched step
+console entry point calls :func:`apply_cpu_defaults` before JAX creates its backend: the loop
+emitters and the plain scheduler always, the YNNPACK opt-out for the ``rsmooth render`` commands only (the simulator's batched step
 Jacobian is slower with it). ``RSMOOTH_XLA_DEFAULTS=0`` leaves ``XLA_FLAGS`` alone. A script
 or notebook that imports rsmooth sets the same flags itself, in ``XLA_FLAGS`` before JAX
 starts.
@@ -38,6 +45,7 @@ import jax.numpy as jnp
 
 YNN_FLAG = "--xla_cpu_experimental_ynn_fusion_type"
 EMITTERS_FLAG = "--xla_cpu_use_fusion_emitters"
+SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler"
 # jaxlib versions on which the flags exist and help (see the module docstring)
 KNOWN_JAXLIB = ("0.10.",)
 
@@ -45,8 +53,8 @@ KNOWN_JAXLIB = ("0.10.",)
 def apply_cpu_defaults(environ: dict | None = None, *, render: bool = False) -> bool:
     """Add rsmooth's CPU flags to ``XLA_FLAGS`` where known to be safe; True if any was added.
 
-    The loop emitters (:data:`EMITTERS_FLAG`) always; the YNNPACK opt-out (:data:`YNN_FLAG`)
-    with ``render``. A flag the user has set, in any value, is kept. Call it before the first
+    The loop emitters (:data:`EMITTERS_FLAG`) and the plain scheduler (:data:`SCHEDULER_FLAG`)
+    always; the YNNPACK opt-out (:data:`YNN_FLAG`) with ``render``. A flag the user has set, in any value, is kept. Call it before the first
     JAX computation (XLA reads its flags when the backend starts).
     """
     environ = os.environ if environ is None else environ
@@ -59,7 +67,7 @@ def apply_cpu_defaults(environ: dict | None = None, *, render: bool = False) -> 
     if not version.startswith(KNOWN_JAXLIB):
         return False
     flags = environ.get("XLA_FLAGS", "")
-    wanted = [(EMITTERS_FLAG, "false")] + ([(YNN_FLAG, "")] if render else [])
+    wanted = [(EMITTERS_FLAG, "false"), (SCHEDULER_FLAG, "false")] + ([(YNN_FLAG, "")] if render else [])
     added = [f"{flag}={value}" for flag, value in wanted if flag not in flags]
     if added:
         environ["XLA_FLAGS"] = " ".join([flags, *added]).strip()

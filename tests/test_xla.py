@@ -17,14 +17,16 @@ def _version(monkeypatch, version):
 def test_flags_added_once_on_a_known_jaxlib(monkeypatch):
     _version(monkeypatch, "0.10.2")
     env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
-    assert _xla.apply_cpu_defaults(env)  # every command: the loop emitters
-    assert env["XLA_FLAGS"] == f"--xla_force_host_platform_device_count=2 {_xla.EMITTERS_FLAG}=false"
+    assert _xla.apply_cpu_defaults(env)  # every command: the loop emitters and the plain scheduler
+    every = f"{_xla.EMITTERS_FLAG}=false {_xla.SCHEDULER_FLAG}=false"
+    assert env["XLA_FLAGS"] == f"--xla_force_host_platform_device_count=2 {every}"
     assert _xla.apply_cpu_defaults(env, render=True)  # the render commands: and no YNNPACK
-    assert env["XLA_FLAGS"] == f"--xla_force_host_platform_device_count=2 {_xla.EMITTERS_FLAG}=false {_xla.YNN_FLAG}="
+    assert env["XLA_FLAGS"] == f"--xla_force_host_platform_device_count=2 {every} {_xla.YNN_FLAG}="
     assert not _xla.apply_cpu_defaults(env, render=True)  # already there: unchanged
-    assert env["XLA_FLAGS"].count(_xla.YNN_FLAG) == 1 and env["XLA_FLAGS"].count(_xla.EMITTERS_FLAG) == 1
+    assert all(env["XLA_FLAGS"].count(flag) == 1 for flag in (_xla.YNN_FLAG, _xla.EMITTERS_FLAG, _xla.SCHEDULER_FLAG))
     env = {"XLA_FLAGS": f"{_xla.EMITTERS_FLAG}=true"}  # the user's own choice is kept
-    assert _xla.apply_cpu_defaults(env, render=True) and env["XLA_FLAGS"] == f"{_xla.EMITTERS_FLAG}=true {_xla.YNN_FLAG}="
+    assert _xla.apply_cpu_defaults(env, render=True)
+    assert env["XLA_FLAGS"] == f"{_xla.EMITTERS_FLAG}=true {_xla.SCHEDULER_FLAG}=false {_xla.YNN_FLAG}="
 
 
 @pytest.mark.parametrize(
@@ -33,7 +35,7 @@ def test_flags_added_once_on_a_known_jaxlib(monkeypatch):
         ("0.9.1", {}),  # a jaxlib not known to have the flag (XLA aborts on unknown flags)
         ("0.11.0", {}),
         ("0.10.2", {"RSMOOTH_XLA_DEFAULTS": "0"}),  # the opt-out
-        ("0.10.2", {"XLA_FLAGS": f"{_xla.YNN_FLAG}=reduce {_xla.EMITTERS_FLAG}=true"}),  # the user's own choice
+        ("0.10.2", {"XLA_FLAGS": f"{_xla.YNN_FLAG}=reduce {_xla.EMITTERS_FLAG}=true {_xla.SCHEDULER_FLAG}=true"}),  # the user's own choice
     ],
 )
 def test_flags_left_alone(monkeypatch, version, env):
@@ -54,6 +56,37 @@ def test_installed_xla_accepts_what_is_added():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split()[-1] == "6.0"
+
+
+def test_a_batched_step_with_jacobians_runs_to_the_end_under_the_defaults():
+    # With XLA:CPU's concurrency-optimized scheduler this program, called repeatedly, waited
+    # forever on idle worker threads within its first 60 calls in every run tried; the flags
+    # apply_cpu_defaults adds must keep it running (a fresh process: XLA reads flags once).
+    code = """
+from rsmooth import _xla
+_xla.apply_cpu_defaults()
+import jax, jax.numpy as jnp
+jax.config.update("jax_enable_x64", True)
+from rsmooth import sim
+system = sim.solo12(friction=0.7, time_step=0.01)
+x0 = system.initial_state()
+us = sim.solo12_standing_torques(system, x0) + 0.5 * jax.random.normal(jax.random.key(0), (64, 12))
+step = jax.jit(jax.vmap(system.step))
+xs = jnp.tile(x0, (64, 1))
+for _ in range(5):
+    xs = step(xs, us)
+step_and_jacobians = jax.jit(jax.vmap(system.step_and_jacobians))
+for _ in range(150):
+    jax.block_until_ready(step_and_jacobians(xs, us))
+print("finished")
+"""
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "RSMOOTH_XLA_DEFAULTS")}
+    try:
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=240)
+    except subprocess.TimeoutExpired:
+        pytest.fail("the batched step with Jacobians did not finish in 240 s (XLA:CPU waiting on its threads)")
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split()[-1] == "finished"
 
 
 def test_resolve_auto_follows_the_backend(monkeypatch):
