@@ -607,6 +607,9 @@ def report(results: dict, horizons, samples, breakdown: bool) -> None:
 
 
 if __name__ == "__main__":
+    from rsmooth import _xla
+
+    _xla.apply_cpu_defaults()  # the settings `rsmooth` and `python -m benchmarks` run with, before JAX starts
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=5, help="calls per breakdown timing and Crocoddyl solves (median)")
     parser.add_argument("--quick", action="store_true", help=f"T = {QUICK_HORIZONS}, M = {QUICK_SAMPLES}, {QUICK_ITERATIONS} iterations, no breakdown")

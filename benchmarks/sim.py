@@ -448,6 +448,9 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0, ch
 
 
 if __name__ == "__main__":
+    from rsmooth import _xla
+
+    _xla.apply_cpu_defaults()  # the settings `rsmooth` and `python -m benchmarks` run with, before JAX starts
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--repeats", type=int, default=30)
     parser.add_argument("--quick", action="store_true", help="at most 5 repeats")

@@ -154,6 +154,9 @@ def main(repeats: int = 10, quick: bool = False, batches: Optional[Sequence[int]
 
 
 if __name__ == "__main__":
+    from rsmooth import _xla
+
+    _xla.apply_cpu_defaults()  # the settings `rsmooth` and `python -m benchmarks` run with, before JAX starts
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--quick", action="store_true", help="the default batch sizes but the largest")
