@@ -12,12 +12,16 @@ programs that run as fast either way (``python -m benchmarks startup``):
 ``--xla_cpu_use_fusion_emitters=false`` (:data:`EMITTERS_FLAG`) halves what a first run of a
 command waits for.
 
-Its concurrency-optimized scheduler (on by default) can leave a program waiting forever on
-its own thread pool: ``jit(vmap(step_and_jacobians))`` of 64 Solo-12 states, called
-repeatedly, stopped with every worker thread idle in most runs, and so did a batched step of a
-16-box tower on its first call; with ``--xla_cpu_enable_concurrency_optimized_scheduler=false``
-(:data:`SCHEDULER_FLAG`) the same programs ran to the end (``--xla_cpu_multi_thread_eigen=false``
-and synchronous dispatch did not help).
+Its concurrency-optimized scheduler (on by default) runs more of a program's operations at
+once on the intra-op thread pool (one thread per core). jaxlib's batched LAPACK kernels (the
+triangular solves and factorizations of a vmapped contact step) split their batch into tasks on
+that pool and wait for them: when every thread is such a waiting kernel, nothing runs the tasks
+and the program stops, its threads idle (the deadlock :mod:`rsmooth.parallel` describes for
+several CPU devices). ``jit(vmap(step_and_jacobians))`` of 64 Solo-12 states, called
+repeatedly on two cores, stopped so in every run tried and in none with
+``--xla_cpu_enable_concurrency_optimized_scheduler=false`` (:data:`SCHEDULER_FLAG`), which
+lowers the risk without removing it (a 16-box tower's batched step stopped once with it);
+single-threaded Eigen and synchronous dispatch did not help.
 
 XLA aborts the process on a flag it does not know, so a flag is added only for the jaxlib
 versions known to have it (:data:`KNOWN_JAXLIB`), only when the user has not set it, and never

@@ -11,8 +11,8 @@ import os
 # tests' subprocesses; a level already in XLA_FLAGS is kept.
 # XLA:CPU's MLIR fusion emitters take about twice as long to compile the large programs (a
 # DDP or R-DDP step through the contact solver) as its older loop emitters; the tests compile
-# with the older ones. Its concurrency-optimized scheduler can leave a batched program waiting
-# forever on its own threads (rsmooth._xla): off, as the rsmooth command has it. Same rule: a
+# with the older ones. Its concurrency-optimized scheduler makes a batched program more likely
+# to wait forever on its own threads (rsmooth._xla): off, as the rsmooth command has it. Same rule: a
 # setting already in XLA_FLAGS is kept.
 for _flag, _value in (("--xla_backend_optimization_level", "0"), ("--xla_cpu_use_fusion_emitters", "false"),
                       ("--xla_cpu_enable_concurrency_optimized_scheduler", "false")):
