@@ -766,3 +766,33 @@ def test_contact_law_parameters_out_of_range_are_refused_by_name():
     # traced parameters (a stiffness swept under vmap) are left to the caller
     stiffness = jax.vmap(lambda k: SpringDamper(stiffness=k, damping=0.0, friction=0.0).stiffness)(jnp.array([1e2, 1e3]))
     np.testing.assert_array_equal(stiffness, [1e2, 1e3])
+
+
+def test_the_factored_sticking_guess_equals_the_pseudo_inverse_of_g():
+    # A box on four corner contacts (G 12 x 12 of rank 6) held, pushed and tilted by random
+    # free velocities: the rank-deficient sticking guess from the 6 x 6 X Xᵀ (G = Xᵀ X) gives
+    # the impulse of the 12 x 12 eigendecomposition, where it solves the problem and where not.
+    corners = np.array([[x, y, -0.1] for x in (-0.1, 0.1) for y in (-0.1, 0.1)])
+    cross = lambda p: np.array([[0, -p[2], p[1]], [p[2], 0, -p[0]], [-p[1], p[0], 0]])  # noqa: E731
+    J = np.concatenate([np.hstack([np.eye(3), -cross(p)]) for p in corners])
+    X = np.diag(np.sqrt([1.0, 1.0, 1.0, 10.0, 10.0, 10.0])) @ J.T  # L^-1 Jᵀ for M = diag(1, 1, 1, .1, .1, .1)
+    G = X.T @ X
+    solver = NCPSolver(sticking_guess=True, rank_deficient=True)
+    mu = jnp.full(4, 0.8)
+    rng = np.random.default_rng(0)
+    solved = 0
+    for k in range(8):
+        spin = 0.3 * rng.normal(size=3) if k % 2 else np.zeros(3)  # tilting opens corners; else all press
+        v = np.r_[0.02 * rng.normal(size=2), -0.1 + 0.02 * rng.normal(), spin]
+        g = jnp.asarray(J @ v)
+        plain, plain_info = solver.start(jnp.asarray(G), g, mu, None)
+        factored, factored_info = solver.start(jnp.asarray(G), g, mu, None, factor=jnp.asarray(X))
+        np.testing.assert_allclose(np.asarray(factored), np.asarray(plain), rtol=0, atol=1e-12)
+        assert bool(factored_info.converged) == bool(plain_info.converged)
+        solved += bool(plain_info.converged)
+        impulse, info = solve_ncp(jnp.asarray(G), g, mu, solver=solver, delassus_factor=jnp.asarray(X))
+        reference, reference_info = solve_ncp(jnp.asarray(G), g, mu, solver=solver)
+        np.testing.assert_allclose(np.asarray(impulse), np.asarray(reference), rtol=0, atol=1e-9)
+    assert 0 < solved < 8  # both cases met
+    with pytest.raises(ValueError, match=r"delassus_factor must have shape \(m, 12\)"):
+        solve_ncp(jnp.asarray(G), g, mu, solver=solver, delassus_factor=jnp.asarray(X[:, :6]))
