@@ -4,11 +4,11 @@ import itertools
 import os
 
 # Compile fast rather than run fast: most of the suite's time is XLA compiling small programs,
-# and LLVM's optimizations are a third of that. At level 0 (instead of XLA's default 2) the suite
-# ran in 14.8 min instead of 16.0 on 2 cores, back to back (the run-bound control tests 10-25 %
-# slower, the compile-bound ones up to 1.6x faster); the programs' HLO and so their results are
-# the same, up to rounding. Set here, before JAX starts its backend, and inherited by the
-# tests' subprocesses; a level already in XLA_FLAGS is kept.
+# and LLVM's optimizations are a large part of that. At level 0 (instead of XLA's default 2) the
+# whole suite runs faster on 2 cores (the run-bound control tests slower, the compile-bound ones
+# faster); the programs' HLO and so their results are the same, up to rounding. Set here, before
+# JAX starts its backend, and inherited by the tests' subprocesses; a level already in XLA_FLAGS
+# is kept.
 # XLA:CPU's MLIR fusion emitters take about twice as long to compile the large programs (a
 # DDP or R-DDP step through the contact solver) as its older loop emitters; the tests compile
 # with the older ones. Its concurrency-optimized scheduler makes a batched program more likely
