@@ -782,7 +782,7 @@ class RigidBodySystem(eqx.Module):
         holds one copy of each pair type's collision code rather than one per pair, which keeps
         the compile time of a scene of many bodies from growing with the number of pairs (a
         box-box pair is about 3,000 lines of HLO). Under :attr:`max_pairs` the collision runs
-        on a group's ``max_pairs`` pairs of smallest bounding gap (:meth:`_group_gaps`); the
+        on a group's ``max_pairs`` pairs of smallest bounding gap (:func:`_bounding_gaps`); the
         other pairs' entries are inactive."""
         sizes = [pair.size for pair in self.geom_pairs]
         offsets = np.cumsum([0] + sizes)
