@@ -310,7 +310,7 @@ def boxes_section(record: dict) -> list[str]:
     lines.append(
         f"A tower of N cubes (10 cm, 1 kg, friction 0.5) resting on a floor, one MJCF for both, dt = 0.01 s. rsmooth: "
         f"hard contact, float64, every pair of boxes a candidate, contact budget `max_contacts = 8 N`"
-        + (", broad phase `max_pairs = N`" if get(results, "cases", str((results.get("sizes") or [0])[0]), "max_pairs") else "")
+        + (", broad phase `max_pairs = N`" if any(get(case, "max_pairs") for case in (results.get("cases") or {}).values()) else "")
         + f", `jit(vmap(step))` "
         f"over a batch of {results.get('batch', '?')}, per env; MuJoCo: `mj_step`, one thread, default soft contacts. "
         "Height error: the largest distance of a box from its resting height after 50 steps."

@@ -47,16 +47,21 @@ def _compile_and_time(fn, *args, repeats: int) -> tuple[float, float]:
     return first, (median_time(fn, *args, repeats=repeats, warmup=1) if repeats else float("nan"))
 
 
-def _ours(batch: int, noise: np.ndarray, repeats: int) -> dict:
-    import jax.numpy as jnp
-
+def _solo12():
+    """``(system, x0, u0)``: `benchmarks.sim`'s Solo-12, standing, and its standing torques."""
     from benchmarks._timing import solo12
     from benchmarks.sim import DT, FRICTION
     from rsmooth import sim
 
     system = solo12(friction=FRICTION, time_step=DT)
     x0 = system.initial_state()
-    u0 = sim.solo12_standing_torques(system, x0)
+    return system, x0, sim.solo12_standing_torques(system, x0)
+
+
+def _ours(solo, batch: int, noise: np.ndarray, repeats: int) -> dict:
+    import jax.numpy as jnp
+
+    system, x0, u0 = solo
     dtype = x0.dtype
     us = jnp.tile(u0, (batch, 1)) + jnp.asarray(noise, dtype)
     step = jax.jit(jax.vmap(system.step))
@@ -77,18 +82,15 @@ def _ours(batch: int, noise: np.ndarray, repeats: int) -> dict:
     }
 
 
-def _mjx(batch: int, noise: np.ndarray, repeats: int) -> dict:
+def _mjx(solo, batch: int, noise: np.ndarray, repeats: int) -> dict:
     import jax.numpy as jnp
     import mujoco
     from mujoco import mjx
 
-    from benchmarks._timing import solo12
-    from benchmarks.sim import DT, FRICTION, mujoco_solo12, to_mujoco_qpos
-    from rsmooth import sim
+    from benchmarks.sim import mujoco_solo12, to_mujoco_qpos
 
-    system = solo12(friction=FRICTION, time_step=DT)
-    x0 = system.initial_state()
-    u0 = np.asarray(sim.solo12_standing_torques(system, x0))
+    system, x0, u0 = solo
+    u0 = np.asarray(u0)
     model, _ = mujoco_solo12()
     data = mujoco.MjData(model)
     data.qpos[:] = to_mujoco_qpos(np.asarray(x0[: system.model.nq]))
@@ -125,11 +127,12 @@ def main(repeats: int = 10, quick: bool = False, batches: Optional[Sequence[int]
     dtype_name = "float32" if float32 else "float64"
     rows = []
     mjx_error = None
+    solo = _solo12()
     for batch in batches:
         noise = NOISE * np.asarray(jax.random.normal(jax.random.key(0), (batch, 12)))
-        ours = _ours(batch, noise, repeats)
+        ours = _ours(solo, batch, noise, repeats)
         try:
-            reference = None if mjx_error else _mjx(batch, noise, repeats)
+            reference = None if mjx_error else _mjx(solo, batch, noise, repeats)
         except Exception as error:  # the rows say why MJX is missing; rsmooth's stay measured
             mjx_error = f"MJX unavailable: {error!r}"[:300]
             reference = None
