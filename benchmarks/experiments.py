@@ -4,7 +4,9 @@ ROOT --profile quick|default --json DIR` reads ``ROOT/NAME/metrics.json`` for ea
 ``DIR/experiments.json`` (a `benchmarks._record` record, area "experiments"), whose results are
 ``{"profile": ..., "experiments": {NAME: {"metrics": {...}, "date": "YYYY-MM-DD"} or null}}``:
 null where the file is missing (the page shows "not measured"). The metrics are copied as the
-experiment wrote them; the keys are those of each experiment module's METRICS_DOC.
+experiment wrote them (the keys of each experiment module's METRICS_DOC), without their curves:
+a list of more than :data:`LONGEST_LIST` entries (a landscape sampled on a grid) is left out,
+since the page shows numbers, not curves, and the record would grow by megabytes.
 """
 
 from __future__ import annotations
@@ -22,6 +24,9 @@ EXPERIMENTS = (
     "perturbed-argmax",
     "null-gradients",
     "solo12",
+    "stiffness",
+    "chaos",
+    "continuity",
     "render-pose",
     "render-reconstruct",
     "cube-lift",
@@ -30,6 +35,19 @@ EXPERIMENTS = (
     "policy",
     "policy-pusher",
 )
+
+
+LONGEST_LIST = 64
+
+
+def without_curves(value):
+    """`value` with every list longer than :data:`LONGEST_LIST` (in any dict or list) left out."""
+    if isinstance(value, dict):
+        return {key: without_curves(item) for key, item in value.items()
+                if not (isinstance(item, list) and len(item) > LONGEST_LIST)}
+    if isinstance(value, list):
+        return [without_curves(item) for item in value if not (isinstance(item, list) and len(item) > LONGEST_LIST)]
+    return value
 
 
 def collect(root: str | os.PathLike) -> dict:
@@ -41,7 +59,7 @@ def collect(root: str | os.PathLike) -> dict:
             found[name] = None
             continue
         date = datetime.datetime.fromtimestamp(path.stat().st_mtime, datetime.timezone.utc).strftime("%Y-%m-%d")
-        found[name] = {"metrics": json.loads(path.read_text()), "date": date}
+        found[name] = {"metrics": without_curves(json.loads(path.read_text())), "date": date}
     return found
 
 

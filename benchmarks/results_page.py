@@ -675,11 +675,80 @@ def exp_policy(m: dict, pusher: bool = False) -> list[str]:
     return lines + table(headers, body)
 
 
+LANDSCAPE_ESTIMATORS = ("first", "zeroth", "alpha")
+
+
+def exp_stiffness(m: dict) -> list[str]:
+    ks = [k for k in m.get("stiffnesses") or [] if number(k) is not None]
+    policy = m.get("policy") or {}
+    seeds = number(policy.get("seeds"))
+
+    def gap(entry: Any, name: str) -> str:
+        mean, std = number(get(entry, name, "gap_mean")), number(get(entry, name, "gap_std"))
+        if mean is None or std is None or not seeds:
+            return NOT_MEASURED
+        return f"{mean:.3g} ± {std / math.sqrt(seeds):.2g}"
+
+    body = []
+    for k in ks:
+        entry, push = m.get(f"k={k:g}"), policy.get(f"k={k:g}")
+        body.append([f"{k:g}", sig(get(entry, "contact_width")),
+                     " / ".join(sig(get(entry, name, "per_sample_variance", "mean")) for name in LANDSCAPE_ESTIMATORS),
+                     " / ".join(sig(get(entry, name, "rmse")) for name in LANDSCAPE_ESTIMATORS),
+                     fixed(get(entry, "alpha", "mean_alpha"), 2),
+                     " / ".join(gap(push, name) for name in LANDSCAPE_ESTIMATORS) if push else NOT_MEASURED,
+                     str(get(push, "best") or NOT_MEASURED)])
+    lines = [f"The ball against a compliant wall: sigma = {m.get('sigma', '?')} m on the start, M = {m.get('num_samples', '?')} "
+             f"samples, {m.get('repeats', '?')} repeats; the push task: {policy.get('seeds', '?')} seeds, "
+             f"{policy.get('iterations', '?')} Adam iterations of M = {policy.get('num_samples', '?')} rollouts. "
+             "Gap: the smoothed cost of the final push above its minimum (mean ± s.e. over seeds).", ""]
+    lines += table(["k (N/m)", "ramp width (m)", "per-sample variance: first / zeroth / alpha",
+                    "RMSE of the gradient: first / zeroth / alpha", "alpha chosen", "push task gap: first / zeroth / alpha",
+                    "lowest gap"], body)
+    soft = m.get("soft_step") or {}
+    widths = soft.get("widths") or []
+    if widths:
+        lines += ["", f"Soft step of width {widths[-1]:g} sigma: the first-order estimate is exactly 0 in "
+                  f"{_rate(get(soft, 'first', 'zero_fraction', -1))} of {soft.get('repeats', '?')} repeats "
+                  f"(closed form {_rate(get(soft, 'no_sample_on_ramp', -1))}); the bias test against zeroth order flags "
+                  f"{_rate(get(soft, 'detected_vs_zeroth', -1))} of them."]
+    return lines
+
+
+def exp_chaos(m: dict) -> list[str]:
+    times = m.get("horizon_times") or []
+    body = [[f"{t:g}", sig(get(m, "exact_derivative_median", i))]
+            + [sig(get(m, name, "per_sample_variance", "mean", i)) for name in LANDSCAPE_ESTIMATORS]
+            + [fixed(get(m, "alpha", "weight", i), 2)] for i, t in enumerate(times) if number(t) is not None]
+    lines = [f"A ball in a wedge of {m.get('half_angle_deg', '?')} deg walls, sigma = {m.get('sigma', '?')} m on the start, "
+             f"M = {m.get('num_samples', '?')} samples, {m.get('repeats', '?')} repeats; fitted exponent of the exact "
+             f"derivative {fixed(m.get('lyapunov_exponent'), 2)} / s.", ""]
+    return lines + table(["horizon (s)", "median exact derivative", "per-sample variance: first", "zeroth", "alpha",
+                          "alpha's first-order weight"], body)
+
+
+def exp_continuity(m: dict) -> list[str]:
+    sigmas = [s for s in m.get("sigmas_deg") or [] if number(s) is not None]
+    body = []
+    for case in m.get("cases") or []:
+        entry = m.get(case) or {}
+        body.append([str(case), sig(entry.get("raw_max_jump")), fixed(entry.get("raw_refinement_ratio"), 2)]
+                    + [f"{sig(get(entry, f'sigma={s:g}', 'max_jump'))} ({fixed(get(entry, f'sigma={s:g}', 'refinement_ratio'), 2)})"
+                       for s in sigmas])
+    lines = ["Largest change of the final x between neighbouring initial angles (m), and the refinement ratio (about 2: "
+             "continuous at the sweep's step; about 1: a jump).", ""]
+    return lines + table(["case", "raw: largest change", "raw: ratio"] + [f"smoothed, sigma = {s:g} deg: change (ratio)"
+                                                                        for s in sigmas], body)
+
+
 EXPERIMENT_SECTIONS: dict[str, tuple[str, Callable[[dict], list[str]]]] = {
     "estimators": ("Gradient estimators on discontinuous and stiff functions", exp_estimators),
     "perturbed-argmax": ("Perturbed argmax against softmax, and a ranking loss", exp_perturbed_argmax),
     "null-gradients": ("Null gradients of hard contact, and the smoothed ones", exp_null_gradients),
     "solo12": ("Solo-12 standing in the simulator", exp_solo12),
+    "stiffness": ("Stiff contact: variance of the estimators, and a policy optimized at each stiffness", exp_stiffness),
+    "chaos": ("A chaotic billiard: variance against the horizon", exp_chaos),
+    "continuity": ("Continuity of the final state in the initial condition, raw and smoothed", exp_continuity),
     "render-pose": ("Render pose: percent solved (Le Lidec et al. 2021, Table 1, beside it)", exp_render_pose),
     "render-reconstruct": ("Render reconstruct: 3D IoU and Chamfer", exp_render_reconstruct),
     "cube-lift": ("Control: cube lift", exp_trajopt),

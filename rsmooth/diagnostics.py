@@ -62,6 +62,8 @@ class BiasVariance(eqx.Module):
             well above it is not sampling noise.
         zero_fraction: the fraction of repeats whose gradient is exactly zero (every entry).
         grads: the gradient of every repeat (leading axis: repeat).
+        stats: the estimator's ``stats`` of every repeat (leading axis: repeat), e.g. the
+            ``alpha`` that :func:`rsmooth.alpha_order` chose each time.
     """
 
     mean: object
@@ -72,6 +74,7 @@ class BiasVariance(eqx.Module):
     bias_std_error: Array
     zero_fraction: Array
     grads: object
+    stats: dict
 
 
 def _rows(tree, leading: int) -> Array:
@@ -155,6 +158,7 @@ def estimator_bias_variance(
         bias_std_error=jnp.sqrt(variance / repeats),
         zero_fraction=jnp.mean(jnp.all(rows == 0, axis=1).astype(rows.dtype)),
         grads=grads,
+        stats=dict(estimates.stats),
     )
 
 

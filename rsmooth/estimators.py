@@ -344,7 +344,7 @@ def _first_order_terms(z, values, jacobians, antithetic) -> _FlatEstimate:
 
 def _alpha_order_flat(
     flat: _Flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta, *, devices=None,
-    sample_chunk=None, rule="suh",
+    sample_chunk=None, rule="suh", jacobian_fn=None,
 ):
     key_zeroth, key_first = jax.random.split(key)
     n_zeroth = num_samples // 2
@@ -355,7 +355,7 @@ def _alpha_order_flat(
         )
     spread = dict(devices=devices, sample_chunk=sample_chunk)
     zeroth = _zeroth_order_flat(flat, key_zeroth, sigma, n_zeroth, noise, baseline, antithetic, **spread)
-    first = _first_order_flat(flat, key_first, sigma, n_first, noise, antithetic, **spread)
+    first = _first_order_flat(flat, key_first, sigma, n_first, noise, antithetic, jacobian_fn, **spread)
     return _alpha_blend(zeroth, first, n_zeroth, n_first, antithetic, gamma, lipschitz, delta, rule)
 
 
@@ -669,6 +669,7 @@ def alpha_order(
     devices: str | Sequence[jax.Device] | None = None,
     sample_chunk: int | None = None,
     rule: str = "suh",
+    value_and_jacobian: Callable | None = None,
 ) -> Estimate:
     r"""Alpha-order estimate: :math:`\alpha \hat g_1 + (1 - \alpha)\hat g_0` on independent batches.
 
@@ -731,6 +732,8 @@ def alpha_order(
             each part (as in :func:`zeroth_order`).
         rule: ``"suh"`` (default): one alpha for the whole gradient, as above;
             ``"inverse_variance"``: one weight per entry (above; `gamma` must then be None).
+        value_and_jacobian: optional `x -> (f(x), J(x))` for the first-order half, as in
+            :func:`first_order` (`x` one array); the zeroth-order half evaluates `f`.
 
     Returns:
         An :class:`Estimate` whose `stats` hold `alpha`, `alpha_star`, `bias`, `radius`,
@@ -770,9 +773,12 @@ def alpha_order(
         raise ValueError(f"gamma must be non-negative, got {gamma}")
     check_alpha_rule(rule, gamma)
     spread = _check_spread(devices, sample_chunk)
+    if value_and_jacobian is not None and not isinstance(x, (jax.Array, np.ndarray)):
+        raise TypeError(f"value_and_jacobian needs x to be one array, got {type(x).__name__}")
     flat = _flatten_resolved(f, x, sigma)
     estimate, extra = _alpha_order_flat(
-        flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta, rule=rule, **spread
+        flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta, rule=rule,
+        jacobian_fn=value_and_jacobian, **spread
     )
     if rule == INVERSE_VARIANCE:
         extra["alpha_entries"] = _unflatten_jacobian(flat, extra["alpha_entries"])

@@ -33,6 +33,16 @@ def test_first_order_on_a_step_is_exactly_zero_and_sure_of_it(getkey):
     assert d.grads.shape == (16,)
 
 
+def test_the_estimators_stats_come_per_repeat(getkey):
+    """Alpha order on a step: the first-order half is 0, the zeroth-order half sees the step,
+    so the bias test drops the first-order half (alpha = 0) in most repeats, and each
+    repeat's alpha is there to see."""
+    d = bias_variance(rsmooth.alpha_order, step, getkey(), jnp.array(0.0), repeats=16, sigma=1.0, num_samples=64)
+    alpha = np.asarray(d.stats["alpha"])
+    assert alpha.shape == (16,) and np.mean(alpha == 0.0) >= 0.75
+    assert np.asarray(d.stats["variance"]).shape == (16,)
+
+
 def test_zeroth_order_on_a_step_is_unbiased_and_reports_its_variance(getkey):
     repeats = 64
     d = bias_variance(rsmooth.zeroth_order, step, getkey(), jnp.array(0.0), repeats=repeats, reference=DENSITY_AT_0,

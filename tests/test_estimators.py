@@ -107,9 +107,10 @@ def test_first_order_matches_grad_as_sigma_vanishes(getkey):
     assert errors[-1] < 5e-3 and errors[0] > errors[1] > errors[2]
 
 
-def test_first_order_with_a_given_jacobian_equals_autodiff(getkey):
+def test_a_given_jacobian_equals_autodiff(getkey):
     """A caller-supplied (value, Jacobian) function (a simulator's faster Jacobian) gives the
-    same estimate as autodiff on the same samples; a wrong one shows (it is really used)."""
+    same first- and alpha-order estimates as autodiff on the same samples; a wrong one shows
+    (it is really used)."""
 
     def f(x):
         return jnp.stack([jnp.sin(x[0]) * x[1], x[0] ** 2 + jnp.abs(x[1])])
@@ -127,6 +128,16 @@ def test_first_order_with_a_given_jacobian_equals_autodiff(getkey):
     np.testing.assert_allclose(doubled.grad, 2 * reference.grad, rtol=1e-12)
     with pytest.raises(TypeError, match="value_and_jacobian needs x to be one array"):
         rsmooth.first_order(lambda d: d["a"], key, {"a": x}, sigma=0.3, num_samples=4, value_and_jacobian=analytic)
+    # Alpha order takes it for its first-order half: the same blend, the same stats.
+    ours = rsmooth.alpha_order(f, key, x, sigma=0.3, num_samples=64, value_and_jacobian=analytic)
+    reference = rsmooth.alpha_order(f, key, x, sigma=0.3, num_samples=64)
+    np.testing.assert_allclose(ours.grad, reference.grad, rtol=1e-12)
+    for name in ("alpha", "variance_first", "variance_zeroth", "bias"):
+        np.testing.assert_allclose(ours.stats[name], reference.stats[name], rtol=1e-12)
+    doubled = rsmooth.alpha_order(f, key, x, sigma=0.3, num_samples=64, value_and_jacobian=lambda x: (f(x), 2 * analytic(x)[1]))
+    np.testing.assert_allclose(doubled.stats["variance_first"], 4 * reference.stats["variance_first"], rtol=1e-12)
+    with pytest.raises(TypeError, match="value_and_jacobian needs x to be one array"):
+        rsmooth.alpha_order(lambda d: d["a"], key, {"a": x}, sigma=0.3, num_samples=4, value_and_jacobian=analytic)
 
 
 def test_vector_valued_f_gives_jacobian(getkey):

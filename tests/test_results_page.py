@@ -47,6 +47,14 @@ def records():
                                   "rddp": {"success_rate": 0.5, "per_seed": [{"foot_height": 0.05}, {"foot_height": 0.01}]}},
                       "date": "2026-01-01"},
         "estimators": None,
+        "stiffness": {"metrics": {
+            "stiffnesses": [10.0], "sigma": 0.1, "num_samples": 8, "repeats": 4,
+            "k=10": {"contact_width": 0.99, "first": {"per_sample_variance": {"mean": 0.5}, "rmse": 0.1},
+                     "zeroth": {"per_sample_variance": {"mean": 2.0}, "rmse": 0.3},
+                     "alpha": {"per_sample_variance": {"mean": 1.0}, "rmse": 0.2, "mean_alpha": 0.6}},
+            "policy": {"seeds": 4, "iterations": 60, "num_samples": 8,
+                       "k=10": {"first": {"gap_mean": 0.002, "gap_std": 0.002}, "zeroth": {"gap_mean": 0.01, "gap_std": 0.004},
+                                "alpha": {"gap_mean": 0.004, "gap_std": 0.002}, "best": "first"}}}, "date": "2026-01-01"},
     }}, "python -m benchmarks experiments --metrics rsmooth-out --profile quick --json DIR")
     return {"cpu": {"core": core, "sim": sim, "control": control, "experiments": exps}, "gpu": {}}
 
@@ -172,6 +180,12 @@ def test_experiments_tables(records):
     assert "Not measured." in estimators
     policy = exp.split("#### policy:")[1].split("####")[0]
     assert "Not measured." in policy
+    (stiffness,) = _lines_with(exp, "| 10 |")
+    cells = [c.strip() for c in stiffness.strip("|").split("|")]
+    # per-sample variances, RMSEs, alpha, the push task's gaps (mean ± s.e. over 4 seeds), the best
+    assert cells[2:] == ["0.5 / 2 / 1", "0.1 / 0.3 / 0.2", "0.60", "0.002 ± 0.001 / 0.01 ± 0.002 / 0.004 ± 0.001", "first"]
+    chaos = exp.split("#### chaos:")[1].split("####")[0]
+    assert "Not measured." in chaos
 
 
 def test_committed_page_matches_the_committed_records():
@@ -215,7 +229,8 @@ def test_command_line_names_the_module_and_relative_paths():
 
 def test_experiments_collects_metrics_and_marks_the_missing(tmp_path):
     (tmp_path / "render-pose").mkdir()
-    (tmp_path / "render-pose" / "metrics.json").write_text(json.dumps({"soft": {"20": {"solved_pct": 50.0}}}))
+    curve = list(range(experiments.LONGEST_LIST + 1))  # a landscape: left out of the record
+    (tmp_path / "render-pose" / "metrics.json").write_text(json.dumps({"soft": {"20": {"solved_pct": 50.0}, "curve": curve}}))
     record = experiments.main(str(tmp_path), str(tmp_path / "out"), "quick")
     written = json.loads((tmp_path / "out" / "experiments.json").read_text())
     assert written == record and written["area"] == "experiments"

@@ -18,7 +18,9 @@ The objective is the ball's horizontal position after each horizon of ``horizons
 per horizon, the per-sample variance of each (mean and spread over the repeats), the exact
 derivative along a sweep of starts (its median size grows as ``exp(lambda t)``, ``lambda`` a
 Lyapunov exponent, fitted), and the range of the final position, which bounds the zeroth-order
-variance by ``range^2 / sigma^2``.
+variance by ``range^2 / sigma^2``. The alpha-order estimate is measured beside them with the
+per-entry rule (``rule="inverse_variance"``): each horizon is its own objective and gets its own
+weight, where the default rule's single alpha would let the longest horizon decide for all.
 """
 
 from __future__ import annotations
@@ -44,9 +46,10 @@ relative to start_x, m) and landscape_final_x (final x per start, one list per h
 exact_derivative_median (median |d x_T / d x_0| over the landscape, per horizon), lyapunov_exponent
 (1/s, the slope of log exact_derivative_median against time over the horizons after the first
 bounce), value_range (max - min of the final x over the landscape, per horizon),
-zeroth_variance_bound (value_range^2 / sigma^2); for E in first, zeroth: E.per_sample_variance
+zeroth_variance_bound (value_range^2 / sigma^2); for E in first, zeroth, alpha: E.per_sample_variance
 (per horizon: mean, std, median, q16, q84 over the repeats of num_samples x the estimate's squared
-standard error), E.mean and E.std (of the gradient estimates over the repeats, per horizon);
+standard error), E.mean and E.std (of the gradient estimates over the repeats, per horizon); alpha.weight
+(the first-order weight per horizon, mean over the repeats);
 first_over_zeroth_variance (ratio of the mean per-sample variances, per horizon)."""
 
 
@@ -113,7 +116,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         "stiffness": config.stiffness, "time_step": config.time_step, "horizons": list(config.horizons),
         "horizon_times": times, "sigma": config.sigma, "num_samples": config.num_samples, "repeats": config.repeats,
     }
-    with tqdm(total=3, desc="chaos", disable=not progress) as bar:
+    with tqdm(total=4, desc="chaos", disable=not progress) as bar:
         values, derivatives = _landscape.evaluate_in_batches(compiled, 0.0, config.start_x + offsets, batch)
         bar.update()
         x0 = jnp.asarray(config.start_x)
@@ -121,6 +124,8 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
             ("first", rsmooth.first_order, {"value_and_jacobian": lambda x: compiled(0.0, x)}),
             # Leave-one-out needs no evaluation at x: every batch has the same shape.
             ("zeroth", rsmooth.zeroth_order, {"baseline": "leave-one-out"}),
+            ("alpha", rsmooth.alpha_order, {"value_and_jacobian": lambda x: compiled(0.0, x), "baseline": "leave-one-out",
+                                            "rule": "inverse_variance"}),
         ):
             key, subkey = jax.random.split(key)
             d = diagnostics.estimator_bias_variance(
@@ -133,6 +138,8 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
                 "mean": grads.mean(0),
                 "std": grads.std(0, ddof=1),
             }
+            if name == "alpha":
+                metrics[name]["weight"] = np.asarray(d.stats["alpha_entries"]).reshape(config.repeats, -1).mean(0)
             bar.update()
     median_derivative = np.median(np.abs(derivatives), axis=0)
     # After the first bounce the derivative grows as exp(lambda t); before it, it is 1.
@@ -167,7 +174,7 @@ def _plot(metrics: dict, values: np.ndarray, path: Path) -> None:
     ax_land.set_ylabel("final x (m)")
     ax_land.set_title(f"ball in a wedge ({metrics['half_angle_deg']:g} deg walls): final x against the start")
     ax_land.legend(fontsize=7)
-    for name, color, marker in (("first", "tab:orange", "o"), ("zeroth", "tab:blue", "x")):
+    for name, color, marker in (("first", "tab:orange", "o"), ("zeroth", "tab:blue", "x"), ("alpha", "tab:green", "s")):
         stats = metrics[name]["per_sample_variance"]
         mean, low, high = (np.asarray(stats[k]) for k in ("mean", "q16", "q84"))
         ax_var.errorbar(times, mean, yerr=[np.maximum(mean - low, 0), np.maximum(high - mean, 0)], fmt=marker + "-",
@@ -194,6 +201,8 @@ def summary(metrics: dict) -> dict:
         f"per-sample variance, first order, t = {t0:g} -> {t1:g} s": f"{first[0]:.3g} -> {first[-1]:.3g}",
         f"per-sample variance, zeroth order, t = {t0:g} -> {t1:g} s": f"{zeroth[0]:.3g} -> {zeroth[-1]:.3g}",
         "fitted exponent of the exact derivative (1/s)": f"{metrics['lyapunov_exponent']:.3g}",
+        f"alpha order's first-order weight, t = {t0:g} -> {t1:g} s":
+            f"{metrics['alpha']['weight'][0]:.2f} -> {metrics['alpha']['weight'][-1]:.2f}",
     }
 
 

@@ -16,7 +16,8 @@ from rsmooth.experiments import _landscape, landscape_chaos, landscape_continuit
 @pytest.mark.slow
 def test_stiffness_first_order_variance_grows_and_the_soft_step_zero_is_caught(tmp_path):
     config = landscape_stiffness.Config(stiffnesses=(10.0, 1e4), num_samples=16, repeats=4,
-                                        soft_step_widths=(1.0, 1e-4), soft_step_repeats=20)
+                                        soft_step_widths=(1.0, 1e-4), soft_step_repeats=20, policy_seeds=2,
+                                        policy_iterations=5)
     metrics = landscape_stiffness.run(config, str(tmp_path), jax.random.key(0), progress=False)
     soft, stiff = metrics[f"k={10.0:g}"], metrics[f"k={1e4:g}"]
     # The first-order per-sample variance grows with the stiffness (the squared slope of the
@@ -43,9 +44,34 @@ def test_stiffness_first_order_variance_grows_and_the_soft_step_zero_is_caught(t
     assert step["true_gradient"][wide] == pytest.approx(float(norm.cdf(0.5) - norm.cdf(-0.5)))
     assert abs(step["first"]["bias"][wide]) < 4 * step["first"]["std"][wide] / math.sqrt(step["repeats"])
     assert step["detected_vs_zeroth"][wide] <= 0.2
+    # Alpha order is measured beside them: it trusts first order less on the stiff wall.
+    assert 0.0 <= stiff["alpha"]["mean_alpha"] < soft["alpha"]["mean_alpha"] <= 1.0
+    assert stiff["alpha"]["rmse"] < stiff["first"]["rmse"]
+    # The push task: from push_start the ball stops short of the wall (no contact force: its
+    # final velocity is its speed, exactly); a strong push bounces it back elastically.
+    policy, sigma, speed = metrics["policy"], config.push_sigma, config.speed
+    effort = lambda theta: 0.5 * config.effort * (theta / sigma) ** 2  # noqa: E731
+    problem = landscape_stiffness.push_problem(config, 1e4)
+    short, bounced = landscape_stiffness._grid_costs(problem, np.array([config.push_start, 0.3]))
+    assert short == pytest.approx((speed + config.push_start) / speed + effort(config.push_start), rel=1e-12)
+    assert bounced - effort(0.3) == pytest.approx(-(speed + 0.3) / speed, rel=0.02)
+    for k in config.stiffnesses:
+        entry = policy[f"k={k:g}"]
+        # The smoothed optimum improves on the start; on the stiff wall it is a push that bounces
+        # the ball back (the cost drops by about 2).
+        assert entry["optimum_cost"] < entry["start_cost"]
+        for name in ("first", "zeroth", "alpha"):
+            run = entry[name]
+            assert len(run["gap"]) == 2 and min(run["gap"]) >= -1e-12  # the optimum is the minimum
+            assert run["gap_mean"] < entry["start_cost"] - entry["optimum_cost"]  # better than the start
+        assert entry["first"]["mean_alpha"] == 1.0 and entry["zeroth"]["mean_alpha"] == 0.0
+        assert 0.0 <= entry["alpha"]["mean_alpha"] <= 1.0 and entry["best"] in ("first", "zeroth", "alpha")
+    assert policy[f"k={1e4:g}"]["optimum_cost"] < policy[f"k={1e4:g}"]["start_cost"] - 1.5
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["first_variance_growth"] == pytest.approx(metrics["first_variance_growth"])
-    assert (tmp_path / "stiffness.png").stat().st_size > 10_000 and (tmp_path / "soft_step.png").stat().st_size > 10_000
+    assert saved["policy"][f"k={1e4:g}"]["best"] == policy[f"k={1e4:g}"]["best"]
+    for name in ("stiffness", "soft_step", "policy"):
+        assert (tmp_path / f"{name}.png").stat().st_size > 10_000
 
 
 @pytest.mark.slow
@@ -64,6 +90,10 @@ def test_chaos_first_order_variance_explodes_with_the_horizon(tmp_path):
     assert metrics["exact_derivative_median"][-1] > 1e3 and metrics["lyapunov_exponent"] > 1.0
     assert first[-1] > 1e4 * first[1] and first[-1] > 1e4 * zeroth[-1]
     assert np.all(zeroth <= 1.5 * np.asarray(metrics["zeroth_variance_bound"]))
+    # Alpha order weighs each horizon alone: before the bounce its first-order half has variance
+    # 0 and gets weight 1 wherever the bias test passes; at the longest horizon little weight.
+    weight = np.asarray(metrics["alpha"]["weight"])
+    assert weight[0] >= 0.5 and weight[-1] < 0.5 and np.all((0 <= weight) & (weight <= 1))
     assert (tmp_path / "chaos.png").stat().st_size > 10_000 and (tmp_path / "metrics.json").exists()
 
 
