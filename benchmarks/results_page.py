@@ -675,7 +675,7 @@ def exp_policy(m: dict, pusher: bool = False) -> list[str]:
     return lines + table(headers, body)
 
 
-LANDSCAPE_ESTIMATORS = ("first", "zeroth", "alpha")
+LANDSCAPE_ESTIMATORS = ("first", "zeroth", "alpha", "alpha-cross-fit")
 
 
 def exp_stiffness(m: dict) -> list[str]:
@@ -695,16 +695,16 @@ def exp_stiffness(m: dict) -> list[str]:
         body.append([f"{k:g}", sig(get(entry, "contact_width")),
                      " / ".join(sig(get(entry, name, "per_sample_variance", "mean")) for name in LANDSCAPE_ESTIMATORS),
                      " / ".join(sig(get(entry, name, "rmse")) for name in LANDSCAPE_ESTIMATORS),
-                     fixed(get(entry, "alpha", "mean_alpha"), 2),
+                     " / ".join(fixed(get(entry, name, "mean_alpha"), 2) for name in ("alpha", "alpha-cross-fit")),
                      " / ".join(gap(push, name) for name in LANDSCAPE_ESTIMATORS) if push else NOT_MEASURED,
                      str(get(push, "best") or NOT_MEASURED)])
     lines = [f"The ball against a compliant wall: sigma = {m.get('sigma', '?')} m on the start, M = {m.get('num_samples', '?')} "
              f"samples, {m.get('repeats', '?')} repeats; the push task: {policy.get('seeds', '?')} seeds, "
              f"{policy.get('iterations', '?')} Adam iterations of M = {policy.get('num_samples', '?')} rollouts. "
              "Gap: the smoothed cost of the final push above its minimum (mean ± s.e. over seeds).", ""]
-    lines += table(["k (N/m)", "ramp width (m)", "per-sample variance: first / zeroth / alpha",
-                    "RMSE of the gradient: first / zeroth / alpha", "alpha chosen", "push task gap: first / zeroth / alpha",
-                    "lowest gap"], body)
+    methods = "first / zeroth / alpha / cross-fitted alpha"
+    lines += table(["k (N/m)", "ramp width (m)", f"per-sample variance: {methods}", f"RMSE of the gradient: {methods}",
+                    "alpha chosen: Suh / cross-fitted", f"push task gap: {methods}", "lowest gap"], body)
     soft = m.get("soft_step") or {}
     widths = soft.get("widths") or []
     if widths:

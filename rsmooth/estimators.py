@@ -344,7 +344,7 @@ def _first_order_terms(z, values, jacobians, antithetic) -> _FlatEstimate:
 
 def _alpha_order_flat(
     flat: _Flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta, *, devices=None,
-    sample_chunk=None, rule="suh", jacobian_fn=None,
+    sample_chunk=None, rule="suh", jacobian_fn=None, cross_fit=False,
 ):
     key_zeroth, key_first = jax.random.split(key)
     n_zeroth = num_samples // 2
@@ -354,17 +354,28 @@ def _alpha_order_flat(
             f"with antithetic=True, alpha_order needs num_samples divisible by 4, got {num_samples}"
         )
     spread = dict(devices=devices, sample_chunk=sample_chunk)
+    options = (antithetic, gamma, lipschitz, delta, rule)
+    if cross_fit:
+        zeroth_folds = tuple(_zeroth_order_flat(flat, k, sigma, n_zeroth // 2, noise, baseline, antithetic, **spread)
+                             for k in jax.random.split(key_zeroth))
+        first_folds = tuple(_first_order_flat(flat, k, sigma, n_first // 2, noise, antithetic, jacobian_fn, **spread)
+                            for k in jax.random.split(key_first))
+        return _cross_fitted_blend(zeroth_folds, first_folds, n_zeroth, n_first, *options)
     zeroth = _zeroth_order_flat(flat, key_zeroth, sigma, n_zeroth, noise, baseline, antithetic, **spread)
     first = _first_order_flat(flat, key_first, sigma, n_first, noise, antithetic, jacobian_fn, **spread)
-    return _alpha_blend(zeroth, first, n_zeroth, n_first, antithetic, gamma, lipschitz, delta, rule)
+    return _alpha_blend(zeroth, first, n_zeroth, n_first, *options)
 
 
 def _alpha_blend(
-    zeroth: _FlatEstimate, first: _FlatEstimate, n_zeroth, n_first, antithetic, gamma, lipschitz, delta, rule="suh"
+    zeroth: _FlatEstimate, first: _FlatEstimate, n_zeroth, n_first, antithetic, gamma, lipschitz, delta, rule="suh",
+    targets: tuple[_FlatEstimate, _FlatEstimate] | None = None,
 ):
     """The alpha-order blend of independent zeroth- and first-order estimates (of ``n_zeroth``
     and ``n_first`` samples) by ``rule`` (see :func:`alpha_order`): the estimate and the extra
-    stats (for ``"inverse_variance"``, ``alpha_entries`` is the flat (m, d) array)."""
+    stats (for ``"inverse_variance"``, ``alpha_entries`` is the flat (m, d) array). With
+    ``targets = (zeroth', first')`` the weights chosen from ``zeroth`` and ``first`` blend
+    those other two estimates instead (cross-fitting, :func:`_cross_fitted_blend`)."""
+    target_zeroth, target_first = (zeroth, first) if targets is None else targets
     num_samples = n_zeroth + n_first
     var_zeroth = jnp.sum(zeroth.variance)
     var_first = jnp.sum(first.variance)
@@ -384,7 +395,7 @@ def _alpha_blend(
     # How large the empirical bias may be from sampling noise alone, were both unbiased.
     bias_radius = jnp.sqrt(2.0 * (var_zeroth + var_first) * log_term)
     if rule == INVERSE_VARIANCE:
-        return _inverse_variance_blend(zeroth, first, n_zeroth, n_first, log_term, bias, radius, bias_radius)
+        return _inverse_variance_blend(zeroth, first, n_zeroth, n_first, log_term, bias, radius, bias_radius, targets)
     if gamma is None:
         # Default (our documented choice, scale-free): trust the first-order estimate, with
         # the variance-optimal alpha*, unless its gap to the unbiased zeroth-order estimate is
@@ -403,14 +414,14 @@ def _alpha_blend(
             jnp.where(gamma_used > radius, (gamma_used - radius) / safe_bias, 0.0),
         )
     alpha = jnp.clip(alpha, 0.0, 1.0)
-    value = (n_zeroth * zeroth.value + n_first * first.value) / num_samples
+    value = (n_zeroth * target_zeroth.value + n_first * target_first.value) / num_samples
     blend = lambda a1, a0: alpha * a1 + (1.0 - alpha) * a0  # noqa: E731
     estimate = _FlatEstimate(
         value=value,
-        jacobian=blend(first.jacobian, zeroth.jacobian),
-        sigma_grad=blend(first.sigma_grad, zeroth.sigma_grad),
-        variance=alpha**2 * first.variance + (1.0 - alpha) ** 2 * zeroth.variance,
-        max_score_norm=zeroth.max_score_norm,
+        jacobian=blend(target_first.jacobian, target_zeroth.jacobian),
+        sigma_grad=blend(target_first.sigma_grad, target_zeroth.sigma_grad),
+        variance=alpha**2 * target_first.variance + (1.0 - alpha) ** 2 * target_zeroth.variance,
+        max_score_norm=target_zeroth.max_score_norm,
     )
     extra = {
         "alpha": alpha,
@@ -426,10 +437,11 @@ def _alpha_blend(
 
 
 def _inverse_variance_blend(zeroth: _FlatEstimate, first: _FlatEstimate, n_zeroth, n_first, log_term, bias, radius,
-                            bias_radius):
+                            bias_radius, targets=None):
     """The per-entry (inverse-variance) blend of :func:`alpha_order` with
     ``rule="inverse_variance"``; ``log_term`` is ``log(2 / delta)``, the other scalars are the
-    "suh" rule's stats, reported alike."""
+    "suh" rule's stats, reported alike; ``targets`` as in :func:`_alpha_blend`."""
+    target_zeroth, target_first = (zeroth, first) if targets is None else targets
     var_zeroth, var_first = zeroth.variance, first.variance  # (m, d), entry by entry
     total = var_zeroth + var_first
     # Minimum-variance weights of two independent unbiased estimates of the same entry; where
@@ -445,11 +457,11 @@ def _inverse_variance_blend(zeroth: _FlatEstimate, first: _FlatEstimate, n_zerot
     # entry of its row of the Jacobian is: each output takes the smallest weight of its row.
     alpha_row = jnp.min(alpha, axis=1)
     estimate = _FlatEstimate(
-        value=(n_zeroth * zeroth.value + n_first * first.value) / (n_zeroth + n_first),
-        jacobian=alpha * first.jacobian + (1.0 - alpha) * zeroth.jacobian,
-        sigma_grad=alpha_row * first.sigma_grad + (1.0 - alpha_row) * zeroth.sigma_grad,
-        variance=alpha**2 * first.variance + (1.0 - alpha) ** 2 * zeroth.variance,
-        max_score_norm=zeroth.max_score_norm,
+        value=(n_zeroth * target_zeroth.value + n_first * target_first.value) / (n_zeroth + n_first),
+        jacobian=alpha * target_first.jacobian + (1.0 - alpha) * target_zeroth.jacobian,
+        sigma_grad=alpha_row * target_first.sigma_grad + (1.0 - alpha_row) * target_zeroth.sigma_grad,
+        variance=alpha**2 * target_first.variance + (1.0 - alpha) ** 2 * target_zeroth.variance,
+        max_score_norm=target_zeroth.max_score_norm,
     )
     extra = {
         "alpha": jnp.mean(alpha),
@@ -464,8 +476,47 @@ def _inverse_variance_blend(zeroth: _FlatEstimate, first: _FlatEstimate, n_zerot
     return estimate, extra
 
 
+def _cross_fitted_blend(zeroth_folds, first_folds, n_zeroth, n_first, antithetic, gamma, lipschitz, delta, rule):
+    """Alpha order with cross-fitted weights: each half's samples form two folds ``a`` and
+    ``b``; the weights chosen from fold ``b``'s two estimates blend fold ``a``'s, and the
+    other way round; the two blends are averaged (so are the stats).
+
+    Why: weights chosen from the very samples they blend are correlated with them. Where a
+    stiff contact gives the first-order samples rare large gradients, the first-order half's
+    variance (and its gap to the zeroth-order half) is large exactly when a sample hit the
+    contact, so the rule keeps first order when no sample did: the blend is then biased
+    against the contact's pull, even where both halves are unbiased. Weights from independent
+    samples cannot correlate with what they blend: the blend of two unbiased estimates stays
+    unbiased, at the price of weights from half as many samples."""
+    (zeroth_a, zeroth_b), (first_a, first_b) = zeroth_folds, first_folds
+    options = (antithetic, gamma, lipschitz, delta, rule)
+    blend_a, extra_a = _alpha_blend(zeroth_b, first_b, n_zeroth // 2, n_first // 2, *options, targets=(zeroth_a, first_a))
+    blend_b, extra_b = _alpha_blend(zeroth_a, first_a, n_zeroth // 2, n_first // 2, *options, targets=(zeroth_b, first_b))
+    estimate = _FlatEstimate(
+        value=0.5 * (blend_a.value + blend_b.value),
+        jacobian=0.5 * (blend_a.jacobian + blend_b.jacobian),
+        sigma_grad=0.5 * (blend_a.sigma_grad + blend_b.sigma_grad),
+        variance=0.25 * (blend_a.variance + blend_b.variance),  # two independent blends
+        max_score_norm=jnp.maximum(blend_a.max_score_norm, blend_b.max_score_norm),
+    )
+    return estimate, jax.tree.map(lambda a, b: 0.5 * (a + b), extra_a, extra_b)
+
+
+def check_cross_fit(cross_fit, num_samples: int, antithetic: bool = False, name: str = "cross_fit") -> None:
+    """Cross-fitted alpha order splits each half of the samples into two folds of at least two
+    samples (antithetic pairs kept whole)."""
+    if not isinstance(cross_fit, bool):
+        raise TypeError(f"{name} must be a bool, got {cross_fit!r}")
+    unit = 8 if antithetic else 4
+    if cross_fit and (num_samples < 2 * unit or num_samples % unit):
+        raise ValueError(f"{name}=True needs num_samples a multiple of {unit} and >= {2 * unit}"
+                         f"{' (antithetic pairs in four folds)' if antithetic else ' (four folds of two samples or more)'}, "
+                         f"got {num_samples}")
+
+
 def _shared_sample_estimate(
-    index, z, values, jacobians, reference, sigma, noise, gamma, lipschitz, delta, baseline=True, rule="suh"
+    index, z, values, jacobians, reference, sigma, noise, gamma, lipschitz, delta, baseline=True, rule="suh",
+    cross_fit=False,
 ):
     """The first- (``index`` 0), zeroth- (1) or alpha-order (2) estimate from one set of
     samples: the noise ``z`` (M, d) (independent draws, no antithetic pairs), the values
@@ -490,20 +541,24 @@ def _shared_sample_estimate(
         centre = baseline_values(values, baseline, lambda: reference)
         return _zeroth_order_terms(z, values, centre, sigma, noise, False), 0.0 * one
 
+    def zeroth_terms(start, stop):
+        part = values[start:stop]
+        return _zeroth_order_terms(z[start:stop], part, baseline_values(part, baseline, lambda: reference), sigma, noise,
+                                   False)
+
+    def first_terms(start, stop):
+        return _first_order_terms(z[start:stop], values[start:stop], jacobians[start:stop], False)
+
     def alpha():
-        estimate, extra = _alpha_blend(
-            _zeroth_order_terms(
-                z[:half], values[:half], baseline_values(values[:half], baseline, lambda: reference), sigma, noise, False
-            ),
-            _first_order_terms(z[half:], values[half:], jacobians[half:], False),
-            half,
-            num_samples - half,
-            False,
-            gamma,
-            lipschitz,
-            delta,
-            rule,
-        )
+        options = (False, gamma, lipschitz, delta, rule)
+        if cross_fit:
+            quarter, rest = half // 2, half + (num_samples - half) // 2
+            estimate, extra = _cross_fitted_blend(
+                (zeroth_terms(0, quarter), zeroth_terms(quarter, half)),
+                (first_terms(half, rest), first_terms(rest, num_samples)), half, num_samples - half, *options)
+        else:
+            estimate, extra = _alpha_blend(zeroth_terms(0, half), first_terms(half, num_samples), half,
+                                           num_samples - half, *options)
         return estimate, extra["alpha"].astype(z.dtype)
 
     return jax.lax.switch(index, (first, zeroth, alpha))
@@ -670,6 +725,7 @@ def alpha_order(
     sample_chunk: int | None = None,
     rule: str = "suh",
     value_and_jacobian: Callable | None = None,
+    cross_fit: bool = False,
 ) -> Estimate:
     r"""Alpha-order estimate: :math:`\alpha \hat g_1 + (1 - \alpha)\hat g_0` on independent batches.
 
@@ -734,6 +790,15 @@ def alpha_order(
             ``"inverse_variance"``: one weight per entry (above; `gamma` must then be None).
         value_and_jacobian: optional `x -> (f(x), J(x))` for the first-order half, as in
             :func:`first_order` (`x` one array); the zeroth-order half evaluates `f`.
+        cross_fit: choose the weights on independent samples: each half splits into two
+            folds, the weights from one fold's two estimates blend the other fold's, and the
+            two blends are averaged (`num_samples` a multiple of 4, >= 8; of 8, >= 16, with
+            `antithetic`). Weights chosen from the samples they blend are correlated with
+            them and bias the blend: at a stiff contact, whose rare large first-order
+            gradients raise the first-order variance exactly when a sample hits it, the
+            default keeps first order mostly when no sample hit, and the blend misses the
+            contact's pull. Cross-fitted weights leave the blend of two unbiased estimates
+            unbiased, from half as many samples each. The stats are the two folds' means.
 
     Returns:
         An :class:`Estimate` whose `stats` hold `alpha`, `alpha_star`, `bias`, `radius`,
@@ -772,13 +837,14 @@ def alpha_order(
     if gamma is not None and not _checks.is_traced(gamma) and not float(gamma) >= 0:
         raise ValueError(f"gamma must be non-negative, got {gamma}")
     check_alpha_rule(rule, gamma)
+    check_cross_fit(cross_fit, num_samples, antithetic)
     spread = _check_spread(devices, sample_chunk)
     if value_and_jacobian is not None and not isinstance(x, (jax.Array, np.ndarray)):
         raise TypeError(f"value_and_jacobian needs x to be one array, got {type(x).__name__}")
     flat = _flatten_resolved(f, x, sigma)
     estimate, extra = _alpha_order_flat(
         flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta, rule=rule,
-        jacobian_fn=value_and_jacobian, **spread
+        jacobian_fn=value_and_jacobian, cross_fit=cross_fit, **spread
     )
     if rule == INVERSE_VARIANCE:
         extra["alpha_entries"] = _unflatten_jacobian(flat, extra["alpha_entries"])

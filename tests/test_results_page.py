@@ -51,7 +51,8 @@ def records():
             "stiffnesses": [10.0], "sigma": 0.1, "num_samples": 8, "repeats": 4,
             "k=10": {"contact_width": 0.99, "first": {"per_sample_variance": {"mean": 0.5}, "rmse": 0.1},
                      "zeroth": {"per_sample_variance": {"mean": 2.0}, "rmse": 0.3},
-                     "alpha": {"per_sample_variance": {"mean": 1.0}, "rmse": 0.2, "mean_alpha": 0.6}},
+                     "alpha": {"per_sample_variance": {"mean": 1.0}, "rmse": 0.2, "mean_alpha": 0.6},
+                     "alpha-cross-fit": {"per_sample_variance": {"mean": 1.5}, "rmse": 0.25, "mean_alpha": 0.5}},
             "policy": {"seeds": 4, "iterations": 60, "num_samples": 8,
                        "k=10": {"first": {"gap_mean": 0.002, "gap_std": 0.002}, "zeroth": {"gap_mean": 0.01, "gap_std": 0.004},
                                 "alpha": {"gap_mean": 0.004, "gap_std": 0.002}, "best": "first"}}}, "date": "2026-01-01"},
@@ -183,7 +184,8 @@ def test_experiments_tables(records):
     (stiffness,) = _lines_with(exp, "| 10 |")
     cells = [c.strip() for c in stiffness.strip("|").split("|")]
     # per-sample variances, RMSEs, alpha, the push task's gaps (mean ± s.e. over 4 seeds), the best
-    assert cells[2:] == ["0.5 / 2 / 1", "0.1 / 0.3 / 0.2", "0.60", "0.002 ± 0.001 / 0.01 ± 0.002 / 0.004 ± 0.001", "first"]
+    assert cells[2:] == ["0.5 / 2 / 1 / 1.5", "0.1 / 0.3 / 0.2 / 0.25", "0.60 / 0.50",
+                         "0.002 ± 0.001 / 0.01 ± 0.002 / 0.004 ± 0.001 / not measured", "first"]
     chaos = exp.split("#### chaos:")[1].split("####")[0]
     assert "Not measured." in chaos
 

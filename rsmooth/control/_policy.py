@@ -289,10 +289,10 @@ def _check_estimator(estimator: str, num_samples) -> None:
 def _estimate(problem, policy, key, theta, sigma, num_samples, estimator, noise, options) -> _estimators.Estimate:
     options = dict(options)
     if estimator == "first":
-        for name in ("baseline", "gamma", "lipschitz", "delta", "rule"):  # zeroth/alpha-order options
+        for name in ("baseline", "gamma", "lipschitz", "delta", "rule", "cross_fit"):  # zeroth/alpha-order options
             options.pop(name, None)
     elif estimator == "zeroth":
-        for name in ("gamma", "lipschitz", "delta", "rule"):
+        for name in ("gamma", "lipschitz", "delta", "rule", "cross_fit"):
             options.pop(name, None)
     return _METHODS[estimator](
         lambda th: _policy_cost(problem, policy, th), key, theta, sigma=sigma, num_samples=num_samples, noise=noise, **options
@@ -328,9 +328,9 @@ def policy_gradient(
             ``sample_chunk``, where and how many rollouts at a time are evaluated: the
             samples split over devices, each device rolling out its share, as in
             :func:`rsmooth.zeroth_order`; ``baseline`` for ``"zeroth"`` and ``"alpha"``;
-            ``gamma``, ``lipschitz``, ``delta`` and ``rule``, ``"suh"`` or
-            ``"inverse_variance"``, for ``"alpha"``); those an estimator does not take are
-            ignored, so one set of options serves all three.
+            ``gamma``, ``lipschitz``, ``delta``, ``rule`` (``"suh"`` or
+            ``"inverse_variance"``) and ``cross_fit`` for ``"alpha"``); those an estimator
+            does not take are ignored, so one set of options serves all three.
 
     Returns:
         An :class:`~rsmooth.estimators.Estimate`: ``value`` the smoothed cost, ``grad`` with
@@ -377,6 +377,9 @@ class PolicyGradient(eqx.Module):
             ``"inverse_variance"`` (one weight per parameter; ``gamma`` must be None); the
             ``rule`` of :func:`rsmooth.alpha_order`. ``stats["alpha"]`` is then the mean
             weight over the parameters.
+        alpha_cross_fit: alpha order chooses its weights on independent folds of its samples
+            (the ``cross_fit`` of :func:`rsmooth.alpha_order`: unbiased where both halves are;
+            ``num_samples`` a multiple of 4, >= 8).
         shared_samples: evaluate :math:`V` and its gradient at the same ``num_samples``
             points whatever the estimator, which is then chosen at run time: solvers that
             differ only in ``estimator`` share one compiled step (a comparison of the three
@@ -411,6 +414,7 @@ class PolicyGradient(eqx.Module):
     gamma: float | None = eqx.field(static=True, default=None)
     shared_samples: bool = eqx.field(static=True, default=False)
     alpha_rule: str = eqx.field(static=True, default="suh")
+    alpha_cross_fit: bool = eqx.field(static=True, default=False)
     devices: str | tuple[jax.Device, ...] | Mesh | None = eqx.field(
         static=True, default=None, converter=parallel.static_devices
     )
@@ -422,6 +426,8 @@ class PolicyGradient(eqx.Module):
         parallel.check_sample_chunk(self.sample_chunk, "sample_chunk")
         _estimators.check_baseline(self.baseline, self.num_samples)
         _estimators.check_alpha_rule(self.alpha_rule, self.gamma, "alpha_rule")
+        if self.estimator == "alpha" or self.shared_samples:
+            _estimators.check_cross_fit(self.alpha_cross_fit, self.num_samples, self.antithetic, "alpha_cross_fit")
         if self.shared_samples:
             if self.antithetic:
                 raise ValueError("shared_samples draws independent samples: it does not take antithetic=True")
@@ -442,7 +448,8 @@ class PolicyGradient(eqx.Module):
 
     def options(self) -> dict:
         return {"antithetic": self.antithetic, "baseline": self.baseline, "delta": self.delta, "gamma": self.gamma,
-                "rule": self.alpha_rule, "devices": self.devices, "sample_chunk": self.sample_chunk}
+                "rule": self.alpha_rule, "cross_fit": self.alpha_cross_fit, "devices": self.devices,
+                "sample_chunk": self.sample_chunk}
 
 
 class PolicySolution(eqx.Module):
@@ -515,7 +522,7 @@ def _shared_sample_estimate(problem, policy, key, theta, sigma, solver: PolicyGr
     grads = _checks.check_finite(grads, _estimators._NONFINITE_GRAD)
     flat_estimate, alpha = _estimators._shared_sample_estimate(
         index, z, values[1:, None], grads[1:, None, :], values[:1], sigma, solver.noise, solver.gamma, None, solver.delta,
-        solver.baseline, solver.alpha_rule,
+        solver.baseline, solver.alpha_rule, solver.alpha_cross_fit,
     )
     flat = _estimators._Flat(flat_theta, None, unravel, ())
     return _estimators._package(flat, flat_estimate, {"alpha": alpha}), values[0]

@@ -24,23 +24,27 @@ per-sample variance of the first-order estimate (the mean of exact gradients, au
 the simulator) grows with ``k``, as the squared slope times the chance of landing on the ramp;
 that of the zeroth-order estimate (with the leave-one-out baseline) stays below the squared
 range of the velocity over ``sigma^2``. The alpha-order estimate (:func:`rsmooth.alpha_order`,
-half of the samples to each of the two) is measured beside them, with the alpha it chose. All
-are compared with the true smoothed gradient, by quadrature over the landscape (Stein's
-identity: values only).
+half of the samples to each of the two) is measured beside them, with the alpha it chose, by
+Suh et al.'s rule (``alpha``) and with weights chosen on independent folds of its samples
+(``alpha-cross-fit``: weights chosen from the samples they blend are correlated with them, and
+at a stiff contact that biases the blend). All are compared with the true smoothed gradient,
+by quadrature over the landscape (Stein's identity: values only).
 
 **Policy optimization at each stiffness.** The same ball and wall; the policy is one push in
 the first step that changes the ball's speed by ``theta`` (m/s). The cost is the final velocity
 over ``speed`` (+1 while the ball has not reached the wall, -1 once it has bounced back) plus
 the effort ``(effort / 2) (theta / push_sigma)^2``. From ``push_start`` (slower: the ball stops
-short of the wall in time) each estimator runs :func:`rsmooth.control.optimize_policy` (Adam,
-``policy_samples`` rollouts per iteration, one compiled step shared by the three estimators,
-the same key per seed for all three) for ``policy_iterations`` iterations, over
+short of the wall in time) each estimator (first, zeroth, alpha order by Suh et al.'s rule and
+cross-fitted) runs :func:`rsmooth.control.optimize_policy` (Adam, ``policy_samples`` rollouts
+per iteration, one compiled step shared by the estimators, the same key per seed for all) for
+``policy_iterations`` iterations, over
 ``policy_seeds`` seeds. What is optimized is the smoothed cost ``J_sigma``; it is measured
 exactly, by a Gaussian average over a fine grid of the true cost, at every final ``theta``,
 and each run's *gap* is ``J_sigma(theta_N) - min J_sigma``. Suh et al. predict first order
 ahead on soft contact (low variance), zeroth order ahead on stiff contact (the first-order
 estimate's spikes), and alpha order never behind the better of the two beyond noise; the
-metrics say whether it is so here.
+metrics say whether it is so here. (Suh et al.'s alpha, chosen from the samples it blends, is
+biased here at stiff contact: it stops short of the optimum, on the wall's side.)
 
 **The soft step.** ``f(x) = clip(x / w + 1/2, 0, 1)``, a ramp of width ``w``, smoothed with
 ``sigma``: its smoothed gradient at 0 is ``(Phi(w / 2 sigma) - Phi(-w / 2 sigma)) / w``, the
@@ -67,8 +71,11 @@ from rsmooth import _checks, control, diagnostics, sim, viz
 from rsmooth.experiments import _landscape, _protocol
 
 MASS = 1.0  # kg
-ESTIMATORS = ("first", "zeroth", "alpha")
-ESTIMATOR_STYLES = (("first", "tab:orange", "o"), ("zeroth", "tab:blue", "x"), ("alpha", "tab:green", "s"))
+# alpha-cross-fit: alpha order whose weights come from independent folds of its samples
+# (rsmooth.alpha_order's cross_fit), beside Suh et al.'s rule.
+ESTIMATORS = ("first", "zeroth", "alpha", "alpha-cross-fit")
+ESTIMATOR_STYLES = (("first", "tab:orange", "o"), ("zeroth", "tab:blue", "x"), ("alpha", "tab:green", "s"),
+                    ("alpha-cross-fit", "tab:red", "^"))
 RADIUS = 0.05  # m
 TIME_STEP = 0.01  # s
 
@@ -76,7 +83,7 @@ METRICS_DOC = """metrics.json keys: stiffnesses (N/m), damping_ratio, speed (m/s
 steps, sigma (m), num_samples, repeats; per stiffness 'k=K': contact_width (speed pi sqrt(m/k) /
 sqrt(1 - zeta^2), the width of the ramp, m), landscape_offsets and landscape_velocity (the final
 velocity against the start offset from x = 0), true_gradient (the smoothed gradient at x = 0 by
-quadrature), and for E in first, zeroth, alpha: E.per_sample_variance (mean, std, median, q16, q84 over
+quadrature), and for E in first, zeroth, alpha, alpha-cross-fit: E.per_sample_variance (mean, std, median, q16, q84 over
 the repeats of num_samples x the estimate's reported variance), E.empirical_variance (variance of
 the estimates across repeats x num_samples), E.mean, E.median (the typical estimate: below the
 mean in magnitude where few samples reach a stiff ramp, Suh et al.'s empirical bias), E.bias (mean - true_gradient),
@@ -92,11 +99,12 @@ repeats whose first-order estimate the bias test flags, at level delta), delta. 
 --policy-seeds 0): push_sigma (m/s), push_start (m/s), effort, num_samples, iterations,
 learning_rate, seeds, and per stiffness 'k=K': grid_theta and grid_cost (the true cost against the
 push), optimum_theta and optimum_cost (the minimum of the smoothed cost J_sigma), start_cost
-(J_sigma at push_start), and for E in first, zeroth, alpha: E.final_theta and E.gap (per seed;
+(J_sigma at push_start), and for E in first, zeroth, alpha, alpha-cross-fit: E.final_theta and E.gap (per seed;
 gap = J_sigma(final theta) - optimum_cost), E.gap_mean, E.gap_std, E.gap_median, E.came_back_rate
 (fraction of seeds whose final push makes the ball bounce back: final velocity < 0),
-E.mean_alpha; best (the estimator of lowest gap_mean) and alpha_within_noise (alpha's gap_mean is
-at most the better of first and zeroth's plus twice their combined standard error)."""
+E.mean_alpha; best (the estimator of lowest gap_mean) and, for A in alpha, alpha-cross-fit,
+A.within_noise (A's gap_mean is at most the better of first and zeroth's plus twice their
+combined standard error)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,7 +119,9 @@ class Config:
         0.05, "From the nominal start x = 0, the ball reaches the wall this long before the end of the rollout, s.",
         above=0.0)
     sigma: float = _protocol.option(0.1, "Standard deviation of the Gaussian noise on the start, m.", above=0.0)
-    num_samples: int = _protocol.option(64, "Samples per gradient estimate.", flag="samples", min=2)
+    num_samples: int = _protocol.option(
+        64, "Samples per gradient estimate (a multiple of 4, >= 8: cross-fitted alpha order splits them in four).",
+        flag="samples", min=8)
     repeats: int = _protocol.option(16, "Independent estimates per stiffness (their mean and spread).", min=2)
     soft_step_widths: tuple[float, ...] = _protocol.option(
         (1.0, 0.3, 0.1, 0.03, 0.01, 3e-3, 1e-3, 1e-4), "Widths w / sigma of the soft steps.", flag="soft-step-width",
@@ -121,7 +131,7 @@ class Config:
     policy_seeds: int = _protocol.option(
         8, "Seeds of the policy optimization per stiffness and estimator (0 skips the study).", min=0)
     policy_iterations: int = _protocol.option(60, "Adam iterations of each policy optimization.", min=1)
-    policy_samples: int = _protocol.option(8, "Rollouts per policy-gradient estimate (even, >= 4).", min=4)
+    policy_samples: int = _protocol.option(8, "Rollouts per policy-gradient estimate (a multiple of 4, >= 8).", min=8)
     policy_learning_rate: float = _protocol.option(0.02, "Adam's step size on the push, m/s.", above=0.0)
     push_sigma: float = _protocol.option(0.05, "Standard deviation of the noise on the push, m/s.", above=0.0)
     push_start: float = _protocol.option(-0.1, "The initial push, m/s (negative: the ball slows down).")
@@ -139,8 +149,9 @@ class Config:
             raise ValueError("stiffnesses (--stiffness) needs at least one stiffness")
         if not self.soft_step_widths:
             raise ValueError("soft_step_widths (--soft-step-width) needs at least one width")
-        if self.policy_samples % 2:
-            raise ValueError(f"policy_samples (--policy-samples) must be even, got {self.policy_samples}")
+        for name, flag in (("num_samples", "samples"), ("policy_samples", "policy-samples")):
+            if getattr(self, name) % 4:
+                raise ValueError(f"{name} (--{flag}) must be a multiple of 4, got {getattr(self, name)}")
         if not self.speed + self.push_start > 0:
             raise ValueError(f"push_start (--push-start) must leave the ball moving toward the wall: speed + push_start "
                              f"> 0, got {self.speed + self.push_start:g}")
@@ -195,7 +206,7 @@ def _stiffness_study(config: Config, key, bar) -> tuple[dict, dict]:
     for k in config.stiffnesses:
         values, _ = _landscape.evaluate_in_batches(compiled, k, offsets, batch)
         truth = float(_landscape.gaussian_smoothed_gradient(offsets, values, config.sigma))
-        key, k_first, k_zeroth, k_alpha = jax.random.split(key, 4)
+        key, k_first, k_zeroth, k_alpha, k_crossed = jax.random.split(key, 5)
         entry = {
             "contact_width": config.speed * np.pi * np.sqrt(MASS / k) / np.sqrt(1 - config.damping_ratio**2),
             "true_gradient": truth,
@@ -206,6 +217,8 @@ def _stiffness_study(config: Config, key, bar) -> tuple[dict, dict]:
             # Leave-one-out needs no evaluation at x: every batch has the same shape.
             "zeroth": (rsmooth.zeroth_order, k_zeroth, {"baseline": "leave-one-out"}),
             "alpha": (rsmooth.alpha_order, k_alpha, {"value_and_jacobian": both, "baseline": "leave-one-out"}),
+            "alpha-cross-fit": (rsmooth.alpha_order, k_crossed,
+                                {"value_and_jacobian": both, "baseline": "leave-one-out", "cross_fit": True}),
         }
         for name, (estimator, subkey, options) in estimators.items():
             d = diagnostics.estimator_bias_variance(
@@ -221,7 +234,7 @@ def _stiffness_study(config: Config, key, bar) -> tuple[dict, dict]:
                 "bias_std_error": float(d.bias_std_error),
                 "rmse": float(np.sqrt(np.mean((grads - truth) ** 2))),
                 "zero_fraction": float(d.zero_fraction),
-                "mean_alpha": float(np.mean(np.asarray(d.stats["alpha"]))) if name == "alpha" else float(name == "first"),
+                "mean_alpha": float(np.mean(np.asarray(d.stats["alpha"]))) if "alpha" in d.stats else float(name == "first"),
             }
         results[f"k={k:g}"] = entry
         curves[k] = values
@@ -335,9 +348,9 @@ def _smoothed(grid: np.ndarray, costs: np.ndarray, points, sigma: float) -> np.n
 def _policy_study(config: Config, key, bar) -> dict:
     solvers = {
         name: control.PolicyGradient(
-            estimator=name, sigma=config.push_sigma, num_samples=config.policy_samples,
+            estimator=name.removesuffix("-cross-fit"), sigma=config.push_sigma, num_samples=config.policy_samples,
             learning_rate=config.policy_learning_rate, iterations=config.policy_iterations, shared_samples=True,
-            baseline="leave-one-out")
+            baseline="leave-one-out", alpha_cross_fit=name.endswith("-cross-fit"))
         for name in ESTIMATORS
     }
     theta0 = jnp.array([config.push_start])
@@ -379,8 +392,9 @@ def _policy_study(config: Config, key, bar) -> dict:
         entry["best"] = min(means, key=means.get)
         better = min(("first", "zeroth"), key=means.get)
         std_error = lambda name: entry[name]["gap_std"] / np.sqrt(len(seed_keys))  # noqa: E731
-        entry["alpha_within_noise"] = bool(
-            means["alpha"] <= means[better] + 2 * np.hypot(std_error("alpha"), std_error(better)))
+        for name in ("alpha", "alpha-cross-fit"):
+            entry[name]["within_noise"] = bool(
+                means[name] <= means[better] + 2 * np.hypot(std_error(name), std_error(better)))
         out[f"k={k:g}"] = entry
         bar.update()
     return out
@@ -480,7 +494,7 @@ def _plot_policy(metrics: dict, path: Path) -> None:
     ax_land.set_title(rf"the push task: true cost (solid), smoothed $J_\sigma$ (dashed), its optimum (*)")
     ax_land.legend(fontsize=7)
     seeds = policy["seeds"]
-    for offset, (name, color, marker) in zip((-0.06, 0.0, 0.06), ESTIMATOR_STYLES):
+    for offset, (name, color, marker) in zip((-0.09, -0.03, 0.03, 0.09), ESTIMATOR_STYLES):
         means = np.array([policy[f"k={k:g}"][name]["gap_mean"] for k in ks])
         errors = np.array([policy[f"k={k:g}"][name]["gap_std"] for k in ks]) / np.sqrt(seeds)
         ax_gap.errorbar(ks * 10**offset, means, yerr=errors, fmt=marker + "-", color=color, capsize=3,
@@ -538,7 +552,7 @@ def summary(metrics: dict) -> dict:
     if policy is not None:
         for k in (ks[0], ks[-1]):
             entry = policy[f"k={k:g}"]
-            lines[f"push task, k = {k:g}: mean gap to the smoothed optimum, first / zeroth / alpha"] = (
+            lines[f"push task, k = {k:g}: mean gap to the smoothed optimum, first / zeroth / alpha / cross-fitted"] = (
                 " / ".join(f"{entry[name]['gap_mean']:.3g}" for name in ESTIMATORS) + f" (best: {entry['best']})")
     return lines
 

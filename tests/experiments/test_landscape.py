@@ -44,9 +44,11 @@ def test_stiffness_first_order_variance_grows_and_the_soft_step_zero_is_caught(t
     assert step["true_gradient"][wide] == pytest.approx(float(norm.cdf(0.5) - norm.cdf(-0.5)))
     assert abs(step["first"]["bias"][wide]) < 4 * step["first"]["std"][wide] / math.sqrt(step["repeats"])
     assert step["detected_vs_zeroth"][wide] <= 0.2
-    # Alpha order is measured beside them: it trusts first order less on the stiff wall.
+    # Alpha order is measured beside them: Suh's rule trusts first order less on the stiff wall
+    # (cross-fitted weights come from folds that mostly miss the ramp: no such trend).
     assert 0.0 <= stiff["alpha"]["mean_alpha"] < soft["alpha"]["mean_alpha"] <= 1.0
     assert stiff["alpha"]["rmse"] < stiff["first"]["rmse"]
+    assert all(0.0 <= entry["alpha-cross-fit"]["mean_alpha"] <= 1.0 for entry in (soft, stiff))
     # The push task: from push_start the ball stops short of the wall (no contact force: its
     # final velocity is its speed, exactly); a strong push bounces it back elastically.
     policy, sigma, speed = metrics["policy"], config.push_sigma, config.speed
@@ -60,12 +62,13 @@ def test_stiffness_first_order_variance_grows_and_the_soft_step_zero_is_caught(t
         # The smoothed optimum improves on the start; on the stiff wall it is a push that bounces
         # the ball back (the cost drops by about 2).
         assert entry["optimum_cost"] < entry["start_cost"]
-        for name in ("first", "zeroth", "alpha"):
+        for name in landscape_stiffness.ESTIMATORS:
             run = entry[name]
             assert len(run["gap"]) == 2 and min(run["gap"]) >= -1e-12  # the optimum is the minimum
             assert run["gap_mean"] < entry["start_cost"] - entry["optimum_cost"]  # better than the start
         assert entry["first"]["mean_alpha"] == 1.0 and entry["zeroth"]["mean_alpha"] == 0.0
-        assert 0.0 <= entry["alpha"]["mean_alpha"] <= 1.0 and entry["best"] in ("first", "zeroth", "alpha")
+        assert all(0.0 <= entry[name]["mean_alpha"] <= 1.0 for name in ("alpha", "alpha-cross-fit"))
+        assert entry["best"] in landscape_stiffness.ESTIMATORS
     assert policy[f"k={1e4:g}"]["optimum_cost"] < policy[f"k={1e4:g}"]["start_cost"] - 1.5
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["first_variance_growth"] == pytest.approx(metrics["first_variance_growth"])
