@@ -79,6 +79,7 @@ def smooth(
     devices: str | Sequence[jax.Device] | None = None,
     sample_chunk: int | None = None,
     alpha_rule: str = "suh",
+    alpha_cross_fit: bool = False,
 ) -> Callable:
     r"""Randomized smoothing of `f` as a differentiable function `g(key, x)`.
 
@@ -96,6 +97,8 @@ def smooth(
         alpha_rule: how the alpha-order rule blends its two estimates: ``"suh"`` (one alpha)
             or ``"inverse_variance"`` (one weight per entry of the Jacobian); the ``rule`` of
             :func:`rsmooth.alpha_order`.
+        alpha_cross_fit: the alpha-order rule chooses its weights on independent folds of
+            its samples (the ``cross_fit`` of :func:`rsmooth.alpha_order`).
         devices: where `f` (and, for derivatives, its per-sample derivatives) is evaluated
             at the samples: ``None`` (default) on the default device; ``"all"`` or a sequence
             of devices: split over them, the value and its derivatives the one-device ones up
@@ -144,12 +147,13 @@ def smooth(
         devices=devices,
         sample_chunk=sample_chunk,
         alpha_rule=alpha_rule,
+        alpha_cross_fit=alpha_cross_fit,
     )
 
 
 def _smooth(
     f, name, *, sigma, num_samples, estimator="zeroth", noise=Gaussian(), baseline=True, antithetic=False,
-    gamma=None, lipschitz=None, delta=0.05, devices=None, sample_chunk=None, alpha_rule="suh",
+    gamma=None, lipschitz=None, delta=0.05, devices=None, sample_chunk=None, alpha_rule="suh", alpha_cross_fit=False,
 ):
     """:func:`smooth`, whose errors call the smoothed argument `name`."""
     if estimator not in ESTIMATORS:
@@ -168,6 +172,8 @@ def _smooth(
     if gamma is not None and _checks.is_traced(gamma):
         raise TypeError("gamma must be a Python float in smooth() (pass a traced one to alpha_order)")
     _est.check_alpha_rule(alpha_rule, gamma, "alpha_rule")
+    if estimator == "alpha":
+        _est.check_cross_fit(alpha_cross_fit, num_samples, antithetic, "alpha_cross_fit")
     options = dict(
         num_samples=num_samples,
         estimator=estimator,
@@ -178,6 +184,7 @@ def _smooth(
         lipschitz=lipschitz,
         delta=delta,
         alpha_rule=alpha_rule,
+        alpha_cross_fit=alpha_cross_fit,
         **_est._check_spread(devices, sample_chunk),
     )
 
@@ -199,7 +206,7 @@ def _smooth(
 
 def _smoothed_flat(
     f_converted, num_consts, name, *, num_samples, estimator, noise, baseline, antithetic, gamma, lipschitz, delta,
-    devices, sample_chunk, alpha_rule="suh",
+    devices, sample_chunk, alpha_rule="suh", alpha_cross_fit=False,
 ):
     score = _derivative_score(noise)
     ratio = _likelihood_ratio(noise, score, elementwise=False)
@@ -247,7 +254,7 @@ def _smoothed_flat(
         flat = _est._Flat(x, lambda v: f_converted(v, *consts), None, ())
         estimate, _ = _est._alpha_order_flat(
             flat, key, sigma, num_samples, noise, baseline, antithetic, gamma, lipschitz, delta, devices=devices,
-            sample_chunk=sample_chunk, rule=alpha_rule,
+            sample_chunk=sample_chunk, rule=alpha_rule, cross_fit=alpha_cross_fit,
         )
         tangent = _matmul(estimate.jacobian, x_dot) + estimate.sigma_grad * sigma_dot
         if num_consts:

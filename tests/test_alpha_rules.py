@@ -213,6 +213,12 @@ def test_cross_fitted_weights_remove_the_bias_of_same_sample_weights(getkey):
     crossed, crossed_error = means(True)
     assert truth - same > truth - 1.0 and truth - same > 8 * same_error
     assert abs(crossed - truth) < 4 * crossed_error
+    # smooth() gives the same cross-fitted estimate as its derivative.
+    smoothed = rsmooth.smooth(f, sigma=sigma, num_samples=8, estimator="alpha", baseline="leave-one-out",
+                              alpha_cross_fit=True)
+    direct = rsmooth.alpha_order(f, keys[0], jnp.array(0.0), sigma=sigma, num_samples=8, baseline="leave-one-out",
+                                 cross_fit=True)
+    assert float(jax.grad(smoothed, argnums=1)(keys[0], 0.0)) == pytest.approx(float(direct.grad), rel=1e-12)
 
 
 @pytest.mark.parametrize("kwargs, error, match", [
