@@ -141,7 +141,7 @@ class Config:
 
     @classmethod
     def quick(cls) -> "Config":
-        return cls(num_samples=32, repeats=8, soft_step_repeats=100, policy_seeds=3)
+        return cls(num_samples=32, repeats=8, soft_step_repeats=100, policy_seeds=2, policy_iterations=40)
 
     def __post_init__(self):
         _protocol.check_options(self)

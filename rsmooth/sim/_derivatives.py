@@ -79,8 +79,11 @@ _apply = spatial.inertia_apply
 
 def supported(system) -> bool:
     """Whether :func:`configuration_jacobian` handles ``system`` (else use forward mode)."""
+    # (Gravity compensation's efforts depend on the configuration through terms the closed form
+    # does not hold: forward mode through the step's equations has them.)
     return (
-        system.actuation == "joints" and not system.box_spheres and not system.geom_pairs and not system.joint_limits
+        system.actuation == "joints" and not system.gravity_compensation
+        and not system.box_spheres and not system.geom_pairs and not system.joint_limits
         and not len(_dynamics._tree(system.model).spherical)
         and (system.max_contacts is None or system.max_contacts >= system.num_contacts)
     )

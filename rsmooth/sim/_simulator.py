@@ -371,6 +371,13 @@ class RigidBodySystem(eqx.Module):
             JAX autodiff through CRBA, Cholesky and the Delassus matrix, with only the NCP
             solve differentiated implicitly; the same derivative, several times slower,
             kept as a reference. Compliant contact laws always use ``"autodiff"``.
+        gravity_compensation: the actuated dofs also receive the efforts that hold the
+            system against gravity at its configuration (their entries of
+            :func:`~rsmooth.sim.gravity_torques`), as the controller of a torque-controlled
+            arm adds them (Franka's does): ``u`` is then the effort beyond gravity's, and
+            ``input_limit`` bounds ``u``, not the sum (static; ``actuation="joints"`` only).
+            Its derivative with respect to the configuration is part of the step's. See
+            :meth:`with_gravity_compensation`.
     """
 
     model: Model
@@ -401,6 +408,7 @@ class RigidBodySystem(eqx.Module):
     joint_limits: tuple[tuple[int, int], ...] = eqx.field(static=True, default=())
     max_contacts: int | None = eqx.field(static=True, default=None)
     max_pairs: int | None = eqx.field(static=True, default=None)
+    gravity_compensation: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         num_spheres, num_planes = len(self.sphere_frames), self.plane_normals.shape[0]
@@ -456,6 +464,10 @@ class RigidBodySystem(eqx.Module):
             isinstance(self.max_pairs, bool) or not isinstance(self.max_pairs, (int, np.integer)) or self.max_pairs < 1
         ):
             raise ValueError(f"max_pairs must be a positive integer or None, got {self.max_pairs!r}")
+        if not isinstance(self.gravity_compensation, bool):
+            raise TypeError(f"gravity_compensation must be a bool, got {self.gravity_compensation!r}")
+        if self.gravity_compensation and self.actuation != "joints":
+            raise ValueError("gravity_compensation adds efforts to the actuated dofs: it needs actuation='joints'")
         if self.joint_limits and not isinstance(self.contact, str):
             raise ValueError("joint_limits are enforced by the hard-contact NCP: use contact='hard'")
         if not isinstance(self.geom_pairs, tuple) or not all(isinstance(p, GeomPair) for p in self.geom_pairs):
@@ -537,6 +549,14 @@ class RigidBodySystem(eqx.Module):
                 with a compliant contact law.
         """
         return dataclasses.replace(self, max_contacts=max_contacts, max_pairs=max_pairs)
+
+    def with_gravity_compensation(self, on: bool = True) -> "RigidBodySystem":
+        """This system with (or without) :attr:`gravity_compensation` on its actuated dofs.
+
+        Raises:
+            ValueError: with ``actuation="wrench"``.
+        """
+        return dataclasses.replace(self, gravity_compensation=on)
 
     def _contact_selection(self, distance: Array) -> Array | None:
         """Indices ``(K,)`` (ascending) of the candidates the NCP solves under
@@ -631,7 +651,15 @@ class RigidBodySystem(eqx.Module):
         limited = jnp.clip(u, -self.input_limit, self.input_limit)
         clipped = jnp.any(limited != u)
         if self.actuation == "joints":
-            tau = jnp.zeros(self.model.nv, u.dtype).at[np.asarray(self.actuated_dofs, dtype=np.int64)].set(limited)
+            dofs = np.asarray(self.actuated_dofs, dtype=np.int64)
+            if self.gravity_compensation:
+                if kinematics is None:
+                    kinematics = _dynamics._kinematics(self.model, q)
+                inertias = _dynamics._world_inertias(self.model, kinematics)
+                zero = jnp.zeros(self.model.nv, q.dtype)
+                holding = _dynamics._rnea(self.model, kinematics, inertias, zero, None, self.model.gravity)
+                limited = limited + holding[dofs]
+            tau = jnp.zeros(self.model.nv, u.dtype).at[dofs].set(limited)
             return tau, clipped
         if kinematics is None:
             kinematics = _dynamics._kinematics(self.model, q)

@@ -611,3 +611,47 @@ def test_rollout_without_traced_checks_reports_an_invalid_contact_problem():
     with pytest.warns(sim.SimulationWarning, match="3 invalid_input"):
         sim.check_steps(infos)
     assert np.all(np.asarray(fine.ncp.converged))
+
+
+ARM = """
+<mujoco><option timestep="0.01"/>
+  <worldbody>
+    <body name="upper" pos="0 0 1"><joint name="shoulder" type="hinge" axis="0 1 0" damping="0.1"/>
+      <geom type="capsule" fromto="0 0 0 0.4 0 0" size="0.03" mass="2"/>
+      <body name="lower" pos="0.4 0 0"><joint name="elbow" type="hinge" axis="0 1 0" damping="0.1"/>
+        <geom type="capsule" fromto="0 0 0 0.3 0 0.1" size="0.025" mass="1"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><motor joint="shoulder" ctrlrange="-50 50"/><motor joint="elbow" ctrlrange="-20 20"/></actuator>
+</mujoco>
+"""
+
+
+def test_gravity_compensation_holds_an_arm_and_its_derivative_is_the_steps():
+    # A two-link arm out of its hanging rest: under gravity compensation and no input it stays
+    # where it is (its configuration exactly, to rounding); without, it falls. The step's
+    # Jacobians include the compensation's dependence on the configuration (central
+    # differences, step 1e-6: error O(1e-10)).
+    arm = sim.scene(ARM)
+    held = arm.with_gravity_compensation()
+    x0 = arm.state(jnp.array([0.4, -0.7]))
+    u = jnp.zeros(2)
+    xs_held, _ = held.rollout(x0, jnp.zeros((50, 2)))
+    xs_free, _ = arm.rollout(x0, jnp.zeros((50, 2)))
+    np.testing.assert_allclose(xs_held[:, :2], np.broadcast_to(x0[:2], (51, 2)), atol=1e-12)
+    assert float(jnp.max(jnp.abs(xs_free[-1, :2] - x0[:2]))) > 0.1
+    x = x0.at[2:].set(jnp.array([0.3, -0.5]))
+    u = jnp.array([1.0, -0.5])
+    _, fx, fu = held.step_and_jacobians(x, u)
+    eps = 1e-6
+    central = lambda f, z, i: (f(z.at[i].add(eps)) - f(z.at[i].add(-eps))) / (2 * eps)  # noqa: E731
+    fx_fd = jnp.stack([central(lambda z: held.step(z, u), x, i) for i in range(4)], axis=1)
+    fu_fd = jnp.stack([central(lambda w: held.step(x, w), u, i) for i in range(2)], axis=1)
+    np.testing.assert_allclose(fx, fx_fd, atol=1e-7)
+    np.testing.assert_allclose(fu, fu_fd, atol=1e-7)
+    # the compensation's own derivative matters: without it the Jacobians differ
+    _, fx_plain, _ = arm.step_and_jacobians(x, u)
+    assert float(jnp.max(jnp.abs(fx - fx_plain))) > 1e-3
+    with pytest.raises(ValueError, match="gravity_compensation adds efforts to the actuated dofs"):
+        sim.ball().with_gravity_compensation()
