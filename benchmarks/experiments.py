@@ -32,6 +32,7 @@ EXPERIMENTS = (
     "cube-lift",
     "solo-lift",
     "pusher",
+    "panda-push",
     "policy",
     "policy-pusher",
 )

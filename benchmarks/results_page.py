@@ -718,7 +718,7 @@ def exp_stiffness(m: dict) -> list[str]:
 def exp_chaos(m: dict) -> list[str]:
     times = m.get("horizon_times") or []
     body = [[f"{t:g}", sig(get(m, "exact_derivative_median", i))]
-            + [sig(get(m, name, "per_sample_variance", "mean", i)) for name in LANDSCAPE_ESTIMATORS]
+            + [sig(get(m, name, "per_sample_variance", "mean", i)) for name in ("first", "zeroth", "alpha")]
             + [fixed(get(m, "alpha", "weight", i), 2)] for i, t in enumerate(times) if number(t) is not None]
     lines = [f"A ball in a wedge of {m.get('half_angle_deg', '?')} deg walls, sigma = {m.get('sigma', '?')} m on the start, "
              f"M = {m.get('num_samples', '?')} samples, {m.get('repeats', '?')} repeats; fitted exponent of the exact "
@@ -755,6 +755,7 @@ EXPERIMENT_SECTIONS: dict[str, tuple[str, Callable[[dict], list[str]]]] = {
     "solo-lift": ("Control: Solo-12 foot lift (foot heights over seeds, cm)",
                   lambda m: exp_trajopt(m, (("foot height per seed (cm)", "foot_height", _foot_heights),))),
     "pusher": ("Control: pusher", exp_trajopt),
+    "panda-push": ("Control: a Panda arm pushes a box", exp_trajopt),
     "policy": ("Policy: throw over a wall", exp_policy),
     "policy-pusher": ("Policy: pusher", lambda m: exp_policy(m, pusher=True)),
 }

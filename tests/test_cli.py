@@ -170,7 +170,7 @@ def test_solo_lift_all_feet_runs_each_foot_into_its_folder(monkeypatch, tmp_path
 
 def test_control_options_reach_the_configs_and_their_checks_name_the_flags(monkeypatch, tmp_path):
     calls = _recorded(monkeypatch)
-    for task in ("cube-lift", "pusher", "solo-lift"):
+    for task in ("cube-lift", "pusher", "panda-push", "solo-lift"):
         result = CliRunner().invoke(cli.app, ["control", task, "--estimator", "alpha", "--samples", "16", "--out", str(tmp_path)])
         assert result.exit_code == 0, result.output
         assert (calls[-1][1].estimator, calls[-1][1].num_samples) == ("alpha", 16), task

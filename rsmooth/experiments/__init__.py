@@ -25,6 +25,7 @@ MODULES = (
     "control_cube_lift",
     "control_solo_lift",
     "control_pusher",
+    "control_panda_push",
     "control_policy",
     "control_policy_pusher",
 )

@@ -9,7 +9,8 @@ implicitly (:func:`solve_ncp`); collision geometry (:class:`Sphere`, :class:`Cap
 manifolds between posed shapes (:func:`collide`, :func:`candidate_pairs`); :class:`RigidBodySystem` steps a system in time
 (its contacts: spheres against half-spaces, and any pairs of shapes, :class:`GeomPair`) and is the
 ``Dynamics`` (``step(x, u)``, ``nx``, ``nu``) that rsmooth's optimizers consume; :func:`scene`
-builds one from a MuJoCo model (MJCF or URDF), its geoms paired as MuJoCo pairs them.
+builds one from a MuJoCo model (MJCF or URDF), its geoms paired as MuJoCo pairs them;
+:func:`panda_push` is a Panda arm beside a box on a table.
 """
 
 from rsmooth.sim._collision import (
@@ -78,6 +79,7 @@ from rsmooth.sim._ncp import (
     project_to_friction_cone as project_to_friction_cone,
     solve_ncp as solve_ncp,
 )
+from rsmooth.sim._panda import PANDA_TORQUE_LIMITS as PANDA_TORQUE_LIMITS, panda_push as panda_push
 from rsmooth.sim._scene import scene as scene
 from rsmooth.sim._simulator import (
     SEPARATED as SEPARATED,

@@ -1,0 +1,151 @@
+"""A Franka Emika Panda arm (example-robot-data's URDF) beside a box on a table, for pushing.
+
+The scene is assembled with MuJoCo's model editor (``mujoco.MjSpec``) from the robot's URDF and
+converted by :func:`~rsmooth.sim.scene`:
+
+- the Panda's seven arm joints; its two finger joints are removed (the fingers welded
+  closed, their ``<mimic>`` coupling with them);
+- its links do not collide: a sphere ``tool_radius`` at the tool centre point between the
+  fingertips (``panda_hand_tcp``) is the only robot geometry in contact, so that a push is one
+  sphere-box contact (the links' meshes would make every step a set of mesh tests);
+- the table top is the half-space ``z <= 0`` under the robot's base, in contact with the tool
+  and the box; the box is a free body at rest on it;
+- seven motors, one per arm joint, bounded by Franka's torque limits; with
+  ``gravity_compensation`` (default) the inputs are the torques beyond those that hold the
+  arm against gravity, as Franka's torque interface takes them
+  (:attr:`RigidBodySystem.gravity_compensation`), so that zero input holds the arm still.
+
+The start (``initial_state()``) puts the tool ``tool_gap`` behind the box's ``-x`` face at the
+box's mid-height, ``tool_y`` off its centre line, the hand pointing down (inverse kinematics at
+build time), everything at rest.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+
+import jax.numpy as jnp
+import numpy as np
+
+from rsmooth.sim._model import example_robot_data_root
+from rsmooth.sim._mujoco import _mujoco, _read_urdf, load_mjcf
+from rsmooth.sim._ncp import NCPSolver
+from rsmooth.sim._scene import scene
+from rsmooth.sim._simulator import RigidBodySystem
+
+__all__ = ["PANDA_TORQUE_LIMITS", "panda_push"]
+
+# Franka Emika's joint torque limits (N m), joints 1 to 7.
+PANDA_TORQUE_LIMITS = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)
+# A configuration near the start (hand over the table, pointing down): the inverse kinematics'
+# initial guess.
+_IK_GUESS = np.array([0.0, 0.3, 0.0, -2.4, 0.0, 2.7, np.pi / 4])
+
+
+def _panda_spec(mj, box_side: float, box_mass: float, box_position, tool_radius: float, table_friction: float,
+                tool_friction: float, time_step: float):
+    root = pathlib.Path(example_robot_data_root())
+    spec = _read_urdf(mj, root / "robots" / "panda_description" / "urdf" / "panda.urdf", (str(root.parent),))
+    for equality in list(spec.equalities):  # the fingers' <mimic>
+        spec.delete(equality)
+    for joint in [j for j in spec.joints if "finger" in j.name]:
+        spec.delete(joint)
+    for geom in spec.geoms:  # the links are drawn, not collided
+        geom.contype = geom.conaffinity = 0
+    tool = spec.body("panda_hand_tcp").add_geom()
+    tool.name, tool.type, tool.size, tool.friction = "tool", mj.mjtGeom.mjGEOM_SPHERE, [tool_radius, 0, 0], [tool_friction, 0, 0]
+    table = spec.worldbody.add_geom()
+    table.name, table.type, table.size, table.friction = "table", mj.mjtGeom.mjGEOM_PLANE, [1.0, 1.0, 0.1], [table_friction, 0, 0]
+    box = spec.worldbody.add_body()
+    box.name, box.pos = "box", [box_position[0], box_position[1], box_side / 2]
+    box.add_freejoint()
+    geom = box.add_geom()
+    geom.name, geom.type, geom.size = "box", mj.mjtGeom.mjGEOM_BOX, [box_side / 2] * 3
+    geom.mass, geom.friction = box_mass, [table_friction, 0, 0]
+    for index, limit in enumerate(PANDA_TORQUE_LIMITS, start=1):
+        motor = spec.add_actuator()
+        motor.name, motor.target, motor.trntype = f"motor{index}", f"panda_joint{index}", mj.mjtTrn.mjTRN_JOINT
+        motor.ctrllimited, motor.ctrlrange = 1, [-limit, limit]
+    spec.option.timestep = time_step
+    spec.discard_visual()  # the links' geoms do not collide and the URDF gives their inertias
+    return spec
+
+
+def panda_push(
+    *,
+    box_side: float = 0.1,
+    box_mass: float = 0.5,
+    box_position: tuple[float, float] = (0.55, 0.0),
+    tool_radius: float = 0.015,
+    tool_gap: float = 0.03,
+    tool_y: float = 0.0,
+    table_friction: float = 0.4,
+    tool_friction: float = 0.5,
+    time_step: float = 0.01,
+    gravity_compensation: bool = True,
+    solver: NCPSolver = NCPSolver(sticking_guess=True, rank_deficient=True, polish=True, max_iterations=1000),
+) -> RigidBodySystem:
+    """The Panda, a spherical tool at its fingertips, a box on the table (see the module).
+
+    ``nx = 14 + 13`` (the seven arm joints, the box's position and quaternion; then the
+    velocities), ``nu = 7`` (joint torques, N m).
+
+    Args:
+        box_side: edge of the cubic box (m).
+        box_mass: its mass (kg).
+        box_position: its centre's ``(x, y)`` on the table (m), in front of the robot.
+        tool_radius: radius of the tool sphere (m).
+        tool_gap: at the start, the distance from the tool to the box's ``-x`` face (m).
+        tool_y: at the start, the tool's offset from the box's centre line (m).
+        table_friction: Coulomb coefficient of the box on the table (and of the tool on it).
+        tool_friction: Coulomb coefficient of the tool on the box.
+        time_step: ``h`` (s).
+        gravity_compensation: inputs beyond the torques that hold the arm against gravity.
+        solver: the contact solver.
+
+    Raises:
+        ValueError: a size, mass or time step that is not positive and finite, a negative
+            friction coefficient or tool gap, or a start out of the arm's reach.
+    """
+    for name, value in (("box_side", box_side), ("box_mass", box_mass), ("tool_radius", tool_radius),
+                        ("time_step", time_step)):
+        if not (np.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be positive and finite, got {value}")
+    for name, value in (("table_friction", table_friction), ("tool_friction", tool_friction), ("tool_gap", tool_gap)):
+        if not (np.isfinite(value) and value >= 0):
+            raise ValueError(f"{name} must be non-negative and finite, got {value}")
+    mj = _mujoco()
+    spec = _panda_spec(mj, box_side, box_mass, box_position, tool_radius, table_friction, tool_friction, time_step)
+    compiled = spec.compile()
+    system = scene(load_mjcf(compiled), solver=solver, joint_limits=True)
+    q = np.array(system.initial_state()[: system.model.nq])  # the box where the scene puts it
+    q[:7] = _arm_start(mj, compiled, box_side, box_position, tool_radius, tool_gap, tool_y)
+    return dataclasses.replace(system.with_gravity_compensation(gravity_compensation), initial_configuration=jnp.asarray(q))
+
+
+def _arm_start(mj, compiled, box_side: float, box_position, tool_radius: float, tool_gap: float,
+               tool_y: float) -> np.ndarray:
+    """The arm's ``q`` ``(7,)`` with its tool ``tool_gap`` behind the box's ``-x`` face at the
+    box's mid-height (the hand pointing down), by Gauss-Newton on MuJoCo's kinematics."""
+    data = mj.MjData(compiled)
+    tool = mj.mj_name2id(compiled, mj.mjtObj.mjOBJ_GEOM, "tool")
+    target = np.array([box_position[0] - box_side / 2 - tool_gap - tool_radius, box_position[1] + tool_y, box_side / 2])
+    q = _IK_GUESS.copy()
+    error = np.full(6, np.inf)
+    for _ in range(100):
+        data.qpos[:7] = q
+        mj.mj_kinematics(compiled, data)
+        mj.mj_comPos(compiled, data)
+        rotation = data.geom_xmat[tool].reshape(3, 3)
+        error = np.r_[target - data.geom_xpos[tool], np.cross(rotation[:, 2], [0.0, 0.0, -1.0])]
+        if np.linalg.norm(error) < 1e-12:
+            break
+        position_jacobian, rotation_jacobian = np.zeros((3, compiled.nv)), np.zeros((3, compiled.nv))
+        mj.mj_jacGeom(compiled, data, position_jacobian, rotation_jacobian, tool)
+        jacobian = np.r_[position_jacobian[:, :7], rotation_jacobian[:, :7]]
+        q = q + np.linalg.lstsq(jacobian, error, rcond=None)[0]
+    if not np.linalg.norm(error) < 1e-9:
+        raise ValueError(f"no arm configuration puts the tool at {target.tolist()} (inverse kinematics error "
+                         f"{np.linalg.norm(error):.2g}): move the box within the arm's reach")
+    return q
