@@ -60,7 +60,8 @@ def test_registry_lists_every_experiment_once_in_the_help_order():
     assert list(experiments) == [
         ("experiment", "estimators"), ("experiment", "perturbed-argmax"), ("experiment", "null-gradients"),
         ("sim", "solo12"), ("sim", "scene"), ("experiment", "stiffness"), ("experiment", "chaos"), ("experiment", "continuity"), ("render", "pose"), ("render", "reconstruct"), ("control", "cube-lift"),
-        ("control", "solo-lift"), ("control", "pusher"), ("control", "policy"), ("control", "policy-pusher"),
+        ("control", "solo-lift"), ("control", "pusher"), ("control", "panda-push"), ("control", "policy"),
+        ("control", "policy-pusher"),
     ]
     for command, experiment in experiments.items():
         assert experiment.command == command and experiment.title == " ".join(command)
