@@ -211,7 +211,8 @@ def smoothed_dynamics_jacobians(
     _estimators.check_alpha_rule(alpha_rule, name="alpha_rule")
     options = {"rule": alpha_rule} if estimator == "alpha" else {}
     step_and_jacobians = getattr(problem.dynamics, "step_and_jacobians", None)
-    if estimator == "first" and step_and_jacobians is not None:
+    if estimator in ("first", "alpha") and step_and_jacobians is not None:
+        # (alpha order: for its first-order half)
 
         def value_and_jacobian(y):  # the dynamics' own Jacobians, in the scaled variable y
             y = scale * y

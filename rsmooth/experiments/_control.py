@@ -182,6 +182,24 @@ def solution_summary(solution: control.Solution) -> dict:
     }
 
 
+def solve_methods(
+    config, problem: control.ShootingProblem, us_init, key, metrics_of: Callable[[control.Solution], dict],
+    description: str, progress: bool = True,
+) -> tuple[tuple[str, ...], dict, dict]:
+    """Every method of a control experiment's ``config`` (:func:`make_solvers`) from
+    ``us_init``, over its seeds (:func:`run_methods`); ``metrics_of(solution)`` gives a run's
+    task metrics (with ``success``). Returns the methods' names, their metrics and the first
+    seed's solutions."""
+    solvers = make_solvers(config)
+    names = tuple(solvers)
+
+    def run_one(name, key, callback):
+        solution = solve(name, solvers[name], problem, us_init, key, callback)
+        return solution, metrics_of(solution)
+
+    return (names, *run_methods(names, config.seeds, key, run_one, description, progress))
+
+
 def run_methods(
     names: tuple[str, ...],
     seeds: int,

@@ -21,7 +21,6 @@ import dataclasses
 import time
 from pathlib import Path
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -111,20 +110,17 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     start = time.perf_counter()
     system, problem, target = build_problem(config)
     rest = float(problem.x0[2])
-    solvers = _control.make_solvers(config)
-    names = tuple(solvers)
-    us_init = jnp.zeros((config.horizon, system.nu))
 
-    def run_one(name, key, callback):
-        solution = _control.solve(name, solvers[name], problem, us_init, key, callback)
+    def metrics_of(solution):
         height = float(solution.xs[-1, 2]) - rest
-        return solution, {
+        return {
             "final_height": height,
             "max_force": float(jnp.max(jnp.abs(solution.us))),
             "success": bool(abs(height - config.height) < config.tolerance),
         }
 
-    per_method, solutions = _control.run_methods(names, config.seeds, key, run_one, "cube-lift", progress)
+    names, per_method, solutions = _control.solve_methods(
+        config, problem, jnp.zeros((config.horizon, system.nu)), key, metrics_of, "cube-lift", progress)
     metrics = {
         "task": "cube-lift",
         "methods": list(names),

@@ -150,15 +150,9 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     """Solves with each method and seed; writes metrics.json and panda_push.png."""
     start_time = time.perf_counter()
     system, problem, target = build_problem(config)
-    solvers = _control.make_solvers(config)
-    names = tuple(solvers)
-    us_init = jnp.zeros((config.horizon, system.nu))
-
-    def run_one(name, key, callback):
-        solution = _control.solve(name, solvers[name], problem, us_init, key, callback)
-        return solution, trajectory_metrics(solution.xs, solution.us, target, config)
-
-    per_method, solutions = _control.run_methods(names, config.seeds, key, run_one, "panda push", progress)
+    names, per_method, solutions = _control.solve_methods(
+        config, problem, jnp.zeros((config.horizon, system.nu)), key,
+        lambda solution: trajectory_metrics(solution.xs, solution.us, target, config), "panda push", progress)
     x0 = np.asarray(problem.x0)
     metrics = {
         "task": "panda-push",

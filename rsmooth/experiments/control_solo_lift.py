@@ -201,15 +201,9 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     out = Path(out)
     start = time.perf_counter()
     system, problem, u0 = build_problem(config)
-    solvers = _control.make_solvers(config)
-    names = tuple(solvers)
-    us_init = jnp.tile(u0, (config.horizon, 1))
-
-    def run_one(name, key, callback):
-        solution = _control.solve(name, solvers[name], problem, us_init, key, callback)
-        return solution, trajectory_metrics(system, solution.xs, config.foot, config)
-
-    per_method, solutions = _control.run_methods(names, config.seeds, key, run_one, f"solo-lift {config.foot}", progress)
+    names, per_method, solutions = _control.solve_methods(
+        config, problem, jnp.tile(u0, (config.horizon, 1)), key,
+        lambda solution: trajectory_metrics(system, solution.xs, config.foot, config), f"solo-lift {config.foot}", progress)
     metrics = {
         "task": "solo-lift",
         "foot": config.foot,
