@@ -5,9 +5,9 @@ simulated from MuJoCo's ``qpos0`` at rest, with zero input, with hard frictional
 metrics say whether the simulation stayed sane: the deepest penetration, the change of
 mechanical energy (with zero input it can only be dissipated by contacts and damping: a gain
 is energy injected by the time stepping), the contacts active per step and the contact solves
-that did not converge. The animation draws every geom as its triangulated shape (a
-matplotlib 3-D view, each face shaded by its angle to a light); the plot shows the energy and
-the active contacts over time. Without ``--file`` a built-in scene is simulated: a stack of two
+that did not converge. The animation draws every geom as its triangulated shape (rsmooth's own
+renderer, a directional light; :mod:`rsmooth.experiments._scene_render`); the plot shows the
+energy and the active contacts over time. Without ``--file`` a built-in scene is simulated: a stack of two
 boxes, a ball, a capsule lying on its side, a brick and a cylinder on a floor.
 
 A robot's URDF (e.g. one of example-robot-data) is not a scene: ``--floating-base`` frees its
@@ -27,7 +27,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from rsmooth import _checks, sim, viz
-from rsmooth.experiments import _protocol
+from rsmooth.experiments import _protocol, _scene_render
 
 METRICS_DOC = """metrics.json keys: file (the scene simulated; 'built-in' for the default), steps,
 time_step (s), bodies (MuJoCo bodies, the world included), geom_pairs, candidate_contacts,
@@ -125,96 +125,6 @@ class Config:
                 raise ValueError(f"{name} applies to a --file, not to the built-in scene")
 
 
-def _geom_mesh(loaded, geom: int):
-    """The triangles of a geom in its own frame, ``(vertices, faces)``; ``None`` for a plane
-    (drawn as the floor) and for height fields and SDFs."""
-    import trimesh
-
-    kind, size = loaded.geom_types[geom], np.asarray(loaded.geom_size[geom], dtype=np.float64)
-    if kind == "sphere":
-        mesh = trimesh.creation.icosphere(subdivisions=2, radius=size[0])
-    elif kind == "ellipsoid":
-        mesh = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
-        mesh.vertices *= size
-    elif kind == "capsule":
-        mesh = trimesh.creation.capsule(height=2 * size[1], radius=size[0], count=[12, 8])
-    elif kind == "cylinder":
-        mesh = trimesh.creation.cylinder(radius=size[0], height=2 * size[1], sections=16)
-    elif kind == "box":
-        mesh = trimesh.creation.box(extents=2 * size)
-    elif kind == "mesh":
-        return np.asarray(loaded.geom_vertices[geom]), np.asarray(loaded.geom_faces[geom])
-    else:
-        return None
-    return np.asarray(mesh.vertices), np.asarray(mesh.faces)
-
-
-def _colors(count: int) -> np.ndarray:
-    return np.asarray(viz.plt.get_cmap("tab10")(np.arange(count) % 10))[:, :3]
-
-
-def draw(loaded, rotations, translations, title: str, bounds, floor_height: float = 0.0) -> np.ndarray:
-    """An RGB image of the scene with its joints at ``(rotations, translations)`` (matplotlib,
-    3-D): every geom's triangles, each face shaded by its angle to a light from above, over a
-    floor at ``z = floor_height``."""
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
-
-    fig = viz.plt.figure(figsize=(5.6, 4.4), dpi=80)
-    ax = fig.add_subplot(projection="3d")
-    (low, high) = bounds
-    light = np.array([0.3, -0.4, 0.87])
-    colors = _colors(loaded.ngeom)
-    for geom in range(loaded.ngeom):
-        shape = _geom_mesh(loaded, geom)
-        if shape is None:
-            continue
-        vertices, faces = shape
-        joint = loaded.geom_joints[geom]
-        rotation = rotations[joint] @ np.asarray(loaded.geom_rotation[geom])
-        translation = rotations[joint] @ np.asarray(loaded.geom_translation[geom]) + translations[joint]
-        triangles = (vertices @ rotation.T + translation)[faces]
-        normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
-        normals /= np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
-        brightness = 0.35 + 0.65 * np.clip(normals @ light, 0.0, 1.0)
-        ax.add_collection3d(Poly3DCollection(triangles, facecolors=brightness[:, None] * colors[geom], linewidths=0))
-    # the floor: a grey square under the scene
-    corners = np.array([[low[0], low[1]], [high[0], low[1]], [high[0], high[1]], [low[0], high[1]]])
-    corners = np.concatenate([corners, np.full((4, 1), floor_height)], axis=1)
-    ax.add_collection3d(Poly3DCollection([corners], facecolors="0.85", alpha=0.5, linewidths=0))
-    ax.set_xlim(low[0], high[0])
-    ax.set_ylim(low[1], high[1])
-    ax.set_zlim(low[2], high[2])
-    ax.set_box_aspect(tuple(np.asarray(high) - np.asarray(low)))
-    ax.set_title(title, fontsize=9)
-    fig.canvas.draw()
-    image = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
-    viz.plt.close(fig)
-    return image
-
-
-def _bounds(loaded, placements, floor_height: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """A box that holds every moving geom's reach over the run, and the floor under it."""
-    rotations, translations = placements
-    moving = [g for g in range(loaded.ngeom) if loaded.geom_joints[g] != 0 and _geom_mesh(loaded, g) is not None]
-    static = [g for g in range(loaded.ngeom) if loaded.geom_joints[g] == 0 and loaded.geom_types[g] != "plane"]
-    points = [np.zeros((1, 3))]
-    for geom in moving:
-        reach = float(np.linalg.norm(loaded.geom_size[geom])) if loaded.geom_types[geom] != "mesh" else float(
-            np.max(np.linalg.norm(np.asarray(loaded.geom_vertices[geom]), axis=-1)))
-        joint = loaded.geom_joints[geom]
-        centres = np.einsum("tab,b->ta", rotations[:, joint], np.asarray(loaded.geom_translation[geom]))
-        centres = centres + translations[:, joint]
-        points += [centres - reach, centres + reach]
-    for geom in static:
-        reach = float(np.linalg.norm(loaded.geom_size[geom]))
-        points += [np.asarray(loaded.geom_translation[geom])[None] - reach, np.asarray(loaded.geom_translation[geom])[None] + reach]
-    points = np.concatenate(points)
-    low, high = points.min(axis=0), points.max(axis=0)
-    low[2] = min(low[2], floor_height)
-    margin = 0.05 * max(float(np.max(high - low)), 0.1)
-    return low - margin, high + margin
-
-
 def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     """Simulates, writes metrics.json, scene.png and scene.gif under `out`."""
     del key  # the simulation is deterministic
@@ -296,10 +206,11 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     viz.save_figure(fig, out / "scene.png")
     bar.update()
     rotations, translations = (np.asarray(p) for p in placements)
-    bounds = _bounds(loaded, (rotations, translations), floor_height)
+    draw = _scene_render.SceneFrames(loaded, _scene_render.bounds(loaded, (rotations, translations), floor_height),
+                                     floor_height)
     frames = []
     for k in np.linspace(0, config.steps, config.frames).round().astype(int):
-        frames.append(draw(loaded, rotations[k], translations[k], f"t = {k * dt:.2f} s", bounds, floor_height))
+        frames.append(draw(rotations[k], translations[k]))
         bar.update()
     bar.close()
     viz.save_animation(frames, out / "scene.gif", fps=max(1, round(config.frames / (config.steps * dt))))

@@ -79,7 +79,11 @@ from rsmooth.sim._ncp import (
     project_to_friction_cone as project_to_friction_cone,
     solve_ncp as solve_ncp,
 )
-from rsmooth.sim._panda import PANDA_TORQUE_LIMITS as PANDA_TORQUE_LIMITS, panda_push as panda_push
+from rsmooth.sim._panda import (
+    PANDA_TORQUE_LIMITS as PANDA_TORQUE_LIMITS,
+    panda_push as panda_push,
+    panda_push_model as panda_push_model,
+)
 from rsmooth.sim._scene import scene as scene
 from rsmooth.sim._simulator import (
     SEPARATED as SEPARATED,

@@ -7,7 +7,9 @@ converted by :func:`~rsmooth.sim.scene`:
   closed, their ``<mimic>`` coupling with them);
 - its links do not collide: a sphere ``tool_radius`` at the tool centre point between the
   fingertips (``panda_hand_tcp``) is the only robot geometry in contact, so that a push is one
-  sphere-box contact (the links' meshes would make every step a set of mesh tests);
+  sphere-box contact (the links' meshes would make every step a set of mesh tests); the links'
+  collision meshes stay in the model, not colliding, to draw the arm (its visual meshes are
+  Collada files, which MuJoCo cannot decode);
 - the table top is the half-space ``z <= 0`` under the robot's base, in contact with the tool
   and the box; the box is a free body at rest on it;
 - seven motors, one per arm joint, bounded by Franka's torque limits; with
@@ -34,7 +36,7 @@ from rsmooth.sim._ncp import NCPSolver
 from rsmooth.sim._scene import scene
 from rsmooth.sim._simulator import RigidBodySystem
 
-__all__ = ["PANDA_TORQUE_LIMITS", "panda_push"]
+__all__ = ["PANDA_TORQUE_LIMITS", "panda_push", "panda_push_model"]
 
 # Franka Emika's joint torque limits (N m), joints 1 to 7.
 PANDA_TORQUE_LIMITS = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)
@@ -68,7 +70,12 @@ def _panda_spec(mj, box_side: float, box_mass: float, box_position, tool_radius:
         motor.name, motor.target, motor.trntype = f"motor{index}", f"panda_joint{index}", mj.mjtTrn.mjTRN_JOINT
         motor.ctrllimited, motor.ctrlrange = 1, [-limit, limit]
     spec.option.timestep = time_step
-    spec.discard_visual()  # the links' geoms do not collide and the URDF gives their inertias
+    # The visual meshes are Collada files, which MuJoCo cannot decode: dropped. The links'
+    # collision meshes stay, not colliding, for drawing (the URDF gives the links' inertias).
+    for mesh in [m for m in spec.meshes if m.file.lower().endswith(".dae")]:
+        for geom in [g for g in spec.geoms if g.meshname == mesh.name]:
+            spec.delete(geom)
+        spec.delete(mesh)
     return spec
 
 
@@ -116,12 +123,29 @@ def panda_push(
         if not (np.isfinite(value) and value >= 0):
             raise ValueError(f"{name} must be non-negative and finite, got {value}")
     mj = _mujoco()
-    spec = _panda_spec(mj, box_side, box_mass, box_position, tool_radius, table_friction, tool_friction, time_step)
-    compiled = spec.compile()
+    compiled = _panda_spec(mj, box_side, box_mass, box_position, tool_radius, table_friction, tool_friction,
+                           time_step).compile()
     system = scene(load_mjcf(compiled), solver=solver, joint_limits=True)
     q = np.array(system.initial_state()[: system.model.nq])  # the box where the scene puts it
     q[:7] = _arm_start(mj, compiled, box_side, box_position, tool_radius, tool_gap, tool_y)
     return dataclasses.replace(system.with_gravity_compensation(gravity_compensation), initial_configuration=jnp.asarray(q))
+
+
+def panda_push_model(
+    *,
+    box_side: float = 0.1,
+    box_mass: float = 0.5,
+    box_position: tuple[float, float] = (0.55, 0.0),
+    tool_radius: float = 0.015,
+    table_friction: float = 0.4,
+    tool_friction: float = 0.5,
+    time_step: float = 0.01,
+):
+    """The :class:`~rsmooth.sim.MujocoModel` that :func:`panda_push` (with the same arguments)
+    is built from: its geoms, the links' meshes among them, are what an animation draws."""
+    mj = _mujoco()
+    return load_mjcf(_panda_spec(mj, box_side, box_mass, box_position, tool_radius, table_friction, tool_friction,
+                                 time_step).compile())
 
 
 def _arm_start(mj, compiled, box_side: float, box_position, tool_radius: float, tool_gap: float,

@@ -3,6 +3,7 @@ starts where it is placed; DDP leaves the box (zero gradient), R-DDP pushes it."
 
 import json
 
+import imageio.v2 as imageio
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -46,3 +47,6 @@ def test_ddp_leaves_the_box_and_rddp_pushes_it(tmp_path, getkey):
     written = json.loads((tmp_path / "metrics.json").read_text())
     assert written["target"] == pytest.approx([0.55 + config.push, 0.0])
     assert (tmp_path / "panda_push.png").stat().st_size > 10_000
+    frames = imageio.mimread(tmp_path / "panda_push.gif")  # DDP and R-DDP side by side, every other step
+    assert len(frames) == config.horizon // 2 + 1 and frames[0].shape[1] > frames[0].shape[0]
+    assert np.ptp(frames[0]) > 100  # drawn: the arm, the box and the table on white
