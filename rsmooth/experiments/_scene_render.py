@@ -1,8 +1,8 @@
 """Animations of simulated scenes, drawn by rsmooth's own renderer.
 
-Every geom of a :class:`rsmooth.sim.MujocoModel` that has a surface is triangulated once in its
-own frame (primitives by trimesh's constructions, meshes as loaded: a robot's visual or
-collision meshes, whichever the model keeps), placed by its joint's pose at each frame, and the
+Every drawn geom of a :class:`rsmooth.sim.MujocoModel` (:func:`drawn_geoms`) that has a surface is triangulated once in its own frame (primitives by trimesh's
+constructions, meshes as loaded, or their convex hulls beyond :data:`MAX_MESH_FACES` faces),
+placed by its joint's pose at each frame, and the
 whole scene is one :class:`rsmooth.render.Mesh` rendered by a hard :class:`rsmooth.render.Renderer`
 with a directional light: the face count is the same at every frame, so the renderer compiles
 once per scene. Planes are drawn as a grey square under the scene (they are infinite).
@@ -16,9 +16,16 @@ import numpy as np
 from rsmooth import render, viz
 
 
-def geom_triangles(loaded, geom: int):
-    """The triangles of a geom in its own frame, ``(vertices, faces)``; ``None`` for a plane
-    (drawn as the floor) and for height fields and SDFs."""
+# A mesh of more faces is drawn by its convex hull (MuJoCo's, of at most the loader's
+# max_hull_vertices): a robot's visual meshes hold tens of thousands of faces, which a CPU
+# renders in seconds per frame.
+MAX_MESH_FACES = 2000
+
+
+def geom_triangles(loaded, geom: int, max_faces: int = MAX_MESH_FACES):
+    """The triangles of a geom in its own frame, ``(vertices, faces)`` (a mesh of more than
+    ``max_faces`` faces: its convex hull's); ``None`` for a plane (drawn as the floor) and for
+    height fields and SDFs."""
     import trimesh
 
     kind, size = loaded.geom_types[geom], np.asarray(loaded.geom_size[geom], dtype=np.float64)
@@ -34,18 +41,30 @@ def geom_triangles(loaded, geom: int):
     elif kind == "box":
         mesh = trimesh.creation.box(extents=2 * size)
     elif kind == "mesh":
-        return np.asarray(loaded.geom_vertices[geom]), np.asarray(loaded.geom_faces[geom])
+        vertices, faces = np.asarray(loaded.geom_vertices[geom]), np.asarray(loaded.geom_faces[geom])
+        if faces.shape[0] <= max_faces:
+            return vertices, faces
+        mesh = trimesh.Trimesh(np.asarray(loaded.geom_hull[geom]), process=False).convex_hull  # MuJoCo's hull
     else:
         return None
     return np.asarray(mesh.vertices), np.asarray(mesh.faces)
 
 
+def drawn_geoms(loaded) -> list[int]:
+    """The geoms an animation draws: the visual ones (neither ``contype`` nor ``conaffinity``),
+    and the colliding ones of the bodies that have no visual geom (a robot's links are drawn
+    by their visual meshes, not twice; a box without one by its collision shape)."""
+    visual = {g for g in range(loaded.ngeom) if not loaded.geom_contype[g] and not loaded.geom_conaffinity[g]}
+    dressed = {loaded.geom_bodies[g] for g in visual}
+    return [g for g in range(loaded.ngeom) if g in visual or loaded.geom_bodies[g] not in dressed]
+
+
 def bounds(loaded, placements, floor_height: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """A box that holds every geom's reach over the run (``placements``: the joints'
+    """A box that holds every drawn geom's reach over the run (``placements``: the joints'
     ``(rotations (T, J, 3, 3), translations (T, J, 3))``), and the floor under it."""
     rotations, translations = placements
     points = [np.zeros((1, 3))]
-    for geom in range(loaded.ngeom):
+    for geom in drawn_geoms(loaded):
         shape = geom_triangles(loaded, geom)
         if shape is None:
             continue
@@ -77,7 +96,7 @@ class SceneFrames:
         low, high = (np.asarray(corner, dtype=np.float64) for corner in box)
         palette = np.asarray(viz.plt.get_cmap("tab10")(np.arange(loaded.ngeom) % 10))[:, :3] if colors is None else (
             np.asarray(colors, dtype=np.float64))
-        self.parts = [(geom, *shape) for geom in range(loaded.ngeom) if (shape := geom_triangles(loaded, geom)) is not None]
+        self.parts = [(geom, *shape) for geom in drawn_geoms(loaded) if (shape := geom_triangles(loaded, geom)) is not None]
         floor = np.array([[low[0], low[1], floor_height], [high[0], low[1], floor_height],
                           [high[0], high[1], floor_height], [low[0], high[1], floor_height]])
         self.floor = floor
@@ -88,7 +107,7 @@ class SceneFrames:
         self.colors = np.concatenate([np.broadcast_to(palette[geom], (vertices.shape[0], 3)) for geom, vertices, _ in self.parts]
                                      + [np.full((4, 3), 0.8)])
         centre, extent = 0.5 * (low + high), float(np.max(high - low))
-        self.camera = render.look_at(centre + extent * np.array([0.7, -1.0, 0.65]), centre, (0.0, 0.0, 1.0), fov=40.0,
+        self.camera = render.look_at(centre + extent * np.array([0.8, -1.15, 0.75]), centre, (0.0, 0.0, 1.0), fov=40.0,
                                      near=0.05 * extent, far=10.0 * extent, image_size=tuple(image_size))
         renderer = render.Renderer(mode="hard", background=(1.0, 1.0, 1.0))
         self._render = jax.jit(lambda vertices, faces, colors: renderer(None, render.Mesh(vertices, faces, colors), self.camera).rgb)

@@ -11,8 +11,9 @@ converged, no penetration, no diverged step). The base and the knees collide wit
 well (unless ``body_contacts`` is off). With ``open_loop`` (or ``stiffness = damping = 0``) the
 torques are open loop and the robot falls, which the simulator integrates too (the model's
 rotor inertia and joint damping keep the lifted legs from spinning up, see
-:func:`rsmooth.sim.solo12`). The animation is a stick figure drawn with matplotlib; the plot
-shows the base's and feet's heights in millimetres from their start."""
+:func:`rsmooth.sim.solo12`). The animation draws the robot's meshes with rsmooth's renderer
+(:mod:`rsmooth.experiments._scene_render`); the plot shows the base's and feet's heights in
+millimetres from their start."""
 
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from rsmooth import _checks, sim, viz
-from rsmooth.experiments import _protocol
+from rsmooth.experiments import _protocol, _scene_render
 
 METRICS_DOC = """metrics.json keys: torques ('standing' or 'random'), steps, time_step,
 base_height_initial, base_height_final, base_height_min, base_drift (|final - initial base
@@ -85,7 +86,8 @@ def _skeleton(system, x) -> tuple[np.ndarray, list[tuple[int, int]]]:
 
 
 def stick_figure(system, x, title: str) -> np.ndarray:
-    """An RGB image of the robot at state ``x`` (matplotlib, 3-D stick figure over the floor)."""
+    """An RGB image of the robot at state ``x`` (matplotlib, 3-D stick figure over the floor):
+    a cheap drawing for animations of many frames (``rsmooth control solo-lift``'s)."""
     points, segments = _skeleton(system, x)
     fig = viz.plt.figure(figsize=(4.8, 4.0), dpi=80)
     ax = fig.add_subplot(projection="3d")
@@ -105,6 +107,15 @@ def stick_figure(system, x, title: str) -> np.ndarray:
     image = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
     viz.plt.close(fig)
     return image
+
+
+def solo12_drawing_model():
+    """Solo-12's URDF loaded by MuJoCo with its visual meshes (drawn by their convex hulls of at
+    most 48 vertices: see :mod:`rsmooth.experiments._scene_render`); its kinematic tree is
+    :func:`rsmooth.sim.solo12`'s, joint for joint."""
+    root = Path(sim.example_robot_data_root())
+    return sim.load_mjcf(sim.solo12_urdf_path(), package_dirs=(str(root.parent),), floating_base=True, visuals=True,
+                         max_hull_vertices=48)
 
 
 def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
@@ -177,9 +188,14 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     fig.tight_layout()
     viz.save_figure(fig, out / "solo12.png")
     bar.update()
+    loaded = solo12_drawing_model()
+    shown = np.linspace(0, config.steps, config.frames).round().astype(int)
+    rotations, translations = (np.asarray(p) for p in jax.jit(jax.vmap(
+        lambda x: sim.forward_kinematics(loaded.model, system.split(x)[0])))(xs[shown]))
+    draw = _scene_render.SceneFrames(loaded, _scene_render.bounds(loaded, (rotations, translations)), image_size=(200, 260))
     frames = []
-    for k in np.linspace(0, config.steps, config.frames).round().astype(int):
-        frames.append(stick_figure(system, xs[k], f"t = {k * dt:.2f} s"))
+    for k in range(len(shown)):
+        frames.append(draw(rotations[k], translations[k]))
         bar.update()
     bar.close()
     viz.save_animation(frames, out / "solo12.gif", fps=max(1, round(config.frames / (config.steps * dt))))
@@ -204,7 +220,7 @@ EXPERIMENT = _protocol.Experiment(
     config=Config,
     run=run,
     summary=summary,
-    help="Simulate Solo-12 on the floor under standing (gravity-compensating) or random torques and write a "
-    "stick-figure animation.",
+    help="Simulate Solo-12 on the floor under standing (gravity-compensating) or random torques and write an "
+    "animation of its meshes drawn by rsmooth's renderer.",
     metrics_doc=METRICS_DOC,
 )
