@@ -15,7 +15,7 @@ Cases:
   reported apart, since the goal is on the rest.
 * ``cube-lift``: ``rsmooth control cube-lift --quick --method rddp --seeds 1``.
 * ``sim-solo12``: ``rsmooth sim solo12 --quick``.
-* ``demo``: ``rsmooth demo`` (every experiment at its quick size; minutes cold): not with --quick.
+* ``demo``: ``rsmooth demo`` (four experiments at their quick sizes; minutes cold): not with --quick.
 """
 
 from __future__ import annotations

@@ -397,3 +397,17 @@ def test_ctrl_c_stops_the_command_with_a_message_and_code_130(tmp_path, during):
         process.kill()
     assert process.returncode == 130, stderr
     assert stderr.strip() == "rsmooth: interrupted"
+
+
+def test_demo_runs_its_four_experiments_at_their_quick_sizes(monkeypatch, tmp_path):
+    seen = []
+
+    def fake_report(experiments, out, seed, quick):
+        seen.append(([e.command for e in experiments], out, seed, quick))
+        return out / "index.html"
+
+    monkeypatch.setattr(cli, "run_report", fake_report)
+    result = CliRunner().invoke(cli.app, ["demo", "--out", str(tmp_path), "--seed", "3"])
+    assert result.exit_code == 0, result.output
+    assert seen == [(list(cli.DEMO), tmp_path, 3, True)]
+    assert set(cli.DEMO) <= set(registry())  # every demo command is an experiment
