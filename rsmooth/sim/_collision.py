@@ -740,8 +740,14 @@ def _polytope_pair(shape1, pose1, shape2, pose2, margin, count: int) -> Contacts
     gjk_normal, length = _safe_normalize(closest2 - closest1, fallback)
     # The separation along the best axis is a lower bound of the distance of separated
     # cores, exact when their closest features are parallel faces (a resting contact):
-    # keep the clipped manifold then, whose points span the face.
-    separated = (separation > 0) & (jnp.abs(length - radius1 - radius2 - manifold.distance[0]) > tolerance)
+    # keep the clipped manifold then, whose points span the face. GJK's distance is only
+    # accurate to a few thousand roundings of the shapes' size (its simplex spans them), so
+    # it replaces the manifold's first entry only where it is longer by more than
+    # sqrt(eps) of that size (8 nm for boxes of 10 cm in float64): a box resting on a box,
+    # its faces apart by 1e-13 m, otherwise gets a GJK point mid-face whose normal (the
+    # direction of a 1e-13 m vector) is rounding noise, and the stack's sticking solve fails.
+    gjk_tolerance = jnp.sqrt(jnp.asarray(_eps(dtype), dtype)) * scale
+    separated = (separation > 0) & (jnp.abs(length - radius1 - radius2 - manifold.distance[0]) > gjk_tolerance)
     return replace_first(
         manifold,
         length - radius1 - radius2,

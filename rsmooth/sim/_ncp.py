@@ -389,12 +389,17 @@ def _solve_unpivoted(A: Array, b: Array) -> Array:
     return lax.fori_loop(0, n, eliminate, jnp.concatenate([A, b[:, None]], axis=1))[:, n]
 
 
-def _polish(G: Array, g: Array, mu: Array, impulse: Array, steps: int) -> Array:
+def _polish(G: Array, g: Array, mu: Array, impulse: Array, steps: int, least_squares: bool = False) -> Array:
     """Active-set Newton polish: the contact modes read from ``impulse`` (in the cone: zero
     normal impulse separated, on the cone's boundary sliding, inside sticking), then
     ``steps`` Newton iterations on the modes' equations (:func:`_mode_equations`). The result
     (possibly not finite, or the solution of wrong modes) must be checked by
-    :func:`ncp_residuals`."""
+    :func:`ncp_residuals`.
+
+    ``least_squares``: Gauss-Newton steps with a Levenberg-Marquardt damping of ``1e-12``
+    of the largest diagonal entry of ``JᵀJ``, for modes whose equations are singular (more
+    sticking rows than the degrees of freedom they hold: a stack of boxes, where Newton's
+    own step is not finite); they reach a solution of consistent equations."""
     n = mu.shape[0]
     z = impulse.reshape(n, 3)
     c = (G @ impulse + g).reshape(n, 3)
@@ -410,7 +415,13 @@ def _polish(G: Array, g: Array, mu: Array, impulse: Array, steps: int) -> Array:
     def newton(_, carry):
         x, direction = carry
         _, residual, jacobian = _mode_equations(x, direction, mode, G, g, mu)
-        step = _solve_unpivoted(jacobian, residual).reshape(n, 3)
+        if least_squares:
+            normal = jacobian.T @ jacobian
+            damping = 1e-12 * jnp.max(jnp.diagonal(normal)) + jnp.finfo(G.dtype).tiny ** 0.5
+            normal = normal + damping * jnp.eye(3 * n, dtype=G.dtype)
+            step = _solve_unpivoted(normal, jacobian.T @ residual).reshape(n, 3)
+        else:
+            step = _solve_unpivoted(jacobian, residual).reshape(n, 3)
         # Turn the direction by the angle step (a retraction onto the unit circle).
         turned = direction - step[:, 1:2] * jnp.stack([-direction[:, 1], direction[:, 0]], axis=-1)
         return x - step, turned / _safe_norm(turned)[:, None]
@@ -447,7 +458,7 @@ class NCPSolver(eqx.Module):
     ``sqrt(lambda_min lambda_max)`` of ``G`` and is adapted by residual balancing; the linear
     solves reuse one eigendecomposition of ``G``. Before ADMM a solve tries a starting impulse
     (the warm start or zero, or ``sticking_guess``) and ``polish``; ADMM runs only where they
-    do not solve the problem.
+    do not solve the problem (and ``polish`` once more where ADMM reaches its cap).
 
     Termination: all three residuals of :func:`ncp_residuals` are at most ``tolerance``
     (absolute: impulse, velocity and impulse x velocity units), or ADMM reaches
@@ -496,7 +507,11 @@ class NCPSolver(eqx.Module):
             the cone's boundary opposite the slip) by ``polish_steps`` Newton iterations, and
             keep the result where it passes the tolerance test. A failed round is followed by
             one projected fixed-point step (correcting the modes it assumed) and another.
-        polish_rounds: rounds of the polish before ADMM (``polish`` only).
+            Where ADMM then reaches ``max_iterations``, the polish runs again from its best
+            iterate with least-squares (Gauss-Newton) steps: ADMM's slow tail is usually near
+            enough for the modes to be right, and where many contacts stick on few degrees
+            of freedom (a stack of boxes) the modes' equations are singular.
+        polish_rounds: rounds of each polish (``polish`` only).
         polish_steps: Newton iterations per round.
         chunk_size: under ``vmap``, the problems that the start did not solve go through the
             polish and ADMM in chunks of this many (:func:`rsmooth._batching.run_where_needed`):
@@ -745,11 +760,13 @@ class NCPSolver(eqx.Module):
             return self.tolerance
         return 1e-10 if jnp.finfo(dtype).bits >= 64 else 1e-5
 
-    def polished(self, G: Array, g: Array, mu: Array, impulse: Array) -> tuple[Array, Array, Array, Array, Array]:
+    def polished(
+        self, G: Array, g: Array, mu: Array, impulse: Array, least_squares: bool = False
+    ) -> tuple[Array, Array, Array, Array, Array]:
         """The polish (:func:`_polish`) of ``impulse``, or ``impulse`` where it is not finite,
         its residuals and whether they satisfy the tolerance: ``(candidate, primal, dual,
         complementarity, solved)``."""
-        candidate = _polish(G, g, mu, impulse, self.polish_steps)
+        candidate = _polish(G, g, mu, impulse, self.polish_steps, least_squares)
         candidate = jnp.where(jnp.all(jnp.isfinite(candidate)), candidate, impulse)
         primal, dual, complementarity = ncp_residuals(G, g, mu, candidate)
         return candidate, primal, dual, complementarity, self._within_tolerance(primal, dual, complementarity)
@@ -899,7 +916,7 @@ def solve_ncp(
     # parts of the polish) out of the loop, where it runs whether the loop does or not.
     problem = (G_solve, g_solve, mu_solve)
 
-    def polish(problem, carry):
+    def polish(problem, carry, least_squares=False):
         # Rounds of the polish, in a loop that (under vmap) runs while some member of the
         # chunk is not solved: the first polishes the start, each later one first takes a
         # projected fixed-point step lambda - F(lambda) = P_K(lambda - r c~) (F the natural
@@ -909,7 +926,9 @@ def solve_ncp(
             (G, g, mu), carry = lax.optimization_barrier((problem, carry))
             round_, _, (impulse, info), last = carry
             moved = last - _natural_map(last, G, g, mu, fixed_point_step_sizes(G, mu.shape[0]))
-            candidate, primal, dual, complementarity, solved = solver.polished(G, g, mu, jnp.where(round_ == 0, impulse, moved))
+            candidate, primal, dual, complementarity, solved = solver.polished(
+                G, g, mu, jnp.where(round_ == 0, impulse, moved), least_squares
+            )
             solved = solved & ~info.converged
             # kept only where solved: a successful solve
             polished = NCPInfo(info.iterations, primal, dual, complementarity, RESULTS.successful, info.rho)
@@ -928,11 +947,18 @@ def solve_ncp(
         return once_if(run, ~start_info.converged, problem, (start, start_info))
 
     def finish(problem, carry):
-        # the polish's rounds, then ADMM, for a problem the start did not solve
+        # the polish's rounds, then ADMM, for a problem the start did not solve; then the
+        # polish again from ADMM's best iterate where ADMM stopped at its cap: its slow tail
+        # (an impact that switches many contacts' modes at once) is usually close enough for
+        # the modes to be right, and Newton's method on them then converges in a few steps
+        # (by least squares: where ADMM needs its cap, the modes' equations are often singular)
         if solver.polish:
             carry = polish(problem, carry)
         round_, _, (impulse, info), last = carry
         impulse, info = admm(problem, impulse, info)
+        if solver.polish:
+            zero = jnp.zeros((), jnp.int32)
+            _, _, (impulse, info), _ = polish(problem, (zero, info.converged, (impulse, info), impulse), least_squares=True)
         return round_, info.converged, (impulse, info), last
 
     # Everything after the start only where it did not solve the problem: under vmap, those

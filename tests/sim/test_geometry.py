@@ -292,6 +292,30 @@ def test_slightly_tilted_box_on_equal_box_keeps_a_face_manifold(tilt):
     np.testing.assert_allclose(np.asarray(contacts.distance)[active], -1e-5, atol=0.2 * tilt + 1e-12)
 
 
+def test_box_resting_on_equal_box_at_a_rounding_sized_gap_keeps_its_face_manifold():
+    """A stack at rest: equal boxes, the upper one's face apart from the lower one's by a gap
+    and a tilt of the size rounding leaves (1e-13 m, 1e-12 rad). The separated cores' GJK
+    distance is no more accurate than that, and must not replace the face manifold's first
+    point by a mid-face point whose normal is noise: every active normal is the face normal
+    and the four points are the corners."""
+    box = Box([0.1, 0.1, 0.1])
+    rng = np.random.default_rng(3)
+    count = 64
+    axes = rng.normal(size=(count, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    tilts = rng.uniform(1e-13, 1e-11, count)
+    cross = np.cross(np.eye(3)[None, :, :], axes[:, None, :])
+    rotations = np.eye(3) + np.sin(tilts)[:, None, None] * cross + (1 - np.cos(tilts))[:, None, None] * cross @ cross
+    translations = np.c_[rng.uniform(-2e-3, 2e-3, (count, 2)), 0.2 + rng.uniform(-3e-13, 3e-13, count)]
+    contacts = eqx.filter_jit(jax.vmap(lambda r, t: collide(box, _pose([0.0, 0.0, 0.0]), box, (r, t), margin=0.01)))(
+        jnp.asarray(rotations), jnp.asarray(translations)
+    )
+    assert np.all(np.asarray(contacts.active))
+    np.testing.assert_allclose(np.asarray(contacts.normal), np.broadcast_to([0.0, 0.0, 1.0], (count, 4, 3)), atol=1e-9)
+    np.testing.assert_allclose(np.abs(np.asarray(contacts.point2)[..., :2]), 0.1, atol=3e-3)
+    np.testing.assert_allclose(np.asarray(contacts.distance), 0.0, atol=1e-11)
+
+
 def test_cylinder_standing_on_a_box_gives_a_flat_manifold():
     """A cap flat on a face: four contacts on the rim, at the cap's exact depth."""
     cylinder = Cylinder(0.1, 0.2)
