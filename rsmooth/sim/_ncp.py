@@ -389,14 +389,14 @@ def _solve_unpivoted(A: Array, b: Array) -> Array:
     return lax.fori_loop(0, n, eliminate, jnp.concatenate([A, b[:, None]], axis=1))[:, n]
 
 
-def _polish(G: Array, g: Array, mu: Array, impulse: Array, steps: int, least_squares: bool = False) -> Array:
+def _polish(G: Array, g: Array, mu: Array, impulse: Array, steps: int, least_squares: ArrayLike = False) -> Array:
     """Active-set Newton polish: the contact modes read from ``impulse`` (in the cone: zero
     normal impulse separated, on the cone's boundary sliding, inside sticking), then
     ``steps`` Newton iterations on the modes' equations (:func:`_mode_equations`). The result
     (possibly not finite, or the solution of wrong modes) must be checked by
     :func:`ncp_residuals`.
 
-    ``least_squares``: Gauss-Newton steps with a Levenberg-Marquardt damping of ``1e-12``
+    ``least_squares`` (a bool, possibly traced): Gauss-Newton steps with a Levenberg-Marquardt damping of ``1e-12``
     of the largest diagonal entry of ``JᵀJ``, for modes whose equations are singular (more
     sticking rows than the degrees of freedom they hold: a stack of boxes, where Newton's
     own step is not finite); they reach a solution of consistent equations."""
@@ -415,13 +415,11 @@ def _polish(G: Array, g: Array, mu: Array, impulse: Array, steps: int, least_squ
     def newton(_, carry):
         x, direction = carry
         _, residual, jacobian = _mode_equations(x, direction, mode, G, g, mu)
-        if least_squares:
-            normal = jacobian.T @ jacobian
-            damping = 1e-12 * jnp.max(jnp.diagonal(normal)) + jnp.finfo(G.dtype).tiny ** 0.5
-            normal = normal + damping * jnp.eye(3 * n, dtype=G.dtype)
-            step = _solve_unpivoted(normal, jacobian.T @ residual).reshape(n, 3)
-        else:
-            step = _solve_unpivoted(jacobian, residual).reshape(n, 3)
+        normal = jacobian.T @ jacobian
+        damping = 1e-12 * jnp.max(jnp.diagonal(normal)) + jnp.finfo(G.dtype).tiny ** 0.5
+        normal = normal + damping * jnp.eye(3 * n, dtype=G.dtype)
+        matrix = jnp.where(least_squares, normal, jacobian)
+        step = _solve_unpivoted(matrix, jnp.where(least_squares, jacobian.T @ residual, residual)).reshape(n, 3)
         # Turn the direction by the angle step (a retraction onto the unit circle).
         turned = direction - step[:, 1:2] * jnp.stack([-direction[:, 1], direction[:, 0]], axis=-1)
         return x - step, turned / _safe_norm(turned)[:, None]
@@ -761,7 +759,7 @@ class NCPSolver(eqx.Module):
         return 1e-10 if jnp.finfo(dtype).bits >= 64 else 1e-5
 
     def polished(
-        self, G: Array, g: Array, mu: Array, impulse: Array, least_squares: bool = False
+        self, G: Array, g: Array, mu: Array, impulse: Array, least_squares: ArrayLike = False
     ) -> tuple[Array, Array, Array, Array, Array]:
         """The polish (:func:`_polish`) of ``impulse``, or ``impulse`` where it is not finite,
         its residuals and whether they satisfy the tolerance: ``(candidate, primal, dual,
@@ -937,14 +935,14 @@ def solve_ncp(
 
         return lax.while_loop(lambda c: ~c[1] & (c[0] < solver.polish_rounds), polish_round, carry)
 
-    def admm(problem, start, start_info):
+    def admm(problem, start, start_info, needed):
         def run(problem, state):
             G, g, mu = problem
             state = solver.init(G, g, mu, state[0])
             state = lax.while_loop(lambda s: ~solver.terminate(s), lambda s: solver.step(G, g, mu, s), state)
             return solver.postprocess(state)
 
-        return once_if(run, ~start_info.converged, problem, (start, start_info))
+        return once_if(run, needed & ~start_info.converged, problem, (start, start_info))
 
     def finish(problem, carry):
         # the polish's rounds, then ADMM, for a problem the start did not solve; then the
@@ -952,14 +950,22 @@ def solve_ncp(
         # (an impact that switches many contacts' modes at once) is usually close enough for
         # the modes to be right, and Newton's method on them then converges in a few steps
         # (by least squares: where ADMM needs its cap, the modes' equations are often singular)
-        if solver.polish:
-            carry = polish(problem, carry)
-        round_, _, (impulse, info), last = carry
-        impulse, info = admm(problem, impulse, info)
-        if solver.polish:
-            zero = jnp.zeros((), jnp.int32)
-            _, _, (impulse, info), _ = polish(problem, (zero, info.converged, (impulse, info), impulse), least_squares=True)
-        return round_, info.converged, (impulse, info), last
+        if not solver.polish:
+            round_, _, (impulse, info), last = carry
+            impulse, info = admm(problem, impulse, info, jnp.ones((), bool))
+            return round_, info.converged, (impulse, info), last
+
+        def phase(state):
+            # phase 0: polish, then ADMM; phase 1: the least-squares polish of ADMM's iterate.
+            # One loop, so that the program holds one copy of each (compile time).
+            index, carry = state
+            carry = polish(problem, carry, least_squares=index > 0)
+            round_, _, (impulse, info), last = carry
+            impulse, info = admm(problem, impulse, info, index == 0)
+            return index + 1, (jnp.zeros_like(round_), info.converged, (impulse, info), impulse)
+
+        _, carry = lax.while_loop(lambda state: (state[0] < 2) & ~state[1][1], phase, (jnp.zeros((), jnp.int32), carry))
+        return carry
 
     # Everything after the start only where it did not solve the problem: under vmap, those
     # members are gathered in chunks (rsmooth._batching), so that the one member in a batch
