@@ -447,6 +447,8 @@ def smooth_elementwise(
     noise: Noise = Gaussian(),
     baseline: bool | str = True,
     antithetic: bool = False,
+    devices: str | Sequence[jax.Device] | None = None,
+    sample_chunk: int | None = None,
 ) -> Callable:
     r"""Randomized smoothing of an elementwise function, with independent noise per element.
 
@@ -464,6 +466,11 @@ def smooth_elementwise(
         estimator: ``"zeroth"`` (any `f`) or ``"first"`` (`f` differentiable by JAX).
         noise: the noise law.
         baseline, antithetic: variance reduction (as in :func:`rsmooth.zeroth_order`).
+        devices: where `f` (and its derivatives, first order) is evaluated at the samples:
+            ``None`` (default) on the default device, at all samples at once; ``"all"`` or a
+            sequence of devices: split over them (:func:`rsmooth.parallel.map_samples`), the
+            value and its derivatives the one-device ones up to rounding.
+        sample_chunk: the most samples at which `f` is evaluated at once on each device.
 
     Returns:
         `g(key, x)`, an array of the shape of `x`; its derivatives of every order are estimated
@@ -481,6 +488,13 @@ def smooth_elementwise(
         raise ValueError(f"estimator must be 'zeroth' or 'first' for smooth_elementwise, got {estimator!r}")
     _est._check_options(sigma, num_samples, noise, antithetic=antithetic, needs_score=estimator == "zeroth")
     _est.check_baseline(baseline, num_samples)
+    spread = _est._check_spread(devices, sample_chunk)
+
+    def evaluate(fn, *args):
+        """``fn`` (elementwise) at every sample: at once, or spread as asked."""
+        if spread["devices"] is None and spread["sample_chunk"] is None:
+            return fn(*args)
+        return parallel.map_samples(fn, *args, **spread)
 
     def samples(key, x):
         shape = (num_samples // 2 if antithetic else num_samples,) + x.shape
@@ -499,7 +513,7 @@ def smooth_elementwise(
 
     @jax.custom_jvp
     def rule(key, x, sigma):
-        values = f(x[None] + sigma * samples(key, x))
+        values = evaluate(f, x[None] + sigma * samples(key, x))
         return checked(jnp.mean(values, axis=0), x, sigma, values)
 
     @rule.defjvp
@@ -512,14 +526,15 @@ def smooth_elementwise(
         perturbed = lax.stop_gradient(x[None] + sigma * z)
         z_at = _noise_at(z, x, sigma)
         if estimator == "zeroth":
-            values = f(perturbed)
+            values = evaluate(f, perturbed)
             reference = lax.stop_gradient(_est.baseline_values(values, baseline, lambda: f(lax.stop_gradient(x))))
-            weight = checked(ratio(z, x, sigma), x, sigma, values, reference)
+            # the checks tied to a zero, not to the weights (laid out across `devices`), as in smooth()
+            weight = ratio(z, x, sigma) + checked(jnp.zeros((), x.dtype), x, sigma, values, reference)
             centred = values - reference
             # Per element: weight -score(z) / sigma for x, -(z score(z) + 1) / sigma for sigma.
             weights = _log_density_tangent(score, z_at, sigma, x_dot, sigma_dot, elementwise=True)
             return jnp.mean(values + centred * (weight - 1.0), axis=0), jnp.mean(weight * centred * weights, axis=0)
-        values, terms = jax.jvp(f, (perturbed,), (x_dot[None] + sigma_dot * z_at,))
+        values, terms = evaluate(lambda v, dv: jax.jvp(f, (v,), (dv,)), perturbed, x_dot[None] + sigma_dot * z_at)
         anchor = checked(jnp.zeros((), x.dtype), x, sigma, values)
         weight = ratio(z, x, sigma) + anchor
         if antithetic or num_samples < 2:

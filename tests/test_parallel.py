@@ -210,6 +210,8 @@ def test_bad_devices_or_chunk_are_refused_by_name(options, message):
     with pytest.raises(ValueError, match=message):
         rsmooth.smooth(jnp.sum, sigma=0.1, num_samples=4, **options)
     with pytest.raises(ValueError, match=message):
+        rsmooth.smooth_elementwise(jnp.sign, sigma=0.1, num_samples=4, **options)
+    with pytest.raises(ValueError, match=message):
         parallel.map_samples(jnp.sum, jnp.zeros((4, 2)), **options)
 
 
@@ -250,6 +252,14 @@ _FOUR_DEVICES = textwrap.dedent(
     # smooth(): the first-order rule's per-sample JVPs, transposed by reverse mode
     g = lambda **spread: jax.jit(jax.jacrev(rsmooth.smooth(f, sigma=0.3, num_samples=10, estimator="first", **spread), argnums=1))
     same(g(devices="all", sample_chunk=2)(key, point), g()(key, point))
+    # smooth_elementwise(): both rules, the value and its gradient (10 samples: padded on 4)
+    step = lambda d: jnp.where(d > 0, 1.0, 0.0) * (1.0 + d**2)
+    xs5 = jnp.array([-1.0, 0.0, 0.3, 2.0, 0.5])
+    for rule in ("zeroth", "first"):
+        e = lambda **spread: rsmooth.smooth_elementwise(step, sigma=0.5, num_samples=10, estimator=rule, **spread)
+        both = lambda h: jax.jit(lambda k, x: (h(k, x), jax.grad(lambda x: jnp.sum(h(k, x) ** 2))(x)))(key, xs5)
+        same(both(e(devices="all")), both(e()))
+        same(both(e(devices="all", sample_chunk=2)), both(e()))
 
     # first order through the contact solver (while loops, batched LAPACK calls): a cube pushed
     # on a floor; on 4 CPU devices each evaluates its samples one at a time (the default there:
@@ -277,10 +287,10 @@ _FOUR_DEVICES = textwrap.dedent(
 
 
 def test_four_devices_give_the_one_device_estimates():
-    """Estimators and smooth() with their samples on 4 devices (a share each, or in chunks)
-    equal their one-device values to rounding, a first-order estimate through the contact
-    solver included (against one device evaluating the samples one at a time, as each of the
-    4 CPU devices does)."""
+    """Estimators, smooth() and smooth_elementwise() with their samples on 4 devices (a share
+    each, or in chunks) equal their one-device values to rounding, a first-order estimate
+    through the contact solver included (against one device evaluating the samples one at a
+    time, as each of the 4 CPU devices does)."""
     env = dict(os.environ, XLA_FLAGS=_flags("--xla_force_host_platform_device_count=4"), JAX_PLATFORMS="cpu")
     result = subprocess.run(
         [sys.executable, "-c", _FOUR_DEVICES], env=env, capture_output=True, text=True, timeout=300
