@@ -70,45 +70,6 @@ class Config:
         return self.stiffness, self.damping
 
 
-def _skeleton(system, x) -> tuple[np.ndarray, list[tuple[int, int]]]:
-    """Points (joint origins, then feet) and the segments joining them."""
-    model = system.model
-    q, _ = system.split(x)
-    _, translations = sim.forward_kinematics(model, q)
-    feet = sim.solo12_foot_positions(system, x)
-    points = np.concatenate([np.asarray(translations), np.asarray(feet)])
-    segments = [(model.parents[j], j) for j in range(2, model.njoints) if model.parents[j] != 0]
-    hips = [model.joint_id(f"{leg}_HAA") for leg in ("FL", "FR", "HR", "HL")]  # around the base
-    segments += [(a, b) for a, b in zip(hips, hips[1:] + hips[:1])]
-    knees = [model.joint_id(f"{leg}_KFE") for leg in ("FL", "FR", "HL", "HR")]  # feet order
-    segments += [(knee, model.njoints + i) for i, knee in enumerate(knees)]
-    return points, segments
-
-
-def stick_figure(system, x, title: str) -> np.ndarray:
-    """An RGB image of the robot at state ``x`` (matplotlib, 3-D stick figure over the floor):
-    a cheap drawing for animations of many frames (``rsmooth control solo-lift``'s)."""
-    points, segments = _skeleton(system, x)
-    fig = viz.plt.figure(figsize=(4.8, 4.0), dpi=80)
-    ax = fig.add_subplot(projection="3d")
-    for a, b in segments:
-        ax.plot(*points[[a, b]].T, color="tab:blue", lw=2.5)
-    ax.scatter(*points[-4:].T, color="tab:red", s=18)
-    grid = np.linspace(-0.4, 0.4, 2)
-    gx, gy = np.meshgrid(grid + points[1, 0], grid + points[1, 1])
-    ax.plot_surface(gx, gy, np.zeros_like(gx), color="0.85", alpha=0.5)
-    centre = points[1]
-    ax.set_xlim(centre[0] - 0.3, centre[0] + 0.3)
-    ax.set_ylim(centre[1] - 0.3, centre[1] + 0.3)
-    ax.set_zlim(0.0, 0.45)
-    ax.set_box_aspect((1, 1, 0.75))
-    ax.set_title(title, fontsize=9)
-    fig.canvas.draw()
-    image = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
-    viz.plt.close(fig)
-    return image
-
-
 def solo12_drawing_model():
     """Solo-12's URDF loaded by MuJoCo with its visual meshes (drawn by their convex hulls of at
     most 48 vertices: see :mod:`rsmooth.experiments._scene_render`); its kinematic tree is

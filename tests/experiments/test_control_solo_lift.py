@@ -12,7 +12,7 @@ from rsmooth.experiments import control_solo_lift
 
 @pytest.mark.slow
 def test_ddp_keeps_four_feet_down_and_rddp_lifts_the_foot(tmp_path, getkey):
-    config = control_solo_lift.Config(foot="HR", seeds=1, geometric_decays=(), max_iterations=30)
+    config = control_solo_lift.Config(foot="HR", seeds=1, geometric_decays=(), max_iterations=30, frames=2)
     metrics = control_solo_lift.run(config, tmp_path, getkey(), progress=False)
     ddp, rddp = metrics["ddp"], metrics["rddp"]
     # DDP from the standing torques: the foot's height has a zero derivative, nothing moves.
@@ -30,9 +30,10 @@ def test_ddp_keeps_four_feet_down_and_rddp_lifts_the_foot(tmp_path, getkey):
     assert not list(tmp_path.glob(".*"))
     # Another foot and height: the foot and target are traced cost parameters, so this solve
     # reuses the compiled R-DDP step; it lifts the diagonally opposite foot as well.
-    other = dataclasses.replace(config, foot="FL", height=0.04, method="rddp")
+    other = dataclasses.replace(config, foot="FL", height=0.04, method="rddp", frames=0)
     rddp = control_solo_lift.run(other, tmp_path / "FL", getkey(), progress=False)["rddp"]
     assert rddp["success"] and abs(rddp["foot_height"] - 0.04) < config.tolerance, rddp
+    assert not (tmp_path / "FL" / "solo_lift.gif").exists()  # frames=0: no animation
 
 
 def test_solo_lift_rejects_bad_feet_and_heights(tmp_path):
