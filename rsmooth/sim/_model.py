@@ -72,7 +72,9 @@ class Model(eqx.Module):
         frame_placement_rotation: ``(nframes, 3, 3)``, placement of frames in their joint.
         frame_placement_translation: ``(nframes, 3)``.
         lower_position_limit: ``(nq,)``; ``-inf`` where unlimited.
-        upper_position_limit: ``(nq,)``; ``+inf`` where unlimited.
+        upper_position_limit: ``(nq,)``; ``+inf`` where unlimited. For a spherical joint,
+            its entry at the joint's first coordinate is a cone limit: the largest rotation
+            angle of the joint (rad, in ``(0, pi]``); its other entries are ``+inf``.
         velocity_limit: ``(nv,)``; ``+inf`` where unlimited.
         effort_limit: ``(nv,)``; ``+inf`` where unlimited.
         armature: ``(nv,)``, rotor inertia added to the diagonal of the mass matrix.

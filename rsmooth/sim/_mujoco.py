@@ -79,7 +79,8 @@ class MujocoModel(eqx.Module):
     Attributes:
         model: the rsmooth kinematic tree (``model.gravity`` is ``opt.gravity``, or zero where
             gravity is disabled; ``model.armature`` is ``dof_armature``; position limits are
-            ``jnt_range - qpos0`` where ``jnt_limited``; ``model.effort_limit`` is the largest
+            ``jnt_range - qpos0`` where ``jnt_limited``, and a limited ball joint's largest
+            rotation angle (its range's second value) is its cone limit; ``model.effort_limit`` is the largest
             generalized force the motors of a joint can apply, ``inf`` where no limit applies).
         damping: ``(nv,)``, viscous joint damping ``dof_damping`` (the force is
             ``-damping * v``); zero where dampers are disabled.
@@ -410,10 +411,10 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
     joint_names = _names(m, "joint", m.njnt)
     body_names = _names(m, "body", m.nbody)
     for j in range(m.njnt):
-        if int(m.jnt_type[j]) == int(mj.mjtJoint.mjJNT_BALL) and m.jnt_limited[j]:
+        if int(m.jnt_type[j]) == int(mj.mjtJoint.mjJNT_BALL) and m.jnt_limited[j] and not 0 < m.jnt_range[j][1] <= np.pi:
             raise ValueError(
-                f"MuJoCo model: ball joint {joint_names[j]!r} has a range (a limit on its rotation angle), which "
-                "rsmooth.sim does not enforce (supported: unlimited ball joints; limits on hinges and slides)"
+                f"MuJoCo model: ball joint {joint_names[j]!r} has the range {m.jnt_range[j].tolist()} (rad); its "
+                "second value, the largest rotation angle, must be in (0, pi]"
             )
         if m.jnt_stiffness[j] != 0 or np.any(m.jnt_stiffnesspoly[j] != 0):
             raise ValueError(
@@ -545,7 +546,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
 
     Raises:
         ValueError: if the model uses a feature that rsmooth.sim does not model (the message
-            names the element and what is supported): ball joints, joint springs,
+            names the element and what is supported): a ball joint's range beyond pi, joint springs,
             frictionloss, nonlinear damping, tendons, equality constraints, flex, skins,
             plugins, mocap bodies, gravity compensation, fluid forces, colliding height fields
             or SDFs, actuators other than direct motors on a hinge or slide, and on a free
@@ -615,6 +616,8 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         adr = m.jnt_qposadr[j]
         if int(m.jnt_type[j]) == ball:
             ball_qpos.append(int(adr))  # [qw, qx, qy, qz]; qvel: angular velocity in the joint frame, as rsmooth's
+            if m.jnt_limited[j]:  # the cone limit, at the joint's first coordinate (see Model)
+                upper[adr] = m.jnt_range[j][1]
             continue
         if int(m.jnt_type[j]) == free:
             free_qpos.append(int(adr))

@@ -296,7 +296,8 @@ def scene(
         self_collision: ``False`` drops the pairs (explicit pairs included) of two geoms whose
             bodies hang from the same child of the world (one robot, one object), keeping the
             pairs between different trees and with geoms on the world body.
-        joint_limits: enforce the position limits of the limited hinges and slides (the
+        joint_limits: enforce the position limits of the limited hinges and slides and the
+            cone limits of the limited ball joints (the
             system's :attr:`~rsmooth.sim.RigidBodySystem.joint_limits`, frictionless contacts
             after the geometry pairs); ``False``: the joints move freely.
         max_contacts: solve at most this many contacts between shapes per step, the closest

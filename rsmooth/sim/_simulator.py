@@ -78,7 +78,7 @@ from rsmooth import _checks
 from rsmooth._results import RESULTS
 from rsmooth.sim import _derivatives, _dynamics
 from rsmooth.sim import _spatial as spatial
-from rsmooth.sim._contact import contact_frame, corrected_free_velocity
+from rsmooth.sim._contact import _safe_norm, contact_frame, corrected_free_velocity
 from rsmooth.sim._collision import Contacts, collide, manifold_size
 from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, HalfSpace, Sphere
 from rsmooth.sim._laws import LogBarrier, SpringDamper
@@ -335,10 +335,16 @@ class RigidBodySystem(eqx.Module):
         joint_limits: position limits enforced as unilateral constraints, ``((dof, side),
             ...)`` (static): ``dof`` the velocity index of a revolute or prismatic joint,
             ``side`` ``+1`` for its :attr:`Model.lower_position_limit` and ``-1`` for its upper
-            one, which must be finite. Each is a frictionless contact after the geometry pairs
-            (distance ``q - lower`` or ``upper - q``, in rad or m), solved with the contacts
-            in one NCP (hard contact only). :meth:`with_joint_limits` lists a model's finite
-            limits. Empty by default: a model's limits are not enforced unless asked.
+            one, which must be finite; or ``dof`` the first velocity index of a spherical
+            joint and ``side`` 0 for its cone limit (:attr:`Model.upper_position_limit`). Each
+            is a frictionless contact after the geometry pairs (distance ``q - lower`` or
+            ``upper - q``, in rad or m; for a cone, the largest angle minus the joint's
+            rotation angle, its normal the rotation's axis, as MuJoCo's ball-joint range),
+            solved with the contacts in one NCP (hard contact only). The cone's normal turns
+            with the twist about the body's own axis: a body resting on its cone whose
+            inertia about that axis is far below the others (a thin rod, 1:440) can be
+            unstable at 10 ms steps, as in MuJoCo. :meth:`with_joint_limits` lists a model's
+            finite limits. Empty by default: a model's limits are not enforced unless asked.
         max_contacts: a budget on the contacts the NCP solves (static; hard contact only):
             at each step the ``max_contacts`` candidates between shapes with the smallest
             signed distance (ties to the lower index), plus every joint limit. The others get
@@ -507,8 +513,9 @@ class RigidBodySystem(eqx.Module):
         """This system with its model's finite position limits enforced (:attr:`joint_limits`).
 
         Args:
-            joints: names of the revolute or prismatic joints whose limits to enforce;
-                ``None``: every such joint with a finite limit.
+            joints: names of the revolute, prismatic or spherical joints whose limits to
+                enforce; ``None``: every such joint with a finite limit (a cone, for a
+                spherical joint).
 
         Returns:
             A copy whose steps keep those joints within their limits: a joint reaching one
@@ -516,13 +523,13 @@ class RigidBodySystem(eqx.Module):
             is pushed back at the Baumgarte rate, like a penetrating contact.
 
         Raises:
-            ValueError: on an unknown joint name, a joint that is not revolute or prismatic,
-                or a named joint without a finite limit.
+            ValueError: on an unknown joint name, a joint that is not revolute, prismatic or
+                spherical, or a named joint without a finite limit.
         """
         model = self.model
         lower, upper = np.asarray(model.lower_position_limit), np.asarray(model.upper_position_limit)
         if joints is None:
-            names = [name for name, kind in zip(model.joint_names, model.joint_types) if kind in ("revolute", "prismatic")]
+            names = [name for name, kind in zip(model.joint_names, model.joint_types) if kind in _LIMITED_TYPES]
         else:
             names = list(joints)
         limits = []
@@ -530,10 +537,15 @@ class RigidBodySystem(eqx.Module):
             if name not in model.joint_names:
                 raise ValueError(f"joints: unknown joint {name!r}; the model's joints are {model.joint_names[1:]}")
             joint = model.joint_names.index(name)
-            if model.joint_types[joint] not in ("revolute", "prismatic"):
-                raise ValueError(f"joints: {name!r} is a {model.joint_types[joint]} joint; only revolute and prismatic joints have position limits here")
+            if model.joint_types[joint] not in _LIMITED_TYPES:
+                raise ValueError(
+                    f"joints: {name!r} is a {model.joint_types[joint]} joint; only revolute, prismatic and spherical "
+                    "joints have position limits here")
             dof, index = model.idx_v[joint], model.idx_q[joint]
-            sides = [side for side, bound in ((1, lower[index]), (-1, upper[index])) if np.isfinite(bound)]
+            if model.joint_types[joint] == "spherical":
+                sides = [0] if np.isfinite(upper[index]) else []
+            else:
+                sides = [side for side, bound in ((1, lower[index]), (-1, upper[index])) if np.isfinite(bound)]
             if joints is not None and not sides:
                 raise ValueError(f"joints: {name!r} has no finite position limit in the model")
             limits.extend((dof, side) for side in sides)
@@ -686,11 +698,20 @@ class RigidBodySystem(eqx.Module):
         distance, frames, jacobian = self._shape_contacts(q, kinematics)
         if not self.joint_limits:
             return distance, frames, jacobian
-        # Joint limits: frictionless contacts whose normal is the joint's own coordinate.
+        # Joint limits: frictionless contacts whose normal is the joint's own coordinate, or
+        # for a spherical joint's cone the axis of its rotation (the angle's rate is axisᵀ omega).
         indices, dofs, sides = _limit_rows(self.model, self.joint_limits)
         lower, upper = self.model.lower_position_limit[indices], self.model.upper_position_limit[indices]
         limit_distance = jnp.where(sides > 0, q[indices] - lower, upper - q[indices])
         rows = jnp.zeros((len(dofs), 3, self.model.nv), jacobian.dtype).at[np.arange(len(dofs)), 2, dofs].set(sides)
+        cones = np.flatnonzero(sides == 0)
+        if cones.size:
+            quaternion = q[indices[cones][:, None] + np.arange(4)]  # [qx, qy, qz, qw]
+            sine = _safe_norm(quaternion[:, :3])  # |sin(angle / 2)|
+            angle = 2.0 * jnp.arctan2(sine, jnp.abs(quaternion[:, 3]))
+            axis = quaternion[:, :3] * (jnp.where(quaternion[:, 3] < 0, -1.0, 1.0) / jnp.maximum(sine, jnp.finfo(sine.dtype).tiny))[:, None]
+            limit_distance = limit_distance.at[cones].set(upper[cones] - angle)
+            rows = rows.at[cones[:, None], 2, dofs[cones][:, None] + np.arange(3)].set(-axis.astype(rows.dtype))
         eye = jnp.broadcast_to(jnp.eye(3, dtype=frames.dtype), (len(dofs), 3, 3))
         return (
             jnp.concatenate([distance, limit_distance.astype(distance.dtype)]),
@@ -1193,23 +1214,33 @@ def _pair_groups(pairs: tuple[GeomPair, ...]) -> list[list[int]]:
     return list(groups.values())
 
 
+# joints whose position limits RigidBodySystem.joint_limits enforces
+_LIMITED_TYPES = ("revolute", "prismatic", "spherical")
+
+
 def _limit_rows(model: Model, joint_limits) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Configuration indices, velocity indices and sides (``+1`` lower, ``-1`` upper) of
-    :attr:`RigidBodySystem.joint_limits`, checked against the model."""
+    :attr:`RigidBodySystem.joint_limits`, checked against the model (side 0: a spherical
+    joint's cone, its configuration index the joint's first)."""
     if not isinstance(joint_limits, tuple):
         raise ValueError(f"joint_limits must be a tuple of (dof, side) pairs, got {joint_limits!r}")
-    owner = {model.idx_v[j]: j for j in range(1, len(model.joint_types)) if model.joint_types[j] in ("revolute", "prismatic")}
+    owner = {model.idx_v[j]: j for j in range(1, len(model.joint_types)) if model.joint_types[j] in _LIMITED_TYPES}
     indices, dofs, sides = [], [], []
     for entry in joint_limits:
-        if not (isinstance(entry, tuple) and len(entry) == 2 and entry[0] in owner and entry[1] in (1, -1)):
+        valid = isinstance(entry, tuple) and len(entry) == 2 and entry[0] in owner
+        if valid:
+            spherical = model.joint_types[owner[entry[0]]] == "spherical"
+            valid = entry[1] in ((0,) if spherical else (1, -1))
+        if not valid:
             raise ValueError(
                 f"joint_limits entries must be (dof, side) with dof the velocity index of a revolute or "
-                f"prismatic joint ({sorted(owner)}) and side +1 (lower) or -1 (upper), got {entry!r}"
+                f"prismatic joint and side +1 (lower) or -1 (upper), or the first velocity index of a spherical "
+                f"joint and side 0 (its cone) ({sorted(owner)}), got {entry!r}"
             )
         joint = owner[entry[0]]
         bound = model.lower_position_limit if entry[1] > 0 else model.upper_position_limit
         if not _checks.is_traced(bound) and not np.isfinite(np.asarray(bound)[model.idx_q[joint]]):
-            side = "lower" if entry[1] > 0 else "upper"
+            side = {1: "lower", -1: "upper", 0: "cone"}[entry[1]]
             raise ValueError(f"joint_limits: joint {model.joint_names[joint]!r} has no finite {side} position limit")
         indices.append(model.idx_q[joint])
         dofs.append(entry[0])

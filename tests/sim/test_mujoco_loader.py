@@ -399,7 +399,7 @@ def wrap(body, extra=""):
 
 HINGE_BODY = "<body name='b'><joint name='j'/><geom name='g' size='0.1'/><site name='s'/></body>"
 UNSUPPORTED = {
-    "ball_limit": (wrap("<body><joint name='shoulder' type='ball' range='0 1'/><geom size='0.1'/></body>"), "ball joint 'shoulder' has a range"),
+    "ball_limit": (wrap("<body><joint name='shoulder' type='ball' range='0 4'/><geom size='0.1'/></body>"), "ball joint 'shoulder' has the range"),
     "tendon": (wrap(HINGE_BODY, "<tendon><fixed name='t'><joint joint='j' coef='1'/></fixed></tendon>"), "tendons .*'t'"),
     "equality": (wrap(HINGE_BODY, "<equality><weld name='e' body1='b'/></equality>"), "equality constraints .*'e'"),
     "spring": (wrap("<body><joint name='j' stiffness='3'/><geom size='0.1'/></body>"), "joint 'j' has a spring"),
