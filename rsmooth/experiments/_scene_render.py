@@ -124,3 +124,23 @@ class SceneFrames:
         vertices = np.concatenate(placed + [self.floor])
         image = np.asarray(self._render(vertices, self.faces, self.colors))
         return (255 * np.clip(image, 0.0, 1.0)).astype(np.uint8)
+
+
+def side_by_side(loaded, placements, path, frames: int, duration_s: float, hold: int = 3, image_size=(200, 260)):
+    """An animation of several runs of one scene side by side (GIF or MP4 at ``path``).
+
+    Args:
+        loaded: the :class:`rsmooth.sim.MujocoModel` whose geoms are drawn.
+        placements: per run, the joints' ``(rotations (T, J, 3, 3), translations (T, J, 3))``
+            (equal ``T``); one camera frames all of them.
+        frames: how many frames, at evenly spaced steps from the first to the last (a frame
+            costs about a second per run on a CPU core).
+        duration_s: how long the animation plays (before the held last frame).
+        hold: extra copies of the last frame.
+    """
+    everything = tuple(np.concatenate([placement[i] for placement in placements]) for i in range(2))
+    draw = SceneFrames(loaded, bounds(loaded, everything), image_size=image_size)
+    shown = np.linspace(0, placements[0][0].shape[0] - 1, frames).round().astype(int)
+    images = [np.concatenate([draw(rotations[k], translations[k]) for rotations, translations in placements], axis=1)
+              for k in shown]
+    viz.save_animation(images + images[-1:] * hold, path, fps=max(1, round((frames - 1) / duration_s)))

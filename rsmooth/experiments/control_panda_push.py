@@ -79,6 +79,9 @@ class Config:
                                                  above=0.0)
     speed_tolerance: float = _protocol.option(0.05, "A run succeeds only if the box's final speed is below it, m/s.",
                                               above=0.0)
+    frames: int = _protocol.option(
+        21, "Frames of the animation (evenly spaced over the horizon; each costs about a second per method on a CPU "
+        "core); 0: no animation.", min=0)
 
     @classmethod
     def quick(cls, **changes) -> "Config":
@@ -146,24 +149,18 @@ def _tool_positions(system, xs) -> np.ndarray:
     return np.asarray(jax.jit(jax.vmap(lambda q: sim.frame_placement(system.model, q, frame)[1]))(jnp.asarray(xs)[:, :NQ]))
 
 
-def _animate(system, solutions: dict, path: Path) -> None:
-    """The methods' trajectories side by side (every other step, played in real time), the arm
-    drawn with its collision meshes by rsmooth's renderer."""
+def _animate(system, trajectories, path: Path, frames: int) -> None:
+    """The trajectories side by side (DDP left, R-DDP right) at ``frames`` evenly spaced
+    steps, played in real time, the arm drawn with its collision meshes by rsmooth's renderer."""
     loaded = sim.panda_push_model()
     placements = jax.jit(jax.vmap(lambda q: sim.forward_kinematics(system.model, q)))
-    trajectories = {name: [np.asarray(p) for p in placements(jnp.asarray(solution.xs)[:, :NQ])]
-                    for name, solution in solutions.items()}
-    everything = tuple(np.concatenate([t[i] for t in trajectories.values()]) for i in range(2))
-    draw = _scene_render.SceneFrames(loaded, _scene_render.bounds(loaded, everything), image_size=(200, 260))
-    steps = next(iter(trajectories.values()))[0].shape[0]
-    frames = [np.concatenate([draw(rotations[k], translations[k]) for rotations, translations in trajectories.values()],
-                             axis=1) for k in range(0, steps, 2)]
-    viz.save_animation(frames, path, fps=round(0.5 / float(system.time_step)))
+    _scene_render.side_by_side(loaded, [[np.asarray(p) for p in placements(jnp.asarray(xs)[:, :NQ])] for xs in trajectories],
+                               path, frames, (trajectories[0].shape[0] - 1) * float(system.time_step))
 
 
 def run(config: Config, out: Path, key, progress: bool = True) -> dict:
-    """Solves with each method and seed; writes metrics.json, panda_push.png and panda_push.gif
-    (DDP and R-DDP side by side, first seed)."""
+    """Solves with each method and seed; writes metrics.json, panda_push.png and (with
+    ``config.frames``) panda_push.gif (DDP and R-DDP side by side, first seed)."""
     start_time = time.perf_counter()
     system, problem, target = build_problem(config)
     names, per_method, solutions = _control.solve_methods(
@@ -199,8 +196,9 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
     ax.legend(fontsize=6, loc="center left", bbox_to_anchor=(1.02, 0.5))
     fig.tight_layout()
     viz.save_figure(fig, out / "panda_push.png")
-    _animate(system, {name: solutions[name] for name in ("ddp", "rddp") if name in solutions} or solutions,
-             out / "panda_push.gif")
+    if config.frames:
+        shown = [name for name in ("ddp", "rddp") if name in solutions] or list(solutions)
+        _animate(system, [np.asarray(solutions[name].xs) for name in shown], out / "panda_push.gif", config.frames)
     metrics = _control.top_level(metrics, names)
     metrics["wall_time_s"] = time.perf_counter() - start_time
     viz.write_metrics(out / "metrics.json", metrics)

@@ -193,19 +193,13 @@ def trajectory_metrics(system, xs, foot: str, config: Config) -> dict:
     }
 
 
-def _animate(system, trajectories, path: Path, frames: int, fps: float) -> None:
+def _animate(system, trajectories, path: Path, frames: int, duration_s: float) -> None:
     """The trajectories side by side (DDP left, R-DDP right) at ``frames`` evenly spaced
-    steps, the robot drawn with its meshes (convex hulls) by rsmooth's renderer; the final
-    posture held."""
+    steps, the robot drawn with its meshes (convex hulls) by rsmooth's renderer."""
     loaded = solo12_drawing_model()
     placements = jax.jit(jax.vmap(lambda x: sim.forward_kinematics(loaded.model, system.split(x)[0])))
-    posed = [[np.asarray(p) for p in placements(jnp.asarray(xs))] for xs in trajectories]
-    everything = tuple(np.concatenate([p[i] for p in posed]) for i in range(2))
-    draw = _scene_render.SceneFrames(loaded, _scene_render.bounds(loaded, everything), image_size=(200, 260))
-    shown = np.linspace(0, posed[0][0].shape[0] - 1, frames).round().astype(int)
-    images = [np.concatenate([draw(rotations[k], translations[k]) for rotations, translations in posed], axis=1)
-              for k in shown]
-    viz.save_animation(images + images[-1:] * 3, path, fps=max(1, round(fps)))
+    _scene_render.side_by_side(loaded, [[np.asarray(p) for p in placements(jnp.asarray(xs))] for xs in trajectories],
+                               path, frames, duration_s)
 
 
 def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
@@ -259,7 +253,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     shown = tuple(n for n in ("ddp", "rddp") if n in solutions) or names[:1]
     if config.frames:  # played at half speed
         _animate(system, [solutions[name].xs for name in shown], out / "solo_lift.gif", config.frames,
-                 0.5 * (config.frames - 1) / (config.horizon * dt))
+                 2.0 * config.horizon * dt)
     metrics = _control.top_level(metrics, names)
     metrics["wall_time_s"] = time.perf_counter() - start
     viz.write_metrics(out / "metrics.json", metrics)
