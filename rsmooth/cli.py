@@ -79,7 +79,8 @@ def _prepare(name: str, out: Optional[Path], seed: int, x64: bool = True):
     the previous run into it removed), and the key of `seed`."""
     import jax
 
-    # One experiment per process: its precision is set once, before any array exists.
+    # Set before the experiment creates any array (and in a report, only ever from float32 to
+    # float64: see _execute).
     jax.config.update("jax_enable_x64", x64)
     out = Path(out) if out is not None else DEFAULT_ROOT / name
     return _files.prepare_output_folder(out), jax.random.key(seed)
@@ -94,9 +95,12 @@ def _report(name: str, out: Path, start: float, summary: dict) -> None:
 def _execute(experiment: _protocol.Experiment, config, out: Optional[Path], seed: int, root: Optional[Path] = None):
     """Runs `experiment` with `config` into `out` (default ``./rsmooth-out/NAME``, or
     ``root/NAME``), recording the files it writes; returns the folder and the metrics."""
-    # `rsmooth demo` and `rsmooth report` run several experiments in one process: they keep
-    # float64 throughout rather than switching the precision under arrays that already exist.
-    x64 = experiment.x64 or root is not None
+    # `rsmooth demo` and `rsmooth report` run several experiments in one process (run_report
+    # runs the float32 ones first): once float64 is on they keep it, rather than switching the
+    # precision back under float64 arrays that already exist.
+    import jax
+
+    x64 = experiment.x64 or (root is not None and bool(jax.config.jax_enable_x64))
     out, key = _prepare(experiment.name, out if root is None else root / experiment.name, seed, x64)
     with _files.recording_outputs(out):
         metrics = experiment.run(config, out, key)
@@ -133,8 +137,10 @@ def run_report(experiments: Iterable[_protocol.Experiment], out: Path, seed: int
     from rsmooth import report
 
     out = _files.prepare_output_folder(out)
-    entries = []
-    for experiment in experiments:
+    experiments = tuple(experiments)
+    entries = {}
+    # float32 experiments (rendering) first, in float32; then the float64 ones (see _execute)
+    for experiment in sorted(experiments, key=lambda e: e.x64):
         config = experiment.config.quick() if quick else experiment.config()
         folder = out / experiment.name
         command = f"rsmooth {experiment.title}{' --quick' if quick else ''} --seed {seed} --out {folder}"
@@ -148,13 +154,14 @@ def run_report(experiments: Iterable[_protocol.Experiment], out: Path, seed: int
         else:
             _report(experiment.title, folder, start, experiment.summary(metrics))
         files = tuple(_files.listed_files(folder)) if folder.is_dir() else ()
-        entries.append(report.Entry(
+        entries[experiment.name] = report.Entry(
             title=experiment.title, folder=experiment.name, command=command, help=" ".join(experiment.help.split()),
             settings=dataclasses.asdict(config), metrics=metrics, error=error,
             wall_time_s=time.perf_counter() - start, files=files,
-        ))
+        )
     with _files.recording_outputs(out):
-        page = report.write_page(out, entries, report.machine(), profile="quick" if quick else "default")
+        page = report.write_page(out, [entries[e.name] for e in experiments], report.machine(),
+                                 profile="quick" if quick else "default")
     return page
 
 

@@ -399,6 +399,36 @@ def test_ctrl_c_stops_the_command_with_a_message_and_code_130(tmp_path, during):
     assert stderr.strip() == "rsmooth: interrupted"
 
 
+def test_a_report_runs_its_float32_experiments_first_and_lists_them_in_order(monkeypatch, tmp_path):
+    """rsmooth report / demo in one process: the float32 experiments (rendering) run first, in
+    float32, then the float64 ones; precision only ever goes from float32 to float64; the page
+    lists the experiments in the order given."""
+    import jax
+
+    from rsmooth import report
+
+    ran = []
+
+    def recording(name):
+        def run(config, out, key):
+            ran.append((name, bool(jax.config.jax_enable_x64)))
+            return {"methods": ["ddp", "rddp"], "ddp": {"score": 0.25}, "rddp": {"score": 0.75}}
+        return run
+
+    experiments = [_experiment(run=recording(name), name=name, command=("experiment", name), x64=x64)
+                   for name, x64 in (("first", True), ("render", False), ("last", True))]
+    pages = []
+    monkeypatch.setattr(report, "write_page", lambda out, entries, *args, **kwargs: pages.append(entries) or out / "index.html")
+    before = bool(jax.config.jax_enable_x64)
+    try:
+        jax.config.update("jax_enable_x64", False)  # as a fresh process starts
+        cli.run_report(experiments, tmp_path, seed=0, quick=True)
+    finally:
+        jax.config.update("jax_enable_x64", before)
+    assert ran == [("render", False), ("first", True), ("last", True)]
+    assert [entry.folder for entry in pages[0]] == ["first", "render", "last"]
+
+
 def test_demo_runs_its_four_experiments_at_their_quick_sizes(monkeypatch, tmp_path):
     seen = []
 
