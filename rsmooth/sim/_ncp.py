@@ -396,10 +396,10 @@ def _polish(G: Array, g: Array, mu: Array, impulse: Array, steps: int, least_squ
     (possibly not finite, or the solution of wrong modes) must be checked by
     :func:`ncp_residuals`.
 
-    ``least_squares`` (a bool, possibly traced): Gauss-Newton steps with a Levenberg-Marquardt damping of ``1e-12``
-    of the largest diagonal entry of ``JᵀJ``, for modes whose equations are singular (more
-    sticking rows than the degrees of freedom they hold: a stack of boxes, where Newton's
-    own step is not finite); they reach a solution of consistent equations."""
+    ``least_squares`` (a bool, possibly traced): Gauss-Newton steps with a Levenberg-Marquardt
+    damping of ``1e-12`` of the largest diagonal entry of ``JᵀJ``, for modes whose equations
+    are singular (more sticking rows than the degrees of freedom they hold: a stack of boxes,
+    where Newton's own step is not finite); they reach a solution of consistent equations."""
     n = mu.shape[0]
     z = impulse.reshape(n, 3)
     c = (G @ impulse + g).reshape(n, 3)
