@@ -42,7 +42,7 @@ def test_cli_help_lists_the_experiments():
 def test_cli_sim_solo12_writes_metrics_and_animation(tmp_path):
     # As a user runs it, in a fresh process: in a pytest-xdist worker loaded with the suite's
     # earlier programs, XLA:CPU (jaxlib 0.10.2) once crashed compiling this command's programs.
-    command = [sys.executable, "-m", "rsmooth.cli", "sim", "solo12", "--quick", "--steps", "5", "--out", str(tmp_path)]
+    command = [sys.executable, "-m", "rsmooth.cli", "sim", "solo12", "--quick", "--steps", "5", "--frames", "2", "--out", str(tmp_path)]
     done = subprocess.run(command, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout + done.stderr
     metrics = json.loads((tmp_path / "metrics.json").read_text())

@@ -25,13 +25,14 @@ build time), everything at rest.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import pathlib
 
 import jax.numpy as jnp
 import numpy as np
 
 from rsmooth.sim._model import example_robot_data_root
-from rsmooth.sim._mujoco import _mujoco, _read_urdf, load_mjcf
+from rsmooth.sim._mujoco import MujocoModel, _mujoco, _read_urdf, load_mjcf
 from rsmooth.sim._ncp import NCPSolver
 from rsmooth.sim._scene import scene
 from rsmooth.sim._simulator import RigidBodySystem
@@ -115,37 +116,45 @@ def panda_push(
         ValueError: a size, mass or time step that is not positive and finite, a negative
             friction coefficient or tool gap, or a start out of the arm's reach.
     """
-    for name, value in (("box_side", box_side), ("box_mass", box_mass), ("tool_radius", tool_radius),
-                        ("time_step", time_step)):
-        if not (np.isfinite(value) and value > 0):
-            raise ValueError(f"{name} must be positive and finite, got {value}")
-    for name, value in (("table_friction", table_friction), ("tool_friction", tool_friction), ("tool_gap", tool_gap)):
-        if not (np.isfinite(value) and value >= 0):
-            raise ValueError(f"{name} must be non-negative and finite, got {value}")
+    if not (np.isfinite(tool_gap) and tool_gap >= 0):
+        raise ValueError(f"tool_gap must be non-negative and finite, got {tool_gap}")
     mj = _mujoco()
-    compiled = _panda_spec(mj, box_side, box_mass, box_position, tool_radius, table_friction, tool_friction,
-                           time_step).compile()
+    compiled = _panda_compiled(mj, box_side, box_mass, box_position, tool_radius, table_friction, tool_friction,
+                               time_step)
     system = scene(load_mjcf(compiled), solver=solver, joint_limits=True)
     q = np.array(system.initial_state()[: system.model.nq])  # the box where the scene puts it
     q[:7] = _arm_start(mj, compiled, box_side, box_position, tool_radius, tool_gap, tool_y)
     return dataclasses.replace(system.with_gravity_compensation(gravity_compensation), initial_configuration=jnp.asarray(q))
 
 
-def panda_push_model(
-    *,
-    box_side: float = 0.1,
-    box_mass: float = 0.5,
-    box_position: tuple[float, float] = (0.55, 0.0),
-    tool_radius: float = 0.015,
-    table_friction: float = 0.4,
-    tool_friction: float = 0.5,
-    time_step: float = 0.01,
-):
-    """The :class:`~rsmooth.sim.MujocoModel` that :func:`panda_push` (with the same arguments)
-    is built from: its geoms, the links' meshes among them, are what an animation draws."""
-    mj = _mujoco()
-    return load_mjcf(_panda_spec(mj, box_side, box_mass, box_position, tool_radius, table_friction, tool_friction,
-                                 time_step).compile())
+def panda_push_model(**arguments) -> MujocoModel:
+    """The :class:`~rsmooth.sim.MujocoModel` that ``panda_push(**arguments)`` is built from:
+    its geoms, the links' meshes among them, are what an animation draws. Takes
+    :func:`panda_push`'s keyword arguments (those that do not shape the model, such as
+    ``tool_gap`` or ``solver``, change nothing here).
+
+    Raises:
+        TypeError: an argument :func:`panda_push` does not take.
+        ValueError: as :func:`panda_push`, for the arguments that shape the model.
+    """
+    given = inspect.signature(panda_push).bind(**arguments)
+    given.apply_defaults()
+    shaping = inspect.signature(_panda_compiled).parameters
+    return load_mjcf(_panda_compiled(_mujoco(), **{name: given.arguments[name] for name in list(shaping)[1:]}))
+
+
+def _panda_compiled(mj, box_side: float, box_mass: float, box_position, tool_radius: float, table_friction: float,
+                    tool_friction: float, time_step: float):
+    """The scene's compiled ``mujoco.MjModel``, its arguments checked."""
+    for name, value in (("box_side", box_side), ("box_mass", box_mass), ("tool_radius", tool_radius),
+                        ("time_step", time_step)):
+        if not (np.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be positive and finite, got {value}")
+    for name, value in (("table_friction", table_friction), ("tool_friction", tool_friction)):
+        if not (np.isfinite(value) and value >= 0):
+            raise ValueError(f"{name} must be non-negative and finite, got {value}")
+    return _panda_spec(mj, box_side, box_mass, box_position, tool_radius, table_friction, tool_friction,
+                       time_step).compile()
 
 
 def _arm_start(mj, compiled, box_side: float, box_position, tool_radius: float, tool_gap: float,

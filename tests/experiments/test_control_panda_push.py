@@ -29,11 +29,19 @@ def test_the_scene_starts_where_it_says_and_holds_still_at_zero_torque():
         sim.panda_push(box_side=0.0)
     with pytest.raises(ValueError, match="within the arm's reach"):
         sim.panda_push(box_position=(1.5, 0.0))
+    # the model an animation draws is the one the system is built from, for the same arguments
+    loaded = sim.panda_push_model(box_side=0.2, tool_gap=0.04)
+    box = loaded.geom_names.index("box")
+    np.testing.assert_allclose(loaded.geom_size[box], [0.1] * 3)
+    with pytest.raises(TypeError, match="box_sides"):
+        sim.panda_push_model(box_sides=0.2)
+    with pytest.raises(ValueError, match="table_friction must be non-negative"):
+        sim.panda_push_model(table_friction=-0.1)
 
 
 @pytest.mark.slow
 def test_ddp_leaves_the_box_and_rddp_pushes_it(tmp_path, getkey):
-    config = control_panda_push.Config.quick(max_iterations=8, num_samples=8, frames=3)
+    config = control_panda_push.Config.quick(max_iterations=8, num_samples=8, frames=2)
     metrics = control_panda_push.run(config, tmp_path, getkey(), progress=False)
     assert metrics["methods"] == ["ddp", "rddp"]
     ddp, rddp = metrics["ddp"], metrics["rddp"]

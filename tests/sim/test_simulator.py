@@ -211,7 +211,7 @@ def test_solo12_stands_still_under_gravity_compensation():
     solo = _solo()
     x0 = solo.initial_state()
     assert solo.nx == 37 and solo.nu == 12
-    distance, _, _ = solo.contacts(solo.split(x0)[0])
+    distance, _, _ = eqx.filter_jit(lambda s, q: s.contacts(q))(solo, solo.split(x0)[0])
     np.testing.assert_allclose(distance, 0.0, atol=1e-12)
     torques = sim.solo12_standing_torques(solo, x0)
     assert float(jnp.max(jnp.abs(torques))) < sim.SOLO12_TORQUE_LIMIT
@@ -637,21 +637,23 @@ def test_gravity_compensation_holds_an_arm_and_its_derivative_is_the_steps():
     held = arm.with_gravity_compensation()
     x0 = arm.state(jnp.array([0.4, -0.7]))
     u = jnp.zeros(2)
-    xs_held, _ = held.rollout(x0, jnp.zeros((50, 2)))
-    xs_free, _ = arm.rollout(x0, jnp.zeros((50, 2)))
+    xs_held, _ = _rollout(held, x0, jnp.zeros((50, 2)))
+    xs_free, _ = _rollout(arm, x0, jnp.zeros((50, 2)))
     np.testing.assert_allclose(xs_held[:, :2], np.broadcast_to(x0[:2], (51, 2)), atol=1e-12)
     assert float(jnp.max(jnp.abs(xs_free[-1, :2] - x0[:2]))) > 0.1
     x = x0.at[2:].set(jnp.array([0.3, -0.5]))
     u = jnp.array([1.0, -0.5])
-    _, fx, fu = held.step_and_jacobians(x, u)
+    step_and_jacobians = eqx.filter_jit(lambda s, x_, u_: s.step_and_jacobians(x_, u_))
+    step = eqx.filter_jit(lambda s, x_, u_: s.step(x_, u_))
+    _, fx, fu = step_and_jacobians(held, x, u)
     eps = 1e-6
     central = lambda f, z, i: (f(z.at[i].add(eps)) - f(z.at[i].add(-eps))) / (2 * eps)  # noqa: E731
-    fx_fd = jnp.stack([central(lambda z: held.step(z, u), x, i) for i in range(4)], axis=1)
-    fu_fd = jnp.stack([central(lambda w: held.step(x, w), u, i) for i in range(2)], axis=1)
+    fx_fd = jnp.stack([central(lambda z: step(held, z, u), x, i) for i in range(4)], axis=1)
+    fu_fd = jnp.stack([central(lambda w: step(held, x, w), u, i) for i in range(2)], axis=1)
     np.testing.assert_allclose(fx, fx_fd, atol=1e-7)
     np.testing.assert_allclose(fu, fu_fd, atol=1e-7)
     # the compensation's own derivative matters: without it the Jacobians differ
-    _, fx_plain, _ = arm.step_and_jacobians(x, u)
+    _, fx_plain, _ = step_and_jacobians(arm, x, u)
     assert float(jnp.max(jnp.abs(fx - fx_plain))) > 1e-3
     with pytest.raises(ValueError, match="gravity_compensation adds efforts to the actuated dofs"):
         sim.ball().with_gravity_compensation()
