@@ -738,7 +738,7 @@ def solo12(
     friction: float = 0.7,
     time_step: float = 0.01,
     contact: ContactLaw | str = "hard",
-    solver: NCPSolver = NCPSolver(rho_update_power=0.05, sticking_guess=True, polish=True),
+    solver: NCPSolver | None = None,
     baumgarte: float = 0.2,
     torque_limit: float = SOLO12_TORQUE_LIMIT,
     model: Model | None = None,
@@ -766,7 +766,10 @@ def solo12(
             iterations on the perturbed states of R-DDP), the sticking guess
             (``sticking_guess=True``: the steps where the feet on the floor stick are solved
             without ADMM) and the active-set Newton polish (``polish=True``: so are most of
-            those where feet slide or lift); see benchmarks/RESULTS.md.
+            those where feet slide or lift); see benchmarks/RESULTS.md. With
+            ``body_contacts``, ADMM's cap is 2,000 iterations instead of 500: a robot lying
+            on its base, knees and feet presses up to 12 contacts (36 rows) on 18 degrees of
+            freedom, where the impulses are far from unique and ADMM's tail is slow.
         baumgarte: penetration correction rate (hard contact).
         torque_limit: joint torque bound (N m).
         model: an already loaded Solo-12 model (default: loaded from the URDF).
@@ -791,6 +794,9 @@ def solo12(
     torque_limit = _number("torque_limit", torque_limit, infinite=True)
     armature = _number("armature", armature, zero=True)
     joint_damping = _number("joint_damping", joint_damping, zero=True)
+    if solver is None:
+        solver = NCPSolver(rho_update_power=0.05, sticking_guess=True, polish=True,
+                           max_iterations=2000 if body_contacts else 500)
     if model is None:
         model = load_urdf(solo12_urdf_path())
     model = eqx.tree_at(lambda m: m.armature, model, model.armature.at[6:].set(float(armature)))

@@ -229,6 +229,24 @@ def test_solo12_stands_still_under_gravity_compensation():
     assert float(xs[-1, 2]) < float(x0[2]) - 0.02
 
 
+def test_a_thrown_tumbling_solo12_lands_on_its_body_with_accurate_contact_solves():
+    """Thrown 0.3 m up with a tumble, limp (zero torque), Solo-12 lands on its base, knees and
+    feet: up to 12 contacts (36 rows) on 18 dofs, impulses far from unique. Most solves reach
+    the tolerance (1e-10), the others stop within 1e-6 (ADMM's slow tail on these problems;
+    Pinocchio's ADMM does no better on them), and the robot ends lying still on the floor."""
+    solo = sim.solo12(body_contacts=True)
+    x0 = solo.initial_state()
+    thrown = x0.at[2].add(0.3).at[19:25].set(jnp.array([0.5, 0.2, -1.0, 3.0, -2.0, 1.0]))
+    xs, infos = _rollout(solo, thrown, jnp.zeros((300, 12)))
+    assert not bool(jnp.any(infos.diverged))
+    converged = np.asarray(infos.ncp.converged)
+    assert converged.mean() > 0.7
+    for residual in (infos.ncp.primal_feasibility, infos.ncp.dual_feasibility, infos.ncp.complementarity):
+        assert float(jnp.max(residual)) < 1e-6
+    assert float(jnp.min(infos.distance)) > -0.01  # nothing sinks into the floor
+    assert float(jnp.max(jnp.abs(xs[-1, 19:]))) < 0.05  # at rest (m/s, rad/s)
+
+
 def test_solo12_polish_solves_perturbed_steps_without_admm():
     """On states and torques perturbed as R-DDP samples them (feet sliding, lifting, pressing),
     Solo-12's default solver (sticking guess and Newton polish) needs no ADMM iteration and
