@@ -203,7 +203,7 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0, ch
     info_batch = jax.jit(jax.vmap(lambda x, u: system.step_with_info(x, u)[1].ncp.iterations))
     iterations = {name: np.asarray(info_batch(x, u)) for name, x, u in
                   (("standing", xs, us), ("perturbed", xs_perturbed, us_perturbed))}
-    unpolished = dataclasses.replace(system, solver=dataclasses.replace(system.solver, polish=False))
+    unpolished = system.with_options(solver=dataclasses.replace(system.solver, polish=False))
     step_batch_unpolished = jax.jit(jax.vmap(lambda x, u: unpolished.step(x, u)))
     iterations["perturbed, polish off,"] = np.asarray(
         jax.jit(jax.vmap(lambda x, u: unpolished.step_with_info(x, u)[1].ncp.iterations))(xs_perturbed, us_perturbed)
@@ -217,7 +217,7 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0, ch
     )
     results["ours_jac"] = median_time(jac1, x0, u0, repeats=repeats)
     # the reference derivative: autodiff through CRBA, Cholesky and the Delassus matrix
-    reference = dataclasses.replace(system, derivative="autodiff")
+    reference = system.with_options(derivative="autodiff")
     jac_autodiff = jax.jit(jax.jacfwd(lambda x, u: reference.step(x, u), argnums=(0, 1)))
     results["ours_jac_autodiff"] = median_time(jac_autodiff, x0, u0, repeats=repeats)
     # what DDP and R-DDP call: the next state and both Jacobians from one contact solve
@@ -234,7 +234,7 @@ def main(repeats: int = 30, quick: bool = False, probe_timeout: float = 90.0, ch
     # the polish and ADMM loops this many at a time
     chunk_rows = []
     for chunk in chunk_sizes:
-        chunked = dataclasses.replace(system, solver=dataclasses.replace(system.solver, chunk_size=chunk))
+        chunked = system.with_options(solver=dataclasses.replace(system.solver, chunk_size=chunk))
         key_step, key_jac = f"ours_step_batch_perturbed_chunk{chunk}", f"ours_step_jac_batch_perturbed_chunk{chunk}"
         results[key_step] = median_time(
             jax.jit(jax.vmap(lambda x, u: chunked.step(x, u))), xs_perturbed, us_perturbed, repeats=repeats

@@ -177,7 +177,7 @@ def final_velocity(system: sim.RigidBodySystem, config: Config, stiffness, start
     """The ball's velocity along ``x`` after ``steps`` steps from ``x = start`` at ``speed``,
     against a wall of contact stiffness ``stiffness`` (both may be traced)."""
     law = sim.SpringDamper(stiffness=stiffness, damping=2.0 * config.damping_ratio * jnp.sqrt(stiffness * MASS), friction=0.0)
-    system = eqx.tree_at(lambda s: s.contact, system, law)
+    system = system.with_options(contact=law)
     zero = jnp.zeros_like(start)
     q = jnp.concatenate([jnp.stack([start, zero, zero]), jnp.array([0.0, 0.0, 0.0, 1.0])])
     v = jnp.array([config.speed, 0.0, 0.0, 0.0, 0.0, 0.0])
@@ -314,7 +314,7 @@ def push_problem(config: Config, stiffness) -> control.ShootingProblem:
     law = sim.SpringDamper(stiffness=jnp.asarray(stiffness, float),
                            damping=2.0 * config.damping_ratio * jnp.sqrt(jnp.asarray(stiffness, float) * MASS),
                            friction=jnp.asarray(0.0))
-    system = eqx.tree_at(lambda s: s.contact, system, law)
+    system = system.with_options(contact=law)
     x0 = jnp.concatenate([jnp.zeros(3), jnp.array([0.0, 0.0, 0.0, 1.0]), jnp.array([config.speed, 0.0, 0.0, 0.0, 0.0, 0.0])])
     params = {name: jnp.asarray(value, float) for name, value in
               (("effort", config.effort), ("push_sigma", config.push_sigma), ("speed", config.speed))}

@@ -7,7 +7,8 @@ contact is a frictional complementarity problem solved by ADMM and differentiate
 implicitly (:func:`solve_ncp`); collision geometry (:class:`Sphere`, :class:`Capsule`,
 :class:`Box`, :class:`Cylinder`, :class:`HalfSpace`, :class:`ConvexMesh`) gives contact
 manifolds between posed shapes (:func:`collide`, :func:`candidate_pairs`); :class:`RigidBodySystem` steps a system in time
-(its contacts: spheres against half-spaces, and any pairs of shapes, :class:`GeomPair`) and is the
+(its contacts: spheres against half-spaces, and any pairs of shapes, :class:`GeomPair`; how it
+steps: :class:`Options`, the time step, contact law, solver and derivative mode) and is the
 ``Dynamics`` (``step(x, u)``, ``nx``, ``nu``) that rsmooth's optimizers consume; :func:`scene`
 builds one from a MuJoCo model (MJCF or URDF), its geoms paired as MuJoCo pairs them;
 :func:`panda_push` is a Panda arm beside a box on a table.
@@ -90,6 +91,7 @@ from rsmooth.sim._simulator import (
     SLIDING as SLIDING,
     STICKING as STICKING,
     GeomPair as GeomPair,
+    Options as Options,
     RigidBodySystem as RigidBodySystem,
     SimulationWarning as SimulationWarning,
     StepInfo as StepInfo,

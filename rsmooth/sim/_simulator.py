@@ -278,6 +278,64 @@ class GeomPair(eqx.Module):
         return manifold_size(self.shape1, self.shape2)
 
 
+class Options(eqx.Module):
+    """How a system is stepped (as MJX's ``Options`` beside its ``Model``): the time step, the
+    contact law and its solver, the derivative. A :class:`RigidBodySystem` holds one
+    (:attr:`RigidBodySystem.options`, its fields also readable on the system itself);
+    :meth:`RigidBodySystem.with_options` changes some.
+
+    Attributes:
+        time_step: ``h`` in seconds (a scalar array: traced, so systems that differ only in
+            it share compiled programs, and derivatives with respect to it flow).
+        contact: ``"hard"`` (frictional contact as an NCP, solved by ``solver``), a
+            :class:`~rsmooth.sim.SpringDamper` or a :class:`~rsmooth.sim.LogBarrier`.
+        solver: the NCP solver configuration (hard contact).
+        baumgarte: penetration correction rate in ``[0, 1]`` (hard contact; static).
+        derivative: how ``step`` is differentiated with hard contact (static).
+            ``"implicit"`` (default): the implicit function theorem on the step's own
+            equations, momentum balance ``M (v+ - v) + h (b - tau) - Jᵀ lambda = 0`` and the
+            NCP's natural map, so a derivative costs one forward-mode pass through inverse
+            dynamics (RNEA) and contact kinematics plus linear solves with the already
+            factored ``M`` and natural-map Jacobian; no derivative of the mass matrix, its
+            Cholesky factor or the Delassus matrix is formed (the ABA-derivative identity
+            ``d(M^-1 r) = -M^-1 dRNEA``, Carpentier and Mansard, RSS 2018). ``"autodiff"``:
+            JAX autodiff through CRBA, Cholesky and the Delassus matrix, with only the NCP
+            solve differentiated implicitly; the same derivative, several times slower,
+            kept as a reference. Compliant contact laws always use ``"autodiff"``.
+        max_motion_per_step: bound on ``|v+| h`` (rad or m) beyond which a step is reported
+            as diverged (static; ``inf`` reports only non-finite states).
+
+    Raises:
+        ValueError: a time step that is not a positive, finite scalar, an unknown contact law
+            or derivative mode, ``baumgarte`` outside ``[0, 1]``, or a ``max_motion_per_step``
+            that is not positive.
+    """
+
+    time_step: Array
+    contact: ContactLaw = "hard"
+    solver: NCPSolver = NCPSolver()
+    baumgarte: float = eqx.field(static=True, default=0.2)
+    derivative: str = eqx.field(static=True, default="implicit")
+    max_motion_per_step: float = eqx.field(static=True, default=1.0)
+
+    def __check_init__(self):
+        if not _checks.is_traced(self.time_step):
+            if np.shape(self.time_step) != ():
+                raise ValueError(f"time_step must be a scalar (s), got shape {np.shape(self.time_step)}")
+            if not (np.isfinite(float(self.time_step)) and float(self.time_step) > 0):
+                raise ValueError(f"time_step must be positive and finite, got {float(self.time_step)}")
+        if not (isinstance(self.contact, (SpringDamper, LogBarrier)) or self.contact == "hard"):
+            raise ValueError(f"contact must be 'hard', a SpringDamper or a LogBarrier, got {self.contact!r}")
+        if not isinstance(self.solver, NCPSolver):
+            raise ValueError(f"solver must be an NCPSolver, got {self.solver!r}")
+        if not 0.0 <= self.baumgarte <= 1.0:
+            raise ValueError(f"baumgarte must be in [0, 1], got {self.baumgarte}")
+        if self.derivative not in ("implicit", "autodiff"):
+            raise ValueError(f"derivative must be 'implicit' or 'autodiff', got {self.derivative!r}")
+        if not (self.max_motion_per_step > 0):
+            raise ValueError(f"max_motion_per_step must be positive, got {self.max_motion_per_step}")
+
+
 class RigidBodySystem(eqx.Module):
     """A kinematic tree with sphere contacts against half-spaces and contacts between pairs
     of collision shapes (:class:`GeomPair`), stepped in time.
@@ -305,11 +363,9 @@ class RigidBodySystem(eqx.Module):
         plane_normals: unit normals of the half-spaces ``{p : n . p >= offset}``, ``(P, 3)``.
         plane_offsets: ``(P,)``.
         friction: Coulomb coefficient of every half-space, ``(P,)`` (hard contact).
-        time_step: ``h`` in seconds.
-        contact: ``"hard"``, a :class:`~rsmooth.sim.SpringDamper` or a
-            :class:`~rsmooth.sim.LogBarrier`.
-        solver: the NCP solver configuration (hard contact).
-        baumgarte: penetration correction rate in ``[0, 1]`` (hard contact).
+        options: the time step, the contact law and its solver, the derivative mode
+            (:class:`Options`); ``time_step``, ``contact``, ``solver``, ``baumgarte``,
+            ``derivative`` and ``max_motion_per_step`` read them on the system too.
         actuation: ``"joints"`` or ``"wrench"`` (static).
         actuated_dofs: velocity indices driven by ``u`` (``"joints"``).
         wrench_frame: frame index of the applied wrench (``"wrench"``).
@@ -327,8 +383,6 @@ class RigidBodySystem(eqx.Module):
             integrated implicitly; ``None`` for none. It bounds the speed a constant torque
             gives a free joint (``tau / d``), which explicit velocity-product (Coriolis)
             terms otherwise let grow until the step diverges.
-        max_motion_per_step: bound on ``|v+| h`` (rad or m) beyond which a step is reported
-            as diverged (static; ``inf`` reports only non-finite states).
         initial_configuration: the configuration ``q`` ``(nq,)`` that :meth:`initial_state`
             starts from, set by each factory (e.g. a cube resting on its floor); ``None``: the
             model's neutral configuration.
@@ -366,17 +420,6 @@ class RigidBodySystem(eqx.Module):
             :attr:`StepInfo.skipped_pairs` and reported by :func:`check_steps`. The narrow
             phase (a mesh pair's separating-axis test) is most of a scene's collision cost.
             ``None`` (default): every pair. See :meth:`with_contact_budget`.
-        derivative: how ``step`` is differentiated with hard contact (static).
-            ``"implicit"`` (default): the implicit function theorem on the step's own
-            equations, momentum balance ``M (v+ - v) + h (b - tau) - Jᵀ lambda = 0`` and the
-            NCP's natural map, so a derivative costs one forward-mode pass through inverse
-            dynamics (RNEA) and contact kinematics plus linear solves with the already
-            factored ``M`` and natural-map Jacobian; no derivative of the mass matrix, its
-            Cholesky factor or the Delassus matrix is formed (the ABA-derivative identity
-            ``d(M^-1 r) = -M^-1 dRNEA``, Carpentier and Mansard, RSS 2018). ``"autodiff"``:
-            JAX autodiff through CRBA, Cholesky and the Delassus matrix, with only the NCP
-            solve differentiated implicitly; the same derivative, several times slower,
-            kept as a reference. Compliant contact laws always use ``"autodiff"``.
         gravity_compensation: the actuated dofs also receive the efforts that hold the
             system against gravity at its configuration (their entries of
             :func:`~rsmooth.sim.gravity_torques`), as the controller of a torque-controlled
@@ -393,10 +436,7 @@ class RigidBodySystem(eqx.Module):
     plane_normals: Array
     plane_offsets: Array
     friction: Array
-    time_step: Array
-    contact: ContactLaw
-    solver: NCPSolver
-    baumgarte: float = eqx.field(static=True)
+    options: Options
     actuation: str = eqx.field(static=True)
     actuated_dofs: tuple[int, ...] = eqx.field(static=True)
     wrench_frame: int = eqx.field(static=True)
@@ -407,9 +447,7 @@ class RigidBodySystem(eqx.Module):
     box_spheres: tuple[int, ...] = eqx.field(static=True, default=())
     box_friction: float = eqx.field(static=True, default=0.0)
     geom_pairs: tuple[GeomPair, ...] = ()
-    derivative: str = eqx.field(static=True, default="implicit")
     joint_damping: Array | None = None
-    max_motion_per_step: float = eqx.field(static=True, default=1.0)
     initial_configuration: Array | None = None
     joint_limits: tuple[tuple[int, int], ...] = eqx.field(static=True, default=())
     max_contacts: int | None = eqx.field(static=True, default=None)
@@ -437,16 +475,12 @@ class RigidBodySystem(eqx.Module):
         if self.friction.shape != (num_planes,):
             raise ValueError(f"friction must have shape ({num_planes},), got {self.friction.shape}")
         _check_physical(self)
-        if self.derivative not in ("implicit", "autodiff"):
-            raise ValueError(f"derivative must be 'implicit' or 'autodiff', got {self.derivative!r}")
+        if not isinstance(self.options, Options):
+            raise ValueError(f"options must be an Options, got {self.options!r}")
         if self.actuation not in ("joints", "wrench"):
             raise ValueError(f"actuation must be 'joints' or 'wrench', got {self.actuation!r}")
         if self.input_limit.shape != (self.nu,):
             raise ValueError(f"input_limit must have shape ({self.nu},), got {self.input_limit.shape}")
-        if not (isinstance(self.contact, (SpringDamper, LogBarrier)) or self.contact == "hard"):
-            raise ValueError(f"contact must be 'hard', a SpringDamper or a LogBarrier, got {self.contact!r}")
-        if not 0.0 <= self.baumgarte <= 1.0:
-            raise ValueError(f"baumgarte must be in [0, 1], got {self.baumgarte}")
         for frame in self.sphere_frames:
             self.model.frame_id(frame)
         for dof in self.actuated_dofs:
@@ -485,6 +519,54 @@ class RigidBodySystem(eqx.Module):
                         self.model.frame_id(frame)
                     except ValueError as error:
                         raise ValueError(f"geom_pairs[{index}].{name}: {error}") from None
+
+    # -- options ------------------------------------------------------------------------
+
+    @property
+    def time_step(self) -> Array:
+        """``options.time_step``: ``h`` (s)."""
+        return self.options.time_step
+
+    @property
+    def contact(self) -> ContactLaw:
+        """``options.contact``: the contact law."""
+        return self.options.contact
+
+    @property
+    def solver(self) -> NCPSolver:
+        """``options.solver``: the NCP solver configuration (hard contact)."""
+        return self.options.solver
+
+    @property
+    def baumgarte(self) -> float:
+        """``options.baumgarte``: the penetration correction rate (hard contact)."""
+        return self.options.baumgarte
+
+    @property
+    def derivative(self) -> str:
+        """``options.derivative``: ``"implicit"`` or ``"autodiff"``."""
+        return self.options.derivative
+
+    @property
+    def max_motion_per_step(self) -> float:
+        """``options.max_motion_per_step``: the divergence bound on ``|v+| h``."""
+        return self.options.max_motion_per_step
+
+    def with_options(self, **changes) -> "RigidBodySystem":
+        """The same system with some of its :class:`Options` changed, e.g.
+        ``system.with_options(solver=NCPSolver(max_iterations=2000), derivative="autodiff")``.
+
+        Raises:
+            TypeError: a name that is not a field of :class:`Options`.
+            ValueError: a value :class:`Options` or the system refuses.
+        """
+        fields = {field.name for field in dataclasses.fields(Options)}
+        unknown = sorted(set(changes) - fields)
+        if unknown:
+            raise TypeError(f"with_options takes the fields of Options ({', '.join(sorted(fields))}), got {unknown}")
+        if "time_step" in changes:
+            changes["time_step"] = jnp.asarray(changes["time_step"], dtype=float)
+        return dataclasses.replace(self, options=dataclasses.replace(self.options, **changes))
 
     # -- sizes and state layout -------------------------------------------------------
 
@@ -1261,15 +1343,11 @@ def _check_physical(system: RigidBodySystem) -> None:
             bound = "positive" if positive else "non-negative"
             raise ValueError(f"{name} must be {bound}{'' if allow_inf else ' and finite'}, got {array}")
 
-    if not _checks.is_traced(system.time_step) and np.shape(system.time_step) != ():
-        raise ValueError(f"time_step must be a scalar (s), got shape {np.shape(system.time_step)}")
-    concrete("time_step", system.time_step, positive=True)
     concrete("sphere_radii", system.sphere_radii)
     concrete("friction", system.friction)
     concrete("box_friction", system.box_friction)
     concrete("box_half_extents", system.box_half_extents, positive=True)
     concrete("input_limit", system.input_limit, positive=True, allow_inf=True)
-    concrete("max_motion_per_step", system.max_motion_per_step, positive=True, allow_inf=True)
 
 
 @eqx.filter_custom_jvp

@@ -23,7 +23,7 @@ from rsmooth.sim._collision import manifold_size
 from rsmooth.sim._contact import contact_frame
 from rsmooth.sim._geometry import Box, Capsule, Cylinder, HalfSpace, Sphere
 from rsmooth.sim._ncp import NCPSolver
-from rsmooth.sim._simulator import ContactLaw, GeomPair, RigidBodySystem, _point_jacobian
+from rsmooth.sim._simulator import ContactLaw, GeomPair, Options, RigidBodySystem, _point_jacobian
 
 __all__ = [
     "SOLO12_ARMATURE",
@@ -171,10 +171,7 @@ def _free_body_system(model, name, offsets, radii, planes, friction, time_step, 
         plane_normals=normals,
         plane_offsets=plane_offsets,
         friction=mu,
-        time_step=jnp.asarray(_number("time_step", time_step)),
-        contact=law,
-        solver=solver,
-        baumgarte=baumgarte,
+        options=Options(jnp.asarray(_number("time_step", time_step)), law, solver, baumgarte),
         actuation="wrench",
         actuated_dofs=(),
         wrench_frame=model.frame_id(name),
@@ -577,10 +574,7 @@ def geom_pair_system(
         plane_normals=jnp.zeros((0, 3)),
         plane_offsets=jnp.zeros(0),
         friction=jnp.zeros(0),
-        time_step=jnp.asarray(float(time_step)),
-        contact="hard",
-        solver=solver,
-        baumgarte=baumgarte,
+        options=Options(jnp.asarray(float(time_step)), "hard", solver, baumgarte),
         actuation="joints",
         actuated_dofs=tuple(actuated_dofs),
         wrench_frame=0,
@@ -693,10 +687,7 @@ def pusher(
         plane_normals=normals,
         plane_offsets=offsets,
         friction=mu,
-        time_step=jnp.asarray(float(time_step)),
-        contact=_as_contact(contact, floor_friction),
-        solver=solver,
-        baumgarte=baumgarte,
+        options=Options(jnp.asarray(float(time_step)), _as_contact(contact, floor_friction), solver, baumgarte),
         actuation="joints",
         actuated_dofs=(6, 7),
         wrench_frame=0,
@@ -822,10 +813,7 @@ def solo12(
         plane_normals=normals,
         plane_offsets=offsets,
         friction=mu,
-        time_step=jnp.asarray(float(time_step)),
-        contact=_as_contact(contact, friction),
-        solver=solver,
-        baumgarte=baumgarte,
+        options=Options(jnp.asarray(float(time_step)), _as_contact(contact, friction), solver, baumgarte),
         actuation="joints",
         actuated_dofs=tuple(range(6, model.nv)),
         wrench_frame=0,

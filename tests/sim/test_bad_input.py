@@ -137,4 +137,27 @@ def test_system_factories_accept_the_limits_of_their_ranges():
 def test_a_system_built_directly_rejects_impossible_physics(field, value, match):
     cube = sim.cube()
     with pytest.raises(ValueError, match=match):
-        dataclasses.replace(cube, **{field: jnp.asarray(value)})
+        if field == "time_step":
+            cube.with_options(time_step=value)
+        else:
+            dataclasses.replace(cube, **{field: jnp.asarray(value)})
+
+
+def test_options_are_checked_by_name():
+    cube = sim.cube()
+    assert cube.options.time_step == cube.time_step and cube.solver is cube.options.solver
+    changed = cube.with_options(time_step=0.005, derivative="autodiff")
+    assert float(changed.time_step) == 0.005 and changed.derivative == "autodiff" and cube.derivative == "implicit"
+    for changes, match in (
+        ({"baumgarte": 1.5}, "baumgarte must be in"),
+        ({"derivative": "finite"}, "derivative must be 'implicit' or 'autodiff'"),
+        ({"contact": "soft"}, "contact must be 'hard'"),
+        ({"max_motion_per_step": 0.0}, "max_motion_per_step must be positive"),
+        ({"time_step": [0.01, 0.02]}, "time_step must be a scalar"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            cube.with_options(**changes)
+    with pytest.raises(TypeError, match="with_options takes the fields of Options"):
+        cube.with_options(timestep=0.01)
+    with pytest.raises(ValueError, match="options must be an Options"):
+        dataclasses.replace(cube, options=0.01)

@@ -44,7 +44,7 @@ def _energies(system, xs):
 def test_resting_cube_stays_at_rest():
     cube = _cube()
     x = cube.initial_state()
-    step = jax.jit(lambda a, b, solver: dataclasses.replace(cube, solver=solver).step_with_info(a, b))
+    step = jax.jit(lambda a, b, solver: cube.with_options(solver=solver).step_with_info(a, b))
     x_next, info = step(x, jnp.zeros(6), cube.solver)
     assert bool(info.ncp.converged)
     # The sticking guess (by G's pseudo-inverse: four coplanar corners make G singular) solves
@@ -252,7 +252,7 @@ def test_solo12_polish_solves_perturbed_steps_without_admm():
     Solo-12's default solver (sticking guess and Newton polish) needs no ADMM iteration and
     gives the next states of plain ADMM (the impulses are unique there: four feet, 18 dofs)."""
     solo = _solo()
-    plain = dataclasses.replace(solo, solver=dataclasses.replace(solo.solver, polish=False))
+    plain = solo.with_options(solver=dataclasses.replace(solo.solver, polish=False))
     x0 = solo.initial_state()
     key_x, key_u = jax.random.split(jax.random.key(5))
     scale = jnp.concatenate([jnp.full(19, 1e-2), jnp.full(18, 1e-1)])
@@ -470,7 +470,7 @@ from rsmooth import sim
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 pusher = sim.pusher()
-plain = dataclasses.replace(pusher, solver=sim.NCPSolver())
+plain = pusher.with_options(solver=sim.NCPSolver())
 batch, steps = 16, 30
 forces = 5.0 * jax.random.normal(jax.random.key(0), (steps, batch, 2))
 x0 = jnp.tile(pusher.initial_state(), (batch, 1))
@@ -530,7 +530,7 @@ def test_implicit_step_derivative_equals_the_autodiff_reference(case, tolerance)
     autodiff through CRBA, Cholesky and the Delassus matrix, for the next state and the
     impulses (unique ones), with respect to state and input; so does step_and_jacobians."""
     system, x, u = case()
-    reference = dataclasses.replace(system, derivative="autodiff")
+    reference = system.with_options(derivative="autodiff")
     assert system.derivative == "implicit"
 
     def jacobians(s):
@@ -558,11 +558,11 @@ def test_implicit_step_derivative_with_respect_to_system_parameters():
     """Derivatives with respect to the friction coefficient and the time step (fields of the
     system) also go through the implicit rule and equal the autodiff reference."""
     system, x, u = _sliding_ball()
-    reference = dataclasses.replace(system, derivative="autodiff")
+    reference = system.with_options(derivative="autodiff")
 
     def by_parameters(s):
         def step(friction, time_step):
-            varied = eqx.tree_at(lambda t: (t.friction, t.time_step), s, (friction, time_step))
+            varied = eqx.tree_at(lambda t: (t.friction, t.options.time_step), s, (friction, time_step))
             return varied.step(x, u)
 
         return jax.jit(jax.jacfwd(step, argnums=(0, 1)))(s.friction, s.time_step)
