@@ -19,6 +19,7 @@ from typing import Callable
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
@@ -189,7 +190,19 @@ def solve_methods(
     """Every method of a control experiment's ``config`` (:func:`make_solvers`) from
     ``us_init``, over its seeds (:func:`run_methods`); ``metrics_of(solution)`` gives a run's
     task metrics (with ``success``). Returns the methods' names, their metrics and the first
-    seed's solutions."""
+    seed's solutions.
+
+    Raises:
+        ValueError: a problem whose state is not float64 (``jax_enable_x64`` off when it was
+            built): the contact solves' tolerance and DDP's line search need float64, and in
+            float32 R-DDP ends on a non-finite value instead of an answer.
+    """
+    dtype = jnp.asarray(problem.x0).dtype
+    if dtype != jnp.float64:
+        raise ValueError(
+            f"{description}: the problem's state is {dtype}, and contact solves and DDP need float64: call "
+            "jax.config.update('jax_enable_x64', True) before building it (the rsmooth command does)"
+        )
     solvers = make_solvers(config)
     names = tuple(solvers)
 

@@ -2,6 +2,7 @@
 
 import json
 
+import jax
 import pytest
 from typer.testing import CliRunner
 
@@ -36,3 +37,12 @@ def test_cli_cube_lift_rejects_a_bad_method_and_documents_its_metrics(tmp_path):
     assert "success_rate" in help_text and "final_height" in help_text
     with pytest.raises(ValueError, match="height"):
         control_cube_lift.Config(height=-0.1)
+
+
+def test_a_float32_run_is_refused_before_it_solves(tmp_path):
+    # built with jax_enable_x64 off, as in a fresh Python process: a clear error, not an R-DDP
+    # that ends on a non-finite value
+    with jax.enable_x64(False):
+        with pytest.raises(ValueError, match="need float64: call jax.config.update"):
+            control_cube_lift.run(control_cube_lift.Config.quick(), tmp_path, jax.random.key(0), progress=False)
+    assert not (tmp_path / "metrics.json").exists()
