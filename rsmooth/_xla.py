@@ -32,6 +32,15 @@ Jacobian is slower with it). ``RSMOOTH_XLA_DEFAULTS=0`` leaves ``XLA_FLAGS`` alo
 or notebook that imports rsmooth sets the same flags itself, in ``XLA_FLAGS`` before JAX
 starts.
 
+The persistent compilation cache (:func:`enable_compilation_cache`) saves a second run XLA's
+compilation, not JAX's tracing and lowering, which every process pays again and which are
+most of a warm start. Ahead-of-time export (``jax.export``: a program serialized after
+lowering) would skip those too, and rsmooth's solver programs export (they hold no host
+callback under :func:`rsmooth._checks.without_traced_checks`). It is not used: an exported
+program bakes in the arrays it closes over (a system's model and contacts), so it would need a
+store keyed by every value and by rsmooth's own code, invalidated by hand, for each solver
+program and horizon; and serialization needs the ``flatbuffers`` package.
+
 :func:`on_accelerator` is what the solvers' ``"auto"`` batch sizes ask (``NCPSolver.chunk_size``,
 ``DDP.line_search_batch``, ``RDDP.sample_node_batch_size``): on a CPU a batch costs its
 members' work, on a GPU it costs about one member's (kernel launches), so the best batch sizes
