@@ -110,7 +110,12 @@ class SceneFrames:
         self.camera = render.look_at(centre + extent * np.array([0.8, -1.15, 0.75]), centre, (0.0, 0.0, 1.0), fov=40.0,
                                      near=0.05 * extent, far=10.0 * extent, image_size=tuple(image_size))
         renderer = render.Renderer(mode="hard", background=(1.0, 1.0, 1.0))
-        self._render = jax.jit(lambda vertices, faces, colors: renderer(None, render.Mesh(vertices, faces, colors), self.camera).rgb)
+        # Drawn in float32 whatever the simulation ran in: under jax_enable_x64 (every
+        # simulation experiment) a float64 frame costs tens of times more on a CPU, for images
+        # that differ by at most one level of 255.
+        camera = jax.tree.map(lambda a: np.asarray(a, np.float32) if np.issubdtype(np.asarray(a).dtype, np.floating) else a,
+                              self.camera)
+        self._render = jax.jit(lambda vertices, faces, colors: renderer(None, render.Mesh(vertices, faces, colors), camera).rgb)
 
     def __call__(self, rotations, translations) -> np.ndarray:
         """An RGB image (uint8) of the scene with its joints at ``(rotations (J, 3, 3),
@@ -121,8 +126,8 @@ class SceneFrames:
             rotation = rotations[joint] @ np.asarray(self.loaded.geom_rotation[geom])
             translation = rotations[joint] @ np.asarray(self.loaded.geom_translation[geom]) + translations[joint]
             placed.append(vertices @ rotation.T + translation)
-        vertices = np.concatenate(placed + [self.floor])
-        image = np.asarray(self._render(vertices, self.faces, self.colors))
+        vertices = np.concatenate(placed + [self.floor]).astype(np.float32)
+        image = np.asarray(self._render(vertices, self.faces, self.colors.astype(np.float32)))
         return (255 * np.clip(image, 0.0, 1.0)).astype(np.uint8)
 
 
@@ -133,8 +138,7 @@ def side_by_side(loaded, placements, path, frames: int, duration_s: float, hold:
         loaded: the :class:`rsmooth.sim.MujocoModel` whose geoms are drawn.
         placements: per run, the joints' ``(rotations (T, J, 3, 3), translations (T, J, 3))``
             (equal ``T``); one camera frames all of them.
-        frames: how many frames, at evenly spaced steps from the first to the last (a frame
-            costs about a second per run on a CPU core).
+        frames: how many frames, at evenly spaced steps from the first to the last.
         duration_s: how long the animation plays (before the held last frame).
         hold: extra copies of the last frame.
     """

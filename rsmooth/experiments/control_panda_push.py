@@ -80,8 +80,7 @@ class Config:
     speed_tolerance: float = _protocol.option(0.05, "A run succeeds only if the box's final speed is below it, m/s.",
                                               above=0.0)
     frames: int = _protocol.option(
-        21, "Frames of the animation (evenly spaced over the horizon; each costs about a second per method on a CPU "
-        "core); 0: no animation.", min=0)
+        21, "Frames of the animation (evenly spaced over the horizon); 0: no animation.", min=0)
 
     @classmethod
     def quick(cls, **changes) -> "Config":

@@ -97,8 +97,7 @@ class Config:
         0.005, "A run succeeds only if the other feet never rise more than this above the floor, m.", above=0.0)
     max_other_slip: float = _protocol.option(0.01, "A run succeeds only if the other feet slip less than this, m.", above=0.0)
     frames: int = _protocol.option(
-        11, "Frames of the animation (evenly spaced over the horizon; each costs about a second per method on a CPU "
-        "core); 0: no animation.", min=0)
+        11, "Frames of the animation (evenly spaced over the horizon); 0: no animation.", min=0)
 
     @classmethod
     def quick(cls, **changes) -> "Config":
