@@ -285,8 +285,8 @@ class Options(eqx.Module):
     :meth:`RigidBodySystem.with_options` changes some.
 
     Attributes:
-        time_step: ``h`` in seconds (a scalar array: traced, so systems that differ only in
-            it share compiled programs, and derivatives with respect to it flow).
+        time_step: ``h`` in seconds, kept as a scalar array (traced: systems that differ only
+            in it share compiled programs, and derivatives with respect to it flow).
         contact: ``"hard"`` (frictional contact as an NCP, solved by ``solver``), a
             :class:`~rsmooth.sim.SpringDamper` or a :class:`~rsmooth.sim.LogBarrier`.
         solver: the NCP solver configuration (hard contact).
@@ -311,7 +311,7 @@ class Options(eqx.Module):
             that is not positive.
     """
 
-    time_step: Array
+    time_step: Array = eqx.field(converter=lambda h: jnp.asarray(h, dtype=float))
     contact: ContactLaw = "hard"
     solver: NCPSolver = NCPSolver()
     baumgarte: float = eqx.field(static=True, default=0.2)
@@ -564,8 +564,6 @@ class RigidBodySystem(eqx.Module):
         unknown = sorted(set(changes) - fields)
         if unknown:
             raise TypeError(f"with_options takes the fields of Options ({', '.join(sorted(fields))}), got {unknown}")
-        if "time_step" in changes:
-            changes["time_step"] = jnp.asarray(changes["time_step"], dtype=float)
         return dataclasses.replace(self, options=dataclasses.replace(self.options, **changes))
 
     # -- sizes and state layout -------------------------------------------------------

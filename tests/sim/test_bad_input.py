@@ -6,6 +6,7 @@ Host-side checks only: nothing here is compiled.
 import dataclasses
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -146,6 +147,7 @@ def test_a_system_built_directly_rejects_impossible_physics(field, value, match)
 def test_options_are_checked_by_name():
     cube = sim.cube()
     assert cube.options.time_step == cube.time_step and cube.solver is cube.options.solver
+    assert isinstance(sim.Options(time_step=0.01).time_step, jax.Array)  # traced, not a constant
     changed = cube.with_options(time_step=0.005, derivative="autodiff")
     assert float(changed.time_step) == 0.005 and changed.derivative == "autodiff" and cube.derivative == "implicit"
     for changes, match in (
