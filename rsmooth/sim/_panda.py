@@ -36,6 +36,7 @@ from rsmooth.sim._mujoco import MujocoModel, _mujoco, _read_urdf, load_mjcf
 from rsmooth.sim._ncp import NCPSolver
 from rsmooth.sim._scene import scene
 from rsmooth.sim._simulator import RigidBodySystem
+from rsmooth.sim._systems import _number
 
 __all__ = ["PANDA_TORQUE_LIMITS", "panda_push", "panda_push_model"]
 
@@ -116,8 +117,7 @@ def panda_push(
         ValueError: a size, mass or time step that is not positive and finite, a negative
             friction coefficient or tool gap, or a start out of the arm's reach.
     """
-    if not (np.isfinite(tool_gap) and tool_gap >= 0):
-        raise ValueError(f"tool_gap must be non-negative and finite, got {tool_gap}")
+    _number("tool_gap", tool_gap, zero=True)
     mj = _mujoco()
     compiled = _panda_compiled(mj, box_side, box_mass, box_position, tool_radius, table_friction, tool_friction,
                                time_step)
@@ -148,11 +148,9 @@ def _panda_compiled(mj, box_side: float, box_mass: float, box_position, tool_rad
     """The scene's compiled ``mujoco.MjModel``, its arguments checked."""
     for name, value in (("box_side", box_side), ("box_mass", box_mass), ("tool_radius", tool_radius),
                         ("time_step", time_step)):
-        if not (np.isfinite(value) and value > 0):
-            raise ValueError(f"{name} must be positive and finite, got {value}")
+        _number(name, value)
     for name, value in (("table_friction", table_friction), ("tool_friction", tool_friction)):
-        if not (np.isfinite(value) and value >= 0):
-            raise ValueError(f"{name} must be non-negative and finite, got {value}")
+        _number(name, value, zero=True)
     return _panda_spec(mj, box_side, box_mass, box_position, tool_radius, table_friction, tool_friction,
                        time_step).compile()
 

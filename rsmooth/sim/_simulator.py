@@ -319,11 +319,9 @@ class Options(eqx.Module):
     max_motion_per_step: float = eqx.field(static=True, default=1.0)
 
     def __check_init__(self):
-        if not _checks.is_traced(self.time_step):
-            if np.shape(self.time_step) != ():
-                raise ValueError(f"time_step must be a scalar (s), got shape {np.shape(self.time_step)}")
-            if not (np.isfinite(float(self.time_step)) and float(self.time_step) > 0):
-                raise ValueError(f"time_step must be positive and finite, got {float(self.time_step)}")
+        if not _checks.is_traced(self.time_step) and np.shape(self.time_step) != ():
+            raise ValueError(f"time_step must be a scalar (s), got shape {np.shape(self.time_step)}")
+        _check_concrete("time_step", self.time_step, positive=True)
         if not (isinstance(self.contact, (SpringDamper, LogBarrier)) or self.contact == "hard"):
             raise ValueError(f"contact must be 'hard', a SpringDamper or a LogBarrier, got {self.contact!r}")
         if not isinstance(self.solver, NCPSolver):
@@ -332,8 +330,7 @@ class Options(eqx.Module):
             raise ValueError(f"baumgarte must be in [0, 1], got {self.baumgarte}")
         if self.derivative not in ("implicit", "autodiff"):
             raise ValueError(f"derivative must be 'implicit' or 'autodiff', got {self.derivative!r}")
-        if not (self.max_motion_per_step > 0):
-            raise ValueError(f"max_motion_per_step must be positive, got {self.max_motion_per_step}")
+        _check_concrete("max_motion_per_step", self.max_motion_per_step, positive=True, allow_inf=True)
 
 
 class RigidBodySystem(eqx.Module):
@@ -1328,24 +1325,26 @@ def _limit_rows(model: Model, joint_limits) -> tuple[np.ndarray, np.ndarray, np.
     return np.asarray(indices, np.int64), np.asarray(dofs, np.int64), np.asarray(sides, np.int64)
 
 
+def _check_concrete(name, value, positive=False, allow_inf=False) -> None:
+    """A host check of a physical value (skipped where traced): non-negative, or positive, and
+    finite, or ``+inf`` where ``allow_inf``; else a ValueError naming it."""
+    if value is None or _checks.is_traced(value):
+        return
+    array = np.asarray(value, dtype=float)
+    bad = np.isnan(array) | (np.isinf(array) & (not allow_inf or array < 0))
+    bad |= array <= 0 if positive else array < 0
+    if np.any(bad):
+        bound = "positive" if positive else "non-negative"
+        raise ValueError(f"{name} must be {bound}{'' if allow_inf else ' and finite'}, got {array}")
+
+
 def _check_physical(system: RigidBodySystem) -> None:
     """Host checks of the values that make a system physical (those not traced)."""
-
-    def concrete(name, value, positive=False, allow_inf=False):
-        if value is None or _checks.is_traced(value):
-            return
-        array = np.asarray(value, dtype=float)
-        bad = np.isnan(array) | (np.isinf(array) & (not allow_inf or array < 0))
-        bad |= array <= 0 if positive else array < 0
-        if np.any(bad):
-            bound = "positive" if positive else "non-negative"
-            raise ValueError(f"{name} must be {bound}{'' if allow_inf else ' and finite'}, got {array}")
-
-    concrete("sphere_radii", system.sphere_radii)
-    concrete("friction", system.friction)
-    concrete("box_friction", system.box_friction)
-    concrete("box_half_extents", system.box_half_extents, positive=True)
-    concrete("input_limit", system.input_limit, positive=True, allow_inf=True)
+    _check_concrete("sphere_radii", system.sphere_radii)
+    _check_concrete("friction", system.friction)
+    _check_concrete("box_friction", system.box_friction)
+    _check_concrete("box_half_extents", system.box_half_extents, positive=True)
+    _check_concrete("input_limit", system.input_limit, positive=True, allow_inf=True)
 
 
 @eqx.filter_custom_jvp
