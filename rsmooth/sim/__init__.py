@@ -9,7 +9,11 @@ implicitly (:func:`solve_ncp`); collision geometry (:class:`Sphere`, :class:`Cap
 manifolds between posed shapes (:func:`collide`, :func:`candidate_pairs`); :class:`RigidBodySystem` steps a system in time
 (its contacts: spheres against half-spaces, and any pairs of shapes, :class:`GeomPair`; how it
 steps: :class:`Options`, the time step, contact law, solver and derivative mode) and is the
-``Dynamics`` (``step(x, u)``, ``nx``, ``nu``) that rsmooth's optimizers consume; :func:`scene`
+``Dynamics`` (``step(x, u)``, ``nx``, ``nu``) that rsmooth's optimizers consume. As MJX's
+``step(model, data)``, :func:`step` advances a :class:`State` (``q``, ``v`` and the impulses
+that warm-start the next contact solve, :func:`make_state`), and the stages of a step are
+public functions: :func:`kinematics`, :func:`collision`, :func:`free_motion`,
+:func:`solve_contacts`, :func:`advance` (composed by :func:`step_stages`). :func:`scene`
 builds one from a MuJoCo model (MJCF or URDF), its geoms paired as MuJoCo pairs them;
 :func:`panda_push` is a Panda arm beside a box on a table.
 """
@@ -97,6 +101,21 @@ from rsmooth.sim._simulator import (
     StepInfo as StepInfo,
     check_steps as check_steps,
     energy as energy,
+    step as step,
+)
+from rsmooth.sim._stages import (
+    ContactGeometry as ContactGeometry,
+    ContactSolution as ContactSolution,
+    FreeMotion as FreeMotion,
+    Kinematics as Kinematics,
+    State as State,
+    advance as advance,
+    collision as collision,
+    free_motion as free_motion,
+    kinematics as kinematics,
+    make_state as make_state,
+    solve_contacts as solve_contacts,
+    step_stages as step_stages,
 )
 from rsmooth.sim._systems import (
     SOLO12_ARMATURE as SOLO12_ARMATURE,

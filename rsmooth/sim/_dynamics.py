@@ -259,13 +259,25 @@ def _world_placements(model: Model, q: jax.Array) -> tuple[jax.Array, jax.Array]
     return _take(jnp.concatenate(rotations), tree.level_order), _take(jnp.concatenate(translations), tree.level_order)
 
 
-class _Kinematics(NamedTuple):
-    rotation: jax.Array  # (njoints, 3, 3) oMi
-    translation: jax.Array  # (njoints, 3)
-    motion_subspace: jax.Array  # (nv, 6) S of every dof, in the world frame (at the origin)
+class Kinematics(NamedTuple):
+    """The world placements of a model's joints at one configuration and the motion subspace of
+    every dof (the first stage of a step, :func:`~rsmooth.sim.kinematics`): what the dynamics,
+    the contacts and the frame Jacobians are computed from.
+
+    Attributes:
+        rotation: ``(njoints, 3, 3)``, each joint frame's orientation in the world (Pinocchio's
+            ``data.oMi[i].rotation``).
+        translation: ``(njoints, 3)``, its origin in the world.
+        motion_subspace: ``(nv, 6)``, the unit twist ``[linear, angular]`` of every dof, in
+            world axes about the world origin.
+    """
+
+    rotation: jax.Array
+    translation: jax.Array
+    motion_subspace: jax.Array
 
 
-def _kinematics(model: Model, q: jax.Array) -> _Kinematics:
+def _kinematics(model: Model, q: jax.Array) -> Kinematics:
     tree = _tree(model)
     rotation, translation = _world_placements(model, q)
     # Joint-frame motion subspaces: [0, axis] (revolute), [axis, 0] (prismatic), unit twists
@@ -276,10 +288,10 @@ def _kinematics(model: Model, q: jax.Array) -> _Kinematics:
         [jnp.where(tree.dof_is_prismatic, dof_axes, 0.0), jnp.where(tree.dof_is_revolute, dof_axes, 0.0)], axis=1
     ) + tree.twist_basis
     world_subspace = _transform_motions(rotation[tree.dof_owner], translation[tree.dof_owner], local_subspace)
-    return _Kinematics(rotation, translation, world_subspace)
+    return Kinematics(rotation, translation, world_subspace)
 
 
-def _world_inertias(model: Model, kinematics: _Kinematics) -> spatial.SpatialInertia:
+def _world_inertias(model: Model, kinematics: Kinematics) -> spatial.SpatialInertia:
     """Body inertias about the world origin, in world axes, batched over joints."""
     local = jax.vmap(spatial.spatial_inertia)(model.body_mass, model.body_com, model.body_inertia)
     return _transform_inertias(kinematics.rotation, kinematics.translation, local)
@@ -402,7 +414,7 @@ def frame_velocity(
 
 def _rnea(
     model: Model,
-    kinematics: _Kinematics,
+    kinematics: Kinematics,
     inertias: spatial.SpatialInertia,
     v: jax.Array,
     a: jax.Array | None,
@@ -432,7 +444,7 @@ def _rnea(
     return spatial.sum_last(subspace * subtree_forces[tree.dof_owner])
 
 
-def _crba(model: Model, kinematics: _Kinematics, inertias: spatial.SpatialInertia) -> jax.Array:
+def _crba(model: Model, kinematics: Kinematics, inertias: spatial.SpatialInertia) -> jax.Array:
     """Composite-rigid-body algorithm (Featherstone 2008, Table 6.2) in the world frame.
 
     Composite inertias are subtree sums ``I^c_j = sum_{i >= j} I_i`` (one masked sum: in the

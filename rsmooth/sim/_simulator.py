@@ -76,7 +76,7 @@ from jax.typing import ArrayLike
 
 from rsmooth import _checks
 from rsmooth._results import RESULTS
-from rsmooth.sim import _derivatives, _dynamics
+from rsmooth.sim import _derivatives, _dynamics, _stages
 from rsmooth.sim import _spatial as spatial
 from rsmooth.sim._contact import _safe_norm, contact_frame, corrected_free_velocity
 from rsmooth.sim._collision import Contacts, collide, manifold_size
@@ -90,13 +90,12 @@ from rsmooth.sim._ncp import (
     implicit_impulse_tangent,
     many_column_solver,
     natural_map_of_velocity,
-    solve_ncp,
 )
 
 Array = jax.Array
 ContactLaw = Union[Literal["hard"], SpringDamper, LogBarrier]
 
-__all__ = ["GeomPair", "RigidBodySystem", "SimulationWarning", "StepInfo", "check_steps", "energy"]
+__all__ = ["GeomPair", "RigidBodySystem", "SimulationWarning", "StepInfo", "check_steps", "energy", "step"]
 
 
 SEPARATED, STICKING, SLIDING = 0, 1, 2  # StepInfo.mode
@@ -155,7 +154,7 @@ class _VelocityUpdate(NamedTuple):
     delassus: Array  # G = J_s M^-1 J_sᵀ of the solved contacts s (all, or the selection)
     free_velocity: Array  # g: the NCP's free contact velocity (hard contact), solved contacts
     mu: Array  # friction coefficient per solved contact
-    kinematics: _dynamics._Kinematics  # at q
+    kinematics: _dynamics.Kinematics  # at q
     inertias: spatial.SpatialInertia  # world-frame body inertias at q
     mass: Array  # W = M + diag(armature + h damping), the matrix of mass_factor
 
@@ -165,7 +164,7 @@ class _VelocityUpdate(NamedTuple):
 
     def solved(self, rows: Array) -> Array:
         """``rows`` (flat ``[t1, t2, n]`` per candidate, leading axis) of the solved contacts."""
-        return rows if self.selection is None else rows[_flat_rows(self.selection)]
+        return rows if self.selection is None else rows[_stages.flat_rows(self.selection)]
 
     def public(self) -> tuple[Array, Array, Array, NCPInfo, Array, tuple[Array, Array, Array]]:
         # the contact frames and end-of-step contact velocities J v+ for the diagnostics
@@ -1043,8 +1042,7 @@ class RigidBodySystem(eqx.Module):
         else:
             update = self._velocity_update(q, v, u, warm_start)
             v_next, impulse, distance, ncp, clipped, contact = update.public()
-        q_next = _integrate_decoupled(self.model, q, v_next, self.time_step)
-        v_next = _dynamics._free_flyer_new_axes(self.model, v_next, self.time_step)
+        q_next, v_next = _stages.advance(self, q, v_next)
         x_next = jnp.concatenate([q_next, v_next])
         diverged = ~jnp.all(jnp.isfinite(x_next)) | ~(jnp.max(jnp.abs(v_next)) * self.time_step <= self.max_motion_per_step)
         frames, velocity, dropped = lax.stop_gradient(contact)
@@ -1082,93 +1080,17 @@ class RigidBodySystem(eqx.Module):
           + [jnp.zeros(len(self.joint_limits), self.friction.dtype)])
 
     def _velocity_update(self, q: Array, v: Array, u: Array, warm_start) -> _VelocityUpdate:
-        """The velocity update of one step and the quantities its derivative reuses."""
-        model, h = self.model, self.time_step
-        kinematics = _dynamics._kinematics(model, q)
-        inertias = _dynamics._world_inertias(model, kinematics)
-        damping = self.damping()
-        # W = M + h D: the damping force D v+ is implicit (see the module docstring)
-        mass = _dynamics._crba(model, kinematics, inertias) + jnp.diag(model.armature + h * damping)
-        # v+ in the body axes of the step's start: a free flyer's linear velocity moves with
-        # the frame's rotation exactly, and a free object rotates torque-free, energy-conserving
-        # (_dynamics._free_flyer_start), not by explicit velocity-product terms
-        v_start, removed = _dynamics._free_flyer_start(model, v, h)
-        bias = _dynamics._rnea(model, kinematics, inertias, v, None, model.gravity) - removed + damping * v_start
-        tau, clipped = self.generalized_forces(q, u, kinematics)
-        factor = jax.scipy.linalg.cho_factor(mass, lower=True)
-        v_free = v_start + h * jax.scipy.linalg.cho_solve(factor, tau - bias)
-        distance, frames, jacobian = self.contacts(q, kinematics)
-        mu = self.contact_friction()
-        # the contacts the NCP solves: every candidate, or the budget's closest ones
-        selection = self._contact_selection(distance) if isinstance(self.contact, str) else None
-        dropped = jnp.zeros((), jnp.int32)
-        if selection is not None:
-            rows = _flat_rows(selection)
-            corrected = corrected_free_velocity(jacobian @ v_free, distance, h, baumgarte=self.baumgarte)
-            closes = lax.stop_gradient(corrected[2::3]) < 0  # the solve would have had to act on it
-            dropped = jnp.sum(closes.at[selection].set(False), dtype=jnp.int32)
-            solved_distance, solved_jacobian, mu = distance[selection], jacobian[rows], mu[selection]
-            warm_start = None if warm_start is None else jnp.asarray(warm_start)[rows]
-        else:
-            solved_distance, solved_jacobian = distance, jacobian
-        # X = L^-1 Jᵀ: G = Xᵀ X (symmetric by construction) and M^-1 Jᵀ lambda = L^-T (X lambda),
-        # one triangular solve with 3 n columns where M^-1 Jᵀ takes two
-        half = jax.scipy.linalg.solve_triangular(factor[0], solved_jacobian.T, lower=True)  # (nv, 3n)
-        delassus = half.T @ half
-        if distance.shape[0] == 0:
-            # no candidate contact (a body in free flight, a scene without a colliding pair):
-            # nothing to solve, and an empty problem is not one the NCP solver accepts
-            free_velocity = solved_jacobian @ v_free
-            impulse = jnp.zeros(0, v_free.dtype)
-            zero = jnp.zeros((), v_free.dtype)
-            ncp = NCPInfo(jnp.zeros((), jnp.int32), zero, zero, zero, RESULTS.successful, zero)
-        elif isinstance(self.contact, str):
-            free_velocity = corrected_free_velocity(solved_jacobian @ v_free, solved_distance, h, baumgarte=self.baumgarte)
-            # From a finite but absurd state (a simulation that has already diverged: positions
-            # of 1e8 m, velocities of 1e11 rad/s) the mass matrix loses definiteness to rounding
-            # and the contact problem is not finite. That is the step's divergence, which it
-            # reports (a non-finite next state, info.diverged), not a bad input of the NCP
-            # solver's (whose check would abort a whole batched rollout or solver iteration).
-            broken = ~(jnp.all(jnp.isfinite(delassus)) & jnp.all(jnp.isfinite(free_velocity)))
-            impulse, ncp = solve_ncp(
-                jnp.where(broken, jnp.eye(delassus.shape[0], dtype=delassus.dtype), delassus),
-                jnp.where(broken, 0.0, free_velocity), mu, solver=self.solver, warm_start=warm_start,
-                delassus_factor=jnp.where(broken, 0.0, half),  # G = halfᵀ half: a cheaper sticking guess
-            )
-            impulse = jnp.where(broken, jnp.nan, impulse)
-            ncp = eqx.tree_at(lambda info: info.result, ncp, RESULTS.where(broken, RESULTS.nonfinite, ncp.result))
-        else:
-            free_velocity = jacobian @ v_free
-            impulse = self._compliant_impulse(distance, free_velocity, delassus, h)
-            zero = jnp.zeros((), distance.dtype)
-            ncp = NCPInfo(jnp.zeros((), jnp.int32), zero, zero, zero, RESULTS.successful, zero)
-        v_next = v_free + jax.scipy.linalg.solve_triangular(factor[0], half @ impulse, lower=True, trans="T")
-        if selection is not None:  # every candidate's impulse, zero where left out
-            impulse = jnp.zeros(jacobian.shape[0], impulse.dtype).at[rows].set(impulse)
+        """The velocity update of one step (stages 1 to 4, :mod:`._stages`) and the quantities
+        its derivative reuses."""
+        posed = _stages.kinematics(self, q)
+        contacts = _stages.collision(self, q, posed)
+        motion = _stages.free_motion(self, q, v, u, posed)
+        solution = _stages.solve_contacts(self, motion, contacts, warm_start)
         return _VelocityUpdate(
-            v_next, impulse, distance, ncp, clipped, factor, jacobian, delassus, free_velocity, mu, kinematics, inertias,
-            mass, frames, selection, dropped,
+            solution.velocity, solution.impulse, contacts.distance, solution.ncp, motion.torque_clipped,
+            (motion.mass_cholesky, True), contacts.jacobian, solution.delassus, solution.free_velocity,
+            solution.friction, posed, motion.inertias, motion.mass, contacts.frames, solution.selection, solution.dropped,
         )
-
-    def _compliant_impulse(self, distance: Array, free_velocity: Array, delassus: Array, h: Array) -> Array:
-        """Impulses ``h f(phi, c+)`` of a compliant law, linearly implicit in the velocity.
-
-        The law is evaluated at the end-of-step contact velocity ``c+ = c_f + G lambda``,
-        linearized about the free velocity: ``lambda = h f(phi, c_f) + h D (c+ - c_f)`` with
-        ``D = df/dc`` (3 x 3 per contact), so ``(I - h D G) lambda = h f(phi, c_f)``. An
-        explicit force (``lambda = h f(phi, c)``) is unstable as soon as ``h`` times the
-        damping or the regularized friction's viscosity (``mu f_N / v_s``) exceeds twice the
-        effective mass, which for a 1 kg cube with ``v_s = 1 mm/s`` already happens at
-        ``h = 2 ms``; the implicit velocity dependence removes that limit (the distance stays
-        explicit, so ``h`` must still resolve the contact stiffness, ``h sqrt(k / m) < 2``).
-        """
-        n = distance.shape[0]
-        velocity = free_velocity.reshape(n, 3)
-        force = self.contact(distance, velocity)  # (n, 3)
-        damping = jax.vmap(jax.jacfwd(lambda c, d: self.contact(d, c)))(velocity, distance)  # (n, 3, 3)
-        damping_matrix = _block_diagonal(damping)
-        system = jnp.eye(3 * n, dtype=delassus.dtype) - h * damping_matrix @ delassus
-        return jnp.linalg.solve(system, h * force.reshape(-1))
 
     def step(self, x: ArrayLike, u: ArrayLike) -> Array:
         """One time step: ``x_next = step(x, u)`` (see :meth:`step_with_info`).
@@ -1231,18 +1153,16 @@ class RigidBodySystem(eqx.Module):
             raise ValueError(f"us must have shape (T, nu) = (T, {self.nu}), got {us.shape}")
 
         def body(carry, u):
-            x, impulse, diverged = carry
+            state, diverged = carry
             if feedback is not None:
-                u = u + feedback(x)
-            x_next, info = self.step_with_info(x, u, warm_start=impulse if isinstance(self.contact, str) else None)
+                u = u + feedback(state.x)
+            state_next, info = step(self, state, u)
             diverged = diverged | info.diverged
-            x_next = jnp.where(diverged, x, x_next)
-            impulse_next = jnp.where(diverged, impulse, info.impulse)
+            state_next = jax.tree.map(lambda new, old: jnp.where(diverged, old, new), state_next, state)
             info = eqx.tree_at(lambda i: i.diverged, info, diverged)
-            return (x_next, impulse_next, diverged), (x_next, info)
+            return (state_next, diverged), (state_next.x, info)
 
-        impulse0 = jnp.zeros(3 * self.num_contacts, jnp.result_type(x0, float))
-        _, (xs, infos) = jax.lax.scan(body, (x0, impulse0, jnp.zeros((), bool)), us)
+        _, (xs, infos) = jax.lax.scan(body, (_stages.make_state(self, x0), jnp.zeros((), bool)), us)
         xs = jnp.concatenate([x0[None], xs])
         if throw:
             xs = eqx.error_if(
@@ -1250,6 +1170,25 @@ class RigidBodySystem(eqx.Module):
                 "the rollout has a diverged step or an unconverged contact solve (infos.diverged, infos.ncp.result)",
             )
         return xs, infos
+
+
+def step(system: RigidBodySystem, state: _stages.State, u: ArrayLike) -> tuple[_stages.State, StepInfo]:
+    """One time step from a :class:`State` (made by :func:`make_state`): the next state, whose
+    impulses warm-start the next hard-contact solve, and the step's diagnostics.
+
+    The same step as :meth:`RigidBodySystem.step_with_info` (its checks, derivative and
+    diagnostics), with the warm start carried in the state; :meth:`RigidBodySystem.rollout`
+    is a ``lax.scan`` of it. The stages it runs are public (:mod:`rsmooth.sim._stages`).
+    """
+    if state.impulse.shape != (3 * system.num_contacts,):
+        raise ValueError(
+            f"state.impulse must have shape (3 n,) = ({3 * system.num_contacts},) for this system's "
+            f"{system.num_contacts} candidate contacts, got {state.impulse.shape} (make_state(system, x) makes one)"
+        )
+    warm_start = state.impulse if isinstance(system.contact, str) else None
+    x_next, info = system.step_with_info(state.x, u, warm_start=warm_start)
+    q_next, v_next = system.split(x_next)
+    return _stages.State(q_next, v_next, info.impulse), info
 
 
 _compose_batch = jax.vmap(spatial.compose)
@@ -1269,11 +1208,6 @@ def _bounding_gaps(shape1, pose1, shape2, pose2) -> Array:
         return jnp.sum(centre * pose1[0][:, :, 2], axis=-1) - radius2
     radius1 = radius(shape1)
     return jnp.sqrt(jnp.sum(centre**2, axis=-1)) - radius1 - radius2
-
-
-def _flat_rows(contacts: Array) -> Array:
-    """The rows ``[t1, t2, n]`` of ``contacts`` in a flat ``(3 n, ...)`` contact array."""
-    return (3 * contacts[:, None] + jnp.arange(3, dtype=contacts.dtype)[None, :]).reshape(-1)
 
 
 def _pair_groups(pairs: tuple[GeomPair, ...]) -> list[list[int]]:
@@ -1445,7 +1379,7 @@ def _velocity_update_tangent(
     v_next_dot = free_motion_dot + minv_jt @ impulse_dot
     if update.selection is not None:
         full = jnp.zeros((update.impulse.shape[0],) + impulse_dot.shape[1:], impulse_dot.dtype)
-        impulse_dot = full.at[_flat_rows(update.selection)].set(impulse_dot)
+        impulse_dot = full.at[_stages.flat_rows(update.selection)].set(impulse_dot)
     return v_next_dot, impulse_dot
 
 
@@ -1472,42 +1406,14 @@ def _step_and_jacobians(system: RigidBodySystem, q: Array, v: Array, u: Array) -
     mu_dot = jnp.zeros((update.mu.shape[0], columns), momentum_dot.dtype)
     v_next_dot, _ = _velocity_update_tangent(system, update, momentum_dot, velocity_dot, mu_dot)
     v_next = lax.stop_gradient(update.v_next)
-    q_next = _integrate_decoupled(model, q, v_next, h)
-    integrate_q, integrate_v = jax.jacfwd(lambda a, b: _integrate_decoupled(model, a, b, h), argnums=(0, 1))(q, v_next)
+    q_next = _stages.integrate_decoupled(model, q, v_next, h)
+    integrate_q, integrate_v = jax.jacfwd(lambda a, b: _stages.integrate_decoupled(model, a, b, h), argnums=(0, 1))(q, v_next)
     q_next_dot = integrate_v @ v_next_dot + jnp.pad(integrate_q, ((0, 0), (0, columns - model.nq)))
     new_axes = jax.jacfwd(lambda b: _dynamics._free_flyer_new_axes(model, b, h))(v_next)
     jacobian = jnp.concatenate([q_next_dot, new_axes @ v_next_dot])
     nx = model.nq + model.nv
     v_next = _dynamics._free_flyer_new_axes(model, v_next, h)
     return jnp.concatenate([q_next, v_next]), jacobian[:, :nx], jacobian[:, nx:]
-
-
-def _integrate_decoupled(model: Model, q: Array, v: Array, h: Array) -> Array:
-    """``q (+) h v`` with free flyers on ``R^3 x SO(3)`` and spherical joints on ``SO(3)`` (see
-    the module docstring)."""
-    tree = _dynamics._tree(model)
-    step = v * h
-    result = q.at[tree.vector_q].add(step[tree.vector_v])
-    for joint in tree.free_flyer:
-        start_q, start_v = model.idx_q[joint], model.idx_v[joint]
-        position, quaternion = q[start_q : start_q + 3], q[start_q + 3 : start_q + 7]
-        linear, angular = step[start_v : start_v + 3], step[start_v + 3 : start_v + 6]
-        position = position + spatial.rotate(spatial.quaternion_to_rotation(quaternion), linear)
-        quaternion = spatial.quaternion_multiply(quaternion, spatial.quaternion_exp(angular))
-        quaternion = quaternion / jnp.sqrt(spatial.sum_last(quaternion * quaternion))
-        result = result.at[start_q : start_q + 7].set(jnp.concatenate([position, quaternion]))
-    for joint in tree.spherical:
-        start_q, start_v = model.idx_q[joint], model.idx_v[joint]
-        quaternion = spatial.quaternion_multiply(q[start_q : start_q + 4], spatial.quaternion_exp(step[start_v : start_v + 3]))
-        result = result.at[start_q : start_q + 4].set(quaternion / jnp.sqrt(spatial.sum_last(quaternion * quaternion)))
-    return result
-
-
-def _block_diagonal(blocks: Array) -> Array:
-    """Block-diagonal matrix ``(n b, n b)`` from blocks ``(n, b, b)``."""
-    n, b, _ = blocks.shape
-    eye = jnp.eye(n, dtype=blocks.dtype)
-    return jnp.einsum("ij,iab->iajb", eye, blocks).reshape(n * b, n * b)
 
 
 def _point_jacobian(model: Model, kinematics, joint: int, point: Array) -> Array:
