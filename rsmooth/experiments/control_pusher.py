@@ -257,8 +257,8 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         **per_method,
     }
 
-    side = 2 * float(system.box_half_extents[0])
-    radius = float(system.sphere_radii[system.box_spheres[0]])
+    finger = system.geom_pairs[0]  # the box (shape 1) and the finger (shape 2)
+    side, radius = 2 * float(finger.shape1.half_extents[0]), float(finger.shape2.radius)
     start = box_pose(problem.x0)
     fig, axes = viz.plt.subplots(1, 3, figsize=(15, 4.2))
     _control.plot_histories(axes[:2], solutions)

@@ -78,10 +78,10 @@ def _safe_normalize(vector: Array, fallback: Array) -> tuple[Array, Array]:
 
 
 class Sphere(eqx.Module):
-    """A ball of radius ``radius`` centred at the origin of its frame.
+    """A ball of radius ``radius`` centred at the origin of its frame (radius 0: a point).
 
     Attributes:
-        radius: positive scalar.
+        radius: non-negative scalar.
 
     Example:
         >>> float(Sphere(0.5).bounding_radius)
@@ -91,7 +91,9 @@ class Sphere(eqx.Module):
     radius: Array = eqx.field(converter=_as_float)
 
     def __check_init__(self):
-        _check("radius", self.radius, ())
+        _check("radius", self.radius, (), positive=False)
+        if _is_concrete(self.radius) and not float(self.radius) >= 0:
+            raise ValueError(f"radius must be non-negative (0: a point), got {float(self.radius)}.")
 
     @property
     def core_radius(self) -> Array:

@@ -223,6 +223,8 @@ class GeomPair(eqx.Module):
             contacts: the contact law decides whether they act (hard contact: only a gap
             that closes within the step does), so a resting contact stays in the problem
             across steps. Farther entries are given a distance of 10 m (no impulse).
+            ``inf``: every entry at its true distance, however far (a force at a distance,
+            :class:`~rsmooth.sim.LogBarrier`, acts at any gap).
 
     Example:
         >>> import rsmooth.sim as sim
@@ -267,8 +269,8 @@ class GeomPair(eqx.Module):
         if not _checks.is_traced(friction) and not (np.isfinite(float(friction)) and float(friction) >= 0):
             raise ValueError(f"friction must be non-negative and finite, got {float(friction)}")
         self.friction = friction
-        if isinstance(margin, bool) or not (np.ndim(margin) == 0 and np.isfinite(margin) and margin >= 0):
-            raise ValueError(f"margin must be a non-negative, finite number (m), got {margin!r}")
+        if isinstance(margin, bool) or not (np.ndim(margin) == 0 and margin >= 0):
+            raise ValueError(f"margin must be a non-negative number (m) or inf, got {margin!r}")
         self.margin = float(margin)
 
     @property
@@ -367,14 +369,10 @@ class RigidBodySystem(eqx.Module):
         wrench_frame: frame index of the applied wrench (``"wrench"``).
         wrench_components: which of ``[fx, fy, fz, tx, ty, tz]`` ``u`` holds (``"wrench"``).
         input_limit: ``(nu,)`` symmetric bounds on ``u``.
-        box_frame: frame of a box body that the spheres ``box_spheres`` collide with
-            (a pusher's finger against the pushed box); ``-1`` for none.
-        box_half_extents: half side lengths of that box in its frame, ``(3,)``.
-        box_spheres: indices of the spheres that collide with the box.
-        box_friction: Coulomb coefficient between those spheres and the box.
         geom_pairs: pairs of collision shapes (:class:`GeomPair`) whose contact manifolds
             are contacts of the system, after the sphere contacts (e.g. boxes on a floor and
-            on each other: :func:`~rsmooth.sim.bodies`).
+            on each other: :func:`~rsmooth.sim.bodies`; a pusher's finger against its box:
+            :func:`~rsmooth.sim.pusher`).
         joint_damping: viscous damping ``(nv,)`` (N m s/rad or N s/m) of each dof, ``>= 0``,
             integrated implicitly; ``None`` for none. It bounds the speed a constant torque
             gives a free joint (``tau / d``), which explicit velocity-product (Coriolis)
@@ -438,10 +436,6 @@ class RigidBodySystem(eqx.Module):
     wrench_frame: int = eqx.field(static=True)
     wrench_components: tuple[int, ...] = eqx.field(static=True)
     input_limit: Array
-    box_frame: int = eqx.field(static=True, default=-1)
-    box_half_extents: Array | None = None
-    box_spheres: tuple[int, ...] = eqx.field(static=True, default=())
-    box_friction: float = eqx.field(static=True, default=0.0)
     geom_pairs: tuple[GeomPair, ...] = ()
     joint_damping: Array | None = None
     initial_configuration: Array | None = None
@@ -482,12 +476,6 @@ class RigidBodySystem(eqx.Module):
         for dof in self.actuated_dofs:
             if not 0 <= dof < self.model.nv:
                 raise ValueError(f"actuated dof {dof} out of range [0, {self.model.nv})")
-        if self.box_spheres:
-            self.model.frame_id(self.box_frame)
-            if self.box_half_extents is None or self.box_half_extents.shape != (3,):
-                raise ValueError("box_half_extents must have shape (3,) when box_spheres are given")
-            if any(not 0 <= sphere < num_spheres for sphere in self.box_spheres):
-                raise ValueError(f"box_spheres must index the spheres 0..{num_spheres - 1}, got {self.box_spheres}")
         if any(c not in range(6) for c in self.wrench_components):
             raise ValueError(f"wrench_components must be in 0..5, got {self.wrench_components}")
         _limit_rows(self.model, self.joint_limits)  # raises on a bad entry
@@ -577,10 +565,9 @@ class RigidBodySystem(eqx.Module):
     @property
     def num_contacts(self) -> int:
         """Number of candidate contacts: every sphere against every half-space, then the
-        ``box_spheres`` against the box, then the manifold entries of every geometry pair."""
+        manifold entries of every geometry pair, then the joint limits."""
         return (
             len(self.sphere_frames) * self.plane_normals.shape[0]
-            + len(self.box_spheres)
             + sum(pair.size for pair in self.geom_pairs)
             + len(self.joint_limits)
         )
@@ -765,11 +752,10 @@ class RigidBodySystem(eqx.Module):
         """Candidate contacts at ``q``: ``(distance (n,), frames (n, 3, 3), J (3n, nv))``.
 
         Ordered sphere-major: contact ``s * P + p`` is sphere ``s`` against half-space ``p``;
-        then one contact per entry of ``box_spheres``; then, pair by pair, the manifold
-        entries of ``geom_pairs`` (:meth:`_geom_pair_contacts`). ``J`` maps ``v`` to the
-        contact-frame velocity ``[t1, t2, n]`` of the sphere point deepest towards the obstacle
-        (relative to the box's material point there, for box contacts; of shape 2's witness
-        point relative to shape 1's, for geometry pairs).
+        then, pair by pair, the manifold entries of ``geom_pairs``
+        (:meth:`_geom_pair_contacts`); then the joint limits. ``J`` maps ``v`` to the
+        contact-frame velocity ``[t1, t2, n]`` of the sphere point deepest towards the plane
+        (for geometry pairs, of shape 2's witness point relative to shape 1's).
         """
         distance, frames, jacobian = self._shape_contacts(q, kinematics)
         if not self.joint_limits:
@@ -818,11 +804,6 @@ class RigidBodySystem(eqx.Module):
         # R^T J_p, unrolled over the 3-axis (a batched 3x3 dot is slow on CPU: _spatial)
         jacobians = sum(rotations[:, j, :, None] * point_jacobians[:, None, :, j] for j in range(3))  # (n, 3, nv)
         distances, frames, jacobians = [distance], [rotations], [jacobians]
-        for sphere in self.box_spheres:
-            distance, rotation, jacobian = self._sphere_box_contact(kinematics, sphere)
-            distances.append(distance[None])
-            frames.append(rotation[None])
-            jacobians.append(jacobian[None])
         if self.geom_pairs:
             distance, rotation, jacobian = self._geom_pairs_contacts(kinematics)
             distances.append(distance)
@@ -845,8 +826,7 @@ class RigidBodySystem(eqx.Module):
         return translation + jax.vmap(spatial.rotate)(rotation, self.sphere_offsets), joints
 
     def _sphere_geometry(self, kinematics) -> tuple[Array, Array, np.ndarray, Array]:
-        """Per sphere-half-space contact (the order of :meth:`contacts`, box contacts
-        excluded): sphere centre ``(n, 3)``, contact point ``(n, 3)``, joint ``(n,)`` (static)
+        """Per sphere-half-space contact (the order of :meth:`contacts`): sphere centre ``(n, 3)``, contact point ``(n, 3)``, joint ``(n,)`` (static)
         and contact frame ``(n, 3, 3)``."""
         centres, joints = self._sphere_centres(kinematics)
         num_spheres, num_planes = centres.shape[0], self.plane_normals.shape[0]
@@ -858,36 +838,6 @@ class RigidBodySystem(eqx.Module):
             np.repeat(joints, num_planes),
             frames.reshape(-1, 3, 3),
         )
-
-    def _sphere_box_contact(self, kinematics, sphere: int) -> tuple[Array, Array, Array]:
-        """Signed distance, contact frame and relative contact Jacobian of a sphere against
-        the box: the box's signed distance function at the sphere centre ``p`` (box frame),
-        ``d(p) = ||max(|p| - e, 0)|| + min(max_k(|p_k| - e_k), 0)``, minus the radius; the
-        normal is its gradient (from the box towards the sphere)."""
-        model = self.model
-        frame = self.sphere_frames[sphere]
-        rotation, translation = _dynamics._frame_placement(model, kinematics.rotation, kinematics.translation, frame)
-        centre = translation + rotation @ self.sphere_offsets[sphere]
-        box_rotation, box_translation = _dynamics._frame_placement(
-            model, kinematics.rotation, kinematics.translation, self.box_frame
-        )
-        local = box_rotation.T @ (centre - box_translation)
-        excess = jnp.abs(local) - self.box_half_extents
-        outside = jnp.maximum(excess, 0.0)
-        outside_norm_squared = jnp.sum(outside**2)
-        is_outside = outside_norm_squared > 0
-        outside_norm = jnp.sqrt(jnp.where(is_outside, outside_norm_squared, 1.0))
-        face = jnp.argmax(excess)
-        inside_normal = jnp.sign(local) * (jnp.arange(3) == face)
-        outside_normal = jnp.sign(local) * outside / outside_norm
-        local_normal = jnp.where(is_outside, outside_normal, inside_normal)
-        distance = jnp.where(is_outside, outside_norm, excess[face]) - self.sphere_radii[sphere]
-        normal = box_rotation @ local_normal
-        point = centre - self.sphere_radii[sphere] * normal
-        sphere_jacobian = _point_jacobian(model, kinematics, model.frame_parents[frame], point)
-        box_jacobian = _point_jacobian(model, kinematics, model.frame_parents[self.box_frame], point)
-        contact_rotation = contact_frame(normal)
-        return distance, contact_rotation, contact_rotation.T @ (sphere_jacobian - box_jacobian)
 
     def _geom_pose(self, kinematics, frame, placement) -> tuple[Array, Array]:
         """World pose of a shape placed at ``placement`` in ``frame`` (``None``: the world)."""
@@ -1075,7 +1025,6 @@ class RigidBodySystem(eqx.Module):
         """Coulomb coefficient of every candidate contact, ``(n,)`` (order of :meth:`contacts`)."""
         return jnp.concatenate([
             jnp.repeat(self.friction[None, :], len(self.sphere_frames), axis=0).reshape(-1),
-            jnp.full(len(self.box_spheres), self.box_friction, self.friction.dtype),
         ] + [jnp.full(pair.size, pair.friction, self.friction.dtype) for pair in self.geom_pairs]
           + [jnp.zeros(len(self.joint_limits), self.friction.dtype)])
 
@@ -1276,8 +1225,6 @@ def _check_physical(system: RigidBodySystem) -> None:
     """Host checks of the values that make a system physical (those not traced)."""
     _check_concrete("sphere_radii", system.sphere_radii)
     _check_concrete("friction", system.friction)
-    _check_concrete("box_friction", system.box_friction)
-    _check_concrete("box_half_extents", system.box_half_extents, positive=True)
     _check_concrete("input_limit", system.input_limit, positive=True, allow_inf=True)
 
 

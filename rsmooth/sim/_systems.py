@@ -639,7 +639,9 @@ def pusher(
     The box (a free body, its 8 corners against the floor) and a spherical finger moving in
     the horizontal plane at the box's mid-height (two prismatic joints, x then y, driven by the
     input forces ``u = [fx, fy]``, clipped to ``+-force_limit``). The finger touches the box
-    through the box's signed distance function; the finger does not touch the floor.
+    through a :class:`~rsmooth.sim.GeomPair` (box, finger) without a margin: its contact is a
+    candidate at any distance, at the box's signed distance (for a force at a distance, which
+    acts at any gap); the finger does not touch the floor.
     ``nx = 9 + 8 = 17`` (box position and quaternion, finger x, y; then the velocities),
     ``nu = 2``.
 
@@ -677,10 +679,14 @@ def pusher(
     corners = np.array(list(itertools.product((-0.5, 0.5), repeat=3))) * box_side
     normals, offsets, mu = _planes([FLOOR], floor_friction)
     box = model.frame_id("box")
+    finger = GeomPair(
+        Box(jnp.full(3, box_side / 2)), "box", Sphere(float(finger_radius)), "finger", friction=finger_friction,
+        margin=float("inf"),
+    )
     return RigidBodySystem(
         model=model,
-        # The finger is listed with the floor too, but it stays at the box's mid-height: its
-        # floor contact is never active (kept so every sphere is treated alike).
+        # The finger is a sphere above the floor too, but it stays at the box's mid-height: its
+        # floor contact is a candidate that never acts.
         sphere_frames=(box,) * 8 + (model.frame_id("finger"),),
         sphere_offsets=jnp.zeros((9, 3)).at[:8].set(jnp.asarray(corners)),
         sphere_radii=jnp.zeros(9).at[8].set(float(finger_radius)),
@@ -693,10 +699,7 @@ def pusher(
         wrench_frame=0,
         wrench_components=(),
         input_limit=jnp.full(2, float(force_limit)),
-        box_frame=box,
-        box_half_extents=jnp.full(3, box_side / 2),
-        box_spheres=(8,),
-        box_friction=float(finger_friction),
+        geom_pairs=(finger,),
         initial_configuration=jnp.asarray(_pusher_configuration(box_side / 2, finger_radius, 0.05, 0.0)),
     )
 
@@ -705,6 +708,12 @@ def _pusher_configuration(half: float, radius: float, finger_gap: float, finger_
     """The pusher's box at rest on the floor at the origin and its finger ``finger_gap``
     behind the box's ``-x`` face, ``finger_y`` along it: ``q`` ``(9,)``."""
     return np.array([0.0, 0.0, half, 0.0, 0.0, 0.0, 1.0, -(half + radius + finger_gap), finger_y])
+
+
+def _pusher_sizes(system: RigidBodySystem) -> tuple[float, float]:
+    """The box's half side and the finger's radius of a :func:`pusher` system (m)."""
+    pair = system.geom_pairs[0]
+    return float(pair.shape1.half_extents[0]), float(pair.shape2.radius)
 
 
 def pusher_start_state(system: RigidBodySystem, *, finger_gap: float = 0.05, finger_y: float = 0.0) -> jax.Array:
@@ -719,8 +728,7 @@ def pusher_start_state(system: RigidBodySystem, *, finger_gap: float = 0.05, fin
         The box at rest on the floor at the origin and the finger at rest behind it, shape
         ``(17,)``; with the default arguments, ``system.initial_state()``.
     """
-    half = float(system.box_half_extents[0])
-    radius = float(system.sphere_radii[system.box_spheres[0]])
+    half, radius = _pusher_sizes(system)
     return system.state(jnp.asarray(_pusher_configuration(half, radius, finger_gap, finger_y)))
 
 

@@ -119,7 +119,7 @@ def test_system_factories_reject_impossible_parameters_by_name(factory, name, va
 
 
 def test_system_factories_accept_the_limits_of_their_ranges():
-    assert float(sim.pusher(finger_radius=0.0, force_limit=INF).sphere_radii[8]) == 0.0  # a point finger, unlimited
+    assert float(sim.pusher(finger_radius=0.0, force_limit=INF).geom_pairs[0].shape2.radius) == 0.0  # a point finger, unlimited
     assert float(sim.cube(friction=0.0).friction[0]) == 0.0
     assert np.isfinite(float(sim.ball_wall(wall_distance=-1.0).plane_offsets[1]))
 

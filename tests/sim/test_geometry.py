@@ -438,8 +438,14 @@ def test_unsupported_pair_names_the_types():
 
 
 def test_bad_shapes_and_poses_raise():
-    with pytest.raises(ValueError, match="radius must be positive"):
+    with pytest.raises(ValueError, match=r"radius must be non-negative \(0: a point\)"):
         Sphere(-1.0)
+    with pytest.raises(ValueError, match="radius must be positive"):
+        Capsule(0.0, 0.1)
+    # a point (a sphere of radius 0) has a distance and a normal everywhere, even on another point
+    for other in (Sphere(0.0), Box([0.1, 0.2, 0.3]), HalfSpace()):
+        contact = collide(other, _pose([0, 0, 0]), Sphere(0.0), _pose([0, 0, 0]))
+        assert np.all(np.isfinite(np.asarray(contact.distance))) and np.all(np.isfinite(np.asarray(contact.normal)))
     with pytest.raises(ValueError, match="half_length must be finite"):
         Capsule(0.1, np.inf)
     with pytest.raises(ValueError, match=r"half_extents must have shape \(3,\)"):

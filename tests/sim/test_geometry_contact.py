@@ -161,32 +161,44 @@ def test_box_slides_on_fixed_box_to_the_closed_form_distance():
     np.testing.assert_allclose(np.asarray(infos.force[: steps - 1]).sum(axis=1), np.tile([-mu * G, 0, G], (steps - 1, 1)), atol=1e-6)
 
 
-def test_sphere_box_pair_matches_the_sphere_box_contact():
-    """A GeomPair(Box, Sphere) on the pusher's box and finger gives the distance, contact frame
-    and relative Jacobian of the hand-written signed-distance contact (`box_spheres`)."""
-    pusher = sim.pusher(finger_radius=0.02)
-    pair = sim.GeomPair(
-        sim.Box(pusher.box_half_extents), "box", sim.Sphere(0.02), "finger", friction=pusher.box_friction
-    )
-    system = dataclasses.replace(pusher, geom_pairs=(pair,))
-    assert system.num_contacts == pusher.num_contacts + 1
-    np.testing.assert_array_equal(system.contact_friction()[-1], pusher.contact_friction()[-1])
+def _box_signed_distance(half, point):
+    """The box's signed distance at ``point`` (box frame) and its gradient (the outward normal)."""
+    excess = np.abs(point) - half
+    outside = np.maximum(excess, 0.0)
+    if np.any(excess > 0):
+        return np.linalg.norm(outside), np.sign(point) * outside / np.linalg.norm(outside)
+    face = int(np.argmax(excess))
+    return excess[face], np.sign(point) * (np.arange(3) == face)
+
+
+@pytest.mark.parametrize("radius", [0.02, 0.0])
+def test_the_pushers_finger_contact_is_the_boxs_signed_distance_at_any_gap(radius):
+    """The pusher's finger against its box (a GeomPair without a margin; radius 0: a point
+    finger): distance and normal from the box's signed distance function at the finger's
+    centre, minus the radius, at contact, apart (the box turned) and half a metre away; the
+    Jacobian is the relative velocity of the finger's point against the box's."""
+    pusher = sim.pusher(finger_radius=radius)
+    half = 0.1
+    assert pusher.num_contacts == 10 and float(pusher.contact_friction()[-1]) == 0.5
     contacts = eqx.filter_jit(lambda s, q: s.contacts(q))
-    # touching (the witness points coincide): distance, frame and Jacobian
-    for finger_y in (0.0, 0.05):
-        q = system.split(sim.pusher_start_state(system, finger_gap=0.0, finger_y=finger_y))[0]
-        distance, frames, jacobian = contacts(system, q)
-        np.testing.assert_allclose(distance[-1], distance[-2], atol=1e-12)
-        np.testing.assert_allclose(frames[-1], frames[-2], atol=1e-12)
-        np.testing.assert_allclose(jacobian[-3:], jacobian[-6:-3], atol=1e-12)
-    # apart (within the pair's margin), with the box turned: the same distance and frame
-    q = system.split(sim.pusher_start_state(system, finger_gap=0.005, finger_y=0.03))[0]
-    angle = -0.05
-    q = q.at[3:7].set(jnp.array([0.0, 0.0, np.sin(angle / 2), np.cos(angle / 2)]))
-    distance, frames, _ = contacts(system, q)
-    assert 0 < distance[-2] < 0.01
-    np.testing.assert_allclose(distance[-1], distance[-2], atol=1e-12)
-    np.testing.assert_allclose(frames[-1], frames[-2], atol=1e-12)
+    for gap, finger_y, angle in ((0.0, 0.0, 0.0), (0.0, 0.05, 0.0), (0.005, 0.03, -0.05), (0.5, 0.2, 0.3)):
+        q = pusher.split(sim.pusher_start_state(pusher, finger_gap=gap, finger_y=finger_y))[0]
+        q = q.at[3:7].set(jnp.array([0.0, 0.0, np.sin(angle / 2), np.cos(angle / 2)]))
+        distance, frames, jacobian = contacts(pusher, q)
+        rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+        finger = np.array([float(q[7]), float(q[8]), half])  # at the box's mid-height
+        expected, normal = _box_signed_distance(half, rotation.T @ (finger - np.asarray(q[:3])))
+        np.testing.assert_allclose(distance[-1], expected - radius, atol=1e-12)
+        np.testing.assert_allclose(frames[-1][:, 2], rotation @ normal, atol=1e-12)
+        if gap == 0.0:  # the witness points coincide: the finger's x, y rates against the box's motion
+            point = finger - radius * (rotation @ normal)
+            lever = point - np.asarray(q[:3])
+            box_velocity = np.concatenate([np.eye(3), -np.array([[0, -lever[2], lever[1]], [lever[2], 0, -lever[0]],
+                                                                [-lever[1], lever[0], 0]])], axis=1)
+            # the box's velocity is its body twist: in world axes, blockdiag(R, R) of it
+            box_columns = box_velocity @ np.kron(np.eye(2), rotation)
+            relative = np.concatenate([-box_columns, np.eye(3)[:, :2]], axis=1)
+            np.testing.assert_allclose(jacobian[-3:], np.asarray(frames[-1]).T @ relative, atol=1e-12)
 
 
 def test_step_jacobian_of_sliding_box_matches_finite_differences():
