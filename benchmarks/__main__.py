@@ -98,6 +98,9 @@ def main():
     parser.add_argument("--metrics", metavar="ROOT", help="experiments: the folder of the experiments' outputs (ROOT/NAME/metrics.json)")
     parser.add_argument("--profile", choices=("quick", "default"),
                         help="experiments: the size the experiments ran at (--quick or the default)")
+    parser.add_argument("--keep-missing", action="store_true",
+                        help="experiments: keep the existing record's entry of each experiment without a metrics.json "
+                        "under ROOT (with its own profile, date and machine)")
     parser.add_argument("--results", metavar="DIR", help="render-results: the records' folder (default benchmarks/results)")
     parser.add_argument("--output", metavar="FILE", help="render-results: the page (default benchmarks/RESULTS.md; - for stdout)")
     args = parser.parse_args()
@@ -113,7 +116,7 @@ def main():
             parser.error("experiments needs --metrics ROOT, --profile quick|default and --json DIR")
         from benchmarks import experiments
 
-        experiments.main(args.metrics, args.json, args.profile)
+        experiments.main(args.metrics, args.json, args.profile, keep_missing=args.keep_missing)
         return
     run_area(parser, args)
 

@@ -761,6 +761,16 @@ EXPERIMENT_SECTIONS: dict[str, tuple[str, Callable[[dict], list[str]]]] = {
 }
 
 
+def entry_provenance(entry: dict, profile: Optional[str], record: dict) -> str:
+    """"Run DATE." and, where they differ from the record's, the entry's profile and machine."""
+    text = f"Run {entry.get('date', '?')}"
+    if entry.get("profile") and entry["profile"] != profile:
+        text += f", profile **{entry['profile']}**"
+    if entry.get("machine") and machine({"machine": entry["machine"]}) != machine(record):
+        text += f", on {machine({'machine': entry['machine']})}"
+    return text + "."
+
+
 def experiments_section(record: Optional[dict], kind: str) -> list[str]:
     if record is None:
         return missing("experiments", kind)
@@ -769,7 +779,8 @@ def experiments_section(record: Optional[dict], kind: str) -> list[str]:
     lines = provenance(record)
     lines += ["", f"Profile: **{results.get('profile', '?')}** (`quick`: the experiments' reduced size, `--quick`; "
               f"`default`: their default size): each metrics.json comes from one run of the experiment at that size "
-              f"(`rsmooth experiment NAME [--quick] --out ROOT/NAME`, seed 0), collected by the command above. An experiment "
+              f"(`rsmooth experiment NAME [--quick] --out ROOT/NAME`, seed 0), collected by the command above; an "
+              f"experiment run at another size or on another machine says so under its heading. An experiment "
               f"without a metrics.json is {NOT_MEASURED}."]
     for name, (title, fn) in EXPERIMENT_SECTIONS.items():
         entry = found.get(name)
@@ -777,7 +788,7 @@ def experiments_section(record: Optional[dict], kind: str) -> list[str]:
         if not entry or not isinstance(entry.get("metrics"), dict):
             lines.append(f"{NOT_MEASURED.capitalize()}.")
             continue
-        lines += [f"Run {entry.get('date', '?')}.", ""]
+        lines += [entry_provenance(entry, results.get("profile"), record), ""]
         lines += fn(entry["metrics"])
     return lines
 

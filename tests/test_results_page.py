@@ -243,6 +243,31 @@ def test_experiments_collects_metrics_and_marks_the_missing(tmp_path):
     assert all(found[name] is None for name in experiments.EXPERIMENTS if name != "render-pose")
 
 
+def test_experiments_keeps_missing_entries_with_their_own_profile_and_machine(tmp_path):
+    """An experiment measured at its default size beside one kept from a quick record of
+    another machine: the page names the kept one's profile and machine under its heading."""
+    for name, profile in (("render-pose", "quick"), ("policy", "default")):
+        (tmp_path / profile / name).mkdir(parents=True)
+        (tmp_path / profile / name / "metrics.json").write_text(json.dumps({"seeds": 1}))
+    out = tmp_path / "out"
+    experiments.main(str(tmp_path / "quick"), str(out), "quick")
+    old = json.loads((out / "experiments.json").read_text())
+    old["machine"] = {**old["machine"], "cpu": "Another CPU"}
+    (out / "experiments.json").write_text(json.dumps(old))
+    without = experiments.main(str(tmp_path / "default"), str(tmp_path / "elsewhere"), "default", keep_missing=True)
+    assert without["results"]["experiments"]["render-pose"] is None  # nothing to keep there
+    record = experiments.main(str(tmp_path / "default"), str(out), "default", keep_missing=True)
+    found = record["results"]["experiments"]
+    assert found["policy"]["profile"] == "default" and "machine" not in found["policy"]
+    assert found["render-pose"]["profile"] == "quick" and found["render-pose"]["machine"]["cpu"] == "Another CPU"
+    assert found["render-pose"]["metrics"] == {"seeds": 1}
+    lines = results_page.experiments_section(record, "cpu")
+    pose = lines[lines.index("#### render-pose: " + results_page.EXPERIMENT_SECTIONS["render-pose"][0]) + 2]
+    policy = lines[lines.index("#### policy: " + results_page.EXPERIMENT_SECTIONS["policy"][0]) + 2]
+    assert "profile **quick**" in pose and "on Another CPU" in pose
+    assert policy.startswith("Run ") and "profile" not in policy and " on " not in policy
+
+
 def test_docstring_examples():
     import doctest
 
