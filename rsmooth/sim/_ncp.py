@@ -605,6 +605,24 @@ class NCPSolver(eqx.Module):
             given = project_to_friction_cone(warm_start.reshape(n, 3), mu).reshape(-1)
         if not self.sticking_guess:
             return candidate(given)
+        if warm_start is None and not self.rank_deficient:
+            return candidate(self._sticking_guess(G, g, mu, factor))  # ADMM starts from it where it fails
+        # The guess where it solves the problem and the start given does not; computed only
+        # where that start fails (its eigendecomposition is most of a start's cost, and a warm
+        # start from the previous step solves a resting scene's problem on its own): under
+        # vmap, a loop run while some member of the batch needs it.
+        warm = candidate(given)
+
+        def use_guess_if_it_solves(problem, warm):
+            guess = candidate(self._sticking_guess(*problem))
+            use_guess = guess[1].converged & ~warm[1].converged
+            return jax.tree.map(lambda a, b: jnp.where(use_guess, a, b), guess, warm)
+
+        return once_if(use_guess_if_it_solves, ~warm[1].converged, (G, g, mu, factor), warm)
+
+    def _sticking_guess(self, G: Array, g: Array, mu: Array, factor: Array | None) -> Array:
+        """The sticking impulse of :meth:`start`, projected on the friction cones."""
+        n = mu.shape[0]
         # Contacts whose free normal velocity does not open stick (c_i = 0), the others carry
         # no impulse: solve G_AA lambda_A = -g_A on that active set A. "Does not open" is
         # g_N at most the square root of the solver's tolerance (1e-5 m/s in float64, the
@@ -646,12 +664,7 @@ class NCPSolver(eqx.Module):
             factor = jax.scipy.linalg.cho_factor(reduced + 1e-12 * scale * identity, lower=True)
             sticking = -jax.scipy.linalg.cho_solve(factor, rhs)
             sticking = sticking - jax.scipy.linalg.cho_solve(factor, reduced @ sticking + rhs)
-        guess = candidate(project_to_friction_cone(sticking.reshape(n, 3), mu).reshape(-1))
-        if warm_start is None and not self.rank_deficient:
-            return guess  # ADMM starts from it where it fails (see sticking_guess)
-        warm = candidate(given)
-        use_guess = guess[1].converged & ~warm[1].converged
-        return jax.tree.map(lambda a, b: jnp.where(use_guess, a, b), guess, warm)
+        return project_to_friction_cone(sticking.reshape(n, 3), mu).reshape(-1)
 
     def init(self, G: Array, g: Array, mu: Array, warm_start: Array | None) -> NCPState:
         """Initial iterate: ``z = P_K(warm_start)`` (or 0) and the matching ``y = -c~(z)``,
