@@ -548,7 +548,7 @@ def _rate(value: Any) -> str:
 def exp_estimators(m: dict) -> list[str]:
     samples = m.get("num_samples") or []
     columns = list(range(len(samples)))
-    if len(columns) > 4:
+    if len(columns) > 5:
         columns = [0, len(samples) - 1]
     body = []
     for function in ("heaviside", "abs", "stiff_sigmoid", "coulomb"):
