@@ -22,10 +22,10 @@ def _solo_perturbed():
     return solo, x, sim.solo12_standing_torques(solo, x) + 0.1
 
 
-def _box_stack_with_a_budget():
-    box = sim.Box(jnp.array([0.1, 0.1, 0.1]))
-    stack = sim.bodies([box, box], [1.0, 1.0], [[0.0, 0.0, 0.1], [0.02, 0.0, 0.3]], max_contacts=8)
-    return stack, stack.initial_state(), jnp.array([0.5, 0.0, 0.0, 0.0, 0.0, 0.2, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0])
+def _box_with_a_budget():
+    """A box on the floor (a geometry pair), its solve budgeted to 3 of its 4 corners."""
+    box = sim.bodies([sim.Box(jnp.array([0.1, 0.1, 0.1]))], [1.0], [[0.0, 0.0, 0.1]], max_contacts=3)
+    return box, box.initial_state(), jnp.array([0.5, 0.0, 0.0, 0.0, 0.0, 0.2])
 
 
 def _compliant_cube():
@@ -34,23 +34,21 @@ def _compliant_cube():
     return cube, x, jnp.array([0.0, 1.0, 0.0, 0.0, 0.0, 0.1])
 
 
-@pytest.mark.parametrize("case", [_solo_perturbed, _box_stack_with_a_budget, _compliant_cube])
+@pytest.mark.parametrize("case", [_solo_perturbed, _box_with_a_budget, _compliant_cube])
 def test_the_stages_compose_to_the_step(case):
-    """Spheres on planes (Solo-12), geometry pairs under a contact budget, a compliant law."""
+    """Spheres on planes (Solo-12), a geometry pair under a contact budget, a compliant law."""
     system, x, u = case()
 
     @eqx.filter_jit
     def both(system, x, u):
         state = sim.make_state(system, x)
         composed = sim.step_stages(system, state, u)[0]
-        stepped, info = sim.step(system, state, u)
-        return composed, stepped, info, system.step(x, u)
+        return composed, *sim.step(system, state, u)
 
-    composed, stepped, info, flat = both(system, x, u)
+    composed, stepped, info = both(system, x, u)
     assert bool(info.ncp.converged) and not bool(info.diverged)
     assert float(jnp.max(jnp.abs(stepped.impulse))) > 0  # something touches
-    np.testing.assert_allclose(composed.x, flat, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(stepped.x, flat, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(composed.x, stepped.x, rtol=0, atol=1e-12)
     np.testing.assert_allclose(composed.impulse, stepped.impulse, rtol=0, atol=1e-12)
     np.testing.assert_array_equal(stepped.impulse, info.impulse)
 
