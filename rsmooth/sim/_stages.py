@@ -50,7 +50,9 @@ class State(eqx.Module):
         v: velocity ``(nv,)`` (Pinocchio's conventions; see :mod:`rsmooth.sim._simulator`).
         impulse: the contact impulses ``(3 n,)`` of the step that led here (zeros at the start),
             from which the next hard-contact solve starts: a warm start changes how many
-            iterations the solve takes, not its answer.
+            iterations the solve takes, and its answer only where the contact problem has
+            several solutions (e.g. a rigid finger whose friction can carry part of a sliding
+            box's weight).
     """
 
     q: Array
