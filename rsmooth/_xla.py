@@ -49,12 +49,14 @@ differ by an order of magnitude.
 
 from __future__ import annotations
 
+import gc
 import importlib.metadata
 import os
 import pathlib
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 YNN_FLAG = "--xla_cpu_experimental_ynn_fusion_type"
 EMITTERS_FLAG = "--xla_cpu_use_fusion_emitters"
@@ -122,6 +124,49 @@ def enable_compilation_cache(environ: dict | None = None) -> pathlib.Path | None
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", CACHE_MIN_COMPILE_SECONDS)
     return folder
+
+
+def device_array(values, dtype=np.float64) -> jax.Array:
+    """``values`` as a JAX array on the default device, without compiling anything.
+
+    ``jnp.asarray`` of a NumPy array compiles (jaxlib 0.10) a small program per new shape and
+    dtype, tens of milliseconds each; building a system or a problem converts dozens of arrays,
+    which a fresh process (a command's first run, a test worker) would pay in compilations.
+    ``jax.device_put`` copies without one. The dtype is canonicalized as ``jnp.asarray`` does
+    (float64 becomes float32 unless ``jax_enable_x64`` is set).
+    """
+    return jax.device_put(np.asarray(values, dtype=dtype))
+
+
+def memory_maps() -> tuple[int, int] | None:
+    """``(maps, limit)``: the memory maps this process holds and the most the kernel allows it
+    (``vm.max_map_count``); ``None`` where ``/proc`` does not say (not Linux)."""
+    try:
+        with open("/proc/self/maps") as maps, open("/proc/sys/vm/max_map_count") as limit:
+            return sum(1 for _ in maps), int(limit.read())
+    except (OSError, ValueError):
+        return None
+
+
+def release_compiled_programs(fraction: float = 0.5) -> bool:
+    """Drops JAX's in-memory caches of compiled programs (``jax.clear_caches``) when this
+    process holds more than ``fraction`` of the memory maps Linux allows it; True if it did.
+
+    XLA:CPU keeps each compiled program's machine code in memory maps of its own (about six for
+    a small program, more for a large one) for as long as JAX's caches hold the program. Linux
+    bounds a process's maps (``vm.max_map_count``, 65,530 by default); past the bound LLVM
+    cannot map the next program's code and the process dies in a segmentation fault while
+    compiling (a test worker reaches it after about 400 of the suite's tests). A process that
+    compiles thousands of programs (the test suite's workers, ``rsmooth report``) calls this
+    between its units of work: a program dropped is compiled again when used again (read back
+    from the persistent compilation cache where that is on).
+    """
+    counts = memory_maps()
+    if counts is None or counts[0] <= fraction * counts[1]:
+        return False
+    jax.clear_caches()
+    gc.collect()
+    return True
 
 
 def on_accelerator() -> bool:

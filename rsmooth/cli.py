@@ -134,7 +134,7 @@ def run_report(experiments: Iterable[_protocol.Experiment], out: Path, seed: int
     """Runs `experiments` (their quick or default Config) into ``out/NAME`` each, then writes
     ``out/index.html`` (:mod:`rsmooth.report`). An experiment that raises is shown with its
     error, and the others still run; returns the page's path."""
-    from rsmooth import report
+    from rsmooth import _xla, report
 
     out = _files.prepare_output_folder(out)
     experiments = tuple(experiments)
@@ -159,6 +159,7 @@ def run_report(experiments: Iterable[_protocol.Experiment], out: Path, seed: int
             settings=dataclasses.asdict(config), metrics=metrics, error=error,
             wall_time_s=time.perf_counter() - start, files=files,
         )
+        _xla.release_compiled_programs()  # many programs in one process (see there)
     with _files.recording_outputs(out):
         page = report.write_page(out, [entries[e.name] for e in experiments], report.machine(),
                                  profile="quick" if quick else "default")
@@ -320,6 +321,8 @@ def build_app(experiments: Iterable[_protocol.Experiment]) -> typer.Typer:
             parent = groups[words]
         parent.command(name, help=_doc(experiment.help, experiment.metrics_doc))(_command(experiment))
 
+    names = [e.name for e in experiments]
+
     def report_pages(out: Path, seed: int, quick: bool, commands: Optional[tuple] = None) -> None:
         chosen = experiments if commands is None else [e for c in commands for e in experiments if e.command == c]
         try:
@@ -339,8 +342,18 @@ def build_app(experiments: Iterable[_protocol.Experiment]) -> typer.Typer:
         out: Path = typer.Option(..., "--out", help="Root folder: index.html and one sub-folder per experiment."),
         seed: int = typer.Option(0, "--seed", help="Seed of the jax.random key of every experiment."),
         quick: bool = typer.Option(False, "--quick", help="The experiments' reduced sizes."),
+        only: list[str] = typer.Option([], "--only", help=(
+            "Run only this experiment (repeatable), by the name of its folder: " + ", ".join(names) + ".")),
+        skip: list[str] = typer.Option([], "--skip", help="Leave this experiment out (repeatable; names as --only)."),
     ):
-        report_pages(out, seed, quick)
+        for option, given in (("--only", only), ("--skip", skip)):
+            unknown = [name for name in given if name not in names]
+            if unknown:
+                _fail(f"{option}: unknown experiment {', '.join(map(repr, unknown))}; one of: {', '.join(names)}")
+        chosen = [e.command for e in experiments if (not only or e.name in only) and e.name not in skip]
+        if not chosen:
+            _fail("--only and --skip leave no experiment to run")
+        report_pages(out, seed, quick, tuple(chosen))
 
     @app.command(help=(
         "A tour of four experiments at their quick sizes into ./rsmooth-out/ (or --out), with their "

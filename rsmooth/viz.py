@@ -2,6 +2,9 @@
 
 Every file is written to a temporary name in the destination folder and renamed into place,
 so an interrupted run never leaves a half-written file behind.
+
+``viz.plt`` is matplotlib's pyplot on its ``Agg`` backend (no screen needed), imported on first
+use: importing it takes about half a second, which a solve that draws nothing should not pay.
 """
 
 from __future__ import annotations
@@ -11,15 +14,23 @@ import math
 import os
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")  # no screen needed; must precede pyplot
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+from rsmooth._files import atomic_path
 
-from rsmooth._files import atomic_path  # noqa: E402
+__all__ = ["atomic_path", "write_metrics", "save_figure", "save_animation"]
 
-__all__ = ["atomic_path", "write_metrics", "save_figure", "save_animation", "plt"]
+
+def __getattr__(name: str):
+    if name == "plt":
+        import matplotlib
+
+        matplotlib.use("Agg")  # no screen needed; must precede pyplot
+        import matplotlib.pyplot as plt
+
+        globals()["plt"] = plt
+        return plt
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _plain(value):
@@ -49,7 +60,7 @@ def save_figure(fig, path: str | os.PathLike, dpi: int = 120) -> Path:
     """Saves a matplotlib figure (format from the suffix) and closes it."""
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
-    plt.close(fig)
+    __getattr__("plt").close(fig)
     return Path(path)
 
 

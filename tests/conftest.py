@@ -64,3 +64,14 @@ def _double_precision_after_each_test():
     off) must not change the precision of the tests after it in the same worker."""
     yield
     jax.config.update("jax_enable_x64", True)
+
+
+@pytest.fixture(autouse=True)
+def _release_compiled_programs():
+    """A worker compiles thousands of programs, each holding memory maps until dropped from
+    JAX's caches: past Linux's bound on them the worker dies compiling (a segmentation fault).
+    Half-way there, the caches are dropped (rsmooth._xla.release_compiled_programs)."""
+    from rsmooth import _xla  # imported after the precision is set above
+
+    yield
+    _xla.release_compiled_programs()

@@ -156,3 +156,15 @@ def test_report_command_runs_every_experiment_and_shows_a_failure_beside_the_oth
     # A second report into the same folder replaces the first (its files are rsmooth's).
     again = CliRunner().invoke(app, ["report", "--quick", "--out", str(site)])
     assert again.exit_code == 0, again.output
+    # --only and --skip choose experiments by their folder's name; an unknown name is refused.
+    only = CliRunner().invoke(app, ["report", "--quick", "--out", str(tmp_path / "only"), "--only", "last"])
+    assert only.exit_code == 0, only.output
+    assert sorted(p.name for p in (tmp_path / "only").iterdir()) == ["index.html", "last", "rsmooth-files.json"]
+    skip = CliRunner().invoke(app, ["report", "--quick", "--out", str(tmp_path / "skip"), "--skip", "broken"])
+    assert skip.exit_code == 0, skip.output
+    assert sorted(p.name for p in (tmp_path / "skip").iterdir()) == ["first", "index.html", "last", "rsmooth-files.json"]
+    unknown = CliRunner().invoke(app, ["report", "--quick", "--out", str(tmp_path / "x"), "--only", "frist"])
+    assert unknown.exit_code == 1 and "--only: unknown experiment 'frist'; one of: first, broken, last" in unknown.output
+    none = CliRunner().invoke(app, ["report", "--quick", "--out", str(tmp_path / "y"), "--only", "first", "--skip", "first"])
+    assert none.exit_code == 1 and "leave no experiment" in none.output
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()

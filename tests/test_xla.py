@@ -109,3 +109,37 @@ def test_compilation_cache_folder_and_opt_outs(tmp_path):
     assert str(_xla.enable_compilation_cache({"JAX_COMPILATION_CACHE_DIR": "/mine"})) == "/mine"
     assert jax.config.jax_compilation_cache_dir == before
 
+
+
+@pytest.mark.skipif(_xla.memory_maps() is None, reason="no /proc: the kernel's map count is Linux's")
+def test_released_programs_give_back_their_memory_maps_and_compile_again():
+    import numpy as np
+
+    functions = [jax.jit(lambda x, i=i: x * i + 1.0) for i in range(40)]
+    first = [float(f(np.float64(2.0))) for f in functions]  # 40 programs, about six maps each
+    before, limit = _xla.memory_maps()
+    assert not _xla.release_compiled_programs(fraction=1.0)  # far below the kernel's bound: kept
+    assert _xla.release_compiled_programs(fraction=before / limit / 2)
+    after, _ = _xla.memory_maps()
+    assert after < before - 100
+    assert [float(f(np.float64(2.0))) for f in functions] == first == [2.0 * i + 1.0 for i in range(40)]
+
+
+def test_device_array_converts_without_compiling():
+    import numpy as np
+
+    compiled = []
+
+    def listener(event, seconds, **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiled.append(seconds)
+
+    values = np.arange(7 * 13, dtype=np.float64).reshape(7, 13)  # a shape no other test converts
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        array = _xla.device_array(values)
+        integers = _xla.device_array([1, 2], np.int32)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    assert compiled == [] and array.dtype == np.float64 and np.array_equal(np.asarray(array), values)
+    assert integers.dtype == np.int32 and integers.tolist() == [1, 2]

@@ -20,6 +20,7 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from rsmooth import _checks
+from rsmooth._xla import device_array
 
 __all__ = ["ShootingProblem"]
 
@@ -32,7 +33,7 @@ def _bound(value, nu: int, name: str):
         raise ValueError(f"{name} must be a scalar or have shape (nu,) = ({nu},), got {array.shape}")
     if np.any(np.isnan(array)):
         raise ValueError(f"{name} must not contain NaN")
-    return jnp.asarray(array)
+    return device_array(array)
 
 
 def check_initial_state(x0: ArrayLike, nx: int) -> Array:

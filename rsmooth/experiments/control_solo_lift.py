@@ -58,6 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rsmooth import control, sim, viz
+from rsmooth._xla import device_array
 from rsmooth.experiments import _control, _protocol, _scene_render
 from rsmooth.experiments.solo12_sim import solo12_drawing_model
 
@@ -146,17 +147,20 @@ def build_problem(config: Config, system=None):
     u0 = sim.solo12_standing_torques(system, x0)
     feet0 = sim.solo12_foot_positions(system, x0)
     lifted = FEET.index(config.foot)
-    selection = jnp.eye(4, dtype=x0.dtype)
+    # The parameters are computed in NumPy: set-up code run eagerly in JAX compiles a small
+    # program per operation (see rsmooth._xla.device_array).
+    selection = np.eye(4)
+    feet0_host = np.asarray(feet0)
     params = {
         "system": system,
-        "q0": x0[:19],
+        "q0": device_array(np.asarray(x0)[:19], x0.dtype),
         "u0": u0,
         "feet0": feet0,
-        "lifted": selection[lifted],
-        "others": selection[np.array([i for i in range(4) if i != lifted])],
-        "target": feet0[lifted, 2:3] + config.height,
+        "lifted": device_array(selection[lifted], x0.dtype),
+        "others": device_array(selection[[i for i in range(4) if i != lifted]], x0.dtype),
+        "target": device_array(feet0_host[lifted, 2:3] + config.height, x0.dtype),
     }
-    limit = system.input_limit
+    limit = np.asarray(system.input_limit)
     problem = control.ShootingProblem(
         system, _running, _terminal, x0, config.horizon, control_lower=-limit, control_upper=limit, residuals=True,
         params=params,

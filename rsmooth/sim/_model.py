@@ -21,8 +21,8 @@ from typing import Any
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
+from rsmooth._xla import device_array
 
 FREE_FLYER = "free_flyer"
 SPHERICAL = "spherical"
@@ -303,7 +303,7 @@ def _limits_to_inf(values: np.ndarray) -> np.ndarray:
 
 
 def _to_jax(values: Any) -> jax.Array:
-    return jnp.asarray(np.asarray(values, dtype=np.float64))
+    return device_array(values)
 
 
 def _joint_type_and_axis(joint_model: Any, name: str) -> tuple[str, tuple[float, float, float]]:

@@ -55,6 +55,7 @@ from jax.typing import ArrayLike
 
 from rsmooth.sim import _spatial as spatial
 from rsmooth.sim._model import FREE_FLYER, PRISMATIC, REVOLUTE, SPHERICAL, UNIVERSE, Model
+from rsmooth._xla import device_array
 
 # The geom types a collision routine may meet; height fields and SDFs are accepted only
 # when they cannot collide (purely visual), so that geom indices stay MuJoCo's.
@@ -696,7 +697,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         else:
             hulls.append(vertices[-1])
         start, count = m.mesh_faceadr[mesh], m.mesh_facenum[mesh]
-        faces.append(jnp.asarray(np.asarray(m.mesh_face[start : start + count], dtype=np.int32)))
+        faces.append(device_array(m.mesh_face[start : start + count], np.int32))
     damping = np.zeros(m.nv) if disabled & int(mj.mjtDisableBit.mjDSBL_DAMPER) else np.asarray(m.dof_damping, dtype=np.float64)
     return MujocoModel(
         model=model,
@@ -806,7 +807,7 @@ def _actuator_limits(mj: Any, m: Any) -> tuple[np.ndarray, dict[str, Any]]:
 
 
 def _array(values: Any) -> jax.Array:
-    return jnp.asarray(np.asarray(values, dtype=np.float64))
+    return device_array(values)
 
 
 # MuJoCo's URDF reader merges bodies without joints into their parents (a robot's floating base
@@ -1066,7 +1067,7 @@ def _check_options(visuals, boundinertia, drop_mimic, drop_frictionloss) -> None
 def load_mjcf(
     source: str | pathlib.Path | Any,
     *,
-    package_dirs=(),
+    package_dirs=None,
     floating_base: bool = False,
     visuals: bool | str = "auto",
     boundinertia: float | None = None,
@@ -1094,7 +1095,9 @@ def load_mjcf(
         source: path to an MJCF or URDF file, the MJCF text itself (a string whose first
             non-blank character is ``<``), or a ``mujoco.MjModel``.
         package_dirs: folders that hold the packages ``package://`` URIs name (each either
-            contains a folder per package, or is the package's own folder).
+            contains a folder per package, or is the package's own folder). ``None``: the
+            folders above the file, nearest first, which finds a package that holds the
+            file (a robot of example-robot-data: ``package://example-robot-data/robots/...``).
         floating_base: give the first body under the world a free joint named
             ``"root_joint"`` (a legged robot's base; a URDF has no free joint of its own).
         visuals: ``"auto"``: drop the visual geoms whose meshes MuJoCo has no decoder for (see
@@ -1169,7 +1172,8 @@ def load_mjcf(
         if not path.is_file():
             raise FileNotFoundError(f"model file not found: {path}")
         if path.suffix.lower() == ".urdf":
-            spec = _read_urdf(mj, path, package_dirs)
+            folders = path.resolve().parents if package_dirs is None else package_dirs
+            spec = _read_urdf(mj, path, folders)
         else:
             try:
                 spec = mj.MjSpec.from_file(str(path))

@@ -228,7 +228,7 @@ def _actuation(loaded: MujocoModel) -> tuple[tuple[int, ...], np.ndarray]:
 def scene(
     source: str | pathlib.Path | Any,
     *,
-    package_dirs=(),
+    package_dirs=None,
     floating_base: bool = False,
     visuals: bool | str = False,
     boundinertia: float | None = None,
@@ -266,7 +266,8 @@ def scene(
     Args:
         source: a path to an MJCF (``.xml``) or URDF (``.urdf``) file, MJCF text, a
             ``mujoco.MjModel``, or a :class:`~rsmooth.sim.MujocoModel`.
-        package_dirs: folders holding the packages that ``package://`` URIs name (URDF).
+        package_dirs: folders holding the packages that ``package://`` URIs name (URDF);
+            ``None``: the folders above the file (see :func:`~rsmooth.sim.load_mjcf`).
         floating_base: give the first body under the world a free joint (a file or text
             only; see :func:`~rsmooth.sim.load_mjcf`).
         visuals: which visual geoms to keep (:func:`~rsmooth.sim.load_mjcf`'s option; a file
@@ -341,7 +342,7 @@ def scene(
     if isinstance(source, MujocoModel):
         given = {
             "floating_base": floating_base,
-            "package_dirs": bool(tuple(package_dirs)),
+            "package_dirs": package_dirs is not None,
             "visuals": visuals is not False,
             "boundinertia": boundinertia is not None,
             "drop_mimic": drop_mimic,

@@ -24,6 +24,7 @@ from rsmooth.sim._contact import contact_frame
 from rsmooth.sim._geometry import Box, Capsule, Cylinder, HalfSpace, Sphere
 from rsmooth.sim._ncp import NCPSolver
 from rsmooth.sim._simulator import ContactLaw, GeomPair, Options, RigidBodySystem, _point_jacobian
+from rsmooth._xla import device_array
 
 __all__ = [
     "SOLO12_ARMATURE",
@@ -129,7 +130,7 @@ def _planes(planes, friction) -> tuple[jax.Array, jax.Array, jax.Array]:
         mu = np.array([_number("friction", f, zero=True) for f in friction])
         if mu.shape != (len(planes),):
             raise ValueError(f"friction must be a number or one per plane ({len(planes)}), got {friction!r}")
-    return jnp.asarray(normals / lengths[:, None]), jnp.asarray(offsets), jnp.asarray(mu)
+    return device_array(normals / lengths[:, None]), device_array(offsets), device_array(mu)
 
 
 def _gravity(gravity) -> np.ndarray:
@@ -166,8 +167,8 @@ def _free_body_system(model, name, offsets, radii, planes, friction, time_step, 
     return RigidBodySystem(
         model=model,
         sphere_frames=(model.frame_id(name),) * len(radii),
-        sphere_offsets=jnp.asarray(np.asarray(offsets, dtype=np.float64)),
-        sphere_radii=jnp.asarray(np.asarray(radii, dtype=np.float64)),
+        sphere_offsets=device_array(offsets),
+        sphere_radii=device_array(radii),
         plane_normals=normals,
         plane_offsets=plane_offsets,
         friction=mu,
@@ -176,8 +177,8 @@ def _free_body_system(model, name, offsets, radii, planes, friction, time_step, 
         actuated_dofs=(),
         wrench_frame=model.frame_id(name),
         wrench_components=tuple(int(c) for c in wrench_components),
-        input_limit=jnp.full(len(wrench_components), jnp.inf),
-        initial_configuration=jnp.asarray(_resting_configuration(normals[0], plane_offsets[0], height)),
+        input_limit=device_array(np.full(len(wrench_components), np.inf)),
+        initial_configuration=device_array(_resting_configuration(np.asarray(normals[0]), float(plane_offsets[0]), height)),
     )
 
 
@@ -403,7 +404,7 @@ def _bodies_model(names, masses, inertias, gravity) -> Model:
     then ``f"{name}_joint"`` and ``name`` per body."""
     n = len(names)
     eye = np.eye(3)
-    to_jax = lambda a: jnp.asarray(np.asarray(a, dtype=np.float64))  # noqa: E731
+    to_jax = device_array
     frame_names = ("universe",) + tuple(f for name in names for f in (f"{name}_joint", name))
     return Model(
         joint_names=("universe",) + tuple(f"{name}_joint" for name in names),
@@ -592,7 +593,7 @@ def _pusher_model(box_side: float, box_mass: float, finger_mass: float, finger_h
     inf = np.inf
     box_inertia = np.eye(3) * box_mass * box_side**2 / 6.0
     finger_inertia = np.eye(3) * 1e-6  # a point-like finger (only its translation moves)
-    to_jax = lambda a: jnp.asarray(np.asarray(a, dtype=np.float64))  # noqa: E731
+    to_jax = device_array
     return Model(
         joint_names=("universe", "root_joint", "finger_x", "finger_y"),
         joint_types=(UNIVERSE, FREE_FLYER, PRISMATIC, PRISMATIC),
@@ -798,7 +799,9 @@ def solo12(
                            max_iterations=2000 if body_contacts else 500)
     if model is None:
         model = load_urdf(solo12_urdf_path())
-    model = eqx.tree_at(lambda m: m.armature, model, model.armature.at[6:].set(float(armature)))
+    armatures = np.array(model.armature)
+    armatures[6:] = float(armature)
+    model = eqx.tree_at(lambda m: m.armature, model, device_array(armatures))
     frames = [model.frame_id(name) for name in SOLO12_FEET]
     centres = [np.zeros(3)] * 4
     radii = [SOLO12_FOOT_RADIUS] * 4
@@ -816,8 +819,8 @@ def solo12(
     fields = dict(
         model=model,
         sphere_frames=tuple(frames),
-        sphere_offsets=jnp.asarray(np.stack(centres)),
-        sphere_radii=jnp.asarray(radii),
+        sphere_offsets=device_array(np.stack(centres)),
+        sphere_radii=device_array(radii),
         plane_normals=normals,
         plane_offsets=offsets,
         friction=mu,
@@ -826,15 +829,15 @@ def solo12(
         actuated_dofs=tuple(range(6, model.nv)),
         wrench_frame=0,
         wrench_components=(),
-        input_limit=jnp.full(model.nv - 6, float(torque_limit)),
-        joint_damping=jnp.zeros(model.nv).at[6:].set(float(joint_damping)),
+        input_limit=device_array(np.full(model.nv - 6, float(torque_limit))),
+        joint_damping=device_array(np.r_[np.zeros(6), np.full(model.nv - 6, float(joint_damping))]),
     )
     # The start: the SRDF's standing posture, lowered until the lowest contact sphere (a foot)
     # touches the floor.
     q = np.array(solo12_standing_configuration(model))
-    distance, _, _ = _contacts(RigidBodySystem(**fields), jnp.asarray(q))
-    q[2] -= float(jnp.min(distance))
-    return RigidBodySystem(**fields, initial_configuration=jnp.asarray(q))
+    distance, _, _ = _contacts(RigidBodySystem(**fields), device_array(q))
+    q[2] -= float(np.asarray(distance).min())
+    return RigidBodySystem(**fields, initial_configuration=device_array(q))
 
 
 # Jitted so that set-up code calling it eagerly compiles one program instead of dispatching

@@ -644,7 +644,7 @@ def test_example_robots_match_mujoco(name):
     path = root / "robots" / relative
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        loaded = load_mjcf(path, package_dirs=[root.parent], floating_base=floating_base, **options)
+        loaded = load_mjcf(path, floating_base=floating_base, **options)  # package_dirs: the folders above
     said = [str(w.message) for w in caught if issubclass(w.category, MujocoLoadWarning)]
     assert len(said) == len(messages) == len(caught)
     for message in messages:
