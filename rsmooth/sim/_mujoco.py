@@ -41,6 +41,7 @@ keyframes.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pathlib
 import re
@@ -862,7 +863,7 @@ def _read_urdf(mj, path: pathlib.Path, package_dirs) -> Any:
 class MujocoLoadWarning(UserWarning):
     """What :func:`load_mjcf` changed in a model to load it: the visual geoms it dropped, the
     inertias ``boundinertia`` raised, the joint couplings and dry friction ``drop_mimic`` and
-    ``drop_frictionloss`` dropped."""
+    ``drop_frictionloss`` dropped; and what MuJoCo warned of while loading it."""
 
 
 # MuJoCo's compile errors that load_mjcf explains: a mesh file in a format it has no decoder
@@ -1052,6 +1053,20 @@ def _compile(mj: Any, spec: Any, where: str, *, visuals, boundinertia, drop_mimi
     return compiled
 
 
+@contextlib.contextmanager
+def _mujoco_warnings(mj: Any, source: Any):
+    """MuJoCo's warnings while loading ``source`` (e.g. a joint whose limits are equal) as
+    :class:`MujocoLoadWarning` naming the source, instead of MuJoCo's own output: a line on
+    the terminal and a ``MUJOCO_LOG.TXT`` file in the working folder."""
+    where = "the XML text" if isinstance(source, str) and source.lstrip().startswith("<") else str(source)
+    previous = mj.get_mju_user_warning()
+    mj.set_mju_user_warning(lambda text: warnings.warn(f"{where}: MuJoCo: {text.strip()}", MujocoLoadWarning, stacklevel=2))
+    try:
+        yield
+    finally:
+        mj.set_mju_user_warning(previous)
+
+
 def _check_options(visuals, boundinertia, drop_mimic, drop_frictionloss) -> None:
     if visuals is not True and visuals is not False and visuals != "auto":
         raise ValueError(f"visuals must be True, False or 'auto', got {visuals!r}")
@@ -1148,51 +1163,52 @@ def load_mjcf(
         (('universe', 'hinge'), 'revolute', ('capsule',))
     """
     mj = _mujoco()
-    _check_options(visuals, boundinertia, drop_mimic, drop_frictionloss)
-    if max_hull_vertices is not None and (
-        isinstance(max_hull_vertices, bool) or not isinstance(max_hull_vertices, (int, np.integer)) or max_hull_vertices < 4
-    ):
-        raise ValueError(f"max_hull_vertices must be None or an integer >= 4, got {max_hull_vertices!r}")
-    if isinstance(source, mj.MjModel):
-        given = (floating_base, boundinertia is not None, drop_mimic, drop_frictionloss, max_hull_vertices is not None)
-        names = ("floating_base", "boundinertia", "drop_mimic", "drop_frictionloss", "max_hull_vertices")
-        for name, given in zip(names, given):
-            if given:
-                raise ValueError(f"{name} applies to a file or XML text, not to a compiled mujoco.MjModel")
-        return from_mujoco(source)
-    if isinstance(source, str) and source.lstrip().startswith("<"):
-        where = "the XML text"
-        try:
-            spec = mj.MjSpec.from_string(source)
-        except ValueError as error:
-            raise ValueError(f"MuJoCo could not load the XML text: {error}") from None
-    elif isinstance(source, (str, pathlib.Path)):
-        path = pathlib.Path(source)
-        where = str(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"model file not found: {path}")
-        if path.suffix.lower() == ".urdf":
-            folders = path.resolve().parents if package_dirs is None else package_dirs
-            spec = _read_urdf(mj, path, folders)
-        else:
+    with _mujoco_warnings(mj, source):
+        _check_options(visuals, boundinertia, drop_mimic, drop_frictionloss)
+        if max_hull_vertices is not None and (
+            isinstance(max_hull_vertices, bool) or not isinstance(max_hull_vertices, (int, np.integer)) or max_hull_vertices < 4
+        ):
+            raise ValueError(f"max_hull_vertices must be None or an integer >= 4, got {max_hull_vertices!r}")
+        if isinstance(source, mj.MjModel):
+            given = (floating_base, boundinertia is not None, drop_mimic, drop_frictionloss, max_hull_vertices is not None)
+            names = ("floating_base", "boundinertia", "drop_mimic", "drop_frictionloss", "max_hull_vertices")
+            for name, given in zip(names, given):
+                if given:
+                    raise ValueError(f"{name} applies to a file or XML text, not to a compiled mujoco.MjModel")
+            return from_mujoco(source)
+        if isinstance(source, str) and source.lstrip().startswith("<"):
+            where = "the XML text"
             try:
-                spec = mj.MjSpec.from_file(str(path))
+                spec = mj.MjSpec.from_string(source)
             except ValueError as error:
-                raise ValueError(f"MuJoCo could not load {path}: {error}") from None
-    else:
-        raise ValueError(f"source must be a file path, XML text or a mujoco.MjModel, got {type(source).__name__}")
-    if floating_base:
-        body = spec.worldbody.first_body()
-        if body is None:
-            raise ValueError(f"floating_base: {where} has no body under the world")
-        if body.first_joint() is not None:
-            raise ValueError(f"floating_base: the first body of {where}, {body.name!r}, already has a joint")
-        body.add_freejoint(name="root_joint")
-    if max_hull_vertices is not None:
-        for mesh in spec.meshes:
-            if mesh.maxhullvert < 0:  # a mesh's own bound stays
-                mesh.maxhullvert = int(max_hull_vertices)
-    compiled = _compile(
-        mj, spec, where, visuals=visuals, boundinertia=boundinertia, drop_mimic=drop_mimic, drop_frictionloss=drop_frictionloss
-    )
-    return from_mujoco(compiled)
+                raise ValueError(f"MuJoCo could not load the XML text: {error}") from None
+        elif isinstance(source, (str, pathlib.Path)):
+            path = pathlib.Path(source)
+            where = str(path)
+            if not path.is_file():
+                raise FileNotFoundError(f"model file not found: {path}")
+            if path.suffix.lower() == ".urdf":
+                folders = path.resolve().parents if package_dirs is None else package_dirs
+                spec = _read_urdf(mj, path, folders)
+            else:
+                try:
+                    spec = mj.MjSpec.from_file(str(path))
+                except ValueError as error:
+                    raise ValueError(f"MuJoCo could not load {path}: {error}") from None
+        else:
+            raise ValueError(f"source must be a file path, XML text or a mujoco.MjModel, got {type(source).__name__}")
+        if floating_base:
+            body = spec.worldbody.first_body()
+            if body is None:
+                raise ValueError(f"floating_base: {where} has no body under the world")
+            if body.first_joint() is not None:
+                raise ValueError(f"floating_base: the first body of {where}, {body.name!r}, already has a joint")
+            body.add_freejoint(name="root_joint")
+        if max_hull_vertices is not None:
+            for mesh in spec.meshes:
+                if mesh.maxhullvert < 0:  # a mesh's own bound stays
+                    mesh.maxhullvert = int(max_hull_vertices)
+        compiled = _compile(
+            mj, spec, where, visuals=visuals, boundinertia=boundinertia, drop_mimic=drop_mimic, drop_frictionloss=drop_frictionloss
+        )
+        return from_mujoco(compiled)

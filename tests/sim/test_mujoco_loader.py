@@ -741,3 +741,19 @@ def test_loading_options_are_checked():
         load_mjcf(two)
     with pytest.warns(MujocoLoadWarning, match="'j2' to 'j1'"), pytest.raises(ValueError, match="equality constraints .*'weld'"):
         load_mjcf(two, drop_mimic=True)
+
+
+def test_mujocos_own_warnings_become_load_warnings_and_write_no_log_file(tmp_path, monkeypatch):
+    import mujoco
+
+    path = tmp_path / "arm.urdf"
+    path.write_text("""<robot name="arm"><link name="base"/>
+      <link name="arm"><inertial><mass value="1"/><inertia ixx="0.1" ixy="0" ixz="0" iyy="0.1" iyz="0" izz="0.1"/></inertial></link>
+      <joint name="stuck" type="revolute"><parent link="base"/><child link="arm"/><axis xyz="0 1 0"/>
+        <limit lower="0.5" upper="0.5" effort="1" velocity="1"/></joint></robot>""")
+    monkeypatch.chdir(tmp_path)
+    before = mujoco.get_mju_user_warning()
+    with pytest.warns(MujocoLoadWarning, match=r"arm.urdf: MuJoCo: joint 'stuck' has equal lower and upper limits"):
+        loaded = load_mjcf(path)
+    assert loaded.model.joint_names == ("universe", "stuck")
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists() and mujoco.get_mju_user_warning() is before
