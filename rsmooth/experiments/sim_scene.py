@@ -34,9 +34,10 @@ time_step (s), bodies (MuJoCo bodies, the world included), geom_pairs, candidate
 max_penetration (deepest penetration over the run, m), energy_initial, energy_final (J),
 energy_change (final - initial, J), energy_max_gain (largest rise above the initial energy
 over the run, J: energy injected), contacts_active_mean, contacts_active_max (contacts with a
-normal impulse, per step), joint_limits (limit constraints enforced), max_limit_violation
-(deepest excursion beyond a joint limit, rad or m), limits_active_max (limits holding a joint,
-per step), unconverged_steps, diverged_steps, max_contacts (the contact budget; null: none),
+normal impulse, per step), joint_limits (limit constraints enforced), initial_limit_violation
+(deepest excursion beyond a joint limit at the start: the file's configuration; rad or m),
+max_limit_violation (the deepest over the run, the start included), limits_active_max
+(limits holding a joint, per step), unconverged_steps, diverged_steps, max_contacts (the contact budget; null: none),
 dropped_contact_steps (steps where the budget left out a closing contact), max_pairs (the
 broad phase's pairs per group; null: all), skipped_pair_steps (steps where it left out a pair
 within its margin), wall_time_s (compile included)."""
@@ -174,6 +175,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         "candidate_contacts": system.num_contacts - limits,
         "max_penetration": float(max(0.0, -distances.min())) if distances.size else 0.0,
         "joint_limits": limits,
+        "initial_limit_violation": float(max(0.0, -limit_distances[0].min())) if limits else 0.0,
         "max_limit_violation": float(max(0.0, -limit_distances.min())) if limits else 0.0,
         "limits_active_max": int(limits_active.max()) if limits else 0,
         "energy_initial": float(energies[0]),
@@ -222,6 +224,8 @@ def summary(metrics: dict) -> dict:
         "energy change (J)": f"{metrics['energy_change']:.3e} (largest gain {metrics['energy_max_gain']:.2e})",
         "active contacts per step": f"{metrics['contacts_active_mean']:.1f} (max {metrics['contacts_active_max']})",
         "unconverged / diverged steps": f"{metrics['unconverged_steps']} / {metrics['diverged_steps']}",
+        **({"beyond a joint limit at the start (rad or m)": f"{metrics['initial_limit_violation']:.3g}"}
+           if metrics.get("initial_limit_violation", 0.0) > 0 else {}),
     }
 
 

@@ -121,10 +121,12 @@ def panda_push(
     mj = _mujoco()
     compiled = _panda_compiled(mj, box_side, box_mass, box_position, tool_radius, table_friction, tool_friction,
                                time_step)
-    system = scene(load_mjcf(compiled), solver=solver, joint_limits=True)
+    # The limits are set after the start: the file's zero configuration is beyond joint 4's.
+    system = scene(load_mjcf(compiled), solver=solver, joint_limits=False)
     q = np.array(system.initial_state()[: system.model.nq])  # the box where the scene puts it
     q[:7] = _arm_start(mj, compiled, box_side, box_position, tool_radius, tool_gap, tool_y)
-    return dataclasses.replace(system.with_gravity_compensation(gravity_compensation), initial_configuration=jnp.asarray(q))
+    system = dataclasses.replace(system.with_gravity_compensation(gravity_compensation), initial_configuration=jnp.asarray(q))
+    return system.with_joint_limits()
 
 
 def panda_push_model(**arguments) -> MujocoModel:

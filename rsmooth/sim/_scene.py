@@ -34,6 +34,7 @@ MuJoCo).
 from __future__ import annotations
 
 import pathlib
+import warnings
 from typing import Any
 
 import jax.numpy as jnp
@@ -300,7 +301,9 @@ def scene(
         joint_limits: enforce the position limits of the limited hinges and slides and the
             cone limits of the limited ball joints (the
             system's :attr:`~rsmooth.sim.RigidBodySystem.joint_limits`, frictionless contacts
-            after the geometry pairs); ``False``: the joints move freely.
+            after the geometry pairs); ``False``: the joints move freely. A start beyond a
+            hinge's or slide's limits (a URDF's zero configuration often is: a quadruped's
+            knees) is warned of: the limits push the joints back in during the first steps.
         max_contacts: solve at most this many contacts between shapes per step, the closest
             candidates (:attr:`~rsmooth.sim.RigidBodySystem.max_contacts`): a robot's meshes
             give hundreds of candidates of which a few touch; ``None``: all.
@@ -425,4 +428,34 @@ def scene(
         joint_damping=loaded.damping,
     )
     system = system.with_contact_budget(max_contacts, max_pairs)
-    return system.with_joint_limits() if joint_limits else system
+    if not joint_limits:
+        return system
+    if isinstance(source, (str, pathlib.Path)) and not str(source).lstrip().startswith("<"):
+        where = str(source)
+    else:
+        where = "the XML text" if isinstance(source, str) else "the model"
+    _warn_if_beyond_limits(model, np.asarray(initial_configuration), where)
+    return system.with_joint_limits()
+
+
+def _warn_if_beyond_limits(model, q: np.ndarray, where: str) -> None:
+    """Warns where the start ``q`` puts hinges or slides beyond their limits (a URDF's zero
+    configuration often does: a quadruped's knee): the enforced limits push them back in during
+    the first steps, at the Baumgarte rate, which sets the robot moving."""
+    lower, upper = np.asarray(model.lower_position_limit), np.asarray(model.upper_position_limit)
+    beyond = []
+    for name, kind, index in zip(model.joint_names, model.joint_types, model.idx_q):
+        if kind in ("revolute", "prismatic"):
+            excess = max(lower[index] - q[index], q[index] - upper[index])
+            if excess > 0:
+                beyond.append((excess, name))
+    if beyond:
+        beyond.sort(reverse=True)
+        listed = ", ".join(f"{name!r} by {excess:.3g}" for excess, name in beyond[:3])
+        warnings.warn(
+            f"{where}: the initial configuration is beyond the position limits of {len(beyond)} joint(s) "
+            f"({listed}{', ...' if len(beyond) > 3 else ''}; rad or m): the limits push them back in during the "
+            "first steps, which sets the model moving. Start from a configuration within the limits "
+            "(system.state(q)), or pass joint_limits=False.",
+            UserWarning, stacklevel=3,
+        )

@@ -306,10 +306,12 @@ def test_a_scene_without_contacts_falls_freely():
 def test_a_robot_with_undecodable_visual_meshes_stands_on_a_floor():
     # Go2 of example-robot-data: Collada visual meshes, which MuJoCo cannot decode; scene drops
     # every visual geom by default (visuals=False), without a warning (warnings are errors
-    # here), and keeps its 19 collision meshes: each paired with the floor put under it.
+    # here), and keeps its 19 collision meshes: each paired with the floor put under it. Its
+    # zero configuration is beyond the calves' limits (-2.72 to -0.84 rad): that is warned of.
     root = sim.example_robot_data_root()
     path = root / "robots" / "go2_description" / "urdf" / "go2.urdf"
-    system = sim.scene(path, package_dirs=[root.parent], floating_base=True, floor=True, self_collision=False)
+    with pytest.warns(UserWarning, match=r"limits of 4 joint\(s\) \('\w\w_calf_joint' by 0.838"):
+        system = sim.scene(path, package_dirs=[root.parent], floating_base=True, floor=True, self_collision=False)
     assert (system.model.nq, system.model.nv) == (19, 18)
     assert len(system.geom_pairs) == 19
     assert all(isinstance(pair.shape1, sim.HalfSpace) and isinstance(pair.shape2, sim.ConvexMesh) for pair in system.geom_pairs)
@@ -426,3 +428,19 @@ def test_padded_meshes_collide_as_the_originals_and_share_groups():
     pair = lambda mesh: sim.GeomPair(pebble, None, mesh, 1, friction=0.5)
     assert len(_pair_groups((pair(rock), pair(other)))) == 2
     assert len(_pair_groups((pair(padded_mesh(rock, 64)), pair(padded_mesh(other, 64))))) == 1
+
+
+def test_a_start_beyond_the_joint_limits_is_warned_of_by_joint():
+    # qpos0 = 0 lies 0.5 rad below the knee's range and within the hip's.
+    text = """<mujoco><compiler angle="radian"/><worldbody><body name="thigh"><joint name="hip" range="-1 1"/>
+      <geom type="capsule" size="0.02" fromto="0 0 0 0 0 -0.3"/>
+      <body name="shin" pos="0 0 -0.3"><joint name="knee" range="0.5 2"/>
+        <geom type="capsule" size="0.02" fromto="0 0 0 0 0 -0.3"/></body></body></worldbody></mujoco>"""
+    with pytest.warns(UserWarning, match=r"the XML text: .*limits of 1 joint\(s\) \('knee' by 0\.5;.*joint_limits=False"):
+        system = sim.scene(text)
+    assert np.asarray(system.initial_state()).tolist() == [0.0] * 4  # the start is the file's
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sim.scene(text, joint_limits=False)
