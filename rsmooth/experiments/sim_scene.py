@@ -37,8 +37,9 @@ over the run, J: energy injected), contacts_active_mean, contacts_active_max (co
 normal impulse, per step), joint_limits (limit constraints enforced), initial_limit_violation
 (deepest excursion beyond a joint limit at the start: the file's configuration; rad or m),
 max_limit_violation (the deepest over the run, the start included), limits_active_max
-(limits holding a joint, per step), unconverged_steps, diverged_steps, max_contacts (the contact budget; null: none),
-dropped_contact_steps (steps where the budget left out a closing contact), max_pairs (the
+(limits holding a joint, per step), unconverged_steps, diverged_steps, max_contacts and
+max_limits (the contact budgets; null: none), dropped_contact_steps (steps where a budget
+left out a closing contact or limit), max_pairs (the
 broad phase's pairs per group; null: all), skipped_pair_steps (steps where it left out a pair
 within its margin), wall_time_s (compile included)."""
 
@@ -83,6 +84,10 @@ class Config:
     max_contacts: int | None = _protocol.option(
         None, "Solve at most this many contacts between shapes per step, the closest candidates (a robot's meshes "
         "give hundreds of candidates, of which a few touch); a step that leaves out a closing contact is reported. "
+        "Default: all.", min=1)
+    max_limits: int | None = _protocol.option(
+        None, "Solve at most this many joint limits per step, those nearest their bounds (a humanoid has dozens, "
+        "each in every solve however far from its bound); a step that leaves out a closing one is reported. "
         "Default: all.", min=1)
     max_pairs: int | None = _protocol.option(
         None, "Broad phase: collide at most this many pairs of each group of alike geom pairs per step, those whose "
@@ -138,7 +143,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     )
     system = sim.scene(
         loaded, time_step=config.time_step, floor=config.floor, self_collision=config.self_collision,
-        joint_limits=config.joint_limits, max_contacts=config.max_contacts,
+        joint_limits=config.joint_limits, max_contacts=config.max_contacts, max_limits=config.max_limits,
         max_pairs=config.max_pairs,
     )
     limits = len(system.joint_limits)  # the last candidate contacts (RigidBodySystem.contacts)
@@ -187,6 +192,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         "unconverged_steps": counts["unconverged_steps"],
         "diverged_steps": counts["diverged_steps"],
         "max_contacts": config.max_contacts,
+        "max_limits": config.max_limits,
         "dropped_contact_steps": counts["dropped_contact_steps"],
         "max_pairs": config.max_pairs,
         "skipped_pair_steps": counts["skipped_pair_steps"],

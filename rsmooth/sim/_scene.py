@@ -246,6 +246,7 @@ def scene(
     joint_limits: bool = True,
     max_contacts: int | None = None,
     max_pairs: int | None = None,
+    max_limits: int | None = None,
 ) -> RigidBodySystem:
     """A MuJoCo model (MJCF or URDF) as a system with hard frictional contact.
 
@@ -310,6 +311,9 @@ def scene(
         max_pairs: collide at most this many pairs of each pair group per step, those whose
             bounding spheres are closest (:attr:`~rsmooth.sim.RigidBodySystem.max_pairs`,
             exact while no more are within the margin); ``None``: all.
+        max_limits: solve at most this many joint limits per step, those nearest their
+            bounds (:attr:`~rsmooth.sim.RigidBodySystem.max_limits`): a humanoid has dozens;
+            ``None``: all.
 
     Returns:
         The system; its frames are the model's (bodies first, by MuJoCo body id), its geometry
@@ -427,7 +431,7 @@ def scene(
         initial_configuration=initial_configuration,
         joint_damping=loaded.damping,
     )
-    system = system.with_contact_budget(max_contacts, max_pairs)
+    system = system.with_contact_budget(max_contacts, max_pairs, max_limits)
     if not joint_limits:
         return system
     if isinstance(source, (str, pathlib.Path)) and not str(source).lstrip().startswith("<"):

@@ -123,8 +123,9 @@ class StepInfo(eqx.Module):
             metre per step, where the step's linearizations of the motion and the contacts
             fail and semi-implicit Euler injects energy). :meth:`RigidBodySystem.rollout`
             holds the state from such a step on; treat the rest of that trajectory as invalid.
-        dropped_contacts: how many candidates :attr:`RigidBodySystem.max_contacts` left out
-            of the solve although the step closes their gap (int, ``()``); 0 without a budget.
+        dropped_contacts: how many candidates :attr:`RigidBodySystem.max_contacts` and
+            :attr:`RigidBodySystem.max_limits` left out of the solve although the step closes
+            their gap (int, ``()``); 0 without a budget.
         skipped_pairs: how many geometry pairs :attr:`RigidBodySystem.max_pairs` left out of
             the collision although their bounding volumes were within their margin (int,
             ``()``; :meth:`RigidBodySystem.skipped_pairs`); 0 without the limit.
@@ -395,7 +396,8 @@ class RigidBodySystem(eqx.Module):
             finite limits. Empty by default: a model's limits are not enforced unless asked.
         max_contacts: a budget on the contacts the NCP solves (static; hard contact only):
             at each step the ``max_contacts`` candidates between shapes with the smallest
-            signed distance (ties to the lower index), plus every joint limit. The others get
+            signed distance (ties to the lower index), plus the joint limits (every one, or
+            :attr:`max_limits` of them). The others get
             zero impulse; a left-out candidate whose gap the step would close (its corrected
             free normal velocity negative, so the solve would have had to act on it) is
             counted in :attr:`StepInfo.dropped_contacts` and reported by :func:`check_steps`.
@@ -404,6 +406,12 @@ class RigidBodySystem(eqx.Module):
             it holds. The selection is piecewise constant in the state: derivatives are those
             of the selected problem. ``None`` (default): every candidate. See
             :meth:`with_contact_budget`.
+        max_limits: the same budget on the :attr:`joint_limits` (static): at each step the
+            ``max_limits`` limits nearest their bounds (smallest distance, rad or m), left-out
+            ones that the step would close counted as dropped contacts. A robot has two
+            limits per joint (58 for a 29-joint humanoid), each a contact of three rows in
+            every solve however far the joint is from its bounds. ``None`` (default): every
+            limit.
         max_pairs: a broad phase (static): in each group of geometry pairs that one
             vectorized collision evaluates (pairs of the same shape types and sizes), the
             narrow phase runs on the ``max_pairs`` pairs whose bounding spheres are closest
@@ -442,6 +450,7 @@ class RigidBodySystem(eqx.Module):
     joint_limits: tuple[tuple[int, int], ...] = eqx.field(static=True, default=())
     max_contacts: int | None = eqx.field(static=True, default=None)
     max_pairs: int | None = eqx.field(static=True, default=None)
+    max_limits: int | None = eqx.field(static=True, default=None)
     gravity_compensation: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
@@ -479,11 +488,13 @@ class RigidBodySystem(eqx.Module):
         if any(c not in range(6) for c in self.wrench_components):
             raise ValueError(f"wrench_components must be in 0..5, got {self.wrench_components}")
         _limit_rows(self.model, self.joint_limits)  # raises on a bad entry
-        if self.max_contacts is not None:
-            if isinstance(self.max_contacts, bool) or not isinstance(self.max_contacts, (int, np.integer)) or self.max_contacts < 1:
-                raise ValueError(f"max_contacts must be a positive integer or None, got {self.max_contacts!r}")
+        for name, budget in (("max_contacts", self.max_contacts), ("max_limits", self.max_limits)):
+            if budget is None:
+                continue
+            if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or budget < 1:
+                raise ValueError(f"{name} must be a positive integer or None, got {budget!r}")
             if not isinstance(self.contact, str):
-                raise ValueError("max_contacts budgets the hard-contact NCP: use contact='hard'")
+                raise ValueError(f"{name} budgets the hard-contact NCP: use contact='hard'")
         if self.max_pairs is not None and (
             isinstance(self.max_pairs, bool) or not isinstance(self.max_pairs, (int, np.integer)) or self.max_pairs < 1
         ):
@@ -614,16 +625,19 @@ class RigidBodySystem(eqx.Module):
             limits.extend((dof, side) for side in sides)
         return dataclasses.replace(self, joint_limits=tuple(limits))
 
-    def with_contact_budget(self, max_contacts: int | None, max_pairs: int | None = None) -> "RigidBodySystem":
-        """This system with at most ``max_contacts`` contacts between shapes in each step's
-        solve (:attr:`max_contacts`) and at most ``max_pairs`` pairs of each pair group
-        collided (:attr:`max_pairs`); ``None`` removes a limit.
+    def with_contact_budget(
+        self, max_contacts: int | None, max_pairs: int | None = None, max_limits: int | None = None
+    ) -> "RigidBodySystem":
+        """This system with at most ``max_contacts`` contacts between shapes and ``max_limits``
+        joint limits in each step's solve (:attr:`max_contacts`, :attr:`max_limits`) and at
+        most ``max_pairs`` pairs of each pair group collided (:attr:`max_pairs`); ``None``
+        removes a budget.
 
         Raises:
             ValueError: unless each is a positive integer or ``None``, or a contact budget
                 with a compliant contact law.
         """
-        return dataclasses.replace(self, max_contacts=max_contacts, max_pairs=max_pairs)
+        return dataclasses.replace(self, max_contacts=max_contacts, max_pairs=max_pairs, max_limits=max_limits)
 
     def with_gravity_compensation(self, on: bool = True) -> "RigidBodySystem":
         """This system with (or without) :attr:`gravity_compensation` on its actuated dofs.
@@ -635,13 +649,23 @@ class RigidBodySystem(eqx.Module):
 
     def _contact_selection(self, distance: Array) -> Array | None:
         """Indices ``(K,)`` (ascending) of the candidates the NCP solves under
-        :attr:`max_contacts`, or ``None`` where the budget holds every candidate."""
-        shapes = distance.shape[0] - len(self.joint_limits)
-        if self.max_contacts is None or self.max_contacts >= shapes:
+        :attr:`max_contacts` and :attr:`max_limits`, or ``None`` where the budgets hold every
+        candidate."""
+        distance = lax.stop_gradient(distance)
+        shapes, limits = distance.shape[0] - len(self.joint_limits), len(self.joint_limits)
+
+        def nearest(budget, first, count):  # the `budget` smallest distances of a block
+            if budget is None or budget >= count:
+                return None
+            _, index = lax.top_k(-distance[first : first + count], budget)
+            return first + jnp.sort(index).astype(jnp.int32)
+
+        contacts, limit_rows = nearest(self.max_contacts, 0, shapes), nearest(self.max_limits, shapes, limits)
+        if contacts is None and limit_rows is None:
             return None
-        _, closest = lax.top_k(-lax.stop_gradient(distance[:shapes]), self.max_contacts)
-        limits = jnp.arange(shapes, distance.shape[0], dtype=closest.dtype)
-        return jnp.concatenate([jnp.sort(closest), limits])
+        contacts = jnp.arange(shapes, dtype=jnp.int32) if contacts is None else contacts
+        limit_rows = jnp.arange(shapes, shapes + limits, dtype=jnp.int32) if limit_rows is None else limit_rows
+        return jnp.concatenate([contacts, limit_rows])
 
     def split(self, x: ArrayLike) -> tuple[Array, Array]:
         """``(q, v)`` from a state ``x`` of shape ``(..., nx)``."""
@@ -1397,7 +1421,8 @@ def check_steps(infos: StepInfo, *, what: str = "the simulation") -> dict[str, i
         ``{"steps", "unconverged_steps", "diverged_steps", "dropped_contact_steps",
         "skipped_pair_steps"}``: ``unconverged_steps`` counts the contact solves whose result
         is not ``RESULTS.successful``, ``dropped_contact_steps`` the steps with
-        ``infos.dropped_contacts > 0`` (:attr:`RigidBodySystem.max_contacts` too small),
+        ``infos.dropped_contacts > 0`` (:attr:`RigidBodySystem.max_contacts` or
+        :attr:`RigidBodySystem.max_limits` too small),
         ``skipped_pair_steps`` those with ``infos.skipped_pairs > 0``
         (:attr:`RigidBodySystem.max_pairs` too small).
     """
@@ -1426,8 +1451,9 @@ def check_steps(infos: StepInfo, *, what: str = "the simulation") -> dict[str, i
     if counts["dropped_contact_steps"]:
         warnings.warn(
             f"{what}: in {counts['dropped_contact_steps']} of {counts['steps']} steps the contact budget "
-            f"(max_contacts) left out contacts whose gap the step closes (StepInfo.dropped_contacts, "
-            f"at most {int(np.max(np.asarray(infos.dropped_contacts)))} in a step): raise max_contacts",
+            f"(max_contacts, max_limits) left out contacts or joint limits whose gap the step closes "
+            f"(StepInfo.dropped_contacts, at most {int(np.max(np.asarray(infos.dropped_contacts)))} in a step): "
+            f"raise max_contacts or max_limits",
             SimulationWarning,
             stacklevel=2,
         )

@@ -58,6 +58,12 @@ def test_a_falling_arm_stops_at_its_limit_and_is_held_by_the_static_torque():
     np.testing.assert_allclose(force[-1], [0.0, 0.0, MASS * G * LENGTH / 2 * np.cos(upper)], rtol=1e-6)
     np.testing.assert_array_equal(force[-2], 0.0)  # the lower limit is far
     assert int(infos.mode[-1][-1]) != sim.SEPARATED and int(infos.mode[-1][-2]) == sim.SEPARATED
+    # a budget of one limit, the nearer to its bound: the lower one at the start (30 deg away
+    # against 45), the upper one once the arm has turned past 7.5 deg; the same motion
+    budget = system.with_contact_budget(None, max_limits=1)
+    xs_budget, infos_budget = _rollout(budget, system.initial_state(), 80)
+    assert sim.check_steps(infos_budget)["dropped_contact_steps"] == 0  # no warning: errors in the suite
+    np.testing.assert_allclose(np.asarray(xs_budget), np.asarray(xs), rtol=0, atol=1e-12)
 
 
 def test_a_slider_lands_on_its_lower_limit_inelastically_and_is_pushed_out_at_the_baumgarte_rate():
@@ -145,6 +151,9 @@ def test_bad_joint_limits_are_refused_by_name():
         system.with_joint_limits(["elbow"])
     with pytest.raises(ValueError, match=r"joint_limits entries must be \(dof, side\)"):
         dataclasses.replace(system, joint_limits=((0, 2),))
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="max_limits must be a positive integer or None"):
+            system.with_contact_budget(None, max_limits=bad)
     unlimited = sim.scene(ARM.replace(f'limited="true" range="{LOWER} {UPPER}"', ""))
     assert unlimited.with_joint_limits().joint_limits == ()
     with pytest.raises(ValueError, match="'hinge' has no finite position limit"):
