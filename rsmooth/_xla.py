@@ -156,7 +156,7 @@ def release_compiled_programs(fraction: float = 0.5) -> bool:
     a small program, more for a large one) for as long as JAX's caches hold the program. Linux
     bounds a process's maps (``vm.max_map_count``, 65,530 by default); past the bound LLVM
     cannot map the next program's code and the process dies in a segmentation fault while
-    compiling (a test worker reaches it after about 400 of the suite's tests). A process that
+    compiling (a worker of the full test suite comes near it). A process that
     compiles thousands of programs (the test suite's workers, ``rsmooth report``) calls this
     between its units of work: a program dropped is compiled again when used again (read back
     from the persistent compilation cache where that is on).

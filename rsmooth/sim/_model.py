@@ -22,6 +22,7 @@ from typing import Any
 import equinox as eqx
 import jax
 import numpy as np
+
 from rsmooth._xla import device_array
 
 FREE_FLYER = "free_flyer"

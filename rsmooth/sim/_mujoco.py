@@ -54,9 +54,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
+from rsmooth._xla import device_array
 from rsmooth.sim import _spatial as spatial
 from rsmooth.sim._model import FREE_FLYER, PRISMATIC, REVOLUTE, SPHERICAL, UNIVERSE, Model
-from rsmooth._xla import device_array
 
 # The geom types a collision routine may meet; height fields and SDFs are accepted only
 # when they cannot collide (purely visual), so that geom indices stay MuJoCo's.
@@ -1053,12 +1053,19 @@ def _compile(mj: Any, spec: Any, where: str, *, visuals, boundinertia, drop_mimi
     return compiled
 
 
+def source_label(source: Any) -> str:
+    """How messages name a model's source: its path, "the XML text" or "the model"."""
+    if isinstance(source, str) and source.lstrip().startswith("<"):
+        return "the XML text"
+    return str(source) if isinstance(source, (str, pathlib.Path)) else "the model"
+
+
 @contextlib.contextmanager
 def _mujoco_warnings(mj: Any, source: Any):
     """MuJoCo's warnings while loading ``source`` (e.g. a joint whose limits are equal) as
     :class:`MujocoLoadWarning` naming the source, instead of MuJoCo's own output: a line on
     the terminal and a ``MUJOCO_LOG.TXT`` file in the working folder."""
-    where = "the XML text" if isinstance(source, str) and source.lstrip().startswith("<") else str(source)
+    where = source_label(source)
     previous = mj.get_mju_user_warning()
     mj.set_mju_user_warning(lambda text: warnings.warn(f"{where}: MuJoCo: {text.strip()}", MujocoLoadWarning, stacklevel=2))
     try:

@@ -43,7 +43,7 @@ import numpy as np
 from rsmooth.sim._collision import manifold_size
 from rsmooth.sim._dynamics import forward_kinematics
 from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, HalfSpace, Sphere, convex_mesh
-from rsmooth.sim._mujoco import MujocoModel, load_mjcf
+from rsmooth.sim._mujoco import MujocoModel, load_mjcf, source_label
 from rsmooth.sim._ncp import NCPSolver
 from rsmooth.sim._simulator import GeomPair, RigidBodySystem
 from rsmooth.sim._systems import _number, geom_pair_system
@@ -434,11 +434,7 @@ def scene(
     system = system.with_contact_budget(max_contacts, max_pairs, max_limits)
     if not joint_limits:
         return system
-    if isinstance(source, (str, pathlib.Path)) and not str(source).lstrip().startswith("<"):
-        where = str(source)
-    else:
-        where = "the XML text" if isinstance(source, str) else "the model"
-    _warn_if_beyond_limits(model, np.asarray(initial_configuration), where)
+    _warn_if_beyond_limits(model, np.asarray(initial_configuration), source_label(source))
     return system.with_joint_limits()
 
 

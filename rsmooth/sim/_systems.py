@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rsmooth._xla import device_array
 from rsmooth.sim import _dynamics
 from rsmooth.sim._laws import LogBarrier, SpringDamper
 from rsmooth.sim._model import FREE_FLYER, PRISMATIC, UNIVERSE, Model, free_body, load_urdf, solo12_standing_configuration, solo12_urdf_path
@@ -24,7 +25,6 @@ from rsmooth.sim._contact import contact_frame
 from rsmooth.sim._geometry import Box, Capsule, Cylinder, HalfSpace, Sphere
 from rsmooth.sim._ncp import NCPSolver
 from rsmooth.sim._simulator import ContactLaw, GeomPair, Options, RigidBodySystem, _point_jacobian
-from rsmooth._xla import device_array
 
 __all__ = [
     "SOLO12_ARMATURE",
