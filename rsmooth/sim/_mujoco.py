@@ -823,7 +823,9 @@ _URDF_COMPILER = (
 def _resolve_packages(text: str, package_dirs, path: pathlib.Path) -> str:
     """``text`` with every ``package://NAME/REST`` URI replaced by an absolute path: the first
     ``DIR/NAME/REST`` that exists for ``DIR`` in ``package_dirs`` (ROS's convention: folders
-    that hold packages), or ``DIR/REST`` where ``DIR`` is itself named ``NAME``."""
+    that hold packages), or ``DIR/REST`` where ``DIR`` is itself named ``NAME``. Extra slashes
+    before ``NAME`` are read as one, as Pinocchio reads them (Talos's URDFs in example-robot-data
+    write ``package:///example-robot-data/...``)."""
     dirs = [pathlib.Path(d) for d in package_dirs]
 
     def resolve(match):
@@ -838,7 +840,7 @@ def _resolve_packages(text: str, package_dirs, path: pathlib.Path) -> str:
             f"pass the folder that holds the package {name!r}"
         )
 
-    return re.sub(r"package://([^/\"'\s]+)/([^\"'\s<>]+)", resolve, text)
+    return re.sub(r"package:/{2,}([^/\"'\s]+)/([^\"'\s<>]+)", resolve, text)
 
 
 def _read_urdf(mj, path: pathlib.Path, package_dirs) -> Any:

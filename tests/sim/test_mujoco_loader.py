@@ -491,6 +491,13 @@ def test_bad_sources(tmp_path):
       <mesh filename="package://missing_description/meshes/base.stl"/></geometry></visual></link></robot>""")
     with pytest.raises(FileNotFoundError, match="package://missing_description/meshes/base.stl.*package_dirs"):
         load_mjcf(urdf, package_dirs=[tmp_path])
+    # package:/// (an empty authority, as Talos's URDFs write it) names the package after it;
+    # the package is found in the folders above the file by default
+    (tmp_path / "pkg" / "meshes").mkdir(parents=True)
+    (tmp_path / "pkg" / "meshes" / "tetra.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    (tmp_path / "pkg" / "robot.urdf").write_text("""<robot name="r"><link name="base"><visual><geometry>
+      <mesh filename="package:///pkg/meshes/tetra.obj"/></geometry></visual></link></robot>""")
+    assert load_mjcf(tmp_path / "pkg" / "robot.urdf").geom_types == ("mesh",)
     with pytest.raises(ValueError, match="floating_base.*'arm'.*already has a joint"):
         load_mjcf("<mujoco><worldbody><body name='arm'><joint/><geom size='.1'/></body></worldbody></mujoco>",
                   floating_base=True)
