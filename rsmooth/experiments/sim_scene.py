@@ -137,7 +137,8 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     out = Path(out)
     start = time.perf_counter()
     loaded = sim.load_mjcf(
-        config.file or DEMO_SCENE, package_dirs=[config.package_dir] if config.package_dir else None, floating_base=config.floating_base,
+        config.file or DEMO_SCENE, package_dirs=[config.package_dir] if config.package_dir else None,
+        floating_base=config.floating_base,
         boundinertia=config.boundinertia, drop_mimic=config.drop_mimic, drop_frictionloss=config.drop_frictionloss,
         max_hull_vertices=config.max_hull_vertices,
     )

@@ -1059,15 +1059,15 @@ def source_label(source: Any) -> str:
     """How messages name a model's source: its path, "the XML text" or "the model"."""
     if isinstance(source, str) and source.lstrip().startswith("<"):
         return "the XML text"
-    return str(source) if isinstance(source, (str, pathlib.Path)) else "the model"
+    return str(pathlib.Path(source)) if isinstance(source, (str, pathlib.Path)) else "the model"
 
 
 @contextlib.contextmanager
-def _mujoco_warnings(mj: Any, source: Any):
-    """MuJoCo's warnings while loading ``source`` (e.g. a joint whose limits are equal) as
-    :class:`MujocoLoadWarning` naming the source, instead of MuJoCo's own output: a line on
-    the terminal and a ``MUJOCO_LOG.TXT`` file in the working folder."""
-    where = source_label(source)
+def _mujoco_warnings(mj: Any, where: str):
+    """MuJoCo's warnings while loading a model (e.g. a joint whose limits are equal) as
+    :class:`MujocoLoadWarning` naming its source ``where`` (:func:`source_label`), instead of
+    MuJoCo's own output: a line on the terminal and a ``MUJOCO_LOG.TXT`` file in the working
+    folder."""
     previous = mj.get_mju_user_warning()
     mj.set_mju_user_warning(lambda text: warnings.warn(f"{where}: MuJoCo: {text.strip()}", MujocoLoadWarning, stacklevel=2))
     try:
@@ -1172,7 +1172,8 @@ def load_mjcf(
         (('universe', 'hinge'), 'revolute', ('capsule',))
     """
     mj = _mujoco()
-    with _mujoco_warnings(mj, source):
+    where = source_label(source)
+    with _mujoco_warnings(mj, where):
         _check_options(visuals, boundinertia, drop_mimic, drop_frictionloss)
         if max_hull_vertices is not None and (
             isinstance(max_hull_vertices, bool) or not isinstance(max_hull_vertices, (int, np.integer)) or max_hull_vertices < 4
@@ -1186,14 +1187,12 @@ def load_mjcf(
                     raise ValueError(f"{name} applies to a file or XML text, not to a compiled mujoco.MjModel")
             return from_mujoco(source)
         if isinstance(source, str) and source.lstrip().startswith("<"):
-            where = "the XML text"
             try:
                 spec = mj.MjSpec.from_string(source)
             except ValueError as error:
                 raise ValueError(f"MuJoCo could not load the XML text: {error}") from None
         elif isinstance(source, (str, pathlib.Path)):
             path = pathlib.Path(source)
-            where = str(path)
             if not path.is_file():
                 raise FileNotFoundError(f"model file not found: {path}")
             if path.suffix.lower() == ".urdf":

@@ -178,7 +178,7 @@ def _free_body_system(model, name, offsets, radii, planes, friction, time_step, 
         wrench_frame=model.frame_id(name),
         wrench_components=tuple(int(c) for c in wrench_components),
         input_limit=device_array(np.full(len(wrench_components), np.inf)),
-        initial_configuration=device_array(_resting_configuration(np.asarray(normals[0]), float(plane_offsets[0]), height)),
+        initial_configuration=device_array(_resting_configuration(np.asarray(normals)[0], np.asarray(plane_offsets)[0], height)),
     )
 
 
