@@ -905,8 +905,17 @@ def _undecodable_mesh(spec: Any, match: re.Match) -> Any:
     return meshes[index] if index < len(meshes) else None
 
 
-def _load_error(mj: Any, spec: Any, where: str, error: ValueError) -> ValueError:
-    """MuJoCo's compile error, with what the user can do about the two that load_mjcf knows."""
+def _unread_reason(file: str, unread: dict[str, str] | None) -> str | None:
+    """Why :func:`_read_collada` could not read ``file`` (MuJoCo's name for it), if it tried."""
+    for path, why in (unread or {}).items():
+        if path == file or pathlib.Path(path).resolve() == pathlib.Path(file).resolve():
+            return why
+    return None
+
+
+def _load_error(mj: Any, spec: Any, where: str, error: ValueError, unread: dict[str, str] | None = None) -> ValueError:
+    """MuJoCo's compile error, with what the user can do about the two that load_mjcf knows;
+    ``unread``: the Collada files :func:`_read_collada` could not read, with why."""
     message = f"MuJoCo could not load {where}: {error}"
     decoder = _NO_DECODER.search(str(error))
     inertia = _BAD_INERTIA.search(str(error))
@@ -916,15 +925,17 @@ def _load_error(mj: Any, spec: Any, where: str, error: ValueError) -> ValueError
         needed = [(g, _why_kept(mj, spec, g)) for g in users]
         needed = [(g, why) for g, why in needed if why is not None]
         suffix = pathlib.Path(decoder["file"]).suffix or "extension-less"
+        reason = _unread_reason(decoder["file"], unread)
+        unread_why = f" (and {reason})" if reason and reason != "no such file" else ""
         if needed:
             geom, why = needed[0]
             message += (
-                f"\nMuJoCo has no decoder for {suffix} mesh files, and {_geom_label(geom)}, which uses "
+                f"\nMuJoCo has no decoder for {suffix} mesh files{unread_why}, and {_geom_label(geom)}, which uses "
                 f"{decoder['file']!r}, cannot be dropped: {why}; convert the file to a format MuJoCo reads (STL, OBJ)"
             )
         else:
             message += (
-                f"\nMuJoCo has no decoder for {suffix} mesh files; the geoms that use {decoder['file']!r} are visual "
+                f"\nMuJoCo has no decoder for {suffix} mesh files{unread_why}; the geoms that use {decoder['file']!r} are visual "
                 "only: pass visuals='auto' to drop the visual geoms whose meshes MuJoCo cannot decode, or "
                 "visuals=False to drop every visual geom"
             )
@@ -979,6 +990,61 @@ def _drop_frictionloss(spec: Any, where: str) -> None:
         )
 
 
+def _mesh_path(spec: Any, mesh: Any) -> pathlib.Path:
+    """The file a mesh asset names, found as MuJoCo finds it: absolute, or under ``meshdir``
+    (itself absolute or under the model file's folder)."""
+    path = pathlib.Path(mesh.file)
+    if path.is_absolute():
+        return path
+    return pathlib.Path(spec.modelfiledir or ".") / (spec.meshdir or "") / path
+
+
+def _read_collada(spec: Any) -> dict[str, str]:
+    """Reads the Collada (``.dae``) meshes of ``spec`` into their vertices and faces.
+
+    MuJoCo has no decoder for Collada, which robot descriptions use for visual and collision
+    meshes alike (13 of example-robot-data's URDFs collide Collada meshes); trimesh (with
+    pycollada) reads them, and the mesh asset then holds the triangles instead of the file.
+    The scene graph's transforms are applied and the file's ``<unit meter>`` is honoured, as the
+    COLLADA standard asks; ``<up_axis>`` is not (Pinocchio and ROS's viewers ignore it, and
+    robot descriptions that declare ``Y_UP``, such as Tiago's and iCub's, are drawn in their
+    links' Z-up frames). Returns the files it could not read, each with why: MuJoCo then
+    reports them as files it has no decoder for, and ``visuals="auto"`` drops those that are
+    visual only.
+    """
+    meshes = [mesh for mesh in spec.meshes if mesh.file.lower().endswith(".dae")]
+    if not meshes:
+        return {}
+    try:
+        import trimesh
+    except ImportError:
+        why = "reading Collada needs trimesh and pycollada: pip install 'rsmooth[render]'"
+        return {str(_mesh_path(spec, mesh)): why for mesh in meshes}
+    failed, decoded = {}, {}
+    for mesh in meshes:
+        path = _mesh_path(spec, mesh)
+        key = str(path)
+        if key not in decoded and key not in failed:
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")  # pycollada's notes on the file's schema
+                    triangles = trimesh.load(str(path), force="mesh", process=False)
+                if not isinstance(triangles, trimesh.Trimesh) or len(triangles.faces) == 0:
+                    raise ValueError("it holds no triangles")
+                if triangles.units is not None:  # "0.001 * meters" for <unit meter="0.001">
+                    triangles.convert_units("meters")
+                triangles.merge_vertices(merge_tex=True, merge_norm=True)
+                decoded[key] = (np.asarray(triangles.vertices, np.float64), np.asarray(triangles.faces, np.int64))
+            except Exception as error:  # trimesh raises many types for a file it cannot read
+                failed[key] = f"trimesh could not read it: {type(error).__name__}: {error}" if path.is_file() else "no such file"
+        if key in decoded:
+            vertices, faces = decoded[key]
+            mesh.file = ""
+            mesh.uservert = vertices.ravel().tolist()
+            mesh.userface = faces.ravel().tolist()
+    return failed
+
+
 def _raised_inertias(spec: Any, compiled: Any, bound: float) -> list[str]:
     """The bodies whose principal moments of inertia ``boundinertia`` raised: an explicit
     inertia with a principal moment under the bound (MuJoCo may then rebalance it, see
@@ -1012,6 +1078,7 @@ def _compile(mj: Any, spec: Any, where: str, *, visuals, boundinertia, drop_mimi
             spec.discard_visual()
         except ValueError as error:
             raise _load_error(mj, spec, where, error) from None
+    unread = _read_collada(spec)
     dropped: dict[str, list[str]] = {}
     while True:
         try:
@@ -1022,7 +1089,7 @@ def _compile(mj: Any, spec: Any, where: str, *, visuals, boundinertia, drop_mimi
             mesh = _undecodable_mesh(spec, match) if match is not None and visuals == "auto" else None
             users = [g for g in spec.geoms if mesh is not None and g.meshname == mesh.name]
             if mesh is None or any(_why_kept(mj, spec, g) is not None for g in users):
-                raise _load_error(mj, spec, where, error) from None
+                raise _load_error(mj, spec, where, error, unread) from None
             # Visual only: drop the geoms and the mesh; each pass removes one mesh, so this ends.
             labels = [f"{g.name!r} on {g.parent.name!r}" if g.name else repr(g.parent.name) for g in users]
             dropped.setdefault(match["file"], []).extend(labels)
@@ -1032,10 +1099,12 @@ def _compile(mj: Any, spec: Any, where: str, *, visuals, boundinertia, drop_mimi
     if dropped:
         count = sum(len(geoms) for geoms in dropped.values())
         folder = os.path.commonpath([os.path.dirname(file) for file in dropped])
-        listing = "; ".join(
-            f"{os.path.relpath(file, folder) if folder else file} (on {', '.join(geoms)})" if geoms else f"{file} (unused)"
-            for file, geoms in dropped.items()
-        )
+        def entry(file: str, geoms: list[str]) -> str:
+            reason = _unread_reason(file, unread)
+            on = f"on {', '.join(geoms)}" if geoms else "unused"
+            return f"{os.path.relpath(file, folder) if folder else file} ({on}{'; ' + reason if reason else ''})"
+
+        listing = "; ".join(entry(file, geoms) for file, geoms in dropped.items())
         warnings.warn(
             f"{where}: dropped {count} visual geoms whose mesh files MuJoCo has no decoder for (visuals='auto'; "
             f"visuals=False drops every visual geom, converting the files to STL or OBJ keeps them), in {folder or '.'}: "
@@ -1107,13 +1176,14 @@ def load_mjcf(
     world) and visual meshes and mesh paths are kept; unless the file has its own
     ``<mujoco>`` element, which then decides.
 
-    Visual geoms (a URDF's ``<visual>``; in MJCF, geoms that do not collide and do not give
-    their body its inertia) matter to drawing only, and robot descriptions often ship them in
-    formats MuJoCo cannot decode (Collada ``.dae``). By default (``visuals="auto"``) they are
-    kept where MuJoCo decodes their meshes and dropped, with a :class:`MujocoLoadWarning` that
-    names the files, where it cannot; a geom the physics needs (it collides, or its body's
-    inertia is computed from it) is never dropped: its undecodable mesh is an error naming the
-    file and the geom.
+    Collada meshes (``.dae``), which robot descriptions use for visual and collision geometry
+    alike and MuJoCo has no decoder for, are read with trimesh (with pycollada; the
+    ``render`` extra), their ``<unit>`` applied. Visual geoms (a URDF's ``<visual>``; in MJCF,
+    geoms that do not collide and do not give their body its inertia) matter to drawing only.
+    By default (``visuals="auto"``) they are kept where their meshes can be read and dropped,
+    with a :class:`MujocoLoadWarning` that names the files and why, where they cannot; a geom
+    the physics needs (it collides, or its body's inertia is computed from it) is never
+    dropped: its unreadable mesh is an error naming the file and the geom.
 
     Args:
         source: path to an MJCF or URDF file, the MJCF text itself (a string whose first
@@ -1124,8 +1194,8 @@ def load_mjcf(
             file (a robot of example-robot-data: ``package://example-robot-data/robots/...``).
         floating_base: give the first body under the world a free joint named
             ``"root_joint"`` (a legged robot's base; a URDF has no free joint of its own).
-        visuals: ``"auto"``: drop the visual geoms whose meshes MuJoCo has no decoder for (see
-            above); ``True``: keep every visual geom (an undecodable mesh is an error);
+        visuals: ``"auto"``: drop the visual geoms whose meshes cannot be read (see above);
+            ``True``: keep every visual geom (an unreadable mesh is an error);
             ``False``: drop every visual geom (MuJoCo's ``MjSpec.discard_visual``: the geoms
             that do not collide and are not referenced, after it has taken any inertia they
             give their body). A compiled ``mujoco.MjModel`` is converted with the geoms it has.
@@ -1156,7 +1226,7 @@ def load_mjcf(
         FileNotFoundError: if the path does not exist, or a ``package://`` URI cannot be
             resolved (the message names the URI and the folders searched).
         ValueError: if MuJoCo cannot compile the source (MuJoCo's message is included, with
-            the path: a malformed file, a missing mesh file, a mesh file it cannot decode that
+            the path: a malformed file, a missing mesh file, a mesh file that cannot be read and
             is needed or kept, an inertia that is not positive definite, each with what can be
             done), if ``source`` is of another type or an option is out of range, if
             ``floating_base``, ``boundinertia``, ``drop_mimic``, ``drop_frictionloss`` or ``max_hull_vertices`` is asked of a compiled

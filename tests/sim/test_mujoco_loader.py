@@ -5,8 +5,10 @@ geom placements are compared with rsmooth's (``crba``, ``nonlinear_effects``,
 ``forward_dynamics``, ``forward_kinematics``) after the change of velocity basis of free
 joints; Solo-12's URDF loaded by MuJoCo is also compared with ``load_urdf``'s model (loaded by
 Pinocchio), and Panda, Go1, Go2 and the Allegro hand of example-robot-data, loaded by
-``load_mjcf`` with the options they need, with the same URDFs compiled by MuJoCo itself. Each
-model's functions are jitted once and vmapped over the states.
+``load_mjcf`` with the options they need, with the same URDFs compiled by MuJoCo itself.
+Collada meshes, which MuJoCo cannot decode and load_mjcf reads with trimesh, are compared with
+Pinocchio's reading of them. Each model's functions are jitted once and vmapped over the
+states.
 """
 
 import pathlib
@@ -602,14 +604,14 @@ def test_urdf_file_through_mujoco_matches_load_urdf(tmp_path):
 # load_mjcf options it needs, the warnings they give, and the compiler attributes of MuJoCo's
 # own reading that match those options. Panda's finger joint mimics the other; Go1's base link
 # has an inertia that is not positive definite (every entry 1e-6) and its joints, as the
-# Allegro hand's, have dry friction; Panda's and Go2's visual meshes are Collada files, which
-# MuJoCo cannot decode (Go1's too: visuals=False there drops its visual boxes as well).
+# Allegro hand's, have dry friction. visuals=False compares the colliding geoms alone with
+# MuJoCo's own reading, which discards the visual ones.
 ROBOTS = {
     "panda": (
         "panda_description/urdf/panda.urdf",
         False,
-        dict(drop_mimic=True),
-        ("no decoder", "'panda_finger_joint2' to 'panda_finger_joint1'"),
+        dict(drop_mimic=True, visuals=False),
+        ("'panda_finger_joint2' to 'panda_finger_joint1'",),
         "",
     ),
     "go1": (
@@ -619,7 +621,7 @@ ROBOTS = {
         ("frictionloss.*'FR_hip_joint' \\(0.2\\)", "boundinertia=1e-09 raised .*'base'"),
         'boundinertia="1e-9"',
     ),
-    "go2": ("go2_description/urdf/go2.urdf", True, {}, ("no decoder.*base.dae \\(on 'base'\\)",), ""),
+    "go2": ("go2_description/urdf/go2.urdf", True, dict(visuals=False), (), ""),
     "allegro": (
         "allegro_hand_description/urdf/allegro_right_hand.urdf",
         False,
@@ -657,8 +659,7 @@ def test_example_robots_match_mujoco(name):
     for message in messages:
         assert any(re.search(message, text) for text in said), (message, said)
     m = robot_mujoco(path, floating_base, attributes)
-    # The same bodies and colliding geoms as MuJoCo's own reading without visuals (Panda's
-    # and Go2's visuals are all Collada files, dropped by visuals="auto").
+    # The same bodies and colliding geoms as MuJoCo's own reading without visuals.
     assert loaded.body_names == tuple(m.body(b).name for b in range(m.nbody))
     assert loaded.ngeom == m.ngeom and all(loaded.geom_contype)
     check_against_mujoco(m, loaded, seed=sorted(ROBOTS).index(name))
@@ -677,15 +678,82 @@ def test_example_robots_without_their_options_say_which_to_pass():
         ValueError, match="joint 'FR_hip_joint' has frictionloss.*drop_frictionloss=True"
     ):
         load_mjcf(robots / ROBOTS["go1"][0], package_dirs=[root.parent], visuals=False, boundinertia=1e-9)
-    with pytest.warns(MujocoLoadWarning, match="drop_mimic"), pytest.raises(
-        ValueError, match="(?s)no decoder found.*link0.dae.*visual only: pass visuals='auto'"
-    ):
-        load_mjcf(robots / ROBOTS["panda"][0], package_dirs=[root.parent], visuals=True, drop_mimic=True)
+
+
+def mesh_bounds_by_body(loaded: MujocoModel, geoms) -> dict[str, np.ndarray]:
+    """The world bounding box ``[low, high]`` of the vertices of the given mesh geoms, per body,
+    at ``q = 0``."""
+    rotations, translations = map(np.asarray, sim.forward_kinematics(loaded.model, jnp.zeros(loaded.model.nq)))
+    bounds = {}
+    for g in geoms:
+        joint, body = loaded.geom_joints[g], loaded.body_names[loaded.geom_bodies[g]]
+        rotation = rotations[joint] @ np.asarray(loaded.geom_rotation[g])
+        translation = rotations[joint] @ np.asarray(loaded.geom_translation[g]) + translations[joint]
+        world = np.asarray(loaded.geom_vertices[g]) @ rotation.T + translation
+        low, high = bounds.get(body, (np.full(3, np.inf), np.full(3, -np.inf)))
+        bounds[body] = np.stack([np.minimum(low, world.min(0)), np.maximum(high, world.max(0))])
+    return bounds
+
+
+def test_collada_meshes_are_read_as_pinocchio_reads_them():
+    pin = pytest.importorskip("pinocchio")
+    pytest.importorskip("collada")
+    root = sim.example_robot_data_root()
+    # Kinova's collision meshes are all Collada files (MuJoCo has no decoder for them).
+    path = root / "robots" / "kinova_description" / "robots" / "kinova.urdf"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        loaded = load_mjcf(path)
+    colliding = [g for g in range(loaded.ngeom) if loaded.geom_contype[g] and loaded.geom_types[g] == "mesh"]
+    actual = mesh_bounds_by_body(loaded, colliding)
+    model = pin.buildModelFromUrdf(str(path))
+    geometry = pin.buildGeomFromUrdf(model, str(path), pin.GeometryType.COLLISION, package_dirs=[str(root.parent)])
+    data, placements = model.createData(), pin.GeometryData(geometry)
+    pin.updateGeometryPlacements(model, data, geometry, placements, pin.neutral(model))
+    expected = {}
+    for index, shape in enumerate(geometry.geometryObjects):
+        assert shape.meshPath.endswith(".dae")
+        placement = placements.oMg[index]
+        world = np.asarray(shape.geometry.vertices()) @ placement.rotation.T + placement.translation
+        body = model.frames[shape.parentFrame].name
+        low, high = expected.get(body, (np.full(3, np.inf), np.full(3, -np.inf)))
+        expected[body] = np.stack([np.minimum(low, world.min(0)), np.maximum(high, world.max(0))])
+    assert sorted(actual) == sorted(expected) and len(expected) == 11
+    for body in expected:  # MuJoCo keeps vertices in float32: 1e-8 m on a robot arm
+        np.testing.assert_allclose(actual[body], expected[body], atol=1e-6, err_msg=body)
+    # Panda's visual meshes are Collada files too: every one is kept.
+    path = root / "robots" / ROBOTS["panda"][0]
+    with pytest.warns(MujocoLoadWarning, match="drop_mimic"):
+        panda = load_mjcf(path, visuals=True, drop_mimic=True)
+    visuals = [g for g in range(panda.ngeom) if not panda.geom_contype[g]]
+    assert len(visuals) == path.read_text().count("<visual") and len(visuals) > 0
+    assert all(panda.geom_types[g] == "mesh" and panda.geom_vertices[g].shape[0] > 100 for g in visuals)
+
+
+def test_collada_unit_and_scale_are_applied(tmp_path):
+    trimesh = pytest.importorskip("trimesh")
+    pytest.importorskip("collada")
+    box = trimesh.creation.box(extents=[1.0, 2.0, 3.0])
+    text = trimesh.exchange.dae.export_collada(box)
+    text = text.decode() if isinstance(text, bytes) else text
+    # A file in centimetres, scaled twice by the URDF: a box of 0.02 x 0.04 x 0.06 m.
+    text = re.sub(r"<unit[^>]*/>", "", text).replace("<asset>", '<asset><unit meter="0.01" name="centimeter"/>', 1)
+    (tmp_path / "box.dae").write_text(text)
+    path = tmp_path / "robot.urdf"
+    path.write_text("""<robot name="r"><link name="base">
+      <inertial><mass value="1"/><inertia ixx="0.1" ixy="0" ixz="0" iyy="0.1" iyz="0" izz="0.1"/></inertial>
+      <collision><origin xyz="0 0 1"/><geometry><mesh filename="box.dae" scale="2 2 2"/></geometry></collision>
+    </link></robot>""")
+    loaded = load_mjcf(path)
+    (bounds,) = mesh_bounds_by_body(loaded, [0]).values()
+    half = np.array([0.01, 0.02, 0.03])
+    np.testing.assert_allclose(bounds, [np.array([0, 0, 1]) - half, np.array([0, 0, 1]) + half], atol=1e-7)
 
 
 def robot_urdf(tmp_path, visual: str, collision: str) -> pathlib.Path:
     """A one-link URDF with the given visual and collision geometry, and a mesh file shape.dae
-    (a Collada file, which MuJoCo has no decoder for) beside it."""
+    beside it that is not a Collada file that can be read (MuJoCo has no decoder for Collada,
+    and trimesh cannot read this one)."""
     (tmp_path / "shape.dae").write_text("<COLLADA/>")
     path = tmp_path / "robot.urdf"
     path.write_text(f"""<robot name="r"><link name="base">
@@ -697,7 +765,7 @@ def robot_urdf(tmp_path, visual: str, collision: str) -> pathlib.Path:
 
 def test_undecodable_visual_mesh_is_dropped_with_a_warning(tmp_path):
     path = robot_urdf(tmp_path, '<mesh filename="shape.dae"/>', '<box size="0.2 0.2 0.2"/>')
-    dropped = "dropped 1 visual geoms whose mesh files MuJoCo has no decoder for.*shape.dae \\(on 'base'\\)"
+    dropped = "dropped 1 visual geoms whose mesh files MuJoCo has no decoder for.*shape.dae \\(on 'base'; trimesh could not read it"
     with pytest.warns(MujocoLoadWarning, match=dropped):
         loaded = load_mjcf(path, floating_base=True)
     assert loaded.geom_types == ("box",) and loaded.geom_contype == (1,)
@@ -714,7 +782,7 @@ def test_undecodable_visual_mesh_is_dropped_with_a_warning(tmp_path):
 def test_undecodable_mesh_the_physics_needs_is_an_error(tmp_path):
     path = robot_urdf(tmp_path, '<box size="0.2 0.2 0.2"/>', '<mesh filename="shape.dae"/>')
     for visuals in ("auto", True, False):
-        with pytest.raises(ValueError, match=r"no decoder for \.dae mesh files, and an unnamed geom of body 'base', which "
+        with pytest.raises(ValueError, match=r"no decoder for \.dae mesh files \(and trimesh could not read it: .*\), and an unnamed geom of body 'base', which "
                            r"uses '.*shape.dae', cannot be dropped: it collides .*convert the file"):
             load_mjcf(path, floating_base=True, visuals=visuals)
     # A geom that does not collide but gives its body its inertia (no explicit inertial).
