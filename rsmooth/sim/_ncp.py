@@ -9,8 +9,13 @@ derivative of the solution map by the implicit function theorem on the natural m
 unrolling); :func:`implicit_impulse_tangent` and the natural map are also what the
 simulator's step differentiates with.
 
-Impulses and velocities are flat ``(3 n,)``, per contact ``[t1, t2, n]`` in the contact
-frames of :mod:`rsmooth.sim._contact` (its docstring states the conventions).
+Impulses and velocities are flat ``(3 n + m,)``: per contact ``[t1, t2, n]`` in the contact
+frames of :mod:`rsmooth.sim._contact` (its docstring states the conventions), then ``m``
+box rows. A box row ``k`` bounds its impulse by ``|lambda_k| <= b_k`` with maximum
+dissipation (``lambda_k`` opposes its velocity ``c_k`` and is interior only where ``c_k = 0``):
+dry joint friction, ``b_k`` the friction torque times the time step; ``b_k = inf`` makes it a
+bilateral constraint (``c_k = 0``). Without box rows (``bounds=None``) the problem is the
+contact NCP alone.
 """
 
 from __future__ import annotations
@@ -82,7 +87,33 @@ def _de_saxce_velocity(contact_velocity: Array, mu: Array) -> Array:
     return contact_velocity.at[:, 2].add(mu * _safe_norm(contact_velocity[:, :2]))
 
 
-def ncp_residuals(G: Array, g: Array, mu: Array, impulse: Array) -> tuple[Array, Array, Array]:
+def _box(bounds: Array | None) -> int:
+    """The number of box rows, ``m`` (0 without ``bounds``)."""
+    return 0 if bounds is None else bounds.shape[0]
+
+
+def _project(impulse: Array, mu: Array, bounds: Array | None) -> Array:
+    """The projection of flat impulses ``(3 n + m,)`` onto the cones and the boxes."""
+    n = mu.shape[0]
+    cones = project_to_friction_cone(impulse[: 3 * n].reshape(n, 3), mu).reshape(-1)
+    if bounds is None:
+        return cones
+    return jnp.concatenate([cones, jnp.clip(impulse[3 * n :], -bounds, bounds)])
+
+
+def _corrected_velocity(velocity: Array, mu: Array) -> Array:
+    """Flat ``c~``: the De Saxcé correction on the contacts; box rows are not corrected
+    (their bounds do not depend on another row's impulse)."""
+    n = mu.shape[0]
+    cones = _de_saxce_velocity(velocity[: 3 * n].reshape(n, 3), mu).reshape(-1)
+    return jnp.concatenate([cones, velocity[3 * n :]]) if velocity.shape[0] > 3 * n else cones
+
+
+def _largest(values: Array) -> Array:
+    return jnp.max(values, initial=jnp.zeros((), values.dtype))
+
+
+def ncp_residuals(G: Array, g: Array, mu: Array, impulse: Array, bounds: Array | None = None) -> tuple[Array, Array, Array]:
     """Residuals of the frictional contact NCP at ``impulse``.
 
     With ``c = G lambda + g`` and ``c~_i = c_i + mu_i ||c_{T,i}|| e_N`` the problem is
@@ -92,22 +123,43 @@ def ncp_residuals(G: Array, g: Array, mu: Array, impulse: Array) -> tuple[Array,
     - dual feasibility: ``dist(c~_i, K*_mu_i) = ||P_K(-c~_i)||`` (velocity units);
     - complementarity: ``|lambda_i . c~_i|`` (impulse x velocity units).
 
+    and over box rows of: primal feasibility ``max(|lambda_k| - b_k, 0)``; dual feasibility
+    ``|c_k|`` where the row is bilateral (``b_k = inf``), else 0 (any velocity is admissible);
+    complementarity ``max(c_k, 0) (b_k + lambda_k) + max(-c_k, 0) (b_k - lambda_k)`` (a
+    velocity is met by the bound that opposes it).
+
     Args:
-        G: Delassus matrix, ``(3 n, 3 n)``.
-        g: free contact velocity, ``(3 n,)``.
+        G: Delassus matrix, ``(3 n + m, 3 n + m)``.
+        g: free contact velocity, ``(3 n + m,)``.
         mu: friction coefficients, ``(n,)``.
-        impulse: candidate impulses, ``(3 n,)``.
+        impulse: candidate impulses, ``(3 n + m,)``.
+        bounds: ``None``, or the bounds ``b`` of the ``m`` box rows, ``(m,)``.
 
     Returns:
         ``(primal_feasibility, dual_feasibility, complementarity)``, scalars.
     """
     n = mu.shape[0]
-    impulse_by_contact = impulse.reshape(n, 3)
-    velocity = _de_saxce_velocity((G @ impulse + g).reshape(n, 3), mu)
+    impulse_by_contact = impulse[: 3 * n].reshape(n, 3)
+    full_velocity = G @ impulse + g
+    velocity = _de_saxce_velocity(full_velocity[: 3 * n].reshape(n, 3), mu)
     primal = _safe_norm(impulse_by_contact - project_to_friction_cone(impulse_by_contact, mu))
     dual = _safe_norm(project_to_friction_cone(-velocity, mu))
     complementarity = jnp.abs(sum_last(impulse_by_contact * velocity))
-    return jnp.max(primal), jnp.max(dual), jnp.max(complementarity)
+    if bounds is None:
+        return jnp.max(primal), jnp.max(dual), jnp.max(complementarity)
+    box, c = impulse[3 * n :], full_velocity[3 * n :]
+    bilateral = jnp.isinf(bounds)
+    finite = jnp.where(bilateral, 0.0, bounds)
+    box_primal = jnp.maximum(jnp.abs(box) - bounds, 0.0)
+    box_dual = jnp.where(bilateral, jnp.abs(c), 0.0)
+    box_complementarity = jnp.where(
+        bilateral, 0.0, jnp.maximum(c, 0.0) * (finite + box) + jnp.maximum(-c, 0.0) * (finite - box)
+    )
+    return (
+        jnp.maximum(_largest(primal), _largest(box_primal)),
+        jnp.maximum(_largest(dual), _largest(box_dual)),
+        jnp.maximum(_largest(complementarity), _largest(jnp.abs(box_complementarity))),
+    )
 
 
 class NCPInfo(eqx.Module):
@@ -177,14 +229,17 @@ class NCPState(eqx.Module):
 
 def fixed_point_step_sizes(G: Array, n: int) -> Array:
     """Per-contact step ``r_i = 3 / trace(G_ii)`` of the natural map (a scalar per contact
-    keeps the cone geometry: ``-r c~`` is in the polar cone iff ``c~`` is in the dual)."""
-    diagonal = jnp.diagonal(G).reshape(n, 3)
-    scale = sum_last(diagonal) / 3.0
+    keeps the cone geometry: ``-r c~`` is in the polar cone iff ``c~`` is in the dual), then
+    ``r_k = 1 / G_kk`` per box row: ``(n + m,)``."""
+    diagonal = jnp.diagonal(G)
+    scale = sum_last(diagonal[: 3 * n].reshape(n, 3)) / 3.0
+    if diagonal.shape[0] > 3 * n:
+        scale = jnp.concatenate([scale, diagonal[3 * n :]])
     floor = jnp.maximum(jnp.max(scale), 1.0) * 1e-12
     return lax.stop_gradient(1.0 / jnp.maximum(scale, floor))
 
 
-def _natural_map(impulse: Array, G: Array, g: Array, mu: Array, step_sizes: Array) -> Array:
+def _natural_map(impulse: Array, G: Array, g: Array, mu: Array, step_sizes: Array, bounds: Array | None = None) -> Array:
     """``F(lambda) = lambda - P_K(lambda - r c~(lambda))``, zero exactly at NCP solutions.
 
     By Moreau's decomposition ``lambda = P_K(lambda - r c~)`` iff ``lambda ∈ K``,
@@ -192,29 +247,37 @@ def _natural_map(impulse: Array, G: Array, g: Array, mu: Array, step_sizes: Arra
     solution is 0 (separated: ``lambda - r c~`` is inside the polar cone), the identity
     (sticking: ``c~ = 0``, ``lambda`` inside ``K``) or the tangent projector of the cone
     boundary (sliding), so implicit differentiation of ``F = 0`` treats separated contacts
-    as absent, sticking ones as bilateral constraints and sliding ones on the boundary.
+    as absent, sticking ones as bilateral constraints and sliding ones on the boundary. A box
+    row's ``lambda_k - clip(lambda_k - r_k c_k, -b_k, b_k)`` has the Jacobian of ``c_k = 0``
+    inside its bounds and of ``lambda_k = ±b_k`` on them.
     """
-    return natural_map_of_velocity(impulse, G @ impulse + g, mu, step_sizes)
+    return natural_map_of_velocity(impulse, G @ impulse + g, mu, step_sizes, bounds)
 
 
-def natural_map_of_velocity(impulse: Array, velocity: Array, mu: Array, step_sizes: Array) -> Array:
+def natural_map_of_velocity(
+    impulse: Array, velocity: Array, mu: Array, step_sizes: Array, bounds: Array | None = None
+) -> Array:
     """The natural map of :func:`_natural_map` given the contact velocity ``c = G lambda + g``
-    (flat ``(3 n,)``) instead of ``(G, g)``: the form in which a simulator's step states it."""
+    (flat ``(3 n + m,)``) instead of ``(G, g)``: the form in which a simulator's step states it."""
     n = mu.shape[0]
-    impulse_by_contact = impulse.reshape(n, 3)
-    velocity = _de_saxce_velocity(velocity.reshape(n, 3), mu)
+    impulse_by_contact = impulse[: 3 * n].reshape(n, 3)
+    velocity_by_contact = _de_saxce_velocity(velocity[: 3 * n].reshape(n, 3), mu)
     projected = project_to_friction_cone(
-        impulse_by_contact - step_sizes[:, None] * velocity, mu
+        impulse_by_contact - step_sizes[:n, None] * velocity_by_contact, mu
     )
-    return (impulse_by_contact - projected).reshape(-1)
+    cones = (impulse_by_contact - projected).reshape(-1)
+    if bounds is None:
+        return cones
+    box = impulse[3 * n :]
+    return jnp.concatenate([cones, box - jnp.clip(box - step_sizes[n:] * velocity[3 * n :], -bounds, bounds)])
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def _with_implicit_derivative(
-    regularization: float, impulse: Array, G: Array, g: Array, mu: Array
+    regularization: float, impulse: Array, G: Array, g: Array, mu: Array, bounds: Array | None
 ) -> Array:
     """Returns ``impulse`` (an NCP solution) with the derivative of the solution map."""
-    del G, g, mu
+    del G, g, mu, bounds
     return impulse
 
 
@@ -223,20 +286,27 @@ def _with_implicit_derivative_jvp(regularization, primals, tangents):
     # Implicit function theorem on F(lambda*(theta), theta) = 0 (Blondel et al. 2022):
     #   dF/dlambda . dlambda = -dF/dtheta . dtheta.
     # The impulse tangent is ignored: lambda* is a function of theta only.
-    impulse, G, g, mu = primals
-    _, G_dot, g_dot, mu_dot = tangents
+    impulse, G, g, mu, bounds = primals
+    _, G_dot, g_dot, mu_dot, bounds_dot = tangents
     impulse = lax.stop_gradient(impulse)
     step_sizes = fixed_point_step_sizes(G, mu.shape[0])
     _, rhs = jax.jvp(
-        lambda G_, g_, mu_: _natural_map(impulse, G_, g_, mu_, step_sizes),
-        (G, g, mu),
-        (G_dot, g_dot, mu_dot),
+        lambda G_, g_, mu_, bounds_: _natural_map(impulse, G_, g_, mu_, step_sizes, bounds_),
+        (G, g, mu, bounds),
+        (G_dot, g_dot, mu_dot, bounds_dot),
     )
-    return impulse, implicit_impulse_tangent(regularization, impulse, G, g, mu, step_sizes, rhs)
+    return impulse, implicit_impulse_tangent(regularization, impulse, G, g, mu, step_sizes, rhs, bounds)
 
 
 def implicit_impulse_tangent(
-    regularization: float, impulse: Array, G: Array, g: Array, mu: Array, step_sizes: Array, rhs: Array
+    regularization: float,
+    impulse: Array,
+    G: Array,
+    g: Array,
+    mu: Array,
+    step_sizes: Array,
+    rhs: Array,
+    bounds: Array | None = None,
 ) -> Array:
     """``dlambda`` solving ``dF/dlambda dlambda = -rhs`` at an NCP solution ``impulse``.
 
@@ -246,13 +316,16 @@ def implicit_impulse_tangent(
     (under ``jacfwd`` it is computed once for all columns).
     """
     n = mu.shape[0]
-    jacobian = jax.jacfwd(_natural_map)(impulse, G, g, mu, step_sizes)
+    jacobian = jax.jacfwd(_natural_map)(impulse, G, g, mu, step_sizes, bounds)
     # Separated contacts (lambda_i = 0 exactly: the solver's projection returns exact zeros)
     # have dlambda_i = 0; decoupling their rows and columns makes that zero exact instead of
     # ~1e-13 from the regularized solve. A degenerate lambda_i = 0, c_i = 0 contact is thereby
-    # treated as separated (a one-sided derivative).
-    active = jnp.repeat(jnp.any(impulse.reshape(n, 3) != 0, axis=-1), 3)
-    identity = jnp.eye(3 * n, dtype=jacobian.dtype)
+    # treated as separated (a one-sided derivative). Box rows stay: a zero impulse inside the
+    # bounds is a sticking row (c_k = 0).
+    active = jnp.repeat(jnp.any(impulse[: 3 * n].reshape(n, 3) != 0, axis=-1), 3)
+    if bounds is not None:
+        active = jnp.concatenate([active, jnp.ones(bounds.shape, bool)])
+    identity = jnp.eye(impulse.shape[0], dtype=jacobian.dtype)
     jacobian = jnp.where(active[:, None] & active[None, :], jacobian, identity)
     rhs = jnp.where(active.reshape(active.shape + (1,) * (rhs.ndim - 1)), rhs, 0.0)
     # Damped least squares (Tikhonov) with two steps of iterative refinement:
@@ -262,7 +335,7 @@ def implicit_impulse_tangent(
     # contacts on a rank-deficient G whose impulses are not unique) eps = 1e-12 bounds the
     # gain by about 3 / (2 sqrt(eps)) instead of returning inf or NaN.
     factor = jax.scipy.linalg.cho_factor(jacobian.T @ jacobian + regularization * identity)
-    if rhs.ndim == 2 and rhs.shape[1] > 3 * n:
+    if rhs.ndim == 2 and rhs.shape[1] > impulse.shape[0]:
         # Many columns (the Jacobian columns of a step): the three refined solves are linear in
         # rhs, dlambda = -T rhs with T = (I + E + E^2) B, B = (JᵀJ + eps I)^{-1} Jᵀ and E = I - B J
         # (3 n x 3 n): form T once and apply it, one product per column instead of nine
@@ -324,6 +397,33 @@ def _mode_equations(x: Array, direction: Array, mode: Array, G: Array, g: Array,
     ``R`` of its ``c`` plus terms of its own unknowns."""
     n = mu.shape[0]
     dtype = G.dtype
+    impulse = _cone_impulse(x, direction, mode, mu)
+    c = (sum_last(G * impulse.reshape(1, -1)) + g).reshape(n, 3)
+    D, R, own, own_values = _cone_blocks(x, direction, mode, mu, c)
+    # Products over the short axes written out (rsmooth._unrolled: einsum's small batched
+    # dot products are several times slower under vmap on CPU).
+    residual = sum(R[:, :, b] * c[:, None, b] for b in range(3)) + own_values
+    G4 = G.reshape(n, 3, n, 3)  # (contact i, row a, contact j, column b)
+    GD = sum(G4[:, :, :, b, None] * D[None, None, :, b, :] for b in range(3))  # (n, 3, n, 3)
+    RGD = sum(R[:, :, b, None, None] * GD[:, None, b] for b in range(3))
+    jacobian = RGD + jnp.eye(n, dtype=dtype)[:, None, :, None] * own[:, :, None, :]
+    return impulse.reshape(-1), residual.reshape(-1), jacobian.reshape(3 * n, 3 * n)
+
+
+def _cone_impulse(x: Array, direction: Array, mode: Array, mu: Array) -> Array:
+    """The contacts' impulses ``(n, 3)`` of the polish's unknowns (see :func:`_mode_equations`)."""
+    cos, sin = direction[:, 0], direction[:, 1]
+    sliding_impulse = jnp.stack([mu * x[:, 0] * cos, mu * x[:, 0] * sin, x[:, 0]], axis=-1)
+    return jnp.where((mode == _SEPARATED)[:, None], 0.0, jnp.where((mode == _STICKING)[:, None], x, sliding_impulse))
+
+
+def _cone_blocks(x: Array, direction: Array, mode: Array, mu: Array, c: Array) -> tuple[Array, Array, Array, Array]:
+    """Per contact, the blocks of :func:`_mode_equations` at the contact velocities ``c``
+    ``(n, 3)``: ``D`` (d impulse / d x), ``R`` and ``own`` (the equations are ``R c + own
+    values``, their derivative in the contact's own unknowns ``own``), each ``(n, 3, 3)``, and
+    the own values ``(n, 3)``."""
+    n = mu.shape[0]
+    dtype = c.dtype
     # The direction as a unit vector rather than an angle: XLA recomputes cos and sin per
     # element inside the fused loops of the Jacobian.
     cos, sin = direction[:, 0], direction[:, 1]
@@ -335,9 +435,6 @@ def _mode_equations(x: Array, direction: Array, mode: Array, G: Array, g: Array,
     def blocks(*rows):  # (n, 3, 3) from three rows of three (n,) entries
         return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=1)
 
-    sliding_impulse = jnp.stack([mu * x[:, 0] * cos, mu * x[:, 0] * sin, x[:, 0]], axis=-1)
-    impulse = jnp.where(separated[:, :, 0], 0.0, jnp.where(sticking[:, :, 0], x, sliding_impulse))
-    c = (sum_last(G * impulse.reshape(1, -1)) + g).reshape(n, 3)
     # d impulse / d x, and R (equations = R c + own terms).
     D = jnp.where(separated, 0.0, jnp.where(sticking, eye, blocks(
         (mu * cos, -mu * x[:, 0] * sin, zero), (mu * sin, mu * x[:, 0] * cos, zero), (one, zero, zero)
@@ -359,14 +456,32 @@ def _mode_equations(x: Array, direction: Array, mode: Array, G: Array, g: Array,
         friction[:, :, 0], jnp.stack([zero, zero, x[:, 2]], axis=-1), jnp.stack([zero, x[:, 1], x[:, 2]], axis=-1)
     )
     own_values = jnp.where(separated[:, :, 0], x, jnp.where(sticking[:, :, 0], 0.0, sliding_values))
-    # Products over the short axes written out (rsmooth._unrolled: einsum's small batched
-    # dot products are several times slower under vmap on CPU).
-    residual = sum(R[:, :, b] * c[:, None, b] for b in range(3)) + own_values
-    G4 = G.reshape(n, 3, n, 3)  # (contact i, row a, contact j, column b)
-    GD = sum(G4[:, :, :, b, None] * D[None, None, :, b, :] for b in range(3))  # (n, 3, n, 3)
-    RGD = sum(R[:, :, b, None, None] * GD[:, None, b] for b in range(3))
-    jacobian = RGD + jnp.eye(n, dtype=dtype)[:, None, :, None] * own[:, :, None, :]
-    return impulse.reshape(-1), residual.reshape(-1), jacobian.reshape(3 * n, 3 * n)
+    return D, R, own, own_values
+
+
+def _box_mode_equations(
+    x: Array, box_x: Array, direction: Array, mode: Array, box_mode: Array, G: Array, g: Array, mu: Array, bounds: Array
+) -> tuple[Array, Array, Array]:
+    """:func:`_mode_equations` with box rows, dense: ``(impulse (3 n + m,), residual
+    (3 n + m,), jacobian (3 n + m, 3 n + m))``. A box row inside its bounds (``box_mode``
+    0) has the impulse ``box_x`` and the equation ``c_k = 0``; one on a bound (``box_mode``
+    ``±1``) the impulse ``±b_k`` and the equation ``box_x = 0``."""
+    n = mu.shape[0]
+    interior = box_mode == 0
+    box_impulse = jnp.where(box_mode > 0, bounds, jnp.where(box_mode < 0, -bounds, box_x))
+    impulse = jnp.concatenate([_cone_impulse(x, direction, mode, mu).reshape(-1), box_impulse])
+    c = G @ impulse + g
+    D, R, own, own_values = _cone_blocks(x, direction, mode, mu, c[: 3 * n].reshape(n, 3))
+    inside = interior.astype(G.dtype)
+
+    def dense(cone_blocks, box_diagonal):
+        cones = (jnp.eye(n, dtype=G.dtype)[:, None, :, None] * cone_blocks[:, :, None, :]).reshape(3 * n, 3 * n)
+        return jax.scipy.linalg.block_diag(cones, jnp.diag(box_diagonal))
+
+    R_full, D_full, own_full = dense(R, inside), dense(D, inside), dense(own, 1.0 - inside)
+    values = jnp.concatenate([own_values.reshape(-1), jnp.where(interior, 0.0, box_x)])
+    residual = R_full @ c + values
+    return impulse, residual, R_full @ G @ D_full + own_full
 
 
 def _solve_unpivoted(A: Array, b: Array) -> Array:
@@ -389,9 +504,12 @@ def _solve_unpivoted(A: Array, b: Array) -> Array:
     return lax.fori_loop(0, n, eliminate, jnp.concatenate([A, b[:, None]], axis=1))[:, n]
 
 
-def _polish(G: Array, g: Array, mu: Array, impulse: Array, steps: int, least_squares: ArrayLike = False) -> Array:
+def _polish(
+    G: Array, g: Array, mu: Array, impulse: Array, steps: int, least_squares: ArrayLike = False, bounds: Array | None = None
+) -> Array:
     """Active-set Newton polish: the contact modes read from ``impulse`` (in the cone: zero
-    normal impulse separated, on the cone's boundary sliding, inside sticking), then
+    normal impulse separated, on the cone's boundary sliding, inside sticking; a box row on
+    or inside its bounds), then
     ``steps`` Newton iterations on the modes' equations (:func:`_mode_equations`). The result
     (possibly not finite, or the solution of wrong modes) must be checked by
     :func:`ncp_residuals`.
@@ -401,8 +519,8 @@ def _polish(G: Array, g: Array, mu: Array, impulse: Array, steps: int, least_squ
     are singular (more sticking rows than the degrees of freedom they hold: a stack of boxes,
     where Newton's own step is not finite); they reach a solution of consistent equations."""
     n = mu.shape[0]
-    z = impulse.reshape(n, 3)
-    c = (G @ impulse + g).reshape(n, 3)
+    z = impulse[: 3 * n].reshape(n, 3)
+    c = (G @ impulse + g)[: 3 * n].reshape(n, 3)
     tangential = _safe_norm(z[:, :2])
     separated = z[:, 2] <= 0
     sliding = ~separated & (tangential >= mu * z[:, 2] * (1.0 - 1e-6))
@@ -411,22 +529,36 @@ def _polish(G: Array, g: Array, mu: Array, impulse: Array, steps: int, least_squ
     x = jnp.where(sliding[:, None], slide_start, z)
     unit = z[:, :2] / jnp.where(tangential > 0, tangential, 1.0)[:, None]
     direction = jnp.where((tangential > 0)[:, None], unit, jnp.array([[1.0, 0.0]], G.dtype))
+    if bounds is None:
+        box_x = jnp.zeros((0,), G.dtype)
+
+        def equations(x, box_x, direction):
+            return _mode_equations(x, direction, mode, G, g, mu)
+    else:
+        box = impulse[3 * n :]
+        near = 1.0 - 1e-6  # as the cone's boundary above
+        box_mode = jnp.where(box >= bounds * near, 1, jnp.where(box <= -bounds * near, -1, 0))
+        box_x = jnp.where(box_mode == 0, box, 0.0)
+
+        def equations(x, box_x, direction):
+            return _box_mode_equations(x, box_x, direction, mode, box_mode, G, g, mu, bounds)
 
     def newton(_, carry):
-        x, direction = carry
-        _, residual, jacobian = _mode_equations(x, direction, mode, G, g, mu)
+        x, box_x, direction = carry
+        _, residual, jacobian = equations(x, box_x, direction)
         normal = jacobian.T @ jacobian
         damping = 1e-12 * jnp.max(jnp.diagonal(normal)) + jnp.finfo(G.dtype).tiny ** 0.5
-        normal = normal + damping * jnp.eye(3 * n, dtype=G.dtype)
+        normal = normal + damping * jnp.eye(residual.shape[0], dtype=G.dtype)
         matrix = jnp.where(least_squares, normal, jacobian)
-        step = _solve_unpivoted(matrix, jnp.where(least_squares, jacobian.T @ residual, residual)).reshape(n, 3)
+        step = _solve_unpivoted(matrix, jnp.where(least_squares, jacobian.T @ residual, residual))
+        cone_step = step[: 3 * n].reshape(n, 3)
         # Turn the direction by the angle step (a retraction onto the unit circle).
-        turned = direction - step[:, 1:2] * jnp.stack([-direction[:, 1], direction[:, 0]], axis=-1)
-        return x - step, turned / _safe_norm(turned)[:, None]
+        turned = direction - cone_step[:, 1:2] * jnp.stack([-direction[:, 1], direction[:, 0]], axis=-1)
+        return x - cone_step, box_x - step[3 * n :], turned / _safe_norm(turned)[:, None]
 
     # A loop, not unrolled: one copy of the Newton step in the program (compile time).
-    x, direction = lax.fori_loop(0, steps, newton, (x, direction))
-    return _mode_equations(x, direction, mode, G, g, mu)[0]
+    x, box_x, direction = lax.fori_loop(0, steps, newton, (x, box_x, direction))
+    return equations(x, box_x, direction)[0]
 
 
 # NCPSolver.chunk_size = "auto" on the CPU (see the attribute's documentation)
@@ -582,19 +714,19 @@ class NCPSolver(eqx.Module):
         return _xla.resolve_auto(self.chunk_size, cpu=CPU_CHUNK_SIZE, accelerator=None)
 
     def start(
-        self, G: Array, g: Array, mu: Array, warm_start: Array | None, factor: Array | None = None
+        self, G: Array, g: Array, mu: Array, warm_start: Array | None, factor: Array | None = None, bounds: Array | None = None
     ) -> tuple[Array, NCPInfo]:
         """The impulse ADMM starts from and its diagnostics (``converged``: it already solves
         the problem and ADMM need not run; ``iterations`` and ``rho`` are 0). Without
         ``sticking_guess``: ``P_K(warm_start)``, or zero. With it: the sticking guess without a
         warm start (with ``rank_deficient``, only where it solves the problem, else zero);
         with one, the guess where it solves the problem and the warm start does not, else the
-        warm start. ``factor``: an ``X`` ``(m, 3 n)`` with ``G = Xᵀ X`` (see :func:`solve_ncp`)."""
-        n = mu.shape[0]
+        warm start. ``factor``: an ``X`` ``(d, 3 n + m)`` with ``G = Xᵀ X`` (see :func:`solve_ncp`);
+        ``bounds``: the box rows' (see :func:`solve_ncp`)."""
 
         def candidate(z):
             z = jnp.where(jnp.all(jnp.isfinite(z)), z, 0.0)
-            primal, dual, complementarity = ncp_residuals(G, g, mu, z)
+            primal, dual, complementarity = ncp_residuals(G, g, mu, z, bounds)
             converged = self._within_tolerance(primal, dual, complementarity)
             result = _ncp_result(converged, z, primal, dual, complementarity)
             return z, NCPInfo(jnp.zeros((), jnp.int32), primal, dual, complementarity, result, jnp.zeros((), G.dtype))
@@ -602,11 +734,11 @@ class NCPSolver(eqx.Module):
         if warm_start is None:
             given = jnp.zeros_like(g)
         else:
-            given = project_to_friction_cone(warm_start.reshape(n, 3), mu).reshape(-1)
+            given = _project(warm_start, mu, bounds)
         if not self.sticking_guess:
             return candidate(given)
         if warm_start is None and not self.rank_deficient:
-            return candidate(self._sticking_guess(G, g, mu, factor))  # ADMM starts from it where it fails
+            return candidate(self._sticking_guess(G, g, mu, factor, bounds))  # ADMM starts from it where it fails
         # The guess where it solves the problem and the start given does not; computed only
         # where that start fails (its eigendecomposition is most of a start's cost, and a warm
         # start from the previous step solves a resting scene's problem on its own): under
@@ -618,10 +750,11 @@ class NCPSolver(eqx.Module):
             use_guess = guess[1].converged & ~warm[1].converged
             return jax.tree.map(lambda a, b: jnp.where(use_guess, a, b), guess, warm)
 
-        return once_if(use_guess_if_it_solves, ~warm[1].converged, (G, g, mu, factor), warm)
+        return once_if(use_guess_if_it_solves, ~warm[1].converged, (G, g, mu, factor, bounds), warm)
 
-    def _sticking_guess(self, G: Array, g: Array, mu: Array, factor: Array | None) -> Array:
-        """The sticking impulse of :meth:`start`, projected on the friction cones."""
+    def _sticking_guess(self, G: Array, g: Array, mu: Array, factor: Array | None, bounds: Array | None = None) -> Array:
+        """The sticking impulse of :meth:`start`, projected on the friction cones (and the
+        boxes: every box row with a positive bound is in the active set)."""
         n = mu.shape[0]
         # Contacts whose free normal velocity does not open stick (c_i = 0), the others carry
         # no impulse: solve G_AA lambda_A = -g_A on that active set A. "Does not open" is
@@ -630,7 +763,9 @@ class NCPSolver(eqx.Module):
         # fall together, so every contact but the floor's has g_N = 0 up to rounding and a
         # rocking of nanometres per step, and must stick to carry the weight above it. A
         # guess that is not finite or not a solution is not used.
-        active = jnp.repeat(g.reshape(n, 3)[:, 2] <= self.tolerance_for(g.dtype) ** 0.5, 3)
+        active = jnp.repeat(g[: 3 * n].reshape(n, 3)[:, 2] <= self.tolerance_for(g.dtype) ** 0.5, 3)
+        if bounds is not None:
+            active = jnp.concatenate([active, bounds > 0])
         rhs = jnp.where(active, g, 0.0)
         if self.rank_deficient and factor is not None and factor.shape[0] < G.shape[0]:
             # The same pseudo-inverse from the (m x m) X_A X_Aᵀ, X_A = X with A's columns only:
@@ -658,19 +793,18 @@ class NCPSolver(eqx.Module):
             # Rows and columns of the inactive contacts replaced by the identity; a diagonal
             # shift of 1e-12 of G's scale keeps the factorization finite for a singular G, and
             # one step of iterative refinement removes its bias where G is not.
-            identity = jnp.eye(3 * n, dtype=G.dtype)
+            identity = jnp.eye(G.shape[0], dtype=G.dtype)
             reduced = jnp.where(active[:, None] & active[None, :], G, identity)
             scale = jnp.maximum(jnp.max(jnp.diagonal(reduced)), jnp.finfo(G.dtype).tiny ** 0.5)
             factor = jax.scipy.linalg.cho_factor(reduced + 1e-12 * scale * identity, lower=True)
             sticking = -jax.scipy.linalg.cho_solve(factor, rhs)
             sticking = sticking - jax.scipy.linalg.cho_solve(factor, reduced @ sticking + rhs)
-        return project_to_friction_cone(sticking.reshape(n, 3), mu).reshape(-1)
+        return _project(sticking, mu, bounds)
 
-    def init(self, G: Array, g: Array, mu: Array, warm_start: Array | None) -> NCPState:
+    def init(self, G: Array, g: Array, mu: Array, warm_start: Array | None, bounds: Array | None = None) -> NCPState:
         """Initial iterate: ``z = P_K(warm_start)`` (or 0) and the matching ``y = -c~(z)``,
         so an exact warm start is a fixed point of :meth:`step` (:func:`solve_ncp` passes
         :meth:`start`'s impulse)."""
-        n = mu.shape[0]
         eigenvalues, eigenvectors = jnp.linalg.eigh(G)
         largest = jnp.maximum(eigenvalues[-1], jnp.finfo(G.dtype).tiny ** 0.5)
         if self.rho is None:
@@ -682,9 +816,9 @@ class NCPSolver(eqx.Module):
         if warm_start is None:
             z = jnp.zeros_like(g)
         else:
-            z = project_to_friction_cone(warm_start.reshape(n, 3), mu).reshape(-1)
-        y = -_de_saxce_velocity((G @ z + g).reshape(n, 3), mu).reshape(-1)
-        primal, dual, complementarity = ncp_residuals(G, g, mu, z)
+            z = _project(warm_start, mu, bounds)
+        y = -_corrected_velocity(G @ z + g, mu)
+        primal, dual, complementarity = ncp_residuals(G, g, mu, z, bounds)
         return NCPState(
             x=z,
             z=z,
@@ -700,16 +834,18 @@ class NCPSolver(eqx.Module):
             best_residuals=jnp.stack([primal, dual, complementarity]),
         )
 
-    def step(self, G: Array, g: Array, mu: Array, state: NCPState) -> NCPState:
+    def step(self, G: Array, g: Array, mu: Array, state: NCPState, bounds: Array | None = None) -> NCPState:
         """One ADMM iteration (see the class docstring)."""
         n = mu.shape[0]
         x, z, y, rho = state.x, state.z, state.y, state.rho
         del x
-        dual_by_contact = (-y).reshape(n, 3)
+        dual_by_contact = (-y[: 3 * n]).reshape(n, 3)
         correction = jnp.zeros_like(dual_by_contact).at[:, 2].set(
             mu * _safe_norm(dual_by_contact[:, :2])
-        )
-        rhs = rho * z - y - g - correction.reshape(-1)
+        ).reshape(-1)
+        if bounds is not None:  # box rows are not corrected
+            correction = jnp.concatenate([correction, jnp.zeros_like(bounds)])
+        rhs = rho * z - y - g - correction
         Q, eigenvalues = state.eigenvectors, state.eigenvalues
         x_next = Q @ ((Q.T @ rhs) / (eigenvalues + rho))
         # Over-relaxation speeds up most problems, but with the De Saxce correction (not a
@@ -718,7 +854,7 @@ class NCPSolver(eqx.Module):
         # plain ADMM, which converges there.
         relaxation = jnp.where(state.iteration < self.max_iterations // 2, self.relaxation, 1.0).astype(z.dtype)
         x_relaxed = relaxation * x_next + (1.0 - relaxation) * z
-        z_next = project_to_friction_cone((x_relaxed + y / rho).reshape(n, 3), mu).reshape(-1)
+        z_next = _project(x_relaxed + y / rho, mu, bounds)
         y_next = y + rho * (x_relaxed - z_next)
 
         if self.adaptive_rho:
@@ -742,7 +878,7 @@ class NCPSolver(eqx.Module):
         else:
             rho_next = rho
 
-        primal, dual, complementarity = ncp_residuals(G, g, mu, z_next)
+        primal, dual, complementarity = ncp_residuals(G, g, mu, z_next, bounds)
         residuals = jnp.stack([primal, dual, complementarity])
         better = jnp.max(residuals) < jnp.max(state.best_residuals)  # False for NaN
         return NCPState(
@@ -772,14 +908,14 @@ class NCPSolver(eqx.Module):
         return 1e-10 if jnp.finfo(dtype).bits >= 64 else 1e-5
 
     def polished(
-        self, G: Array, g: Array, mu: Array, impulse: Array, least_squares: ArrayLike = False
+        self, G: Array, g: Array, mu: Array, impulse: Array, least_squares: ArrayLike = False, bounds: Array | None = None
     ) -> tuple[Array, Array, Array, Array, Array]:
         """The polish (:func:`_polish`) of ``impulse``, or ``impulse`` where it is not finite,
         its residuals and whether they satisfy the tolerance: ``(candidate, primal, dual,
         complementarity, solved)``."""
-        candidate = _polish(G, g, mu, impulse, self.polish_steps, least_squares)
+        candidate = _polish(G, g, mu, impulse, self.polish_steps, least_squares, bounds)
         candidate = jnp.where(jnp.all(jnp.isfinite(candidate)), candidate, impulse)
-        primal, dual, complementarity = ncp_residuals(G, g, mu, candidate)
+        primal, dual, complementarity = ncp_residuals(G, g, mu, candidate, bounds)
         return candidate, primal, dual, complementarity, self._within_tolerance(primal, dual, complementarity)
 
     def _residuals_within_tolerance(self, state: NCPState) -> Array:
@@ -805,37 +941,45 @@ class NCPSolver(eqx.Module):
         return state.best, info
 
     def solve(
-        self, G: ArrayLike, g: ArrayLike, mu: ArrayLike, *, warm_start: ArrayLike | None = None
+        self, G: ArrayLike, g: ArrayLike, mu: ArrayLike, *, warm_start: ArrayLike | None = None, bounds: ArrayLike | None = None
     ) -> tuple[Array, NCPInfo]:
         """Same as :func:`solve_ncp` with this solver."""
-        return solve_ncp(G, g, mu, solver=self, warm_start=warm_start)
+        return solve_ncp(G, g, mu, solver=self, warm_start=warm_start, bounds=bounds)
 
 
-def _checked_problem(G, g, mu, warm_start):
+def _checked_problem(G, g, mu, warm_start, bounds=None):
     """Host-side shape checks, value checks (host or traced), common floating dtype."""
     G, g, mu = jnp.asarray(G), jnp.asarray(g), jnp.asarray(mu)
-    if mu.ndim != 1 or mu.shape[0] == 0:
-        raise ValueError(f"mu must have shape (n,) for n >= 1 contacts, got {mu.shape}.")
+    m = 0
+    if bounds is not None:
+        bounds = jnp.asarray(bounds)
+        if bounds.ndim != 1 or bounds.shape[0] == 0:
+            raise ValueError(f"bounds must be None or have shape (m,) for m >= 1 box rows, got {bounds.shape}.")
+        m = bounds.shape[0]
+    if mu.ndim != 1 or (mu.shape[0] == 0 and m == 0):
+        raise ValueError(f"mu must have shape (n,) for n >= 1 contacts (n >= 0 with box rows), got {mu.shape}.")
     n = mu.shape[0]
-    if G.shape != (3 * n, 3 * n):
-        raise ValueError(
-            f"G must have shape (3n, 3n) = {(3 * n, 3 * n)} for n = {n} contacts "
-            f"(mu has shape {mu.shape}), got {G.shape}."
-        )
-    if g.shape != (3 * n,):
-        raise ValueError(
-            f"g must have shape (3n,) = {(3 * n,)} for n = {n} contacts, got {g.shape}."
-        )
+    size = 3 * n + m
+    rows = f"3n + m = {size} for n = {n} contacts and m = {m} box rows"
+    if G.shape != (size, size):
+        raise ValueError(f"G must have shape (3n + m, 3n + m) with {rows} (mu has shape {mu.shape}), got {G.shape}.")
+    if g.shape != (size,):
+        raise ValueError(f"g must have shape (3n + m,) with {rows}, got {g.shape}.")
     if warm_start is not None:
         warm_start = jnp.asarray(warm_start)
-        if warm_start.shape != (3 * n,):
-            raise ValueError(f"warm_start must have shape {(3 * n,)}, got {warm_start.shape}.")
+        if warm_start.shape != (size,):
+            raise ValueError(f"warm_start must have shape {(size,)}, got {warm_start.shape}.")
     dtype = jnp.result_type(G, g, mu, float)
     G, g, mu = G.astype(dtype), g.astype(dtype), mu.astype(dtype)
     G = _check_finite("G", G)
     g = _check_finite("g", g)
     mu = _check_finite("mu", mu)
     mu = _check_nonnegative("mu", mu)
+    if bounds is not None:  # infinite bounds allowed (bilateral rows); NaN is not >= 0
+        bounds = bounds.astype(dtype)
+        if _is_concrete(bounds) and np.any(np.isnan(np.asarray(bounds))):
+            raise ValueError("bounds contains NaN values.")
+        bounds = _check_nonnegative("bounds", jnp.where(jnp.isnan(bounds), -1.0, bounds))
     if _is_concrete(G):
         G_host = np.asarray(G)
         scale = max(float(np.max(np.abs(G_host))), 1e-300)
@@ -845,7 +989,7 @@ def _checked_problem(G, g, mu, warm_start):
             raise ValueError("G must be positive semi-definite (G = J M^-1 J^T).")
     if warm_start is not None:
         warm_start = _check_finite("warm_start", warm_start.astype(dtype))
-    return G, g, mu, warm_start
+    return G, g, mu, warm_start, bounds
 
 
 def solve_ncp(
@@ -856,6 +1000,7 @@ def solve_ncp(
     solver: NCPSolver = NCPSolver(),
     warm_start: ArrayLike | None = None,
     delassus_factor: ArrayLike | None = None,
+    bounds: ArrayLike | None = None,
 ) -> tuple[Array, NCPInfo]:
     """Solves the frictional contact NCP and attaches its implicit derivative.
 
@@ -863,33 +1008,42 @@ def solve_ncp(
     ``stop_gradient``-ed inputs; derivatives with respect to ``G``, ``g`` and ``mu``
     (forward and reverse mode) come from the implicit function theorem applied to the
     natural map ``F(lambda) = lambda - P_K(lambda - r c~(lambda)) = 0`` at the returned
-    solution, with one dense ``(3 n x 3 n)`` damped least-squares solve. Per contact mode
-    this gives: separated contacts (``lambda_i = 0``) a zero derivative, sticking contacts
+    solution, with one dense ``(3 n + m) x (3 n + m)`` damped least-squares solve. Per contact
+    mode this gives: separated contacts (``lambda_i = 0``) a zero derivative, sticking contacts
     the derivative of a bilateral constraint (``dc_i = 0``), sliding contacts the derivative
-    along the cone boundary with ``dc_N = 0``. At a mode switch the derivative is one of the
-    one-sided ones. No derivative flows through ``warm_start`` or the diagnostics.
+    along the cone boundary with ``dc_N = 0``; box rows inside their bounds ``dc_k = 0``, on a
+    bound ``dlambda_k = ±db_k``. At a mode switch the derivative is one of the one-sided ones.
+    No derivative flows through ``warm_start`` or the diagnostics.
+
+    Box rows (``bounds``) follow the ``3 n`` contact rows: ``|lambda_k| <= b_k`` with maximum
+    dissipation, the impulse of dry friction on a joint (see the module docstring). With them
+    the problem may have no contact at all (``mu`` of shape ``(0,)``).
 
     Args:
-        G: Delassus matrix ``J M^{-1} Jᵀ``, symmetric positive semi-definite, ``(3n, 3n)``.
+        G: Delassus matrix ``J M^{-1} Jᵀ``, symmetric positive semi-definite,
+            ``(3 n + m, 3 n + m)``.
         g: free contact velocity (the contact-frame velocity without impulses, possibly
-            with :func:`corrected_free_velocity`), ``(3 n,)``.
+            with :func:`corrected_free_velocity`), ``(3 n + m,)``.
         mu: friction coefficients ``>= 0``, ``(n,)``.
         solver: the :class:`NCPSolver` configuration.
-        warm_start: an impulse guess ``(3 n,)``, e.g. the previous time step's solution.
-        delassus_factor: optionally ``X`` ``(m, 3 n)`` with ``G = Xᵀ X`` (a simulator's
-            ``L^-1 Jᵀ``, ``L`` the Cholesky factor of the mass matrix, ``m`` its degrees of
-            freedom): with ``rank_deficient`` and ``m < 3 n`` the sticking guess takes its
-            pseudo-inverse from the ``(m x m)`` ``X Xᵀ`` (the same impulse, to rounding). No
+        warm_start: an impulse guess ``(3 n + m,)``, e.g. the previous time step's solution.
+        delassus_factor: optionally ``X`` ``(d, 3 n + m)`` with ``G = Xᵀ X`` (a simulator's
+            ``L^-1 Jᵀ``, ``L`` the Cholesky factor of the mass matrix, ``d`` its degrees of
+            freedom): with ``rank_deficient`` and ``d < 3 n + m`` the sticking guess takes its
+            pseudo-inverse from the ``(d x d)`` ``X Xᵀ`` (the same impulse, to rounding). No
             derivative flows through it.
+        bounds: ``None``, or the bounds ``b_k >= 0`` of ``m`` box rows, ``(m,)`` (``inf``: a
+            bilateral row).
 
     Returns:
-        ``(impulse, info)``: impulses ``(3 n,)`` per contact ``[t1, t2, n]``, and an
-        :class:`NCPInfo`.
+        ``(impulse, info)``: impulses ``(3 n + m,)``, per contact ``[t1, t2, n]`` then per
+        box row, and an :class:`NCPInfo`.
 
     Raises:
-        ValueError: on wrong shapes; on NaN/inf in ``G``, ``g``, ``mu`` or negative ``mu``,
-            and a non-symmetric or indefinite ``G``, when these values are concrete. Traced
-            values are checked with ``equinox.error_if`` (NaN/inf and negative ``mu``).
+        ValueError: on wrong shapes; on NaN/inf in ``G``, ``g``, ``mu``, negative ``mu``,
+            NaN or negative ``bounds``, and a non-symmetric or indefinite ``G``, when these
+            values are concrete. Traced values are checked with ``equinox.error_if``
+            (NaN/inf, negative ``mu`` and ``bounds``).
 
     Example:
         >>> import jax.numpy as jnp
@@ -905,8 +1059,9 @@ def solve_ncp(
         Q. Le Lidec, L. Montaut, Y. de Mont-Marin, F. Schramm, J. Carpentier, "End-to-end
         and highly-efficient differentiable simulation for robotics", 2024.
     """
-    G, g, mu, warm_start = _checked_problem(G, g, mu, warm_start)
+    G, g, mu, warm_start, bounds = _checked_problem(G, g, mu, warm_start, bounds)
     G_solve, g_solve, mu_solve = (lax.stop_gradient(a) for a in (G, g, mu))
+    bounds_solve = None if bounds is None else lax.stop_gradient(bounds)
     if warm_start is not None:
         warm_start = lax.stop_gradient(warm_start)
 
@@ -918,14 +1073,14 @@ def solve_ncp(
         delassus_factor = lax.stop_gradient(jnp.asarray(delassus_factor))
         if delassus_factor.ndim != 2 or delassus_factor.shape[1] != G_solve.shape[0]:
             raise ValueError(
-                f"delassus_factor must have shape (m, {G_solve.shape[0]}) (G = Xᵀ X), got {delassus_factor.shape}"
+                f"delassus_factor must have shape (d, {G_solve.shape[0]}) (G = Xᵀ X), got {delassus_factor.shape}"
             )
-    start, start_info = solver.start(G_solve, g_solve, mu_solve, warm_start, factor=delassus_factor)
+    start, start_info = solver.start(G_solve, g_solve, mu_solve, warm_start, factor=delassus_factor, bounds=bounds_solve)
 
     # Each loop's body first passes the problem through an optimization barrier with the
     # loop's carry: without it XLA hoists loop-invariant work (ADMM's eigendecomposition of G,
     # parts of the polish) out of the loop, where it runs whether the loop does or not.
-    problem = (G_solve, g_solve, mu_solve)
+    problem = (G_solve, g_solve, mu_solve, bounds_solve)
 
     def polish(problem, carry, least_squares=False):
         # Rounds of the polish, in a loop that (under vmap) runs while some member of the
@@ -934,11 +1089,11 @@ def solve_ncp(
         # map) from the last polished impulse, which corrects the modes the failed polish
         # assumed.
         def polish_round(carry):
-            (G, g, mu), carry = lax.optimization_barrier((problem, carry))
+            (G, g, mu, bounds), carry = lax.optimization_barrier((problem, carry))
             round_, _, (impulse, info), last = carry
-            moved = last - _natural_map(last, G, g, mu, fixed_point_step_sizes(G, mu.shape[0]))
+            moved = last - _natural_map(last, G, g, mu, fixed_point_step_sizes(G, mu.shape[0]), bounds)
             candidate, primal, dual, complementarity, solved = solver.polished(
-                G, g, mu, jnp.where(round_ == 0, impulse, moved), least_squares
+                G, g, mu, jnp.where(round_ == 0, impulse, moved), least_squares, bounds
             )
             solved = solved & ~info.converged
             # kept only where solved: a successful solve
@@ -950,9 +1105,9 @@ def solve_ncp(
 
     def admm(problem, start, start_info, needed):
         def run(problem, state):
-            G, g, mu = problem
-            state = solver.init(G, g, mu, state[0])
-            state = lax.while_loop(lambda s: ~solver.terminate(s), lambda s: solver.step(G, g, mu, s), state)
+            G, g, mu, bounds = problem
+            state = solver.init(G, g, mu, state[0], bounds)
+            state = lax.while_loop(lambda s: ~solver.terminate(s), lambda s: solver.step(G, g, mu, s, bounds), state)
             return solver.postprocess(state)
 
         return once_if(run, needed & ~start_info.converged, problem, (start, start_info))
@@ -990,10 +1145,12 @@ def solve_ncp(
     # Reported in the result too: a caller that leaves out the traced checks above
     # (rsmooth._checks.without_traced_checks, e.g. a rollout) still sees an invalid problem.
     invalid = ~jnp.all(jnp.isfinite(G)) | ~jnp.all(jnp.isfinite(g)) | ~jnp.all(jnp.isfinite(mu)) | jnp.any(mu < 0)
+    if bounds is not None:
+        invalid = invalid | ~jnp.all(bounds >= 0)
     info = eqx.tree_at(lambda i: i.result, info, RESULTS.where(invalid, RESULTS.invalid_input, info.result))
     if solver.throw:
         impulse = eqx.error_if(
             impulse, ~info.converged, "NCP solver did not converge within max_iterations, or its impulse is not finite (NCPInfo.result).",
         )
-    impulse = _with_implicit_derivative(solver.implicit_regularization, impulse, G, g, mu)
+    impulse = _with_implicit_derivative(solver.implicit_regularization, impulse, G, g, mu, bounds)
     return impulse, info

@@ -823,5 +823,5 @@ def test_the_factored_sticking_guess_equals_the_pseudo_inverse_of_g():
         reference, reference_info = solve_ncp(jnp.asarray(G), g, mu, solver=solver)
         np.testing.assert_allclose(np.asarray(impulse), np.asarray(reference), rtol=0, atol=1e-9)
     assert 0 < solved < 8  # both cases met
-    with pytest.raises(ValueError, match=r"delassus_factor must have shape \(m, 12\)"):
+    with pytest.raises(ValueError, match=r"delassus_factor must have shape \(d, 12\)"):
         solve_ncp(jnp.asarray(G), g, mu, solver=solver, delassus_factor=jnp.asarray(X[:, :6]))
