@@ -100,7 +100,7 @@ class Config:
         False, "Drop the file's joint couplings (a URDF <mimic>, e.g. Panda's fingers), with a warning: the coupled "
         "joints then move independently.")
     drop_frictionloss: bool = _protocol.option(
-        False, "Drop the file's dry joint friction (frictionloss, a URDF <dynamics friction>), which is not simulated, "
+        False, "Drop the file's dry joint friction (frictionloss, a URDF <dynamics friction>), simulated otherwise, "
         "with a warning.")
     boundinertia: float | None = _protocol.option(
         None, "Lower bound (kg m^2) on every body's principal moments of inertia, for a file whose inertia is not "

@@ -95,6 +95,7 @@ from rsmooth.sim._simulator import (
     SLIDING as SLIDING,
     STICKING as STICKING,
     GeomPair as GeomPair,
+    JointFriction as JointFriction,
     Options as Options,
     RigidBodySystem as RigidBodySystem,
     SimulationWarning as SimulationWarning,

@@ -3,10 +3,10 @@
 MuJoCo compiles the file (defaults, ``fromto``, mesh inertia, angle units...) into an
 ``mujoco.MjModel``; :func:`from_mujoco` converts that into rsmooth's :class:`~rsmooth.sim.Model`
 (the kinematic tree, inertias, limits, armature, gravity) plus what the tree does not hold: the
-joint damping, the time step, the direct joint motors, and the collision geometry as plain data.
-The conversion is checked once on the host and refuses, by name, what rsmooth's dynamics do not
-model (as MJX's ``put_model`` does), instead of simulating something else silently; two of
-these, joint equalities (a URDF ``<mimic>``) and dry joint friction, :func:`load_mjcf` drops on
+joint damping and dry friction, the time step, the direct joint motors, and the collision
+geometry as plain data. The conversion is checked once on the host and refuses, by name, what
+rsmooth's dynamics do not model (as MJX's ``put_model`` does), instead of simulating something
+else silently; one of these, joint equalities (a URDF ``<mimic>``), :func:`load_mjcf` drops on
 request, with a warning.
 
 Joint mapping. Every MuJoCo joint becomes one rsmooth joint, in MuJoCo's order, so rsmooth
@@ -86,6 +86,9 @@ class MujocoModel(eqx.Module):
             generalized force the motors of a joint can apply, ``inf`` where no limit applies).
         damping: ``(nv,)``, viscous joint damping ``dof_damping`` (the force is
             ``-damping * v``); zero where dampers are disabled.
+        frictionloss: ``(nv,)``, dry joint friction ``dof_frictionloss``, the largest effort
+            (N m or N) that resists a dof's motion (:class:`~rsmooth.sim.JointFriction`); zero
+            where it is disabled.
         timestep: ``opt.timestep``, in seconds.
         body_names: name of every MuJoCo body (``"world"`` first).
         body_parents: MuJoCo parent body of every body (``body_parentid``; 0 for the world).
@@ -142,6 +145,7 @@ class MujocoModel(eqx.Module):
 
     model: Model
     damping: jax.Array
+    frictionloss: jax.Array
     timestep: float = eqx.field(static=True)
     body_names: tuple[str, ...] = eqx.field(static=True)
     body_parents: tuple[int, ...] = eqx.field(static=True)
@@ -425,12 +429,6 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
             )
     for d in range(m.nv):
         joint = joint_names[m.dof_jntid[d]]
-        if m.dof_frictionloss[d] != 0:
-            raise ValueError(
-                f"MuJoCo model: joint {joint!r} has frictionloss (dry joint friction; a URDF's <dynamics friction>), "
-                "which rsmooth.sim does not model (supported: frictionloss 0): remove it from the file, or load it "
-                "with load_mjcf(..., drop_frictionloss=True), which drops it with a warning"
-            )
         if np.any(m.dof_dampingpoly[d] != 0):
             raise ValueError(
                 f"MuJoCo model: joint {joint!r} has nonlinear damping (dampingpoly); rsmooth.sim supports linear "
@@ -549,7 +547,8 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
     Raises:
         ValueError: if the model uses a feature that rsmooth.sim does not model (the message
             names the element and what is supported): a ball joint's range beyond pi, joint springs,
-            frictionloss, nonlinear damping, tendons, equality constraints, flex, skins,
+            frictionloss on a free joint's linear axes, nonlinear damping, tendons, equality
+            constraints, flex, skins,
             plugins, mocap bodies, gravity compensation, fluid forces, colliding height fields
             or SDFs, actuators other than direct motors on a hinge or slide, and on a free
             joint's linear axes an armature (MuJoCo applies it to the world-axes acceleration)
@@ -637,6 +636,12 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
                     f"MuJoCo model: free joint {joint_names[j]!r} has damping {m.dof_damping[dofs].tolist()} on its "
                     "linear axes; rsmooth.sim needs the same value on the three (its linear velocity is in body axes)"
                 )
+            if np.any(m.dof_frictionloss[dofs] != 0):  # MuJoCo bounds each world axis' force
+                raise ValueError(
+                    f"MuJoCo model: free joint {joint_names[j]!r} has frictionloss {m.dof_frictionloss[dofs].tolist()} "
+                    "on its linear axes; rsmooth.sim supports it on a free joint's angular axes only (its linear "
+                    "velocity is in body axes, MuJoCo's friction bounds the world axes' forces)"
+                )
             continue
         qpos0[adr] = m.qpos0[adr]
         if m.jnt_limited[j]:
@@ -700,9 +705,12 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         start, count = m.mesh_faceadr[mesh], m.mesh_facenum[mesh]
         faces.append(device_array(m.mesh_face[start : start + count], np.int32))
     damping = np.zeros(m.nv) if disabled & int(mj.mjtDisableBit.mjDSBL_DAMPER) else np.asarray(m.dof_damping, dtype=np.float64)
+    friction_off = disabled & int(mj.mjtDisableBit.mjDSBL_FRICTIONLOSS)
+    frictionloss = np.zeros(m.nv) if friction_off else np.asarray(m.dof_frictionloss, dtype=np.float64)
     return MujocoModel(
         model=model,
         damping=_array(damping),
+        frictionloss=_array(frictionloss),
         timestep=float(m.opt.timestep),
         body_names=body_names,
         body_parents=tuple(int(p) for p in m.body_parentid),
@@ -1209,7 +1217,7 @@ def load_mjcf(
             a :class:`MujocoLoadWarning` naming the joints: they then move independently.
             Other equality constraints are still refused.
         drop_frictionloss: drop the dry joint friction (``frictionloss``; what MuJoCo makes of
-            a URDF's ``<dynamics friction>``), which rsmooth.sim does not model, with a
+            a URDF's ``<dynamics friction>``), to simulate the joints without it, with a
             :class:`MujocoLoadWarning` naming the joints and values.
         max_hull_vertices: ``None``, or the most vertices (``>= 4``) of the convex hull
             MuJoCo takes of each mesh (its ``maxhullvert``, for meshes that do not set their

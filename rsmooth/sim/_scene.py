@@ -250,7 +250,8 @@ def scene(
 ) -> RigidBodySystem:
     """A MuJoCo model (MJCF or URDF) as a system with hard frictional contact.
 
-    The kinematic tree, gravity, armature and joint damping are those of
+    The kinematic tree, gravity, armature, joint damping and dry joint friction
+    (``frictionloss``, :meth:`~rsmooth.sim.RigidBodySystem.with_joint_friction`) are those of
     :func:`~rsmooth.sim.load_mjcf`; every colliding geom pair of MuJoCo is a
     :class:`~rsmooth.sim.GeomPair` with MuJoCo's friction (see the module's description for
     the mapping of geoms, frames and frictions). The input ``u`` ``(nu,)`` holds the
@@ -431,7 +432,7 @@ def scene(
         initial_configuration=initial_configuration,
         joint_damping=loaded.damping,
     )
-    system = system.with_contact_budget(max_contacts, max_pairs, max_limits)
+    system = system.with_contact_budget(max_contacts, max_pairs, max_limits).with_joint_friction(np.asarray(loaded.frictionloss))
     if not joint_limits:
         return system
     _warn_if_beyond_limits(model, np.asarray(initial_configuration), source_label(source))

@@ -27,6 +27,8 @@ state ``x = [q, v]``:
      velocity level, on the Delassus matrix ``G = J M^-1 J^T`` and the free velocity
      ``g = J v_f`` corrected by ``max(phi, 0) / h`` (a gap that does not close within the
      step exerts no impulse) and ``baumgarte * min(phi, 0) / h`` (penetration is pushed out).
+     The joints' dry friction (:attr:`RigidBodySystem.joint_friction`) adds one box row per
+     dof, ``|lambda_k| <= effort_k h`` opposing the dof's velocity, solved with the contacts.
      Solved by :func:`~rsmooth.sim.solve_ncp` (ADMM), differentiated implicitly.
    - a :class:`~rsmooth.sim.SpringDamper` or :class:`~rsmooth.sim.LogBarrier`: the compliant
      force at ``(phi, J v)`` times ``h``.
@@ -75,6 +77,7 @@ import numpy as np
 from jax.typing import ArrayLike
 
 from rsmooth import _checks
+from rsmooth._xla import device_array
 from rsmooth._results import RESULTS
 from rsmooth.sim import _derivatives, _dynamics, _stages
 from rsmooth.sim import _spatial as spatial
@@ -152,8 +155,8 @@ class _VelocityUpdate(NamedTuple):
     clipped: Array
     mass_factor: tuple[Array, bool]  # Cholesky factor of M (jax.scipy.linalg.cho_factor)
     jacobian: Array  # contact Jacobian J, (3 n, nv)
-    delassus: Array  # G = J_s M^-1 J_sᵀ of the solved contacts s (all, or the selection)
-    free_velocity: Array  # g: the NCP's free contact velocity (hard contact), solved contacts
+    delassus: Array  # G = J_s M^-1 J_sᵀ of the solved rows s (the contacts: all, or the selection; the dry friction's)
+    free_velocity: Array  # g: the NCP's free velocity (hard contact), solved rows
     mu: Array  # friction coefficient per solved contact
     kinematics: _dynamics.Kinematics  # at q
     inertias: spatial.SpatialInertia  # world-frame body inertias at q
@@ -162,10 +165,15 @@ class _VelocityUpdate(NamedTuple):
     frames: Array  # contact frames (n, 3, 3), columns [t1, t2, n] in world axes
     selection: Array | None  # the solved contacts' indices (K,) under a budget; None: all
     dropped: Array  # StepInfo.dropped_contacts
+    friction_impulse: Array  # (m,): the joints' dry friction (RigidBodySystem.joint_friction)
 
     def solved(self, rows: Array) -> Array:
         """``rows`` (flat ``[t1, t2, n]`` per candidate, leading axis) of the solved contacts."""
         return rows if self.selection is None else rows[_stages.flat_rows(self.selection)]
+
+    def solved_impulse(self) -> Array:
+        """The NCP's unknowns: the solved contacts' impulses, then the dry friction's."""
+        return jnp.concatenate([self.solved(self.impulse), self.friction_impulse])
 
     def public(self) -> tuple[Array, Array, Array, NCPInfo, Array, tuple[Array, Array, Array]]:
         # the contact frames and end-of-step contact velocities J v+ for the diagnostics
@@ -335,6 +343,37 @@ class Options(eqx.Module):
         _check_concrete("max_motion_per_step", self.max_motion_per_step, positive=True, allow_inf=True)
 
 
+class JointFriction(eqx.Module):
+    """Dry (Coulomb) friction on joints (MuJoCo's ``frictionloss``, a URDF's ``<dynamics
+    friction>``): each dof of ``dofs`` resists its motion with an effort of at most ``effort``
+    (N m or N), the most it can dissipate.
+
+    A step solves it with the contacts, as box rows of the NCP: the impulse on dof ``k`` is
+    bounded by ``|lambda_k| <= effort_k h``, opposes the dof's end-of-step velocity, and holds
+    the dof still where that bound suffices (:func:`~rsmooth.sim.solve_ncp`'s ``bounds``).
+    Being exact, a held joint does not creep, unlike a smoothed friction law; derivatives are
+    those of the solved rows (a sticking dof's velocity is held at zero, a slipping one's
+    impulse is its bound, whose derivative in ``effort`` flows).
+
+    Attributes:
+        dofs: the velocity indices with dry friction (static, distinct).
+        effort: ``(len(dofs),)`` the friction effort of each, ``>= 0`` and finite.
+    """
+
+    dofs: tuple[int, ...] = eqx.field(static=True)
+    effort: Array
+
+    def __check_init__(self):
+        if len(set(self.dofs)) != len(self.dofs) or not all(isinstance(d, (int, np.integer)) for d in self.dofs):
+            raise ValueError(f"JointFriction.dofs must be distinct velocity indices, got {self.dofs!r}")
+        if jnp.shape(self.effort) != (len(self.dofs),):
+            raise ValueError(f"JointFriction.effort must have shape ({len(self.dofs)},) (one per dof), got {jnp.shape(self.effort)}")
+        if not _checks.is_traced(self.effort):
+            values = np.asarray(self.effort)
+            if not np.all(np.isfinite(values)) or np.any(values < 0):
+                raise ValueError(f"JointFriction.effort must be finite and >= 0 (N m or N), got {values}")
+
+
 class RigidBodySystem(eqx.Module):
     """A kinematic tree with sphere contacts against half-spaces and contacts between pairs
     of collision shapes (:class:`GeomPair`), stepped in time.
@@ -429,6 +468,8 @@ class RigidBodySystem(eqx.Module):
             ``input_limit`` bounds ``u``, not the sum (static; ``actuation="joints"`` only).
             Its derivative with respect to the configuration is part of the step's. See
             :meth:`with_gravity_compensation`.
+        joint_friction: dry friction on joints (:class:`JointFriction`), solved with the
+            contacts (hard contact only); ``None``: none. See :meth:`with_joint_friction`.
     """
 
     model: Model
@@ -452,6 +493,7 @@ class RigidBodySystem(eqx.Module):
     max_pairs: int | None = eqx.field(static=True, default=None)
     max_limits: int | None = eqx.field(static=True, default=None)
     gravity_compensation: bool = eqx.field(static=True, default=False)
+    joint_friction: JointFriction | None = None
 
     def __check_init__(self):
         num_spheres, num_planes = len(self.sphere_frames), self.plane_normals.shape[0]
@@ -505,6 +547,14 @@ class RigidBodySystem(eqx.Module):
             raise ValueError("gravity_compensation adds efforts to the actuated dofs: it needs actuation='joints'")
         if self.joint_limits and not isinstance(self.contact, str):
             raise ValueError("joint_limits are enforced by the hard-contact NCP: use contact='hard'")
+        if self.joint_friction is not None:
+            if not isinstance(self.joint_friction, JointFriction):
+                raise ValueError(f"joint_friction must be a JointFriction or None, got {self.joint_friction!r}")
+            if not isinstance(self.contact, str):
+                raise ValueError("joint_friction is solved by the hard-contact NCP: use contact='hard'")
+            bad = [d for d in self.joint_friction.dofs if not 0 <= d < self.model.nv]
+            if bad:
+                raise ValueError(f"joint_friction.dofs {bad} out of range [0, {self.model.nv})")
         if not isinstance(self.geom_pairs, tuple) or not all(isinstance(p, GeomPair) for p in self.geom_pairs):
             raise ValueError(f"geom_pairs must be a tuple of GeomPair, got {self.geom_pairs!r}")
         for index, pair in enumerate(self.geom_pairs):
@@ -582,6 +632,39 @@ class RigidBodySystem(eqx.Module):
             + sum(pair.size for pair in self.geom_pairs)
             + len(self.joint_limits)
         )
+
+    def with_joint_friction(self, effort: ArrayLike | None) -> "RigidBodySystem":
+        """This system with dry friction on its joints (:attr:`joint_friction`).
+
+        Args:
+            effort: ``(nv,)``, the friction effort of every dof (N m or N), ``>= 0``; the dofs
+                where it is zero get none (and no row in the solve). ``None``: no friction.
+
+        Raises:
+            ValueError: on a wrong shape or a negative or non-finite value (naming the dofs),
+                or a compliant contact law.
+        """
+        if effort is None:
+            return dataclasses.replace(self, joint_friction=None)
+        values = np.asarray(effort, dtype=np.float64)
+        if values.shape != (self.model.nv,):
+            raise ValueError(f"effort must have shape (nv,) = ({self.model.nv},), got {values.shape}")
+        bad = np.flatnonzero(~np.isfinite(values) | (values < 0))
+        if bad.size:
+            raise ValueError(f"effort must be finite and >= 0 (N m or N); dofs {bad.tolist()} have {values[bad].tolist()}")
+        dofs = np.flatnonzero(values > 0)
+        if dofs.size == 0:
+            return dataclasses.replace(self, joint_friction=None)
+        friction = JointFriction(tuple(int(d) for d in dofs), device_array(values[dofs]))
+        return dataclasses.replace(self, joint_friction=friction)
+
+    def friction_rows(self) -> Array:
+        """The rows of :attr:`joint_friction` in the contact problem: ``(m, nv)``, row ``k``
+        selecting the velocity of dof ``joint_friction.dofs[k]`` (``(0, nv)`` without friction)."""
+        dofs = () if self.joint_friction is None else self.joint_friction.dofs
+        rows = np.zeros((len(dofs), self.model.nv))
+        rows[np.arange(len(dofs)), list(dofs)] = 1.0
+        return device_array(rows, self.time_step.dtype)
 
     def with_joint_limits(self, joints: Sequence[str] | None = None) -> "RigidBodySystem":
         """This system with its model's finite position limits enforced (:attr:`joint_limits`).
@@ -1063,6 +1146,7 @@ class RigidBodySystem(eqx.Module):
             solution.velocity, solution.impulse, contacts.distance, solution.ncp, motion.torque_clipped,
             (motion.mass_cholesky, True), contacts.jacobian, solution.delassus, solution.free_velocity,
             solution.friction, posed, motion.inertias, motion.mass, contacts.frames, solution.selection, solution.dropped,
+            solution.friction_impulse,
         )
 
     def step(self, x: ArrayLike, u: ArrayLike) -> Array:
@@ -1276,22 +1360,24 @@ def _implicit_velocity_update_jvp(primals, tangents):
     update = system._velocity_update(q, v, u, warm_start)
     residuals = _step_residuals(update)
     outputs, output_tangents = eqx.filter_jvp(residuals, (system, q, v, u), (t_system, t_q, t_v, t_u))
-    momentum_dot, velocity_dot, distance_dot, mu_dot = (
+    momentum_dot, velocity_dot, distance_dot, mu_dot, bounds_dot = (
         jnp.zeros_like(primal) if tangent is None else tangent for primal, tangent in zip(outputs, output_tangents)
     )
-    v_next_dot, impulse_dot = _velocity_update_tangent(system, update, momentum_dot, velocity_dot, mu_dot)
+    v_next_dot, impulse_dot = _velocity_update_tangent(system, update, momentum_dot, velocity_dot, mu_dot, bounds_dot)
     no_tangent = jax.tree.map(lambda _: None, update.ncp)  # diagnostics: symbolic zeros
     return update.public(), (v_next_dot, impulse_dot, distance_dot, no_tangent, None, (None, None, None))
 
 
 def _step_residuals(update: _VelocityUpdate):
     """The step's equations at the solution ``(v+, lambda)`` of ``update``, as a function of
-    the parameters ``(system, q, v, u)``: ``(E, c, distance, mu)`` (see the JVP rule above).
+    the parameters ``(system, q, v, u)``: ``(E, c, distance, mu, bounds)`` (see the JVP rule
+    above; ``c`` and ``lambda`` hold the solved contacts' rows, then the dry friction's, whose
+    bounds are ``h`` times the friction efforts).
 
     ``residuals(system, q, v, u, geometry=None)``: ``geometry`` is what depends on ``q`` only,
     ``(kinematics, inertias, distance, J)``; pass the primal one (``update``'s) to differentiate
     with respect to ``v`` or ``u`` without tracing the kinematics again."""
-    v_next, impulse = lax.stop_gradient(update.v_next), lax.stop_gradient(update.solved(update.impulse))
+    v_next, impulse = lax.stop_gradient(update.v_next), lax.stop_gradient(update.solved_impulse())
 
     def residuals(system: RigidBodySystem, q: Array, v: Array, u: Array, geometry=None):
         model, h = system.model, system.time_step
@@ -1313,41 +1399,61 @@ def _step_residuals(update: _VelocityUpdate):
         solved_distance, mu = distance, system.contact_friction()
         if update.selection is not None:  # the solved contacts' equations (a fixed selection)
             solved_distance, jacobian, mu = distance[update.selection], update.solved(jacobian), mu[update.selection]
+        velocity = corrected_free_velocity(jacobian @ v_next, solved_distance, h, baumgarte=system.baumgarte)
+        bounds = jnp.zeros(0, v_next.dtype)
+        if system.joint_friction is not None:  # the dry friction's rows: J_f v+ within h effort
+            friction_rows = system.friction_rows().astype(jacobian.dtype)
+            jacobian = jnp.concatenate([jacobian, friction_rows])
+            velocity = jnp.concatenate([velocity, friction_rows @ v_next])
+            bounds = h * system.joint_friction.effort
         # J^T lambda as an unrolled sum of rows: under jacfwd/vmap a dot transposes J's
         # batch and a reduction goes to YNNPACK, both several times slower on CPU (_spatial)
         momentum = h * (inverse_dynamics - tau) - sum(impulse[i] * jacobian[i] for i in range(impulse.shape[0]))
-        velocity = corrected_free_velocity(jacobian @ v_next, solved_distance, h, baumgarte=system.baumgarte)
-        return momentum, velocity, distance, mu
+        return momentum, velocity, distance, mu, bounds
 
     return residuals
 
 
 def _velocity_update_tangent(
-    system: RigidBodySystem, update: _VelocityUpdate, momentum_dot: Array, velocity_dot: Array, mu_dot: Array
+    system: RigidBodySystem,
+    update: _VelocityUpdate,
+    momentum_dot: Array,
+    velocity_dot: Array,
+    mu_dot: Array,
+    bounds_dot: Array | None = None,
 ) -> tuple[Array, Array]:
     """``(dv+, dlambda)`` from the change of the step's equations at fixed ``(v+, lambda)``
-    (``velocity_dot`` and ``mu_dot``: those of the solved contacts; ``dlambda``: every
-    candidate's, zero where a budget left it out)."""
-    impulse = lax.stop_gradient(update.solved(update.impulse))
+    (``velocity_dot``: that of the solved rows, the contacts' then the dry friction's;
+    ``mu_dot`` of the solved contacts; ``bounds_dot`` of the dry friction's bounds, ``None``
+    for zero; ``dlambda``: every candidate contact's, zero where a budget left it out)."""
+    impulse = lax.stop_gradient(update.solved_impulse())
     jacobian = update.solved(update.jacobian)
+    friction = system.joint_friction
+    if friction is not None:
+        jacobian = jnp.concatenate([jacobian, system.friction_rows().astype(jacobian.dtype)])
     solve = many_column_solver(update.mass_factor, momentum_dot)
     free_motion_dot = -solve(momentum_dot)  # dv+ at fixed lambda
-    if impulse.shape[0] == 0:  # no contact: the free motion is the whole step
+    if impulse.shape[0] == 0:  # no contact nor friction row: the free motion is the whole step
         return free_motion_dot, jnp.zeros((0,) + free_motion_dot.shape[1:], free_motion_dot.dtype)
     minv_jt = solve(jacobian.T)  # primal: once for all tangents (a product where M^-1 is formed)
     velocity_dot = velocity_dot + jacobian @ free_motion_dot
     G, g, mu = update.delassus, update.free_velocity, update.mu
+    bounds = None if friction is None else lax.stop_gradient(system.time_step * friction.effort).astype(G.dtype)
     step_sizes = fixed_point_step_sizes(G, mu.shape[0])
     # dF at fixed lambda, as explicit (3 n x 3 n) and (3 n x n) matrices so that the
     # tangents may be vectors (a JVP) or matrices of columns (step_and_jacobians)
     by_velocity, by_mu = jax.jacfwd(
-        lambda c, mu_: natural_map_of_velocity(impulse, c, mu_, step_sizes), argnums=(0, 1)
+        lambda c, mu_: natural_map_of_velocity(impulse, c, mu_, step_sizes, bounds), argnums=(0, 1)
     )(G @ impulse + g, mu)
     rhs = by_velocity @ velocity_dot + by_mu @ mu_dot
+    if bounds is not None and bounds_dot is not None:
+        by_bounds = jax.jacfwd(lambda b: natural_map_of_velocity(impulse, G @ impulse + g, mu, step_sizes, b))(bounds)
+        rhs = rhs + by_bounds @ bounds_dot
     impulse_dot = implicit_impulse_tangent(
-        system.solver.implicit_regularization, impulse, G, g, mu, step_sizes, rhs
+        system.solver.implicit_regularization, impulse, G, g, mu, step_sizes, rhs, bounds
     )
     v_next_dot = free_motion_dot + minv_jt @ impulse_dot
+    impulse_dot = impulse_dot[: impulse_dot.shape[0] - (0 if friction is None else len(friction.dofs))]
     if update.selection is not None:
         full = jnp.zeros((update.impulse.shape[0],) + impulse_dot.shape[1:], impulse_dot.dtype)
         impulse_dot = full.at[_stages.flat_rows(update.selection)].set(impulse_dot)

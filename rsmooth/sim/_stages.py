@@ -124,14 +124,18 @@ class ContactSolution(eqx.Module):
             budget left it out).
         ncp: the contact solve's :class:`~rsmooth.sim.NCPInfo` (zero iterations and
             ``RESULTS.successful`` where nothing is solved: no candidate, or a compliant law).
-        delassus: ``G = J_s W^-1 J_sᵀ`` of the solved contacts ``s`` (every candidate, or a
-            budget's selection).
-        free_velocity: the solved contacts' free velocity ``g`` (hard contact: ``J_s v_f`` with
-            the Baumgarte and gap corrections, the NCP's; a compliant law: ``J v_f``).
+        delassus: ``G = J_s W^-1 J_sᵀ`` of the solved rows ``s``: the solved contacts (every
+            candidate, or a budget's selection), then the ``m`` rows of the joints' dry
+            friction (:meth:`RigidBodySystem.friction_rows`), ``(3 n_s + m, 3 n_s + m)``.
+        free_velocity: the solved rows' free velocity ``g`` (hard contact: ``J_s v_f`` with
+            the Baumgarte and gap corrections on the contacts, the NCP's; a compliant law:
+            ``J v_f``).
         friction: the solved contacts' Coulomb coefficients.
         selection: the solved contacts' indices under a budget (:attr:`RigidBodySystem.max_contacts`);
             ``None``: every candidate.
         dropped: :attr:`StepInfo.dropped_contacts` (``()``, int).
+        friction_impulse: ``(m,)`` the impulse of each dof's dry friction
+            (:attr:`RigidBodySystem.joint_friction`), ``|.| <= effort h``.
     """
 
     velocity: Array
@@ -142,6 +146,7 @@ class ContactSolution(eqx.Module):
     friction: Array
     selection: Array | None
     dropped: Array
+    friction_impulse: Array
 
 
 def kinematics(system: RigidBodySystem, q: Array) -> Kinematics:
@@ -183,12 +188,15 @@ def solve_contacts(
     """Stage 4: the contact impulses by the system's contact law and the velocity they give.
 
     Hard contact solves the frictional NCP (:func:`~rsmooth.sim.solve_ncp`, from ``warm_start``
-    ``(3 n,)`` if given) on the candidates, or on a budget's closest ones; a compliant law
-    evaluates its force, linearly implicit in the velocity."""
+    ``(3 n,)`` if given) on the candidates, or on a budget's closest ones, with the joints' dry
+    friction as box rows; a compliant law evaluates its force, linearly implicit in the
+    velocity."""
     h, cholesky = system.time_step, motion.mass_cholesky
     distance, jacobian, mu = contacts.distance, contacts.jacobian, contacts.friction
     v_free = motion.velocity
     hard = isinstance(system.contact, str)
+    friction_rows = system.friction_rows()  # (m, nv); a compliant system has none
+    m = friction_rows.shape[0]
     # the contacts the NCP solves: every candidate, or the budget's closest ones
     selection = system._contact_selection(distance) if hard else None
     dropped = jnp.zeros((), jnp.int32)
@@ -199,18 +207,25 @@ def solve_contacts(
         dropped = jnp.sum(closes.at[selection].set(False), dtype=jnp.int32)
         distance, jacobian, mu = distance[selection], jacobian[rows], mu[selection]
         warm_start = None if warm_start is None else jnp.asarray(warm_start)[rows]
+    contact_rows = jacobian.shape[0]
+    if m:  # the dry friction's rows after the contacts' (box rows of the NCP)
+        jacobian = jnp.concatenate([jacobian, friction_rows.astype(jacobian.dtype)])
+        if warm_start is not None:
+            warm_start = jnp.concatenate([jnp.asarray(warm_start), jnp.zeros(m, jacobian.dtype)])
     # X = L^-1 Jᵀ: G = Xᵀ X (symmetric by construction) and W^-1 Jᵀ lambda = L^-T (X lambda),
     # one triangular solve with 3 n columns where W^-1 Jᵀ takes two
     half = jax.scipy.linalg.solve_triangular(cholesky, jacobian.T, lower=True)  # (nv, 3n)
     delassus = half.T @ half
     zero = jnp.zeros((), v_free.dtype)
     nothing_solved = NCPInfo(jnp.zeros((), jnp.int32), zero, zero, zero, RESULTS.successful, zero)
-    if distance.shape[0] == 0:
-        # no candidate contact (a body in free flight, a scene without a colliding pair):
-        # nothing to solve, and an empty problem is not one the NCP solver accepts
+    if jacobian.shape[0] == 0:
+        # no candidate contact nor friction row (a body in free flight, a scene without a
+        # colliding pair): nothing to solve, and an empty problem is not one the NCP solver accepts
         free_velocity, impulse, ncp = jacobian @ v_free, jnp.zeros(0, v_free.dtype), nothing_solved
     elif hard:
-        free_velocity = corrected_free_velocity(jacobian @ v_free, distance, h, baumgarte=system.baumgarte)
+        free_velocity = corrected_free_velocity(jacobian[:contact_rows] @ v_free, distance, h, baumgarte=system.baumgarte)
+        if m:
+            free_velocity = jnp.concatenate([free_velocity, jacobian[contact_rows:] @ v_free])
         # From a finite but absurd state (a simulation that has already diverged: positions
         # of 1e8 m, velocities of 1e11 rad/s) the mass matrix loses definiteness to rounding
         # and the contact problem is not finite. That is the step's divergence, which it
@@ -221,6 +236,7 @@ def solve_contacts(
             jnp.where(broken, jnp.eye(delassus.shape[0], dtype=delassus.dtype), delassus),
             jnp.where(broken, 0.0, free_velocity), mu, solver=system.solver, warm_start=warm_start,
             delassus_factor=jnp.where(broken, 0.0, half),  # G = halfᵀ half: a cheaper sticking guess
+            bounds=h * system.joint_friction.effort.astype(delassus.dtype) if m else None,
         )
         impulse = jnp.where(broken, jnp.nan, impulse)
         ncp = eqx.tree_at(lambda info: info.result, ncp, RESULTS.where(broken, RESULTS.nonfinite, ncp.result))
@@ -228,9 +244,10 @@ def solve_contacts(
         free_velocity = jacobian @ v_free
         impulse, ncp = compliant_impulse(system.contact, distance, free_velocity, delassus, h), nothing_solved
     velocity = v_free + jax.scipy.linalg.solve_triangular(cholesky, half @ impulse, lower=True, trans="T")
+    impulse, friction_impulse = impulse[:contact_rows], impulse[contact_rows:]
     if selection is not None:  # every candidate's impulse, zero where left out
         impulse = jnp.zeros(contacts.jacobian.shape[0], impulse.dtype).at[rows].set(impulse)
-    return ContactSolution(velocity, impulse, ncp, delassus, free_velocity, mu, selection, dropped)
+    return ContactSolution(velocity, impulse, ncp, delassus, free_velocity, mu, selection, dropped, friction_impulse)
 
 
 def advance(system: RigidBodySystem, q: Array, v_next: Array) -> tuple[Array, Array]:

@@ -405,7 +405,10 @@ UNSUPPORTED = {
     "tendon": (wrap(HINGE_BODY, "<tendon><fixed name='t'><joint joint='j' coef='1'/></fixed></tendon>"), "tendons .*'t'"),
     "equality": (wrap(HINGE_BODY, "<equality><weld name='e' body1='b'/></equality>"), "equality constraints .*'e'"),
     "spring": (wrap("<body><joint name='j' stiffness='3'/><geom size='0.1'/></body>"), "joint 'j' has a spring"),
-    "frictionloss": (wrap("<body><joint name='j' frictionloss='1'/><geom size='0.1'/></body>"), "joint 'j' has frictionloss"),
+    "free_frictionloss": (
+        wrap("<body><joint name='j' type='free' frictionloss='1'/><geom size='0.1'/></body>"),
+        "free joint 'j' has frictionloss .* on its linear axes",
+    ),
     "position_servo": (
         wrap(HINGE_BODY, "<actuator><position name='p' joint='j' kp='10'/></actuator>"),
         "actuator 'p' is not a direct joint motor: it is a position",
@@ -622,13 +625,7 @@ ROBOTS = {
         'boundinertia="1e-9"',
     ),
     "go2": ("go2_description/urdf/go2.urdf", True, dict(visuals=False), (), ""),
-    "allegro": (
-        "allegro_hand_description/urdf/allegro_right_hand.urdf",
-        False,
-        dict(visuals=False, drop_frictionloss=True),
-        ("frictionloss",),
-        "",
-    ),
+    "allegro": ("allegro_hand_description/urdf/allegro_right_hand.urdf", False, dict(visuals=False), (), ""),
 }
 
 
@@ -663,6 +660,10 @@ def test_example_robots_match_mujoco(name):
     assert loaded.body_names == tuple(m.body(b).name for b in range(m.nbody))
     assert loaded.ngeom == m.ngeom and all(loaded.geom_contype)
     check_against_mujoco(m, loaded, seed=sorted(ROBOTS).index(name))
+    # Dry joint friction as MuJoCo reads it (Allegro's), or dropped on request (Go1's).
+    dropped = options.get("drop_frictionloss", False)
+    np.testing.assert_array_equal(loaded.frictionloss, 0.0 if dropped else m.dof_frictionloss)
+    assert dropped or name != "allegro" or np.all(m.dof_frictionloss[:16] > 0)
 
 
 def test_example_robots_without_their_options_say_which_to_pass():
@@ -674,10 +675,10 @@ def test_example_robots_without_their_options_say_which_to_pass():
     inertia = "(?s)inertia must have positive eigenvalues.*body 'base'.*not positive definite.*boundinertia"
     with pytest.raises(ValueError, match=inertia):
         load_mjcf(robots / ROBOTS["go1"][0], package_dirs=[root.parent], visuals=False, floating_base=True)
-    with pytest.warns(MujocoLoadWarning, match="boundinertia"), pytest.raises(
-        ValueError, match="joint 'FR_hip_joint' has frictionloss.*drop_frictionloss=True"
-    ):
-        load_mjcf(robots / ROBOTS["go1"][0], package_dirs=[root.parent], visuals=False, boundinertia=1e-9)
+    with pytest.warns(MujocoLoadWarning, match="boundinertia"):  # its dry friction kept
+        go1 = load_mjcf(robots / ROBOTS["go1"][0], package_dirs=[root.parent], visuals=False, boundinertia=1e-9)
+    hip = go1.model.idx_v[go1.model.joint_id("FR_hip_joint")]
+    assert float(go1.frictionloss[hip]) == 0.2
 
 
 def mesh_bounds_by_body(loaded: MujocoModel, geoms) -> dict[str, np.ndarray]:
