@@ -148,6 +148,7 @@ def test_implicit_derivative_matches_finite_differences(sticking):
     g = np.array([0.05, -0.02, -1.0, 0.1, -0.3 if sticking else -3.0])
     mu, bounds = np.array([1.0]), np.array([2.0, 5.0 if sticking else 0.5])
 
+    @jax.jit
     def solve(g, bounds):
         return solve_ncp(G, g, mu, bounds=bounds, solver=TIGHT)[0]
 
