@@ -28,17 +28,21 @@ def cart_and_arm(hinge_friction: float) -> sim.RigidBodySystem:
     return sim.scene(SCENE.format(hinge=hinge_friction), floor=False)
 
 
+# one compiled rollout per system structure and horizon, whatever the values
+rollout = eqx.filter_jit(lambda system, x0, us: system.rollout(x0, us))
+
+
 def test_the_cart_moves_only_beyond_its_friction_and_then_at_the_closed_form_rate():
     system = cart_and_arm(1.0)
     assert system.joint_friction.dofs == (0, 1)
     np.testing.assert_allclose(system.joint_friction.effort, [FRICTION, 1.0])
     x0, steps = system.initial_state(), 40
     for force in (0.5 * FRICTION, 0.99 * FRICTION, -0.99 * FRICTION):  # held exactly
-        xs, infos = system.rollout(x0, jnp.full((steps, 1), force))
+        xs, infos = rollout(system, x0, jnp.full((steps, 1), force))
         assert bool(jnp.all(infos.ncp.converged))
         np.testing.assert_array_equal(np.asarray(xs[:, 0]), 0.0)
     for force in (1.5 * FRICTION, -3.0 * FRICTION):  # slips: v_k = k h (f - F sign f) / m
-        xs, infos = system.rollout(x0, jnp.full((steps, 1), force))
+        xs, infos = rollout(system, x0, jnp.full((steps, 1), force))
         assert bool(jnp.all(infos.ncp.converged))
         rate = (force - np.sign(force) * FRICTION) / MASS
         np.testing.assert_allclose(np.asarray(xs[1:, 2]), rate * H * np.arange(1, steps + 1), rtol=1e-10)
@@ -63,7 +67,7 @@ def test_the_arm_is_held_where_its_friction_exceeds_gravitys_torque(hinge_fricti
     # Gravity's torque on the horizontal rod: m g l / 2 = 2.45 N m.
     system = cart_and_arm(hinge_friction)
     x0 = system.initial_state()
-    xs, infos = system.rollout(x0, jnp.zeros((30, 1)))
+    xs, infos = rollout(system, x0, jnp.zeros((30, 1)))
     assert bool(jnp.all(infos.ncp.converged))
     held = hinge_friction > MASS * G * 0.25
     angle = np.asarray(xs[:, 1])
@@ -102,12 +106,12 @@ def test_the_joints_friction_adds_to_the_floors():
     assert system.joint_friction.dofs == (1,)
     resistance = FRICTION + mu * MASS * G
     x0, steps = system.initial_state(), 20
-    xs, infos = system.rollout(x0, jnp.full((steps, 1), 0.95 * resistance))
+    xs, infos = rollout(system, x0, jnp.full((steps, 1), 0.95 * resistance))
     assert bool(jnp.all(infos.ncp.converged))
     # held to the NCP's tolerance (1e-10 on c (b + lambda), b = F h: c below 1e-8 m/s)
     assert np.max(np.abs(np.asarray(xs[:, 3]))) < 1e-7 and np.max(np.abs(np.asarray(xs[:, 1]))) < 1e-8
     force = 1.5 * resistance
-    xs, infos = system.rollout(x0, jnp.full((steps, 1), force))
+    xs, infos = rollout(system, x0, jnp.full((steps, 1), force))
     assert bool(jnp.all(infos.ncp.converged))
     np.testing.assert_allclose(np.asarray(xs[1:, 3]), (force - resistance) / MASS * H * np.arange(1, steps + 1), rtol=1e-8)
 
@@ -117,10 +121,11 @@ def test_implicit_jacobians_match_forward_mode(force):
     system = cart_and_arm(1.0)
     x = system.initial_state().at[3].set(0.3)  # the arm turning: its friction slips
     u = jnp.array([force])
-    x_next, fx, fu = system.step_and_jacobians(x, u)
+    x_next, fx, fu = eqx.filter_jit(lambda s, x_, u_: s.step_and_jacobians(x_, u_))(system, x, u)
     reference = system.with_options(derivative="autodiff")
-    fx_ref, fu_ref = jax.jacfwd(reference.step, argnums=(0, 1))(x, u)
-    np.testing.assert_allclose(x_next, reference.step(x, u), atol=1e-12)
+    step = eqx.filter_jit(lambda s, x_, u_: (s.step(x_, u_), *jax.jacfwd(s.step, argnums=(0, 1))(x_, u_)))
+    x_ref, fx_ref, fu_ref = step(reference, x, u)
+    np.testing.assert_allclose(x_next, x_ref, atol=1e-12)
     np.testing.assert_allclose(fx, fx_ref, atol=1e-9)
     np.testing.assert_allclose(fu, fu_ref, atol=1e-9)
     assert (float(fu[2, 0]) == 0.0) == (force < FRICTION)  # a held cart does not feel the push
