@@ -95,6 +95,7 @@ from rsmooth.sim._simulator import (
     SLIDING as SLIDING,
     STICKING as STICKING,
     GeomPair as GeomPair,
+    JointCoupling as JointCoupling,
     JointFriction as JointFriction,
     Options as Options,
     RigidBodySystem as RigidBodySystem,

@@ -6,8 +6,8 @@ MuJoCo compiles the file (defaults, ``fromto``, mesh inertia, angle units...) in
 joint damping and dry friction, the time step, the direct joint motors, and the collision
 geometry as plain data. The conversion is checked once on the host and refuses, by name, what
 rsmooth's dynamics do not model (as MJX's ``put_model`` does), instead of simulating something
-else silently; one of these, joint equalities (a URDF ``<mimic>``), :func:`load_mjcf` drops on
-request, with a warning.
+else silently. Joint equalities (a URDF ``<mimic>``) are converted
+(:attr:`MujocoModel.joint_couplings`); :func:`load_mjcf` drops them on request, with a warning.
 
 Joint mapping. Every MuJoCo joint becomes one rsmooth joint, in MuJoCo's order, so rsmooth
 joint ``j + 1`` is MuJoCo joint ``j`` and ``q``/``v`` have the layout of ``qpos``/``qvel``:
@@ -57,6 +57,7 @@ from jax.typing import ArrayLike
 from rsmooth._xla import device_array
 from rsmooth.sim import _spatial as spatial
 from rsmooth.sim._model import FREE_FLYER, PRISMATIC, REVOLUTE, SPHERICAL, UNIVERSE, Model
+from rsmooth.sim._simulator import JointCoupling
 
 # The geom types a collision routine may meet; height fields and SDFs are accepted only
 # when they cannot collide (purely visual), so that geom indices stay MuJoCo's.
@@ -89,6 +90,9 @@ class MujocoModel(eqx.Module):
         frictionloss: ``(nv,)``, dry joint friction ``dof_frictionloss``, the largest effort
             (N m or N) that resists a dof's motion (:class:`~rsmooth.sim.JointFriction`); zero
             where it is disabled.
+        joint_couplings: the active joint equality constraints (``<equality><joint>``, a
+            URDF's ``<mimic>``) as a :class:`~rsmooth.sim.JointCoupling` (rsmooth joints, MuJoCo's
+            ``polycoef``), or ``None``; inactive ones (``active="false"``) are left out.
         timestep: ``opt.timestep``, in seconds.
         body_names: name of every MuJoCo body (``"world"`` first).
         body_parents: MuJoCo parent body of every body (``body_parentid``; 0 for the world).
@@ -146,6 +150,7 @@ class MujocoModel(eqx.Module):
     model: Model
     damping: jax.Array
     frictionloss: jax.Array
+    joint_couplings: JointCoupling | None
     timestep: float = eqx.field(static=True)
     body_names: tuple[str, ...] = eqx.field(static=True)
     body_parents: tuple[int, ...] = eqx.field(static=True)
@@ -434,33 +439,18 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
                 f"MuJoCo model: joint {joint!r} has nonlinear damping (dampingpoly); rsmooth.sim supports linear "
                 "damping only"
             )
-    for e in range(m.neq):
-        if int(m.eq_type[e]) != int(mj.mjtEq.mjEQ_JOINT):
-            continue
-        # A URDF <mimic> becomes a joint equality: say which joints and what the user can do.
-        name = mj.mj_id2name(m, mj.mjtObj.mjOBJ_EQUALITY, e)
-        name = repr(name) if name else f"{e} (unnamed)"
-        joint1, joint2 = int(m.eq_obj1id[e]), int(m.eq_obj2id[e])
-        coupled = f"couples joint {joint_names[joint1]!r} to joint {joint_names[joint2]!r}" if joint2 >= 0 else (
-            f"holds joint {joint_names[joint1]!r} at a position"
-        )
-        raise ValueError(
-            f"MuJoCo model: the joint equality constraint {name} {coupled} (a URDF <mimic> becomes one); "
-            "rsmooth.sim does not support equality constraints: remove the <mimic> (or <equality><joint>) from the "
-            "file, or load it with load_mjcf(..., drop_mimic=True), which drops joint equalities with a warning "
-            "(the joints then move independently)"
-        )
     counts = [
         ("ntendon", "tendons", mj.mjtObj.mjOBJ_TENDON),
-        ("neq", "equality constraints", mj.mjtObj.mjOBJ_EQUALITY),
+        ("neq", "equality constraints other than joint couplings", mj.mjtObj.mjOBJ_EQUALITY),
         ("nflex", "flexible bodies (flex)", mj.mjtObj.mjOBJ_FLEX),
         ("nskin", "skins", mj.mjtObj.mjOBJ_SKIN),
         ("nplugin", "plugins", mj.mjtObj.mjOBJ_PLUGIN),
     ]
+    others = [e for e in range(m.neq) if int(m.eq_type[e]) != int(mj.mjtEq.mjEQ_JOINT)]
     for attribute, what, kind in counts:
-        count = getattr(m, attribute)
+        count = len(others) if attribute == "neq" else getattr(m, attribute)
         if count > 0:
-            first = mj.mj_id2name(m, kind, 0)
+            first = mj.mj_id2name(m, kind, others[0] if attribute == "neq" else 0)
             named = f" (the first is {first!r})" if first else ""
             raise ValueError(f"MuJoCo model has {count} {what}{named}, which rsmooth.sim does not support")
     for b in range(m.nbody):
@@ -548,7 +538,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         ValueError: if the model uses a feature that rsmooth.sim does not model (the message
             names the element and what is supported): a ball joint's range beyond pi, joint springs,
             frictionloss on a free joint's linear axes, nonlinear damping, tendons, equality
-            constraints, flex, skins,
+            constraints other than joint couplings, flex, skins,
             plugins, mocap bodies, gravity compensation, fluid forces, colliding height fields
             or SDFs, actuators other than direct motors on a hinge or slide, and on a free
             joint's linear axes an armature (MuJoCo applies it to the world-axes acceleration)
@@ -711,6 +701,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         model=model,
         damping=_array(damping),
         frictionloss=_array(frictionloss),
+        joint_couplings=_joint_couplings(mj, m),
         timestep=float(m.opt.timestep),
         body_names=body_names,
         body_parents=tuple(int(p) for p in m.body_parentid),
@@ -813,6 +804,21 @@ def _actuator_limits(mj: Any, m: Any) -> tuple[np.ndarray, dict[str, Any]]:
         actuator_force_range=_array(force_range).reshape(-1, 2),
         dof_actuator_force_range=_array(dof_range).reshape(-1, 2),
     )
+
+
+def _joint_couplings(mj: Any, m: Any) -> JointCoupling | None:
+    """The active joint equalities of ``m`` as a ``JointCoupling`` (rsmooth joint ``j + 1`` is
+    MuJoCo joint ``j``; MuJoCo's equation ``y - y0 = p(x - x0)`` is rsmooth's ``q_a = p(q_b)``,
+    rsmooth's coordinates of hinges and slides being MuJoCo's less ``qpos0``), or ``None``."""
+    equalities = [
+        e for e in range(m.neq) if int(m.eq_type[e]) == int(mj.mjtEq.mjEQ_JOINT) and m.eq_active0[e]
+    ]
+    if not equalities:
+        return None
+    joints = tuple(int(m.eq_obj1id[e]) + 1 for e in equalities)
+    others = tuple(int(m.eq_obj2id[e]) + 1 if m.eq_obj2id[e] >= 0 else 0 for e in equalities)
+    coefficients = np.array([m.eq_data[e, :5] for e in equalities], dtype=np.float64)
+    return JointCoupling(joints, others, _array(coefficients))
 
 
 def _array(values: Any) -> jax.Array:
@@ -1213,9 +1219,9 @@ def load_mjcf(
             ``1e-6``). It changes the physics of the bodies it raises (massless bodies too):
             a :class:`MujocoLoadWarning` names them. Prefer a small value (``1e-9``).
         drop_mimic: drop the joint equality constraints (what MuJoCo makes of a URDF
-            ``<mimic>``: a gripper's second finger), which rsmooth.sim does not model, with
-            a :class:`MujocoLoadWarning` naming the joints: they then move independently.
-            Other equality constraints are still refused.
+            ``<mimic>``: a gripper's second finger), which :func:`~rsmooth.sim.scene` enforces
+            otherwise, with a :class:`MujocoLoadWarning` naming the joints: they then move
+            independently. Other equality constraints are refused either way.
         drop_frictionloss: drop the dry joint friction (``frictionloss``; what MuJoCo makes of
             a URDF's ``<dynamics friction>``), to simulate the joints without it, with a
             :class:`MujocoLoadWarning` naming the joints and values.

@@ -33,6 +33,7 @@ MuJoCo).
 
 from __future__ import annotations
 
+import dataclasses
 import pathlib
 import warnings
 from typing import Any
@@ -250,8 +251,9 @@ def scene(
 ) -> RigidBodySystem:
     """A MuJoCo model (MJCF or URDF) as a system with hard frictional contact.
 
-    The kinematic tree, gravity, armature, joint damping and dry joint friction
-    (``frictionloss``, :meth:`~rsmooth.sim.RigidBodySystem.with_joint_friction`) are those of
+    The kinematic tree, gravity, armature, joint damping, dry joint friction (``frictionloss``,
+    :meth:`~rsmooth.sim.RigidBodySystem.with_joint_friction`) and joint couplings (a URDF's
+    ``<mimic>``, :attr:`~rsmooth.sim.RigidBodySystem.joint_couplings`) are those of
     :func:`~rsmooth.sim.load_mjcf`; every colliding geom pair of MuJoCo is a
     :class:`~rsmooth.sim.GeomPair` with MuJoCo's friction (see the module's description for
     the mapping of geoms, frames and frictions). The input ``u`` ``(nu,)`` holds the
@@ -433,6 +435,7 @@ def scene(
         joint_damping=loaded.damping,
     )
     system = system.with_contact_budget(max_contacts, max_pairs, max_limits).with_joint_friction(np.asarray(loaded.frictionloss))
+    system = dataclasses.replace(system, joint_couplings=loaded.joint_couplings)
     if not joint_limits:
         return system
     _warn_if_beyond_limits(model, np.asarray(initial_configuration), source_label(source))

@@ -28,7 +28,9 @@ state ``x = [q, v]``:
      ``g = J v_f`` corrected by ``max(phi, 0) / h`` (a gap that does not close within the
      step exerts no impulse) and ``baumgarte * min(phi, 0) / h`` (penetration is pushed out).
      The joints' dry friction (:attr:`RigidBodySystem.joint_friction`) adds one box row per
-     dof, ``|lambda_k| <= effort_k h`` opposing the dof's velocity, solved with the contacts.
+     dof, ``|lambda_k| <= effort_k h`` opposing the dof's velocity, and each joint coupling
+     (:attr:`RigidBodySystem.joint_couplings`) a bilateral row with the Baumgarte correction
+     of its position error, solved with the contacts.
      Solved by :func:`~rsmooth.sim.solve_ncp` (ADMM), differentiated implicitly.
    - a :class:`~rsmooth.sim.SpringDamper` or :class:`~rsmooth.sim.LogBarrier`: the compliant
      force at ``(phi, J v)`` times ``h``.
@@ -85,7 +87,7 @@ from rsmooth.sim._contact import _safe_norm, contact_frame, corrected_free_veloc
 from rsmooth.sim._collision import Contacts, collide, manifold_size
 from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, HalfSpace, Sphere
 from rsmooth.sim._laws import LogBarrier, SpringDamper
-from rsmooth.sim._model import Model
+from rsmooth.sim._model import PRISMATIC, REVOLUTE, UNIVERSE, Model
 from rsmooth.sim._ncp import (
     NCPInfo,
     NCPSolver,
@@ -165,15 +167,17 @@ class _VelocityUpdate(NamedTuple):
     frames: Array  # contact frames (n, 3, 3), columns [t1, t2, n] in world axes
     selection: Array | None  # the solved contacts' indices (K,) under a budget; None: all
     dropped: Array  # StepInfo.dropped_contacts
-    friction_impulse: Array  # (m,): the joints' dry friction (RigidBodySystem.joint_friction)
+    joint_impulse: Array  # (m,): the joints' box rows (RigidBodySystem.joint_rows)
+    joint_rows: Array  # (m, nv) at q
+    joint_bounds: Array  # (m,)
 
     def solved(self, rows: Array) -> Array:
         """``rows`` (flat ``[t1, t2, n]`` per candidate, leading axis) of the solved contacts."""
         return rows if self.selection is None else rows[_stages.flat_rows(self.selection)]
 
     def solved_impulse(self) -> Array:
-        """The NCP's unknowns: the solved contacts' impulses, then the dry friction's."""
-        return jnp.concatenate([self.solved(self.impulse), self.friction_impulse])
+        """The NCP's unknowns: the solved contacts' impulses, then the joints' box rows'."""
+        return jnp.concatenate([self.solved(self.impulse), self.joint_impulse])
 
     def public(self) -> tuple[Array, Array, Array, NCPInfo, Array, tuple[Array, Array, Array]]:
         # the contact frames and end-of-step contact velocities J v+ for the diagnostics
@@ -374,6 +378,41 @@ class JointFriction(eqx.Module):
                 raise ValueError(f"JointFriction.effort must be finite and >= 0 (N m or N), got {values}")
 
 
+class JointCoupling(eqx.Module):
+    """Joint equality constraints (MuJoCo's ``<equality><joint>``, what it makes of a URDF's
+    ``<mimic>``): the coordinate of joint ``joints[k]`` follows a quartic of joint
+    ``others[k]``'s, ``q_a = c_0 + c_1 q_b + c_2 q_b^2 + c_3 q_b^3 + c_4 q_b^4`` with ``c``
+    the row ``coefficients[k]`` (``others[k] = 0``, the universe: ``q_a = c_0``). Both are
+    revolute or prismatic joints, their coordinates rsmooth's (MuJoCo's less its ``qpos0``, the
+    form of MuJoCo's own equation).
+
+    A step enforces each as a bilateral row of the NCP (a box row without bounds), at the
+    velocity level with the contacts' Baumgarte correction of the position error
+    ``e = q_a - p(q_b)``: ``J v+ + baumgarte e / h = 0``, ``J`` the row ``e_a - p'(q_b) e_b``,
+    so an error closes by the factor ``1 - baumgarte`` per step (a coupling MuJoCo makes soft,
+    by its ``solref``, is hard here).
+
+    Attributes:
+        joints: the coupled joints (indices into the model's joints; static).
+        others: the joints they follow, or 0 (static).
+        coefficients: ``(len(joints), 5)``, ``c_0 ... c_4`` of each.
+    """
+
+    joints: tuple[int, ...] = eqx.field(static=True)
+    others: tuple[int, ...] = eqx.field(static=True)
+    coefficients: Array
+
+    def __check_init__(self):
+        if len(self.others) != len(self.joints):
+            raise ValueError(f"JointCoupling.others must have one joint per coupled joint, got {self.others!r}")
+        if jnp.shape(self.coefficients) != (len(self.joints), 5):
+            raise ValueError(
+                f"JointCoupling.coefficients must have shape ({len(self.joints)}, 5), got {jnp.shape(self.coefficients)}"
+            )
+        if not _checks.is_traced(self.coefficients) and not np.all(np.isfinite(np.asarray(self.coefficients))):
+            raise ValueError("JointCoupling.coefficients must be finite")
+
+
 class RigidBodySystem(eqx.Module):
     """A kinematic tree with sphere contacts against half-spaces and contacts between pairs
     of collision shapes (:class:`GeomPair`), stepped in time.
@@ -470,6 +509,8 @@ class RigidBodySystem(eqx.Module):
             :meth:`with_gravity_compensation`.
         joint_friction: dry friction on joints (:class:`JointFriction`), solved with the
             contacts (hard contact only); ``None``: none. See :meth:`with_joint_friction`.
+        joint_couplings: joint equality constraints (:class:`JointCoupling`), solved with the
+            contacts (hard contact only); ``None``: none.
     """
 
     model: Model
@@ -494,6 +535,7 @@ class RigidBodySystem(eqx.Module):
     max_limits: int | None = eqx.field(static=True, default=None)
     gravity_compensation: bool = eqx.field(static=True, default=False)
     joint_friction: JointFriction | None = None
+    joint_couplings: JointCoupling | None = None
 
     def __check_init__(self):
         num_spheres, num_planes = len(self.sphere_frames), self.plane_normals.shape[0]
@@ -555,6 +597,19 @@ class RigidBodySystem(eqx.Module):
             bad = [d for d in self.joint_friction.dofs if not 0 <= d < self.model.nv]
             if bad:
                 raise ValueError(f"joint_friction.dofs {bad} out of range [0, {self.model.nv})")
+        if self.joint_couplings is not None:
+            if not isinstance(self.joint_couplings, JointCoupling):
+                raise ValueError(f"joint_couplings must be a JointCoupling or None, got {self.joint_couplings!r}")
+            if not isinstance(self.contact, str):
+                raise ValueError("joint_couplings are solved by the hard-contact NCP: use contact='hard'")
+            types = self.model.joint_types
+            for joint, other in zip(self.joint_couplings.joints, self.joint_couplings.others):
+                for index, allowed in ((joint, (REVOLUTE, PRISMATIC)), (other, (UNIVERSE, REVOLUTE, PRISMATIC))):
+                    if not 0 <= index < len(types) or types[index] not in allowed:
+                        raise ValueError(
+                            f"joint_couplings: joint {index} must be a revolute or prismatic joint of the model"
+                            f"{' (or 0)' if UNIVERSE in allowed else ''}"
+                        )
         if not isinstance(self.geom_pairs, tuple) or not all(isinstance(p, GeomPair) for p in self.geom_pairs):
             raise ValueError(f"geom_pairs must be a tuple of GeomPair, got {self.geom_pairs!r}")
         for index, pair in enumerate(self.geom_pairs):
@@ -658,13 +713,36 @@ class RigidBodySystem(eqx.Module):
         friction = JointFriction(tuple(int(d) for d in dofs), device_array(values[dofs]))
         return dataclasses.replace(self, joint_friction=friction)
 
-    def friction_rows(self) -> Array:
-        """The rows of :attr:`joint_friction` in the contact problem: ``(m, nv)``, row ``k``
-        selecting the velocity of dof ``joint_friction.dofs[k]`` (``(0, nv)`` without friction)."""
+    def joint_rows(self, q: Array) -> tuple[Array, Array, Array]:
+        """The joints' box rows of the contact problem at ``q``: :attr:`joint_friction`'s, then
+        :attr:`joint_couplings`', as ``(rows (m, nv), correction (m,), bounds (m,))``: the row
+        ``k`` constrains ``rows[k] v+ + correction[k]`` with the impulse bound ``bounds[k]``
+        (``effort h`` for friction, ``inf`` for a coupling, whose correction is ``baumgarte
+        e / h``); ``m = 0`` without either."""
+        dtype = q.dtype
         dofs = () if self.joint_friction is None else self.joint_friction.dofs
-        rows = np.zeros((len(dofs), self.model.nv))
-        rows[np.arange(len(dofs)), list(dofs)] = 1.0
-        return device_array(rows, self.time_step.dtype)
+        friction = np.zeros((len(dofs), self.model.nv))
+        friction[np.arange(len(dofs)), list(dofs)] = 1.0
+        rows, correction = [jnp.asarray(friction, dtype)], [jnp.zeros(len(dofs), dtype)]
+        bounds = [jnp.zeros(0, dtype) if self.joint_friction is None else self.time_step * self.joint_friction.effort]
+        if self.joint_couplings is not None:
+            model, coupling = self.model, self.joint_couplings
+            a_q, a_v = (np.array([getattr(model, field)[j] for j in coupling.joints]) for field in ("idx_q", "idx_v"))
+            b_q, b_v = (np.array([getattr(model, field)[j] for j in coupling.others]) for field in ("idx_q", "idx_v"))
+            leader = np.array([j != 0 for j in coupling.others])
+            q_b = jnp.where(leader, q[b_q], 0.0)
+            c = coupling.coefficients.astype(dtype)
+            # Horner's rule (powers q^0 would have a NaN derivative at q = 0)
+            value = c[:, 0] + q_b * (c[:, 1] + q_b * (c[:, 2] + q_b * (c[:, 3] + q_b * c[:, 4])))
+            slope = c[:, 1] + q_b * (2 * c[:, 2] + q_b * (3 * c[:, 3] + q_b * 4 * c[:, 4]))
+            error = q[a_q] - value
+            count = len(coupling.joints)
+            row = jnp.zeros((count, model.nv), dtype).at[np.arange(count), a_v].set(1.0)
+            row = row.at[np.arange(count), b_v].add(jnp.where(leader, -slope, 0.0))
+            rows.append(row)
+            correction.append(self.baumgarte * error / self.time_step)
+            bounds.append(jnp.full(count, jnp.inf, dtype))
+        return jnp.concatenate(rows), jnp.concatenate(correction), jnp.concatenate(bounds).astype(dtype)
 
     def with_joint_limits(self, joints: Sequence[str] | None = None) -> "RigidBodySystem":
         """This system with its model's finite position limits enforced (:attr:`joint_limits`).
@@ -1146,7 +1224,7 @@ class RigidBodySystem(eqx.Module):
             solution.velocity, solution.impulse, contacts.distance, solution.ncp, motion.torque_clipped,
             (motion.mass_cholesky, True), contacts.jacobian, solution.delassus, solution.free_velocity,
             solution.friction, posed, motion.inertias, motion.mass, contacts.frames, solution.selection, solution.dropped,
-            solution.friction_impulse,
+            solution.joint_impulse, contacts.joint_rows[0], contacts.joint_rows[2],
         )
 
     def step(self, x: ArrayLike, u: ArrayLike) -> Array:
@@ -1400,12 +1478,11 @@ def _step_residuals(update: _VelocityUpdate):
         if update.selection is not None:  # the solved contacts' equations (a fixed selection)
             solved_distance, jacobian, mu = distance[update.selection], update.solved(jacobian), mu[update.selection]
         velocity = corrected_free_velocity(jacobian @ v_next, solved_distance, h, baumgarte=system.baumgarte)
-        bounds = jnp.zeros(0, v_next.dtype)
-        if system.joint_friction is not None:  # the dry friction's rows: J_f v+ within h effort
-            friction_rows = system.friction_rows().astype(jacobian.dtype)
-            jacobian = jnp.concatenate([jacobian, friction_rows])
-            velocity = jnp.concatenate([velocity, friction_rows @ v_next])
-            bounds = h * system.joint_friction.effort
+        # the joints' box rows (dry friction within h effort, couplings with their correction)
+        joint_rows, joint_correction, bounds = system.joint_rows(q)
+        if joint_rows.shape[0]:
+            jacobian = jnp.concatenate([jacobian, joint_rows.astype(jacobian.dtype)])
+            velocity = jnp.concatenate([velocity, joint_rows @ v_next + joint_correction])
         # J^T lambda as an unrolled sum of rows: under jacfwd/vmap a dot transposes J's
         # batch and a reduction goes to YNNPACK, both several times slower on CPU (_spatial)
         momentum = h * (inverse_dynamics - tau) - sum(impulse[i] * jacobian[i] for i in range(impulse.shape[0]))
@@ -1428,9 +1505,9 @@ def _velocity_update_tangent(
     for zero; ``dlambda``: every candidate contact's, zero where a budget left it out)."""
     impulse = lax.stop_gradient(update.solved_impulse())
     jacobian = update.solved(update.jacobian)
-    friction = system.joint_friction
-    if friction is not None:
-        jacobian = jnp.concatenate([jacobian, system.friction_rows().astype(jacobian.dtype)])
+    m = update.joint_rows.shape[0]
+    if m:
+        jacobian = jnp.concatenate([jacobian, update.joint_rows.astype(jacobian.dtype)])
     solve = many_column_solver(update.mass_factor, momentum_dot)
     free_motion_dot = -solve(momentum_dot)  # dv+ at fixed lambda
     if impulse.shape[0] == 0:  # no contact nor friction row: the free motion is the whole step
@@ -1438,7 +1515,7 @@ def _velocity_update_tangent(
     minv_jt = solve(jacobian.T)  # primal: once for all tangents (a product where M^-1 is formed)
     velocity_dot = velocity_dot + jacobian @ free_motion_dot
     G, g, mu = update.delassus, update.free_velocity, update.mu
-    bounds = None if friction is None else lax.stop_gradient(system.time_step * friction.effort).astype(G.dtype)
+    bounds = lax.stop_gradient(update.joint_bounds).astype(G.dtype) if m else None
     step_sizes = fixed_point_step_sizes(G, mu.shape[0])
     # dF at fixed lambda, as explicit (3 n x 3 n) and (3 n x n) matrices so that the
     # tangents may be vectors (a JVP) or matrices of columns (step_and_jacobians)
@@ -1453,7 +1530,7 @@ def _velocity_update_tangent(
         system.solver.implicit_regularization, impulse, G, g, mu, step_sizes, rhs, bounds
     )
     v_next_dot = free_motion_dot + minv_jt @ impulse_dot
-    impulse_dot = impulse_dot[: impulse_dot.shape[0] - (0 if friction is None else len(friction.dofs))]
+    impulse_dot = impulse_dot[: impulse_dot.shape[0] - m]
     if update.selection is not None:
         full = jnp.zeros((update.impulse.shape[0],) + impulse_dot.shape[1:], impulse_dot.dtype)
         impulse_dot = full.at[_stages.flat_rows(update.selection)].set(impulse_dot)

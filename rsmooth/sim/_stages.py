@@ -88,12 +88,16 @@ class ContactGeometry(eqx.Module):
         frames: contact frames ``(n, 3, 3)``, columns ``[t1, t2, n]`` in world axes.
         jacobian: ``(3 n, nv)``, maps ``v`` to every contact's relative velocity in its frame.
         friction: Coulomb coefficients ``(n,)`` (0 for joint limits).
+        joint_rows: the joints' box rows at the configuration
+            (:meth:`RigidBodySystem.joint_rows`: dry friction, couplings), ``(rows (m, nv),
+            correction (m,), bounds (m,))``.
     """
 
     distance: Array
     frames: Array
     jacobian: Array
     friction: Array
+    joint_rows: tuple[Array, Array, Array]
 
 
 class FreeMotion(eqx.Module):
@@ -125,17 +129,18 @@ class ContactSolution(eqx.Module):
         ncp: the contact solve's :class:`~rsmooth.sim.NCPInfo` (zero iterations and
             ``RESULTS.successful`` where nothing is solved: no candidate, or a compliant law).
         delassus: ``G = J_s W^-1 J_sᵀ`` of the solved rows ``s``: the solved contacts (every
-            candidate, or a budget's selection), then the ``m`` rows of the joints' dry
-            friction (:meth:`RigidBodySystem.friction_rows`), ``(3 n_s + m, 3 n_s + m)``.
+            candidate, or a budget's selection), then the joints' ``m`` box rows (dry
+            friction, couplings: :meth:`RigidBodySystem.joint_rows`), ``(3 n_s + m, 3 n_s + m)``.
         free_velocity: the solved rows' free velocity ``g`` (hard contact: ``J_s v_f`` with
-            the Baumgarte and gap corrections on the contacts, the NCP's; a compliant law:
-            ``J v_f``).
+            the Baumgarte and gap corrections on the contacts and the couplings, the NCP's; a
+            compliant law: ``J v_f``).
         friction: the solved contacts' Coulomb coefficients.
         selection: the solved contacts' indices under a budget (:attr:`RigidBodySystem.max_contacts`);
             ``None``: every candidate.
         dropped: :attr:`StepInfo.dropped_contacts` (``()``, int).
-        friction_impulse: ``(m,)`` the impulse of each dof's dry friction
-            (:attr:`RigidBodySystem.joint_friction`), ``|.| <= effort h``.
+        joint_impulse: ``(m,)`` the impulses of the joints' box rows: each dof's dry
+            friction (:attr:`RigidBodySystem.joint_friction`, ``|.| <= effort h``), then each
+            coupling's (:attr:`RigidBodySystem.joint_couplings`).
     """
 
     velocity: Array
@@ -146,7 +151,7 @@ class ContactSolution(eqx.Module):
     friction: Array
     selection: Array | None
     dropped: Array
-    friction_impulse: Array
+    joint_impulse: Array
 
 
 def kinematics(system: RigidBodySystem, q: Array) -> Kinematics:
@@ -156,9 +161,9 @@ def kinematics(system: RigidBodySystem, q: Array) -> Kinematics:
 
 def collision(system: RigidBodySystem, q: Array, kinematics: Kinematics | None = None) -> ContactGeometry:
     """Stage 2: the candidate contacts at ``q`` (:meth:`RigidBodySystem.contacts`) and their
-    friction; ``kinematics``: stage 1's at ``q``, computed when not given."""
+    friction, and the joints' box rows (:meth:`RigidBodySystem.joint_rows`); ``kinematics``: stage 1's at ``q``, computed when not given."""
     distance, frames, jacobian = system.contacts(q, kinematics)
-    return ContactGeometry(distance, frames, jacobian, system.contact_friction())
+    return ContactGeometry(distance, frames, jacobian, system.contact_friction(), system.joint_rows(q))
 
 
 def free_motion(system: RigidBodySystem, q: Array, v: Array, u: Array, kinematics: Kinematics | None = None) -> FreeMotion:
@@ -195,8 +200,8 @@ def solve_contacts(
     distance, jacobian, mu = contacts.distance, contacts.jacobian, contacts.friction
     v_free = motion.velocity
     hard = isinstance(system.contact, str)
-    friction_rows = system.friction_rows()  # (m, nv); a compliant system has none
-    m = friction_rows.shape[0]
+    joint_rows, joint_correction, bounds = contacts.joint_rows  # (m, nv); a compliant system has none
+    m = joint_rows.shape[0]
     # the contacts the NCP solves: every candidate, or the budget's closest ones
     selection = system._contact_selection(distance) if hard else None
     dropped = jnp.zeros((), jnp.int32)
@@ -208,8 +213,8 @@ def solve_contacts(
         distance, jacobian, mu = distance[selection], jacobian[rows], mu[selection]
         warm_start = None if warm_start is None else jnp.asarray(warm_start)[rows]
     contact_rows = jacobian.shape[0]
-    if m:  # the dry friction's rows after the contacts' (box rows of the NCP)
-        jacobian = jnp.concatenate([jacobian, friction_rows.astype(jacobian.dtype)])
+    if m:  # the joints' rows after the contacts' (box rows of the NCP)
+        jacobian = jnp.concatenate([jacobian, joint_rows.astype(jacobian.dtype)])
         if warm_start is not None:
             warm_start = jnp.concatenate([jnp.asarray(warm_start), jnp.zeros(m, jacobian.dtype)])
     # X = L^-1 Jᵀ: G = Xᵀ X (symmetric by construction) and W^-1 Jᵀ lambda = L^-T (X lambda),
@@ -225,7 +230,7 @@ def solve_contacts(
     elif hard:
         free_velocity = corrected_free_velocity(jacobian[:contact_rows] @ v_free, distance, h, baumgarte=system.baumgarte)
         if m:
-            free_velocity = jnp.concatenate([free_velocity, jacobian[contact_rows:] @ v_free])
+            free_velocity = jnp.concatenate([free_velocity, jacobian[contact_rows:] @ v_free + joint_correction])
         # From a finite but absurd state (a simulation that has already diverged: positions
         # of 1e8 m, velocities of 1e11 rad/s) the mass matrix loses definiteness to rounding
         # and the contact problem is not finite. That is the step's divergence, which it
@@ -236,7 +241,7 @@ def solve_contacts(
             jnp.where(broken, jnp.eye(delassus.shape[0], dtype=delassus.dtype), delassus),
             jnp.where(broken, 0.0, free_velocity), mu, solver=system.solver, warm_start=warm_start,
             delassus_factor=jnp.where(broken, 0.0, half),  # G = halfᵀ half: a cheaper sticking guess
-            bounds=h * system.joint_friction.effort.astype(delassus.dtype) if m else None,
+            bounds=bounds.astype(delassus.dtype) if m else None,
         )
         impulse = jnp.where(broken, jnp.nan, impulse)
         ncp = eqx.tree_at(lambda info: info.result, ncp, RESULTS.where(broken, RESULTS.nonfinite, ncp.result))
@@ -244,10 +249,10 @@ def solve_contacts(
         free_velocity = jacobian @ v_free
         impulse, ncp = compliant_impulse(system.contact, distance, free_velocity, delassus, h), nothing_solved
     velocity = v_free + jax.scipy.linalg.solve_triangular(cholesky, half @ impulse, lower=True, trans="T")
-    impulse, friction_impulse = impulse[:contact_rows], impulse[contact_rows:]
+    impulse, joint_impulse = impulse[:contact_rows], impulse[contact_rows:]
     if selection is not None:  # every candidate's impulse, zero where left out
         impulse = jnp.zeros(contacts.jacobian.shape[0], impulse.dtype).at[rows].set(impulse)
-    return ContactSolution(velocity, impulse, ncp, delassus, free_velocity, mu, selection, dropped, friction_impulse)
+    return ContactSolution(velocity, impulse, ncp, delassus, free_velocity, mu, selection, dropped, joint_impulse)
 
 
 def advance(system: RigidBodySystem, q: Array, v_next: Array) -> tuple[Array, Array]:

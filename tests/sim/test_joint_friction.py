@@ -76,8 +76,8 @@ def test_the_arm_is_held_where_its_friction_exceeds_gravitys_torque(hinge_fricti
         # The friction impulse is gravity's over the step, opposite it.
         state = sim.make_state(system, x0)
         *_, solution = _stages.step_stages(system, state, jnp.zeros(1))
-        np.testing.assert_allclose(abs(float(solution.friction_impulse[1])), MASS * G * 0.25 * H, rtol=1e-9)
-        assert float(solution.friction_impulse[0]) == 0.0
+        np.testing.assert_allclose(abs(float(solution.joint_impulse[1])), MASS * G * 0.25 * H, rtol=1e-9)
+        assert float(solution.joint_impulse[0]) == 0.0
     else:
         assert abs(angle[-1]) > 0.05
         # the first step's speed: (gravity's torque - friction) / inertia about the hinge, h

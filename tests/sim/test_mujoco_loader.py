@@ -669,9 +669,8 @@ def test_example_robots_match_mujoco(name):
 def test_example_robots_without_their_options_say_which_to_pass():
     root = sim.example_robot_data_root()
     robots = root / "robots"
-    mimic = "'panda_finger_joint2' to joint 'panda_finger_joint1'.*<mimic>.*drop_mimic=True"
-    with pytest.raises(ValueError, match=mimic):
-        load_mjcf(robots / ROBOTS["panda"][0], package_dirs=[root.parent], visuals=False)
+    panda = load_mjcf(robots / ROBOTS["panda"][0], package_dirs=[root.parent], visuals=False)  # its <mimic> kept
+    assert [panda.model.joint_names[j] for j in panda.joint_couplings.joints] == ["panda_finger_joint2"]
     inertia = "(?s)inertia must have positive eigenvalues.*body 'base'.*not positive definite.*boundinertia"
     with pytest.raises(ValueError, match=inertia):
         load_mjcf(robots / ROBOTS["go1"][0], package_dirs=[root.parent], visuals=False, floating_base=True)
@@ -813,10 +812,14 @@ def test_loading_options_are_checked():
     equalities = "<equality><joint name='mimic' joint1='j2' joint2='j1'/><weld name='weld' body1='b'/></equality>"
     bodies = "<body name='b'><joint name='j1'/><geom size='0.1'/><body><joint name='j2'/><geom size='0.1'/></body></body>"
     two = wrap(bodies, equalities)
-    with pytest.raises(ValueError, match="joint equality constraint 'mimic' couples joint 'j2' to joint 'j1'"):
+    weld = "equality constraints other than joint couplings .*'weld'"
+    with pytest.raises(ValueError, match=weld):  # the joint coupling is converted
         load_mjcf(two)
-    with pytest.warns(MujocoLoadWarning, match="'j2' to 'j1'"), pytest.raises(ValueError, match="equality constraints .*'weld'"):
+    with pytest.warns(MujocoLoadWarning, match="'j2' to 'j1'"), pytest.raises(ValueError, match=weld):
         load_mjcf(two, drop_mimic=True)
+    coupled = load_mjcf(wrap(bodies, "<equality><joint name='mimic' joint1='j2' joint2='j1' polycoef='0 2 0 0 0'/></equality>"))
+    assert coupled.joint_couplings.joints == (2,) and coupled.joint_couplings.others == (1,)
+    np.testing.assert_array_equal(coupled.joint_couplings.coefficients, [[0, 2, 0, 0, 0]])
 
 
 def test_mujocos_own_warnings_become_load_warnings_and_write_no_log_file(tmp_path, monkeypatch):
