@@ -161,7 +161,8 @@ def kinematics(system: RigidBodySystem, q: Array) -> Kinematics:
 
 def collision(system: RigidBodySystem, q: Array, kinematics: Kinematics | None = None) -> ContactGeometry:
     """Stage 2: the candidate contacts at ``q`` (:meth:`RigidBodySystem.contacts`) and their
-    friction, and the joints' box rows (:meth:`RigidBodySystem.joint_rows`); ``kinematics``: stage 1's at ``q``, computed when not given."""
+    friction, and the joints' box rows (:meth:`RigidBodySystem.joint_rows`); ``kinematics``:
+    stage 1's at ``q``, computed when not given."""
     distance, frames, jacobian = system.contacts(q, kinematics)
     return ContactGeometry(distance, frames, jacobian, system.contact_friction(), system.joint_rows(q))
 
@@ -193,9 +194,9 @@ def solve_contacts(
     """Stage 4: the contact impulses by the system's contact law and the velocity they give.
 
     Hard contact solves the frictional NCP (:func:`~rsmooth.sim.solve_ncp`, from ``warm_start``
-    ``(3 n,)`` if given) on the candidates, or on a budget's closest ones, with the joints' dry
-    friction as box rows; a compliant law evaluates its force, linearly implicit in the
-    velocity."""
+    ``(3 n,)`` if given) on the candidates, or on a budget's closest ones, with the joints' box
+    rows (dry friction, couplings); a compliant law evaluates its force, linearly implicit in
+    the velocity."""
     h, cholesky = system.time_step, motion.mass_cholesky
     distance, jacobian, mu = contacts.distance, contacts.jacobian, contacts.friction
     v_free = motion.velocity
@@ -224,7 +225,7 @@ def solve_contacts(
     zero = jnp.zeros((), v_free.dtype)
     nothing_solved = NCPInfo(jnp.zeros((), jnp.int32), zero, zero, zero, RESULTS.successful, zero)
     if jacobian.shape[0] == 0:
-        # no candidate contact nor friction row (a body in free flight, a scene without a
+        # no candidate contact nor joint row (a body in free flight, a scene without a
         # colliding pair): nothing to solve, and an empty problem is not one the NCP solver accepts
         free_velocity, impulse, ncp = jacobian @ v_free, jnp.zeros(0, v_free.dtype), nothing_solved
     elif hard:
