@@ -157,7 +157,7 @@ class _VelocityUpdate(NamedTuple):
     clipped: Array
     mass_factor: tuple[Array, bool]  # Cholesky factor of M (jax.scipy.linalg.cho_factor)
     jacobian: Array  # contact Jacobian J, (3 n, nv)
-    delassus: Array  # G = J_s M^-1 J_sᵀ of the solved rows s (the contacts: all, or the selection; the dry friction's)
+    delassus: Array  # G = J_s M^-1 J_sᵀ of the solved rows s (the contacts: all, or the selection; the joints' box rows)
     free_velocity: Array  # g: the NCP's free velocity (hard contact), solved rows
     mu: Array  # friction coefficient per solved contact
     kinematics: _dynamics.Kinematics  # at q
@@ -1449,8 +1449,8 @@ def _implicit_velocity_update_jvp(primals, tangents):
 def _step_residuals(update: _VelocityUpdate):
     """The step's equations at the solution ``(v+, lambda)`` of ``update``, as a function of
     the parameters ``(system, q, v, u)``: ``(E, c, distance, mu, bounds)`` (see the JVP rule
-    above; ``c`` and ``lambda`` hold the solved contacts' rows, then the dry friction's, whose
-    bounds are ``h`` times the friction efforts).
+    above; ``c`` and ``lambda`` hold the solved contacts' rows, then the joints' box rows,
+    :meth:`RigidBodySystem.joint_rows`, with their bounds).
 
     ``residuals(system, q, v, u, geometry=None)``: ``geometry`` is what depends on ``q`` only,
     ``(kinematics, inertias, distance, J)``; pass the primal one (``update``'s) to differentiate
@@ -1500,8 +1500,8 @@ def _velocity_update_tangent(
     bounds_dot: Array | None = None,
 ) -> tuple[Array, Array]:
     """``(dv+, dlambda)`` from the change of the step's equations at fixed ``(v+, lambda)``
-    (``velocity_dot``: that of the solved rows, the contacts' then the dry friction's;
-    ``mu_dot`` of the solved contacts; ``bounds_dot`` of the dry friction's bounds, ``None``
+    (``velocity_dot``: that of the solved rows, the contacts' then the joints' box rows';
+    ``mu_dot`` of the solved contacts; ``bounds_dot`` of the box rows' bounds, ``None``
     for zero; ``dlambda``: every candidate contact's, zero where a budget left it out)."""
     impulse = lax.stop_gradient(update.solved_impulse())
     jacobian = update.solved(update.jacobian)
