@@ -87,11 +87,6 @@ def _de_saxce_velocity(contact_velocity: Array, mu: Array) -> Array:
     return contact_velocity.at[:, 2].add(mu * _safe_norm(contact_velocity[:, :2]))
 
 
-def _box(bounds: Array | None) -> int:
-    """The number of box rows, ``m`` (0 without ``bounds``)."""
-    return 0 if bounds is None else bounds.shape[0]
-
-
 def _project(impulse: Array, mu: Array, bounds: Array | None) -> Array:
     """The projection of flat impulses ``(3 n + m,)`` onto the cones and the boxes."""
     n = mu.shape[0]
