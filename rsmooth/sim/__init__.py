@@ -97,6 +97,7 @@ from rsmooth.sim._simulator import (
     GeomPair as GeomPair,
     JointCoupling as JointCoupling,
     JointFriction as JointFriction,
+    JointSprings as JointSprings,
     Options as Options,
     RigidBodySystem as RigidBodySystem,
     SimulationWarning as SimulationWarning,

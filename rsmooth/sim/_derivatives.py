@@ -84,7 +84,7 @@ def supported(system) -> bool:
     return (
         system.actuation == "joints" and not system.gravity_compensation
         and not system.geom_pairs and not system.joint_limits and system.joint_friction is None
-        and system.joint_couplings is None
+        and system.joint_couplings is None and system.joint_springs is None
         and not len(_dynamics._tree(system.model).spherical)
         and (system.max_contacts is None or system.max_contacts >= system.num_contacts)
     )

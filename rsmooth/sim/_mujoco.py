@@ -3,7 +3,7 @@
 MuJoCo compiles the file (defaults, ``fromto``, mesh inertia, angle units...) into an
 ``mujoco.MjModel``; :func:`from_mujoco` converts that into rsmooth's :class:`~rsmooth.sim.Model`
 (the kinematic tree, inertias, limits, armature, gravity) plus what the tree does not hold: the
-joint damping and dry friction, the time step, the direct joint motors, and the collision
+joint damping, springs and dry friction, the time step, the direct joint motors, and the collision
 geometry as plain data. The conversion is checked once on the host and refuses, by name, what
 rsmooth's dynamics do not model (as MJX's ``put_model`` does), instead of simulating something
 else silently. Joint equalities (a URDF ``<mimic>``) are converted
@@ -90,6 +90,11 @@ class MujocoModel(eqx.Module):
         frictionloss: ``(nv,)``, dry joint friction ``dof_frictionloss``, the largest effort
             (N m or N) that resists a dof's motion (:class:`~rsmooth.sim.JointFriction`); zero
             where it is disabled.
+        stiffness: ``(nv,)``, the joint springs' ``jnt_stiffness`` on each dof (a ball joint's
+            on its three), ``-stiffness (q - q_ref)``; zero where springs are disabled
+            (:meth:`~rsmooth.sim.RigidBodySystem.with_joint_springs`).
+        spring_reference: ``(nq,)``, the springs' rest configuration ``qpos_spring`` (their
+            ``springref``) in rsmooth's coordinates (:meth:`qpos_to_q`).
         joint_couplings: the active joint equality constraints (``<equality><joint>``, a
             URDF's ``<mimic>``) as a :class:`~rsmooth.sim.JointCoupling` (rsmooth joints, MuJoCo's
             ``polycoef``), or ``None``; inactive ones (``active="false"``) are left out.
@@ -150,6 +155,8 @@ class MujocoModel(eqx.Module):
     model: Model
     damping: jax.Array
     frictionloss: jax.Array
+    stiffness: jax.Array
+    spring_reference: jax.Array
     joint_couplings: JointCoupling | None
     timestep: float = eqx.field(static=True)
     body_names: tuple[str, ...] = eqx.field(static=True)
@@ -427,10 +434,15 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
                 f"MuJoCo model: ball joint {joint_names[j]!r} has the range {m.jnt_range[j].tolist()} (rad); its "
                 "second value, the largest rotation angle, must be in (0, pi]"
             )
-        if m.jnt_stiffness[j] != 0 or np.any(m.jnt_stiffnesspoly[j] != 0):
+        if np.any(m.jnt_stiffnesspoly[j] != 0):
             raise ValueError(
-                f"MuJoCo model: joint {joint_names[j]!r} has a spring (stiffness), which rsmooth.sim does not model "
-                "(supported: stiffness 0)"
+                f"MuJoCo model: joint {joint_names[j]!r} has a nonlinear spring (stiffnesspoly); rsmooth.sim supports "
+                "linear springs (stiffness) only"
+            )
+        if m.jnt_stiffness[j] != 0 and int(m.jnt_type[j]) == int(mj.mjtJoint.mjJNT_FREE):
+            raise ValueError(
+                f"MuJoCo model: free joint {joint_names[j]!r} has a spring (stiffness {m.jnt_stiffness[j]:g}), which "
+                "rsmooth.sim does not model (supported: springs on hinge, slide and ball joints)"
             )
     for d in range(m.nv):
         joint = joint_names[m.dof_jntid[d]]
@@ -536,7 +548,8 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
 
     Raises:
         ValueError: if the model uses a feature that rsmooth.sim does not model (the message
-            names the element and what is supported): a ball joint's range beyond pi, joint springs,
+            names the element and what is supported): a ball joint's range beyond pi, a free joint's
+            spring, nonlinear springs (``stiffnesspoly``),
             frictionloss on a free joint's linear axes, nonlinear damping, tendons, equality
             constraints other than joint couplings, flex, skins,
             plugins, mocap bodies, gravity compensation, fluid forces, colliding height fields
@@ -697,10 +710,19 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
     damping = np.zeros(m.nv) if disabled & int(mj.mjtDisableBit.mjDSBL_DAMPER) else np.asarray(m.dof_damping, dtype=np.float64)
     friction_off = disabled & int(mj.mjtDisableBit.mjDSBL_FRICTIONLOSS)
     frictionloss = np.zeros(m.nv) if friction_off else np.asarray(m.dof_frictionloss, dtype=np.float64)
+    stiffness = np.zeros(m.nv)
+    if not disabled & int(mj.mjtDisableBit.mjDSBL_SPRING):
+        for j in range(m.njnt):  # a ball joint's one stiffness on its three dofs
+            stiffness[m.jnt_dofadr[j] : m.jnt_dofadr[j] + (3 if int(m.jnt_type[j]) == ball else 1)] = m.jnt_stiffness[j]
+    spring_reference = np.asarray(m.qpos_spring, dtype=np.float64) - qpos0  # rsmooth's coordinates
+    for adr in ball_qpos:
+        spring_reference[adr : adr + 4] = np.asarray(_normalized_quaternion(np.r_[m.qpos_spring[adr + 1 : adr + 4], m.qpos_spring[adr]]))
     return MujocoModel(
         model=model,
         damping=_array(damping),
         frictionloss=_array(frictionloss),
+        stiffness=_array(stiffness),
+        spring_reference=_array(spring_reference),
         joint_couplings=_joint_couplings(mj, m),
         timestep=float(m.opt.timestep),
         body_names=body_names,

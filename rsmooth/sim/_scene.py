@@ -251,7 +251,8 @@ def scene(
 ) -> RigidBodySystem:
     """A MuJoCo model (MJCF or URDF) as a system with hard frictional contact.
 
-    The kinematic tree, gravity, armature, joint damping, dry joint friction (``frictionloss``,
+    The kinematic tree, gravity, armature, joint damping, joint springs (``stiffness``,
+    :meth:`~rsmooth.sim.RigidBodySystem.with_joint_springs`), dry joint friction (``frictionloss``,
     :meth:`~rsmooth.sim.RigidBodySystem.with_joint_friction`) and joint couplings (a URDF's
     ``<mimic>``, :attr:`~rsmooth.sim.RigidBodySystem.joint_couplings`) are those of
     :func:`~rsmooth.sim.load_mjcf`; every colliding geom pair of MuJoCo is a
@@ -435,6 +436,7 @@ def scene(
         joint_damping=loaded.damping,
     )
     system = system.with_contact_budget(max_contacts, max_pairs, max_limits).with_joint_friction(np.asarray(loaded.frictionloss))
+    system = system.with_joint_springs(np.asarray(loaded.stiffness), loaded.spring_reference)
     system = dataclasses.replace(system, joint_couplings=loaded.joint_couplings)
     if not joint_limits:
         return system

@@ -5,9 +5,10 @@ A :class:`RigidBodySystem` is a pure, frozen pytree with ``step(x, u) -> x_next`
 state ``x = [q, v]``:
 
 1. Free motion (semi-implicit Euler on velocities):
-   ``v_f = s + h W^-1 (tau(q, u) - C(q, v) v - g(q) - D s)`` with ``W = M(q) + h D``: the
+   ``v_f = s + h W^-1 (tau(q, u) + k(q) - C(q, v) v - g(q) - D s)`` with ``W = M(q) + h D``: the
    joint damping ``D`` (:attr:`RigidBodySystem.joint_damping`, zero by default) is implicit,
-   ``D v+``, so it dissipates at any ``h``. ``M`` includes the rotor inertia
+   ``D v+``, so it dissipates at any ``h``; the joint springs' forces ``k(q)``
+   (:attr:`RigidBodySystem.joint_springs`) are explicit, as in MuJoCo's Euler integrator. ``M`` includes the rotor inertia
    (``model.armature``); the rest of the system below uses ``W`` where it says ``M``. The
    step's velocities are written in the body axes of the step's start, a frame frozen for
    the step: ``s`` is ``v`` with every free flyer's linear velocity transported by the
@@ -87,7 +88,7 @@ from rsmooth.sim._contact import _safe_norm, contact_frame, corrected_free_veloc
 from rsmooth.sim._collision import Contacts, collide, manifold_size
 from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, HalfSpace, Sphere
 from rsmooth.sim._laws import LogBarrier, SpringDamper
-from rsmooth.sim._model import PRISMATIC, REVOLUTE, UNIVERSE, Model
+from rsmooth.sim._model import JOINT_NV, PRISMATIC, REVOLUTE, SPHERICAL, UNIVERSE, Model
 from rsmooth.sim._ncp import (
     NCPInfo,
     NCPSolver,
@@ -413,6 +414,46 @@ class JointCoupling(eqx.Module):
             raise ValueError("JointCoupling.coefficients must be finite")
 
 
+class JointSprings(eqx.Module):
+    """Linear springs on joints (MuJoCo's joint ``stiffness`` about its ``springref``): joint
+    ``joints[k]`` is pulled towards its coordinates in ``reference`` with the stiffness
+    ``stiffness[k]`` (N m/rad or N/m).
+
+    A revolute or prismatic joint receives ``-k (q - q_ref)``; a spherical joint the torque
+    ``-k w`` on its three dofs, ``w`` the rotation vector (body axes) that turns the reference
+    orientation into the joint's (``q_ref^-1 q = exp(w)``, MuJoCo's ``mju_subQuat``), whose
+    potential is ``k |w|^2 / 2``. The force is explicit in the step, as in MuJoCo's Euler
+    integrator: a spring stiff enough that ``h sqrt(k / m) >= 2`` (with ``m`` the dof's
+    inertia) makes the step unstable.
+
+    Attributes:
+        joints: the joints with a spring (indices into the model's joints; static, distinct;
+            revolute, prismatic or spherical).
+        stiffness: ``(len(joints),)``, ``>= 0`` and finite.
+        reference: ``(nq,)``, a configuration holding every spring's rest position (its
+            entries for other joints are not read).
+    """
+
+    joints: tuple[int, ...] = eqx.field(static=True)
+    stiffness: Array
+    reference: Array
+
+    def __check_init__(self):
+        if len(set(self.joints)) != len(self.joints) or not all(isinstance(j, (int, np.integer)) for j in self.joints):
+            raise ValueError(f"JointSprings.joints must be distinct joint indices, got {self.joints!r}")
+        if jnp.shape(self.stiffness) != (len(self.joints),):
+            raise ValueError(
+                f"JointSprings.stiffness must have shape ({len(self.joints)},) (one per joint), got {jnp.shape(self.stiffness)}"
+            )
+        if jnp.ndim(self.reference) != 1:
+            raise ValueError(f"JointSprings.reference must be a configuration (nq,), got shape {jnp.shape(self.reference)}")
+        for name, values in (("stiffness", self.stiffness), ("reference", self.reference)):
+            if not _checks.is_traced(values) and not np.all(np.isfinite(np.asarray(values))):
+                raise ValueError(f"JointSprings.{name} must be finite, got {np.asarray(values)}")
+        if not _checks.is_traced(self.stiffness) and np.any(np.asarray(self.stiffness) < 0):
+            raise ValueError(f"JointSprings.stiffness must be >= 0 (N m/rad or N/m), got {np.asarray(self.stiffness)}")
+
+
 class RigidBodySystem(eqx.Module):
     """A kinematic tree with sphere contacts against half-spaces and contacts between pairs
     of collision shapes (:class:`GeomPair`), stepped in time.
@@ -511,6 +552,8 @@ class RigidBodySystem(eqx.Module):
             contacts (hard contact only); ``None``: none. See :meth:`with_joint_friction`.
         joint_couplings: joint equality constraints (:class:`JointCoupling`), solved with the
             contacts (hard contact only); ``None``: none.
+        joint_springs: linear springs on joints (:class:`JointSprings`), explicit forces of
+            the free motion; ``None``: none. See :meth:`with_joint_springs`.
     """
 
     model: Model
@@ -536,6 +579,7 @@ class RigidBodySystem(eqx.Module):
     gravity_compensation: bool = eqx.field(static=True, default=False)
     joint_friction: JointFriction | None = None
     joint_couplings: JointCoupling | None = None
+    joint_springs: JointSprings | None = None
 
     def __check_init__(self):
         num_spheres, num_planes = len(self.sphere_frames), self.plane_normals.shape[0]
@@ -610,6 +654,18 @@ class RigidBodySystem(eqx.Module):
                             f"joint_couplings: joint {index} must be a revolute or prismatic joint of the model"
                             f"{' (or 0)' if UNIVERSE in allowed else ''}"
                         )
+        if self.joint_springs is not None:
+            if not isinstance(self.joint_springs, JointSprings):
+                raise ValueError(f"joint_springs must be a JointSprings or None, got {self.joint_springs!r}")
+            types = self.model.joint_types
+            bad = [j for j in self.joint_springs.joints if not 0 <= j < len(types) or types[j] not in _SPRING_TYPES]
+            if bad:
+                raise ValueError(f"joint_springs: joints {bad} are not revolute, prismatic or spherical joints of the model")
+            if jnp.shape(self.joint_springs.reference) != (self.model.nq,):
+                raise ValueError(
+                    f"joint_springs.reference must have shape (nq,) = ({self.model.nq},), got "
+                    f"{jnp.shape(self.joint_springs.reference)}"
+                )
         if not isinstance(self.geom_pairs, tuple) or not all(isinstance(p, GeomPair) for p in self.geom_pairs):
             raise ValueError(f"geom_pairs must be a tuple of GeomPair, got {self.geom_pairs!r}")
         for index, pair in enumerate(self.geom_pairs):
@@ -712,6 +768,94 @@ class RigidBodySystem(eqx.Module):
             return dataclasses.replace(self, joint_friction=None)
         friction = JointFriction(tuple(int(d) for d in dofs), device_array(values[dofs]))
         return dataclasses.replace(self, joint_friction=friction)
+
+    def with_joint_springs(self, stiffness: ArrayLike | None, reference: ArrayLike | None = None) -> "RigidBodySystem":
+        """This system with linear springs on its joints (:attr:`joint_springs`).
+
+        Args:
+            stiffness: ``(nv,)``, the stiffness of every dof (N m/rad or N/m), ``>= 0``; zero
+                on a free flyer's dofs, and equal on a spherical joint's three (its spring is
+                isotropic). The joints whose stiffness is zero get no spring. ``None``: none.
+            reference: ``(nq,)``, the configuration at which every spring is at rest;
+                ``None``: zero joint positions and identity orientations.
+
+        Raises:
+            ValueError: on a wrong shape, a negative or non-finite value, a stiffness on a
+                free flyer or unequal on a spherical joint's dofs (naming the joint).
+
+        Example:
+            >>> import numpy as np, rsmooth.sim as sim
+            >>> system = sim.scene("<mujoco><worldbody><body><joint name='hinge'/>"
+            ...                    "<geom size='0.1' mass='1'/></body></worldbody></mujoco>")
+            >>> system = system.with_joint_springs(np.array([2.0]))
+            >>> float(system.spring_forces(jnp.array([0.5]))[0])
+            -1.0
+        """
+        if stiffness is None:
+            return dataclasses.replace(self, joint_springs=None)
+        model = self.model
+        values = np.asarray(stiffness, dtype=np.float64)
+        if values.shape != (model.nv,):
+            raise ValueError(f"stiffness must have shape (nv,) = ({model.nv},), got {values.shape}")
+        bad = np.flatnonzero(~np.isfinite(values) | (values < 0))
+        if bad.size:
+            raise ValueError(f"stiffness must be finite and >= 0 (N m/rad or N/m); dofs {bad.tolist()} have {values[bad].tolist()}")
+        if reference is None:
+            reference = np.zeros(model.nq)
+            reference[_dynamics._tree(model).rotation_q + 3] = 1.0  # [x, y, z, w] = identity
+            reference = device_array(reference)
+        reference = jnp.asarray(reference)
+        if reference.shape != (model.nq,):
+            raise ValueError(f"reference must have shape (nq,) = ({model.nq},), got {reference.shape}")
+        joints, per_joint = [], []
+        for joint, (name, kind) in enumerate(zip(model.joint_names, model.joint_types)):
+            dofs = values[model.idx_v[joint] : model.idx_v[joint] + JOINT_NV[kind]]
+            if not np.any(dofs > 0):
+                continue
+            if kind not in _SPRING_TYPES:
+                raise ValueError(f"stiffness: joint {name!r} is a {kind}; springs are on revolute, prismatic and spherical joints")
+            if np.ptp(dofs) != 0:
+                raise ValueError(f"stiffness: the spherical joint {name!r} has unequal stiffness {dofs.tolist()} on its dofs")
+            joints.append(joint)
+            per_joint.append(dofs[0])
+        if not joints:
+            return dataclasses.replace(self, joint_springs=None)
+        springs = JointSprings(tuple(joints), device_array(np.asarray(per_joint)), reference)
+        return dataclasses.replace(self, joint_springs=springs)
+
+    def _spring_displacements(self, q: Array) -> list[tuple[Array, np.ndarray, Array]]:
+        """Per spring joint: ``(stiffness, its velocity indices, displacement)``, the
+        displacement ``q - q_ref`` (revolute, prismatic) or the rotation vector of
+        ``q_ref^-1 q`` (spherical)."""
+        model, springs = self.model, self.joint_springs
+        out = []
+        for k, joint in enumerate(springs.joints):
+            start_q, start_v = model.idx_q[joint], model.idx_v[joint]
+            reference = springs.reference.astype(q.dtype)
+            if model.joint_types[joint] == SPHERICAL:
+                quaternion = q[start_q : start_q + 4]
+                quaternion = quaternion / jnp.sqrt(spatial.dot3(quaternion, quaternion) + quaternion[3] ** 2)
+                relative = spatial.quaternion_multiply(spatial.quaternion_conjugate(reference[start_q : start_q + 4]), quaternion)
+                out.append((springs.stiffness[k], np.arange(start_v, start_v + 3), spatial.quaternion_log(relative)))
+            else:
+                out.append((springs.stiffness[k], np.array([start_v]), q[start_q : start_q + 1] - reference[start_q : start_q + 1]))
+        return out
+
+    def spring_forces(self, q: Array) -> Array:
+        """The generalized forces ``(nv,)`` of :attr:`joint_springs` at ``q`` (zeros without)."""
+        forces = jnp.zeros(self.model.nv, q.dtype)
+        if self.joint_springs is None:
+            return forces
+        for stiffness, dofs, displacement in self._spring_displacements(q):
+            forces = forces.at[dofs].set(-stiffness.astype(q.dtype) * displacement)
+        return forces
+
+    def spring_energy(self, q: Array) -> Array:
+        """The potential energy ``sum k |displacement|^2 / 2`` of :attr:`joint_springs` at ``q``
+        (zero without)."""
+        if self.joint_springs is None:
+            return jnp.zeros((), q.dtype)
+        return sum(0.5 * stiffness.astype(q.dtype) * jnp.sum(d * d) for stiffness, _, d in self._spring_displacements(q))
 
     def joint_rows(self, q: Array) -> tuple[Array, Array, Array]:
         """The joints' box rows of the contact problem at ``q``: :attr:`joint_friction`'s, then
@@ -1362,6 +1506,7 @@ def _pair_groups(pairs: tuple[GeomPair, ...]) -> list[list[int]]:
 
 # joints whose position limits RigidBodySystem.joint_limits enforces
 _LIMITED_TYPES = ("revolute", "prismatic", "spherical")
+_SPRING_TYPES = (REVOLUTE, PRISMATIC, SPHERICAL)
 
 
 def _limit_rows(model: Model, joint_limits) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -1472,6 +1617,7 @@ def _step_residuals(update: _VelocityUpdate):
             - removed
             + model.armature * acceleration
             + system.damping() * v_next  # implicit damping: dE/dv+ = M + h D, the factored W
+            - system.spring_forces(q)  # explicit springs: at the step's start
         )
         tau, _ = system.generalized_forces(q, u, kinematics)
         solved_distance, mu = distance, system.contact_friction()
@@ -1656,11 +1802,12 @@ def check_steps(infos: StepInfo, *, what: str = "the simulation") -> dict[str, i
 
 def energy(system: RigidBodySystem, x: ArrayLike) -> Array:
     """Total mechanical energy ``1/2 v^T M v + potential`` of a state (gravity potential
-    ``-m g . c`` of every body's centre of mass); shape ``()``."""
+    ``-m g . c`` of every body's centre of mass, plus the joint springs'
+    :meth:`~RigidBodySystem.spring_energy`); shape ``()``."""
     model = system.model
     q, v = system.split(jnp.asarray(x))
     kinematics = _dynamics._kinematics(model, q)
     mass = _dynamics._crba(model, kinematics, _dynamics._world_inertias(model, kinematics)) + jnp.diag(model.armature)
     coms = kinematics.translation + jnp.einsum("jab,jb->ja", kinematics.rotation, model.body_com)
-    potential = -jnp.sum(model.body_mass * (coms @ model.gravity))
+    potential = -jnp.sum(model.body_mass * (coms @ model.gravity)) + system.spring_energy(q)
     return 0.5 * v @ mass @ v + potential

@@ -404,7 +404,7 @@ UNSUPPORTED = {
     "ball_limit": (wrap("<body><joint name='shoulder' type='ball' range='0 4'/><geom size='0.1'/></body>"), "ball joint 'shoulder' has the range"),
     "tendon": (wrap(HINGE_BODY, "<tendon><fixed name='t'><joint joint='j' coef='1'/></fixed></tendon>"), "tendons .*'t'"),
     "equality": (wrap(HINGE_BODY, "<equality><weld name='e' body1='b'/></equality>"), "equality constraints .*'e'"),
-    "spring": (wrap("<body><joint name='j' stiffness='3'/><geom size='0.1'/></body>"), "joint 'j' has a spring"),
+    "spring": (wrap("<body><joint name='j' type='free' stiffness='3'/><geom size='0.1'/></body>"), "free joint 'j' has a spring"),
     "free_frictionloss": (
         wrap("<body><joint name='j' type='free' frictionloss='1'/><geom size='0.1'/></body>"),
         "free joint 'j' has frictionloss .* on its linear axes",
