@@ -41,7 +41,12 @@ max_limit_violation (the deepest over the run, the start included), limits_activ
 max_limits (the contact budgets; null: none), dropped_contact_steps (steps where a budget
 left out a closing contact or limit), max_pairs (the
 broad phase's pairs per group; null: all), skipped_pair_steps (steps where it left out a pair
-within its margin), wall_time_s (compile included)."""
+within its margin), joint_friction_dofs (dofs with dry joint friction), joint_friction_held_mean
+(those held still by it, per step: end-of-step speed below the contact solver's slip
+threshold), joint_friction_impulse_max (largest ratio of a friction impulse to its bound,
+at most 1), joint_couplings (joint equality constraints enforced), max_coupling_error (the
+largest |q_a - p(q_b)| over the run, rad or m), joint_springs (joints with a spring),
+wall_time_s (compile included)."""
 
 DEMO_SCENE = """<mujoco>
   <option timestep="0.01"/>
@@ -160,9 +165,10 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         xs, infos = system.rollout(x0, jnp.zeros((config.steps, system.nu)))
         energies = jax.vmap(lambda x: sim.energy(system, x))(xs)
         placements = jax.vmap(lambda x: sim.forward_kinematics(system.model, system.split(x)[0]))(xs)
-        return xs, infos, energies, placements
+        coupling_errors = jax.vmap(lambda x: system.coupling_errors(system.split(x)[0]))(xs)
+        return xs, infos, energies, placements, coupling_errors
 
-    xs, infos, energies, placements = simulate(system.initial_state())
+    xs, infos, energies, placements, coupling_errors = simulate(system.initial_state())
     xs = jax.block_until_ready(xs)
     counts = sim.check_steps(infos, what=f"the scene {config.file or 'built-in'}")
     bar.update()
@@ -172,6 +178,12 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     active, limits_active = touching[:, : touching.shape[1] - limits].sum(axis=-1), touching[:, touching.shape[1] - limits :].sum(axis=-1)
     energies = np.asarray(energies)
     dt = float(system.time_step)
+    friction_dofs = () if system.joint_friction is None else system.joint_friction.dofs
+    if friction_dofs:  # the friction rows come first among the joints' rows (RigidBodySystem.joint_rows)
+        speeds = np.abs(np.asarray(xs)[1:, system.model.nq + np.array(friction_dofs)])
+        held = (speeds <= system.solver.tolerance_for(xs.dtype) ** 0.5).sum(axis=-1)
+        bounds = dt * np.asarray(system.joint_friction.effort)
+        friction_share = np.abs(np.asarray(infos.joint_impulse)[:, : len(friction_dofs)]) / bounds
     metrics = {
         "file": config.file or "built-in",
         "steps": config.steps,
@@ -197,6 +209,12 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         "dropped_contact_steps": counts["dropped_contact_steps"],
         "max_pairs": config.max_pairs,
         "skipped_pair_steps": counts["skipped_pair_steps"],
+        "joint_friction_dofs": len(friction_dofs),
+        "joint_friction_held_mean": float(np.mean(held)) if friction_dofs else 0.0,
+        "joint_friction_impulse_max": float(friction_share.max()) if friction_dofs else 0.0,
+        "joint_couplings": int(coupling_errors.shape[-1]),
+        "max_coupling_error": float(np.abs(np.asarray(coupling_errors)).max()) if coupling_errors.shape[-1] else 0.0,
+        "joint_springs": 0 if system.joint_springs is None else len(system.joint_springs.joints),
     }
     times = np.arange(config.steps + 1) * dt
     fig, (ax_energy, ax_contacts) = viz.plt.subplots(1, 2, figsize=(11, 3.6))
@@ -233,6 +251,10 @@ def summary(metrics: dict) -> dict:
         "unconverged / diverged steps": f"{metrics['unconverged_steps']} / {metrics['diverged_steps']}",
         **({"beyond a joint limit at the start (rad or m)": f"{metrics['initial_limit_violation']:.3g}"}
            if metrics.get("initial_limit_violation", 0.0) > 0 else {}),
+        **({"dofs held by joint friction per step": f"{metrics['joint_friction_held_mean']:.1f} of "
+            f"{metrics['joint_friction_dofs']}"} if metrics.get("joint_friction_dofs") else {}),
+        **({"largest coupling error (rad or m)": f"{metrics['max_coupling_error']:.2e}"}
+           if metrics.get("joint_couplings") else {}),
     }
 
 

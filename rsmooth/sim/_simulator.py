@@ -135,6 +135,9 @@ class StepInfo(eqx.Module):
         skipped_pairs: how many geometry pairs :attr:`RigidBodySystem.max_pairs` left out of
             the collision although their bounding volumes were within their margin (int,
             ``()``; :meth:`RigidBodySystem.skipped_pairs`); 0 without the limit.
+        joint_impulse: the impulses of the joints' box rows, ``(m,)`` in the order of
+            :meth:`RigidBodySystem.joint_rows` (dry friction's dofs, then the couplings; N m s
+            or N s); empty without either.
     """
 
     distance: Array
@@ -146,6 +149,7 @@ class StepInfo(eqx.Module):
     mode: Array
     dropped_contacts: Array
     skipped_pairs: Array
+    joint_impulse: Array
 
 
 class _VelocityUpdate(NamedTuple):
@@ -180,9 +184,10 @@ class _VelocityUpdate(NamedTuple):
         """The NCP's unknowns: the solved contacts' impulses, then the joints' box rows'."""
         return jnp.concatenate([self.solved(self.impulse), self.joint_impulse])
 
-    def public(self) -> tuple[Array, Array, Array, NCPInfo, Array, tuple[Array, Array, Array]]:
-        # the contact frames and end-of-step contact velocities J v+ for the diagnostics
-        diagnostics = (self.frames, self.jacobian @ self.v_next, self.dropped)
+    def public(self) -> tuple[Array, Array, Array, NCPInfo, Array, tuple[Array, Array, Array, Array]]:
+        # the contact frames, end-of-step contact velocities J v+ and the joints' box rows'
+        # impulses for the diagnostics
+        diagnostics = (self.frames, self.jacobian @ self.v_next, self.dropped, self.joint_impulse)
         return self.v_next, self.impulse, self.distance, self.ncp, self.clipped, diagnostics
 
 
@@ -870,23 +875,34 @@ class RigidBodySystem(eqx.Module):
         rows, correction = [jnp.asarray(friction, dtype)], [jnp.zeros(len(dofs), dtype)]
         bounds = [jnp.zeros(0, dtype) if self.joint_friction is None else self.time_step * self.joint_friction.effort]
         if self.joint_couplings is not None:
-            model, coupling = self.model, self.joint_couplings
-            a_q, a_v = (np.array([getattr(model, field)[j] for j in coupling.joints]) for field in ("idx_q", "idx_v"))
-            b_q, b_v = (np.array([getattr(model, field)[j] for j in coupling.others]) for field in ("idx_q", "idx_v"))
-            leader = np.array([j != 0 for j in coupling.others])
-            q_b = jnp.where(leader, q[b_q], 0.0)
-            c = coupling.coefficients.astype(dtype)
-            # Horner's rule (powers q^0 would have a NaN derivative at q = 0)
-            value = c[:, 0] + q_b * (c[:, 1] + q_b * (c[:, 2] + q_b * (c[:, 3] + q_b * c[:, 4])))
-            slope = c[:, 1] + q_b * (2 * c[:, 2] + q_b * (3 * c[:, 3] + q_b * 4 * c[:, 4]))
-            error = q[a_q] - value
-            count = len(coupling.joints)
-            row = jnp.zeros((count, model.nv), dtype).at[np.arange(count), a_v].set(1.0)
-            row = row.at[np.arange(count), b_v].add(jnp.where(leader, -slope, 0.0))
+            error, row = self._coupling_terms(q)
             rows.append(row)
             correction.append(self.baumgarte * error / self.time_step)
-            bounds.append(jnp.full(count, jnp.inf, dtype))
+            bounds.append(jnp.full(error.shape[0], jnp.inf, dtype))
         return jnp.concatenate(rows), jnp.concatenate(correction), jnp.concatenate(bounds).astype(dtype)
+
+    def coupling_errors(self, q: Array) -> Array:
+        """How far each of :attr:`joint_couplings` is from holding at ``q``, ``q_a - p(q_b)``
+        (rad or m), ``(k,)``; empty without couplings."""
+        if self.joint_couplings is None:
+            return jnp.zeros(0, q.dtype)
+        return self._coupling_terms(q)[0]
+
+    def _coupling_terms(self, q: Array) -> tuple[Array, Array]:
+        """The couplings' position errors ``(k,)`` and their velocity rows ``(k, nv)`` at ``q``."""
+        model, coupling, dtype = self.model, self.joint_couplings, q.dtype
+        a_q, a_v = (np.array([getattr(model, field)[j] for j in coupling.joints]) for field in ("idx_q", "idx_v"))
+        b_q, b_v = (np.array([getattr(model, field)[j] for j in coupling.others]) for field in ("idx_q", "idx_v"))
+        leader = np.array([j != 0 for j in coupling.others])
+        q_b = jnp.where(leader, q[b_q], 0.0)
+        c = coupling.coefficients.astype(dtype)
+        # Horner's rule (powers q^0 would have a NaN derivative at q = 0)
+        value = c[:, 0] + q_b * (c[:, 1] + q_b * (c[:, 2] + q_b * (c[:, 3] + q_b * c[:, 4])))
+        slope = c[:, 1] + q_b * (2 * c[:, 2] + q_b * (3 * c[:, 3] + q_b * 4 * c[:, 4]))
+        count = len(coupling.joints)
+        row = jnp.zeros((count, model.nv), dtype).at[np.arange(count), a_v].set(1.0)
+        row = row.at[np.arange(count), b_v].add(jnp.where(leader, -slope, 0.0))
+        return q[a_q] - value, row
 
     def with_joint_limits(self, joints: Sequence[str] | None = None) -> "RigidBodySystem":
         """This system with its model's finite position limits enforced (:attr:`joint_limits`).
@@ -1324,11 +1340,11 @@ class RigidBodySystem(eqx.Module):
         q_next, v_next = _stages.advance(self, q, v_next)
         x_next = jnp.concatenate([q_next, v_next])
         diverged = ~jnp.all(jnp.isfinite(x_next)) | ~(jnp.max(jnp.abs(v_next)) * self.time_step <= self.max_motion_per_step)
-        frames, velocity, dropped = lax.stop_gradient(contact)
+        frames, velocity, dropped, joint_impulse = lax.stop_gradient(contact)
         force, mode = self._contact_diagnostics(impulse, frames, velocity)
         info = StepInfo(
             distance=distance, impulse=impulse, ncp=ncp, torque_clipped=clipped, diverged=diverged, force=force,
-            mode=mode, dropped_contacts=dropped, skipped_pairs=self.skipped_pairs(q),
+            mode=mode, dropped_contacts=dropped, skipped_pairs=self.skipped_pairs(q), joint_impulse=joint_impulse,
         )
         return x_next, info
 
@@ -1588,7 +1604,7 @@ def _implicit_velocity_update_jvp(primals, tangents):
     )
     v_next_dot, impulse_dot = _velocity_update_tangent(system, update, momentum_dot, velocity_dot, mu_dot, bounds_dot)
     no_tangent = jax.tree.map(lambda _: None, update.ncp)  # diagnostics: symbolic zeros
-    return update.public(), (v_next_dot, impulse_dot, distance_dot, no_tangent, None, (None, None, None))
+    return update.public(), (v_next_dot, impulse_dot, distance_dot, no_tangent, None, (None, None, None, None))
 
 
 def _step_residuals(update: _VelocityUpdate):

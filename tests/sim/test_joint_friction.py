@@ -41,6 +41,8 @@ def test_the_cart_moves_only_beyond_its_friction_and_then_at_the_closed_form_rat
         xs, infos = rollout(system, x0, jnp.full((steps, 1), force))
         assert bool(jnp.all(infos.ncp.converged))
         np.testing.assert_array_equal(np.asarray(xs[:, 0]), 0.0)
+        # the friction impulse is the push's, opposed (the cart's row first, then the arm's)
+        np.testing.assert_allclose(infos.joint_impulse[:, 0], -force * H, rtol=1e-9)
     for force in (1.5 * FRICTION, -3.0 * FRICTION):  # slips: v_k = k h (f - F sign f) / m
         xs, infos = rollout(system, x0, jnp.full((steps, 1), force))
         assert bool(jnp.all(infos.ncp.converged))
