@@ -94,9 +94,9 @@ def measure(n: int, repeats: int) -> dict:
     mujoco_error = _heights_error(np.asarray(data.qpos).reshape(n, 7)[:, 2])
     return {
         "candidates": system.num_contacts,
-        "pairs": len(system.geom_pairs),
-        "max_contacts": system.max_contacts,
-        "max_pairs": system.max_pairs,
+        "pairs": len(system.geometry.geom_pairs),
+        "max_contacts": system.options.max_contacts,
+        "max_pairs": system.options.max_pairs,
         "ours_step_batch": ours,
         "ours_compile_s": compile_s,
         "mj_step": reference,

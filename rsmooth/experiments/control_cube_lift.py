@@ -151,7 +151,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     viz.save_figure(fig, out / "cube_lift.png")
 
     shown = tuple(n for n in ("ddp", "rddp") if n in solutions) or names[:1]
-    side = 2 * float(jnp.max(system.sphere_offsets[:, 2]))
+    side = 2 * float(jnp.max(system.geometry.sphere_offsets[:, 2]))
     frames = _control.frames_side_by_side(
         lambda ax, name, t: _draw(ax, solutions[name].xs, solutions[name].us, name, t, rest, target, side, weight),
         shown,

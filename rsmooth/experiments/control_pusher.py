@@ -257,7 +257,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         **per_method,
     }
 
-    finger = system.geom_pairs[0]  # the box (shape 1) and the finger (shape 2)
+    finger = system.geometry.geom_pairs[0]  # the box (shape 1) and the finger (shape 2)
     side, radius = 2 * float(finger.shape1.half_extents[0]), float(finger.shape2.radius)
     start = box_pose(problem.x0)
     fig, axes = viz.plt.subplots(1, 3, figsize=(15, 4.2))

@@ -160,7 +160,7 @@ def build_problem(config: Config, system=None):
         "others": device_array(selection[[i for i in range(4) if i != lifted]], x0.dtype),
         "target": device_array(feet0_host[lifted, 2:3] + config.height, x0.dtype),
     }
-    limit = np.asarray(system.input_limit)
+    limit = np.asarray(system.actuation.input_limit)
     problem = control.ShootingProblem(
         system, _running, _terminal, x0, config.horizon, control_lower=-limit, control_upper=limit, residuals=True,
         params=params,

@@ -101,7 +101,7 @@ class Config:
 def ball_final_x(system: sim.RigidBodySystem, config: Config, wall, angle):
     """The ball's final ``x`` after a throw at elevation ``angle`` (rad), with the wall at
     ``x = wall`` (both may be traced)."""
-    system = eqx.tree_at(lambda s: s.plane_offsets, system, jnp.stack([jnp.zeros_like(wall), -wall]))
+    system = eqx.tree_at(lambda s: s.geometry.plane_offsets, system, jnp.stack([jnp.zeros_like(wall), -wall]))
     q = jnp.array([0.0, 0.0, config.throw_height, 0.0, 0.0, 0.0, 1.0])
     velocity = config.speed * jnp.stack([jnp.cos(angle), jnp.zeros_like(angle), jnp.sin(angle)])
     xs, _ = system.rollout(jnp.concatenate([q, velocity, jnp.zeros(3)]), jnp.zeros((config.steps, 3)))

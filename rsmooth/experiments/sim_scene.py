@@ -152,9 +152,9 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         joint_limits=config.joint_limits, max_contacts=config.max_contacts, max_limits=config.max_limits,
         max_pairs=config.max_pairs,
     )
-    limits = len(system.joint_limits)  # the last candidate contacts (RigidBodySystem.contacts)
+    limits = len(system.joints.limits)  # the last candidate contacts (RigidBodySystem.contacts)
     # the floor scene() adds is the last pair's half-space (drawn where it is)
-    floor_height = float(system.geom_pairs[-1].placement1[1][2]) if config.floor else 0.0
+    floor_height = float(system.geometry.geom_pairs[-1].placement1[1][2]) if config.floor else 0.0
     bar = tqdm(total=2 + config.frames, desc="sim scene", disable=not progress)
 
     # The rollout's diagnostics are checked below (sim.check_steps): its program leaves out
@@ -178,18 +178,18 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     active, limits_active = touching[:, : touching.shape[1] - limits].sum(axis=-1), touching[:, touching.shape[1] - limits :].sum(axis=-1)
     energies = np.asarray(energies)
     dt = float(system.time_step)
-    friction_dofs = () if system.joint_friction is None else system.joint_friction.dofs
+    friction_dofs = () if system.joints.friction is None else system.joints.friction.dofs
     if friction_dofs:  # the friction rows come first among the joints' rows (RigidBodySystem.joint_rows)
         speeds = np.abs(np.asarray(xs)[1:, system.model.nq + np.array(friction_dofs)])
         held = (speeds <= system.solver.tolerance_for(xs.dtype) ** 0.5).sum(axis=-1)
-        bounds = dt * np.asarray(system.joint_friction.effort)
+        bounds = dt * np.asarray(system.joints.friction.effort)
         friction_share = np.abs(np.asarray(infos.joint_impulse)[:, : len(friction_dofs)]) / bounds
     metrics = {
         "file": config.file or "built-in",
         "steps": config.steps,
         "time_step": dt,
         "bodies": len(loaded.body_names),
-        "geom_pairs": len(system.geom_pairs),
+        "geom_pairs": len(system.geometry.geom_pairs),
         "candidate_contacts": system.num_contacts - limits,
         "max_penetration": float(max(0.0, -distances.min())) if distances.size else 0.0,
         "joint_limits": limits,
@@ -214,7 +214,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         "joint_friction_impulse_max": float(friction_share.max()) if friction_dofs else 0.0,
         "joint_couplings": int(coupling_errors.shape[-1]),
         "max_coupling_error": float(np.abs(np.asarray(coupling_errors)).max()) if coupling_errors.shape[-1] else 0.0,
-        "joint_springs": 0 if system.joint_springs is None else len(system.joint_springs.joints),
+        "joint_springs": 0 if system.joints.springs is None else len(system.joints.springs.joints),
     }
     times = np.arange(config.steps + 1) * dt
     fig, (ax_energy, ax_contacts) = viz.plt.subplots(1, 2, figsize=(11, 3.6))

@@ -82,11 +82,11 @@ def supported(system) -> bool:
     # (Gravity compensation's efforts depend on the configuration through terms the closed form
     # does not hold: forward mode through the step's equations has them.)
     return (
-        system.actuation == "joints" and not system.gravity_compensation
-        and not system.geom_pairs and not system.joint_limits and system.joint_friction is None
-        and system.joint_couplings is None and system.joint_springs is None
+        system.actuation.kind == "joints" and not system.actuation.gravity_compensation
+        and not system.geometry.geom_pairs and not system.joints.limits and system.joints.friction is None
+        and system.joints.couplings is None and system.joints.springs is None
         and not len(_dynamics._tree(system.model).spherical)
-        and (system.max_contacts is None or system.max_contacts >= system.num_contacts)
+        and (system.options.max_contacts is None or system.options.max_contacts >= system.num_contacts)
     )
 
 

@@ -489,7 +489,7 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
         if kind not in GEOM_TYPES and collides:
             raise ValueError(
                 f"MuJoCo model: geom {geom_names[g]!r} is a colliding {kind}, which rsmooth.sim does not support "
-                f"(supported: {', '.join(GEOM_TYPES)}; a {kind} with contype = conaffinity = 0 is kept as visual)"
+                f"(converted: {', '.join(GEOM_TYPES)}; a {kind} with contype = conaffinity = 0 is kept as visual)"
             )
     _check_actuators(mj, m, joint_names)
 

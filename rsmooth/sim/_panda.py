@@ -15,7 +15,7 @@ converted by :func:`~rsmooth.sim.scene`:
 - seven motors, one per arm joint, bounded by Franka's torque limits; with
   ``gravity_compensation`` (default) the inputs are the torques beyond those that hold the
   arm against gravity, as Franka's torque interface takes them
-  (:attr:`RigidBodySystem.gravity_compensation`), so that zero input holds the arm still.
+  (:attr:`Actuation.gravity_compensation`), so that zero input holds the arm still.
 
 The start (``initial_state()``) puts the tool ``tool_gap`` behind the box's ``-x`` face at the
 box's mid-height, ``tool_y`` off its centre line, the hand pointing down (inverse kinematics at

@@ -33,7 +33,6 @@ MuJoCo).
 
 from __future__ import annotations
 
-import dataclasses
 import pathlib
 import warnings
 from typing import Any
@@ -254,7 +253,7 @@ def scene(
     The kinematic tree, gravity, armature, joint damping, joint springs (``stiffness``,
     :meth:`~rsmooth.sim.RigidBodySystem.with_joint_springs`), dry joint friction (``frictionloss``,
     :meth:`~rsmooth.sim.RigidBodySystem.with_joint_friction`) and joint couplings (a URDF's
-    ``<mimic>``, :attr:`~rsmooth.sim.RigidBodySystem.joint_couplings`) are those of
+    ``<mimic>``, :attr:`~rsmooth.sim.Joints.couplings`) are those of
     :func:`~rsmooth.sim.load_mjcf`; every colliding geom pair of MuJoCo is a
     :class:`~rsmooth.sim.GeomPair` with MuJoCo's friction (see the module's description for
     the mapping of geoms, frames and frictions). The input ``u`` ``(nu,)`` holds the
@@ -305,18 +304,18 @@ def scene(
             pairs between different trees and with geoms on the world body.
         joint_limits: enforce the position limits of the limited hinges and slides and the
             cone limits of the limited ball joints (the
-            system's :attr:`~rsmooth.sim.RigidBodySystem.joint_limits`, frictionless contacts
+            system's :attr:`~rsmooth.sim.Joints.limits`, frictionless contacts
             after the geometry pairs); ``False``: the joints move freely. A start beyond a
             hinge's or slide's limits (a URDF's zero configuration often is: a quadruped's
             knees) is warned of: the limits push the joints back in during the first steps.
         max_contacts: solve at most this many contacts between shapes per step, the closest
-            candidates (:attr:`~rsmooth.sim.RigidBodySystem.max_contacts`): a robot's meshes
+            candidates (:attr:`~rsmooth.sim.Options.max_contacts`): a robot's meshes
             give hundreds of candidates of which a few touch; ``None``: all.
         max_pairs: collide at most this many pairs of each pair group per step, those whose
-            bounding spheres are closest (:attr:`~rsmooth.sim.RigidBodySystem.max_pairs`,
+            bounding spheres are closest (:attr:`~rsmooth.sim.Options.max_pairs`,
             exact while no more are within the margin); ``None``: all.
         max_limits: solve at most this many joint limits per step, those nearest their
-            bounds (:attr:`~rsmooth.sim.RigidBodySystem.max_limits`): a humanoid has dozens;
+            bounds (:attr:`~rsmooth.sim.Options.max_limits`): a humanoid has dozens;
             ``None``: all.
 
     Returns:
@@ -437,7 +436,7 @@ def scene(
     )
     system = system.with_contact_budget(max_contacts, max_pairs, max_limits).with_joint_friction(np.asarray(loaded.frictionloss))
     system = system.with_joint_springs(np.asarray(loaded.stiffness), loaded.spring_reference)
-    system = dataclasses.replace(system, joint_couplings=loaded.joint_couplings)
+    system = system.with_joint_couplings(loaded.joint_couplings)
     if not joint_limits:
         return system
     _warn_if_beyond_limits(model, np.asarray(initial_configuration), source_label(source))

@@ -6,9 +6,9 @@ state ``x = [q, v]``:
 
 1. Free motion (semi-implicit Euler on velocities):
    ``v_f = s + h W^-1 (tau(q, u) + k(q) - C(q, v) v - g(q) - D s)`` with ``W = M(q) + h D``: the
-   joint damping ``D`` (:attr:`RigidBodySystem.joint_damping`, zero by default) is implicit,
+   joint damping ``D`` (:attr:`Joints.damping`, zero by default) is implicit,
    ``D v+``, so it dissipates at any ``h``; the joint springs' forces ``k(q)``
-   (:attr:`RigidBodySystem.joint_springs`) are explicit, as in MuJoCo's Euler integrator. ``M`` includes the rotor inertia
+   (:attr:`Joints.springs`) are explicit, as in MuJoCo's Euler integrator. ``M`` includes the rotor inertia
    (``model.armature``); the rest of the system below uses ``W`` where it says ``M``. The
    step's velocities are written in the body axes of the step's start, a frame frozen for
    the step: ``s`` is ``v`` with every free flyer's linear velocity transported by the
@@ -28,9 +28,9 @@ state ``x = [q, v]``:
      velocity level, on the Delassus matrix ``G = J M^-1 J^T`` and the free velocity
      ``g = J v_f`` corrected by ``max(phi, 0) / h`` (a gap that does not close within the
      step exerts no impulse) and ``baumgarte * min(phi, 0) / h`` (penetration is pushed out).
-     The joints' dry friction (:attr:`RigidBodySystem.joint_friction`) adds one box row per
+     The joints' dry friction (:attr:`Joints.friction`) adds one box row per
      dof, ``|lambda_k| <= effort_k h`` opposing the dof's velocity, and each joint coupling
-     (:attr:`RigidBodySystem.joint_couplings`) a bilateral row with the Baumgarte correction
+     (:attr:`Joints.couplings`) a bilateral row with the Baumgarte correction
      of its position error, solved with the contacts.
      Solved by :func:`~rsmooth.sim.solve_ncp` (ADMM), differentiated implicitly.
    - a :class:`~rsmooth.sim.SpringDamper` or :class:`~rsmooth.sim.LogBarrier`: the compliant
@@ -129,10 +129,10 @@ class StepInfo(eqx.Module):
             metre per step, where the step's linearizations of the motion and the contacts
             fail and semi-implicit Euler injects energy). :meth:`RigidBodySystem.rollout`
             holds the state from such a step on; treat the rest of that trajectory as invalid.
-        dropped_contacts: how many candidates :attr:`RigidBodySystem.max_contacts` and
-            :attr:`RigidBodySystem.max_limits` left out of the solve although the step closes
+        dropped_contacts: how many candidates :attr:`Options.max_contacts` and
+            :attr:`Options.max_limits` left out of the solve although the step closes
             their gap (int, ``()``); 0 without a budget.
-        skipped_pairs: how many geometry pairs :attr:`RigidBodySystem.max_pairs` left out of
+        skipped_pairs: how many geometry pairs :attr:`Options.max_pairs` left out of
             the collision although their bounding volumes were within their margin (int,
             ``()``; :meth:`RigidBodySystem.skipped_pairs`); 0 without the limit.
         joint_impulse: the impulses of the joints' box rows, ``(m,)`` in the order of
@@ -324,11 +324,40 @@ class Options(eqx.Module):
             kept as a reference. Compliant contact laws always use ``"autodiff"``.
         max_motion_per_step: bound on ``|v+| h`` (rad or m) beyond which a step is reported
             as diverged (static; ``inf`` reports only non-finite states).
+        max_contacts: a budget on the contacts the NCP solves (static; hard contact only):
+            at each step the ``max_contacts`` candidates between shapes with the smallest
+            signed distance (ties to the lower index), plus the joint limits (every one, or
+            :attr:`max_limits` of them). The others get
+            zero impulse; a left-out candidate whose gap the step would close (its corrected
+            free normal velocity negative, so the solve would have had to act on it) is
+            counted in :attr:`StepInfo.dropped_contacts` and reported by :func:`check_steps`.
+            A scene of many shapes has far more candidates (every manifold entry of every
+            pair) than touching points; the solve's cost grows with the cube of the contacts
+            it holds. The selection is piecewise constant in the state: derivatives are those
+            of the selected problem. ``None`` (default): every candidate. See
+            :meth:`RigidBodySystem.with_contact_budget`.
+        max_limits: the same budget on the joint limits (:attr:`Joints.limits`; static): at
+            each step the ``max_limits`` limits nearest their bounds (smallest distance, rad
+            or m), left-out ones that the step would close counted as dropped contacts. A
+            robot has two limits per joint (58 for a 29-joint humanoid), each a contact of
+            three rows in every solve however far the joint is from its bounds. ``None``
+            (default): every limit.
+        max_pairs: a broad phase (static): in each group of geometry pairs that one
+            vectorized collision evaluates (pairs of the same shape types and sizes), the
+            narrow phase runs on the ``max_pairs`` pairs whose bounding spheres are closest
+            (against a half-space: the sphere's height above its plane); the other pairs'
+            manifold entries are inactive. A pair whose bounding gap exceeds its margin cannot
+            touch, so this is exact while at most ``max_pairs`` pairs of a group are within
+            their margin; beyond that the surplus is counted in
+            :attr:`StepInfo.skipped_pairs` and reported by :func:`check_steps`. The narrow
+            phase (a mesh pair's separating-axis test) is most of a scene's collision cost.
+            ``None`` (default): every pair.
 
     Raises:
         ValueError: a time step that is not a positive, finite scalar, an unknown contact law
-            or derivative mode, ``baumgarte`` outside ``[0, 1]``, or a ``max_motion_per_step``
-            that is not positive.
+            or derivative mode, ``baumgarte`` outside ``[0, 1]``, a ``max_motion_per_step``
+            that is not positive, a budget that is not a positive integer or ``None``, or a
+            contact budget with a compliant contact law.
     """
 
     time_step: Array = eqx.field(converter=lambda h: jnp.asarray(h, dtype=float))
@@ -337,6 +366,9 @@ class Options(eqx.Module):
     baumgarte: float = eqx.field(static=True, default=0.2)
     derivative: str = eqx.field(static=True, default="implicit")
     max_motion_per_step: float = eqx.field(static=True, default=1.0)
+    max_contacts: int | None = eqx.field(static=True, default=None)
+    max_pairs: int | None = eqx.field(static=True, default=None)
+    max_limits: int | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if not _checks.is_traced(self.time_step) and np.shape(self.time_step) != ():
@@ -351,6 +383,14 @@ class Options(eqx.Module):
         if self.derivative not in ("implicit", "autodiff"):
             raise ValueError(f"derivative must be 'implicit' or 'autodiff', got {self.derivative!r}")
         _check_concrete("max_motion_per_step", self.max_motion_per_step, positive=True, allow_inf=True)
+        for name in ("max_contacts", "max_pairs", "max_limits"):
+            budget = getattr(self, name)
+            if budget is None:
+                continue
+            if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or budget < 1:
+                raise ValueError(f"{name} must be a positive integer or None, got {budget!r}")
+            if name != "max_pairs" and not isinstance(self.contact, str):
+                raise ValueError(f"{name} budgets the hard-contact NCP: use contact='hard'")
 
 
 class JointFriction(eqx.Module):
@@ -459,18 +499,61 @@ class JointSprings(eqx.Module):
             raise ValueError(f"JointSprings.stiffness must be >= 0 (N m/rad or N/m), got {np.asarray(self.stiffness)}")
 
 
-class RigidBodySystem(eqx.Module):
-    """A kinematic tree with sphere contacts against half-spaces and contacts between pairs
-    of collision shapes (:class:`GeomPair`), stepped in time.
+class Geometry(eqx.Module):
+    """What a system's bodies touch (:attr:`RigidBodySystem.geometry`): contact spheres of the
+    kinematic tree against the world's half-spaces, and pairs of collision shapes.
 
-    Build one with the factories :func:`~rsmooth.sim.cube`, :func:`~rsmooth.sim.box`,
-    :func:`~rsmooth.sim.ball`, :func:`~rsmooth.sim.ball_wall`, :func:`~rsmooth.sim.pusher`,
-    :func:`~rsmooth.sim.solo12`, :func:`~rsmooth.sim.bodies` (or directly, for a new robot); :meth:`initial_state` is the
-    state each factory defines as the start.
+    Attributes:
+        sphere_frames: frame of every contact sphere (static).
+        sphere_offsets: sphere centres in their frame, ``(S, 3)``.
+        sphere_radii: ``(S,)``, ``>= 0``.
+        plane_normals: unit normals of the half-spaces ``{p : n . p >= offset}``, ``(P, 3)``.
+        plane_offsets: ``(P,)``.
+        friction: Coulomb coefficient of every half-space, ``(P,)`` (hard contact).
+        geom_pairs: pairs of collision shapes (:class:`GeomPair`) whose contact manifolds
+            are contacts of the system, after the sphere contacts (e.g. boxes on a floor and
+            on each other: :func:`~rsmooth.sim.bodies`; a pusher's finger against its box:
+            :func:`~rsmooth.sim.pusher`).
 
-    The input ``u`` is mapped to generalized forces in one of two ways (``actuation``):
+    The defaults are no sphere, no half-space and no pair.
+    """
 
-    - ``"joints"``: ``u`` are the efforts of the dofs ``actuated_dofs`` (joint torques).
+    sphere_frames: tuple[int, ...] = eqx.field(static=True, default=())
+    sphere_offsets: Array = eqx.field(default_factory=lambda: jnp.zeros((0, 3)))
+    sphere_radii: Array = eqx.field(default_factory=lambda: jnp.zeros(0))
+    plane_normals: Array = eqx.field(default_factory=lambda: jnp.zeros((0, 3)))
+    plane_offsets: Array = eqx.field(default_factory=lambda: jnp.zeros(0))
+    friction: Array = eqx.field(default_factory=lambda: jnp.zeros(0))
+    geom_pairs: tuple[GeomPair, ...] = ()
+
+    def __check_init__(self):
+        num_spheres, num_planes = len(self.sphere_frames), jnp.shape(self.plane_normals)[0]
+        if jnp.shape(self.sphere_offsets) != (num_spheres, 3) or jnp.shape(self.sphere_radii) != (num_spheres,):
+            raise ValueError(
+                f"sphere_offsets must have shape ({num_spheres}, 3) and sphere_radii ({num_spheres},), got "
+                f"{jnp.shape(self.sphere_offsets)} and {jnp.shape(self.sphere_radii)}"
+            )
+        if jnp.shape(self.plane_normals) != (num_planes, 3) or jnp.shape(self.plane_offsets) != (num_planes,):
+            raise ValueError("plane_normals must have shape (P, 3) and plane_offsets (P,)")
+        if jnp.shape(self.friction) != (num_planes,):
+            raise ValueError(f"friction must have shape ({num_planes},), got {jnp.shape(self.friction)}")
+        _check_concrete("sphere_radii", self.sphere_radii)
+        _check_concrete("friction", self.friction)
+        if not isinstance(self.geom_pairs, tuple) or not all(isinstance(p, GeomPair) for p in self.geom_pairs):
+            raise ValueError(f"geom_pairs must be a tuple of GeomPair, got {self.geom_pairs!r}")
+
+    @property
+    def num_contacts(self) -> int:
+        """Candidate contacts between shapes: every sphere against every half-space, then the
+        manifold entries of every pair (static)."""
+        return len(self.sphere_frames) * self.plane_normals.shape[0] + sum(pair.size for pair in self.geom_pairs)
+
+
+class Actuation(eqx.Module):
+    """How the input ``u`` drives a system (:attr:`RigidBodySystem.actuation`), in one of two
+    ways (``kind``):
+
+    - ``"joints"``: ``u`` are the efforts of the dofs ``dofs`` (joint torques).
     - ``"wrench"``: ``u`` are components ``wrench_components`` of a wrench
       ``[force, torque]`` in world axes applied at the origin of frame ``wrench_frame``
       (``tau = J_frame^T w``).
@@ -479,33 +562,56 @@ class RigidBodySystem(eqx.Module):
     reported in :class:`StepInfo`; ``+inf`` means unlimited.
 
     Attributes:
-        model: the kinematic tree.
-        sphere_frames: frame of every contact sphere (static).
-        sphere_offsets: sphere centres in their frame, ``(S, 3)``.
-        sphere_radii: ``(S,)``, ``>= 0``.
-        plane_normals: unit normals of the half-spaces ``{p : n . p >= offset}``, ``(P, 3)``.
-        plane_offsets: ``(P,)``.
-        friction: Coulomb coefficient of every half-space, ``(P,)`` (hard contact).
-        options: the time step, the contact law and its solver, the derivative mode
-            (:class:`Options`); ``time_step``, ``contact``, ``solver``, ``baumgarte``,
-            ``derivative`` and ``max_motion_per_step`` read them on the system too.
-        actuation: ``"joints"`` or ``"wrench"`` (static).
-        actuated_dofs: velocity indices driven by ``u`` (``"joints"``).
-        wrench_frame: frame index of the applied wrench (``"wrench"``).
-        wrench_components: which of ``[fx, fy, fz, tx, ty, tz]`` ``u`` holds (``"wrench"``).
-        input_limit: ``(nu,)`` symmetric bounds on ``u``.
-        geom_pairs: pairs of collision shapes (:class:`GeomPair`) whose contact manifolds
-            are contacts of the system, after the sphere contacts (e.g. boxes on a floor and
-            on each other: :func:`~rsmooth.sim.bodies`; a pusher's finger against its box:
-            :func:`~rsmooth.sim.pusher`).
-        joint_damping: viscous damping ``(nv,)`` (N m s/rad or N s/m) of each dof, ``>= 0``,
+        kind: ``"joints"`` or ``"wrench"`` (static).
+        dofs: velocity indices driven by ``u`` (``"joints"``; static).
+        wrench_frame: frame index of the applied wrench (``"wrench"``; static).
+        wrench_components: which of ``[fx, fy, fz, tx, ty, tz]`` ``u`` holds (``"wrench"``; static).
+        input_limit: ``(nu,)`` symmetric bounds on ``u``, ``> 0``.
+        gravity_compensation: the actuated dofs also receive the efforts that hold the
+            system against gravity at its configuration (their entries of
+            :func:`~rsmooth.sim.gravity_torques`), as the controller of a torque-controlled
+            arm adds them (Franka's does): ``u`` is then the effort beyond gravity's, and
+            ``input_limit`` bounds ``u``, not the sum (static; ``kind="joints"`` only).
+            Its derivative with respect to the configuration is part of the step's. See
+            :meth:`RigidBodySystem.with_gravity_compensation`.
+    """
+
+    kind: str = eqx.field(static=True)
+    input_limit: Array
+    dofs: tuple[int, ...] = eqx.field(static=True, default=())
+    wrench_frame: int = eqx.field(static=True, default=0)
+    wrench_components: tuple[int, ...] = eqx.field(static=True, default=())
+    gravity_compensation: bool = eqx.field(static=True, default=False)
+
+    def __check_init__(self):
+        if self.kind not in ("joints", "wrench"):
+            raise ValueError(f"actuation kind must be 'joints' or 'wrench', got {self.kind!r}")
+        if jnp.shape(self.input_limit) != (self.nu,):
+            raise ValueError(f"input_limit must have shape ({self.nu},), got {jnp.shape(self.input_limit)}")
+        _check_concrete("input_limit", self.input_limit, positive=True, allow_inf=True)
+        if any(c not in range(6) for c in self.wrench_components):
+            raise ValueError(f"wrench_components must be in 0..5, got {self.wrench_components}")
+        if not isinstance(self.gravity_compensation, bool):
+            raise TypeError(f"gravity_compensation must be a bool, got {self.gravity_compensation!r}")
+        if self.gravity_compensation and self.kind != "joints":
+            raise ValueError("gravity_compensation adds efforts to the actuated dofs: it needs actuation kind 'joints'")
+
+    @property
+    def nu(self) -> int:
+        """Input dimension."""
+        return len(self.dofs) if self.kind == "joints" else len(self.wrench_components)
+
+
+class Joints(eqx.Module):
+    """What acts on a system's joints besides its inertia and input
+    (:attr:`RigidBodySystem.joints`); by default nothing.
+
+    Attributes:
+        damping: viscous damping ``(nv,)`` (N m s/rad or N s/m) of each dof, ``>= 0``,
             integrated implicitly; ``None`` for none. It bounds the speed a constant torque
             gives a free joint (``tau / d``), which explicit velocity-product (Coriolis)
             terms otherwise let grow until the step diverges.
-        initial_configuration: the configuration ``q`` ``(nq,)`` that :meth:`initial_state`
-            starts from, set by each factory (e.g. a cube resting on its floor); ``None``: the
-            model's neutral configuration.
-        joint_limits: position limits enforced as unilateral constraints, ``((dof, side),
+        limits: position limits enforced as unilateral constraints, ``((dof, side),
             ...)`` (static): ``dof`` the velocity index of a revolute or prismatic joint,
             ``side`` ``+1`` for its :attr:`Model.lower_position_limit` and ``-1`` for its upper
             one, which must be finite; or ``dof`` the first velocity index of a spherical
@@ -516,170 +622,125 @@ class RigidBodySystem(eqx.Module):
             solved with the contacts in one NCP (hard contact only). The cone's normal turns
             with the twist about the body's own axis: a body resting on its cone whose
             inertia about that axis is far below the others (a thin rod, 1:440) can be
-            unstable at 10 ms steps, as in MuJoCo. :meth:`with_joint_limits` lists a model's
-            finite limits. Empty by default: a model's limits are not enforced unless asked.
-        max_contacts: a budget on the contacts the NCP solves (static; hard contact only):
-            at each step the ``max_contacts`` candidates between shapes with the smallest
-            signed distance (ties to the lower index), plus the joint limits (every one, or
-            :attr:`max_limits` of them). The others get
-            zero impulse; a left-out candidate whose gap the step would close (its corrected
-            free normal velocity negative, so the solve would have had to act on it) is
-            counted in :attr:`StepInfo.dropped_contacts` and reported by :func:`check_steps`.
-            A scene of many shapes has far more candidates (every manifold entry of every
-            pair) than touching points; the solve's cost grows with the cube of the contacts
-            it holds. The selection is piecewise constant in the state: derivatives are those
-            of the selected problem. ``None`` (default): every candidate. See
-            :meth:`with_contact_budget`.
-        max_limits: the same budget on the :attr:`joint_limits` (static): at each step the
-            ``max_limits`` limits nearest their bounds (smallest distance, rad or m), left-out
-            ones that the step would close counted as dropped contacts. A robot has two
-            limits per joint (58 for a 29-joint humanoid), each a contact of three rows in
-            every solve however far the joint is from its bounds. ``None`` (default): every
-            limit.
-        max_pairs: a broad phase (static): in each group of geometry pairs that one
-            vectorized collision evaluates (pairs of the same shape types and sizes), the
-            narrow phase runs on the ``max_pairs`` pairs whose bounding spheres are closest
-            (against a half-space: the sphere's height above its plane); the other pairs'
-            manifold entries are inactive. A pair whose bounding gap exceeds its margin cannot
-            touch, so this is exact while at most ``max_pairs`` pairs of a group are within
-            their margin; beyond that the surplus is counted in
-            :attr:`StepInfo.skipped_pairs` and reported by :func:`check_steps`. The narrow
-            phase (a mesh pair's separating-axis test) is most of a scene's collision cost.
-            ``None`` (default): every pair. See :meth:`with_contact_budget`.
-        gravity_compensation: the actuated dofs also receive the efforts that hold the
-            system against gravity at its configuration (their entries of
-            :func:`~rsmooth.sim.gravity_torques`), as the controller of a torque-controlled
-            arm adds them (Franka's does): ``u`` is then the effort beyond gravity's, and
-            ``input_limit`` bounds ``u``, not the sum (static; ``actuation="joints"`` only).
-            Its derivative with respect to the configuration is part of the step's. See
-            :meth:`with_gravity_compensation`.
-        joint_friction: dry friction on joints (:class:`JointFriction`), solved with the
-            contacts (hard contact only); ``None``: none. See :meth:`with_joint_friction`.
-        joint_couplings: joint equality constraints (:class:`JointCoupling`), solved with the
+            unstable at 10 ms steps, as in MuJoCo. :meth:`RigidBodySystem.with_joint_limits`
+            lists a model's finite limits. Empty by default: a model's limits are not
+            enforced unless asked.
+        friction: dry friction on joints (:class:`JointFriction`), solved with the
+            contacts (hard contact only); ``None``: none. See
+            :meth:`RigidBodySystem.with_joint_friction`.
+        couplings: joint equality constraints (:class:`JointCoupling`), solved with the
             contacts (hard contact only); ``None``: none.
-        joint_springs: linear springs on joints (:class:`JointSprings`), explicit forces of
-            the free motion; ``None``: none. See :meth:`with_joint_springs`.
+        springs: linear springs on joints (:class:`JointSprings`), explicit forces of
+            the free motion; ``None``: none. See :meth:`RigidBodySystem.with_joint_springs`.
+    """
+
+    damping: Array | None = None
+    limits: tuple[tuple[int, int], ...] = eqx.field(static=True, default=())
+    friction: JointFriction | None = None
+    couplings: JointCoupling | None = None
+    springs: JointSprings | None = None
+
+    def __check_init__(self):
+        if self.damping is not None and not _checks.is_traced(self.damping) and np.any(np.asarray(self.damping) < 0):
+            raise ValueError("joints.damping must be non-negative")
+        for name, value, kind in (
+            ("friction", self.friction, JointFriction), ("couplings", self.couplings, JointCoupling),
+            ("springs", self.springs, JointSprings),
+        ):
+            if value is not None and not isinstance(value, kind):
+                raise ValueError(f"joints.{name} must be a {kind.__name__} or None, got {value!r}")
+
+
+class RigidBodySystem(eqx.Module):
+    """A kinematic tree with contacts, stepped in time: data in five parts plus a start.
+
+    Build one with the factories :func:`~rsmooth.sim.cube`, :func:`~rsmooth.sim.box`,
+    :func:`~rsmooth.sim.ball`, :func:`~rsmooth.sim.ball_wall`, :func:`~rsmooth.sim.pusher`,
+    :func:`~rsmooth.sim.solo12`, :func:`~rsmooth.sim.bodies`, :func:`~rsmooth.sim.scene` (or
+    directly, for a new robot); the ``with_*`` methods change one part (:meth:`with_options`,
+    :meth:`with_joint_limits`, :meth:`with_joint_friction`, :meth:`with_joint_springs`,
+    :meth:`with_contact_budget`, :meth:`with_gravity_compensation`); :meth:`initial_state` is
+    the state each factory defines as the start.
+
+    Attributes:
+        model: the kinematic tree (:class:`~rsmooth.sim.Model`).
+        geometry: what the bodies touch (:class:`Geometry`).
+        actuation: how ``u`` drives the system (:class:`Actuation`).
+        options: the time step, the contact law and its solver, the contact budgets, the
+            derivative mode (:class:`Options`); ``time_step``, ``contact``, ``solver``,
+            ``baumgarte``, ``derivative`` and ``max_motion_per_step`` read them on the system
+            too.
+        joints: damping, limits, dry friction, couplings and springs of the joints
+            (:class:`Joints`; none by default).
+        initial_configuration: the configuration ``q`` ``(nq,)`` that :meth:`initial_state`
+            starts from, set by each factory (e.g. a cube resting on its floor); ``None``: the
+            model's neutral configuration.
     """
 
     model: Model
-    sphere_frames: tuple[int, ...] = eqx.field(static=True)
-    sphere_offsets: Array
-    sphere_radii: Array
-    plane_normals: Array
-    plane_offsets: Array
-    friction: Array
+    geometry: Geometry
+    actuation: Actuation
     options: Options
-    actuation: str = eqx.field(static=True)
-    actuated_dofs: tuple[int, ...] = eqx.field(static=True)
-    wrench_frame: int = eqx.field(static=True)
-    wrench_components: tuple[int, ...] = eqx.field(static=True)
-    input_limit: Array
-    geom_pairs: tuple[GeomPair, ...] = ()
-    joint_damping: Array | None = None
+    joints: Joints = Joints()
     initial_configuration: Array | None = None
-    joint_limits: tuple[tuple[int, int], ...] = eqx.field(static=True, default=())
-    max_contacts: int | None = eqx.field(static=True, default=None)
-    max_pairs: int | None = eqx.field(static=True, default=None)
-    max_limits: int | None = eqx.field(static=True, default=None)
-    gravity_compensation: bool = eqx.field(static=True, default=False)
-    joint_friction: JointFriction | None = None
-    joint_couplings: JointCoupling | None = None
-    joint_springs: JointSprings | None = None
 
     def __check_init__(self):
-        num_spheres, num_planes = len(self.sphere_frames), self.plane_normals.shape[0]
-        if self.initial_configuration is not None and jnp.shape(self.initial_configuration) != (self.model.nq,):
-            raise ValueError(
-                f"initial_configuration must have shape (nq,) = ({self.model.nq},), got {jnp.shape(self.initial_configuration)}"
-            )
-        if self.joint_damping is not None:
-            if self.joint_damping.shape != (self.model.nv,):
-                raise ValueError(f"joint_damping must have shape ({self.model.nv},), got {self.joint_damping.shape}")
-            if not _checks.is_traced(self.joint_damping) and np.any(np.asarray(self.joint_damping) < 0):
-                raise ValueError("joint_damping must be non-negative")
-        if self.sphere_offsets.shape != (num_spheres, 3) or self.sphere_radii.shape != (num_spheres,):
-            raise ValueError(
-                f"sphere_offsets must have shape ({num_spheres}, 3) and sphere_radii ({num_spheres},), got "
-                f"{self.sphere_offsets.shape} and {self.sphere_radii.shape}"
-            )
-        if self.plane_normals.shape != (num_planes, 3) or self.plane_offsets.shape != (num_planes,):
-            raise ValueError("plane_normals must have shape (P, 3) and plane_offsets (P,)")
-        if self.friction.shape != (num_planes,):
-            raise ValueError(f"friction must have shape ({num_planes},), got {self.friction.shape}")
-        _check_physical(self)
-        if not isinstance(self.options, Options):
-            raise ValueError(f"options must be an Options, got {self.options!r}")
-        if self.actuation not in ("joints", "wrench"):
-            raise ValueError(f"actuation must be 'joints' or 'wrench', got {self.actuation!r}")
-        if self.input_limit.shape != (self.nu,):
-            raise ValueError(f"input_limit must have shape ({self.nu},), got {self.input_limit.shape}")
-        for frame in self.sphere_frames:
-            self.model.frame_id(frame)
-        for dof in self.actuated_dofs:
-            if not 0 <= dof < self.model.nv:
-                raise ValueError(f"actuated dof {dof} out of range [0, {self.model.nv})")
-        if any(c not in range(6) for c in self.wrench_components):
-            raise ValueError(f"wrench_components must be in 0..5, got {self.wrench_components}")
-        _limit_rows(self.model, self.joint_limits)  # raises on a bad entry
-        for name, budget in (("max_contacts", self.max_contacts), ("max_limits", self.max_limits)):
-            if budget is None:
-                continue
-            if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or budget < 1:
-                raise ValueError(f"{name} must be a positive integer or None, got {budget!r}")
-            if not isinstance(self.contact, str):
-                raise ValueError(f"{name} budgets the hard-contact NCP: use contact='hard'")
-        if self.max_pairs is not None and (
-            isinstance(self.max_pairs, bool) or not isinstance(self.max_pairs, (int, np.integer)) or self.max_pairs < 1
+        model, joints = self.model, self.joints
+        for name, value, kind in (
+            ("geometry", self.geometry, Geometry), ("actuation", self.actuation, Actuation),
+            ("options", self.options, Options), ("joints", joints, Joints),
         ):
-            raise ValueError(f"max_pairs must be a positive integer or None, got {self.max_pairs!r}")
-        if not isinstance(self.gravity_compensation, bool):
-            raise TypeError(f"gravity_compensation must be a bool, got {self.gravity_compensation!r}")
-        if self.gravity_compensation and self.actuation != "joints":
-            raise ValueError("gravity_compensation adds efforts to the actuated dofs: it needs actuation='joints'")
-        if self.joint_limits and not isinstance(self.contact, str):
-            raise ValueError("joint_limits are enforced by the hard-contact NCP: use contact='hard'")
-        if self.joint_friction is not None:
-            if not isinstance(self.joint_friction, JointFriction):
-                raise ValueError(f"joint_friction must be a JointFriction or None, got {self.joint_friction!r}")
-            if not isinstance(self.contact, str):
-                raise ValueError("joint_friction is solved by the hard-contact NCP: use contact='hard'")
-            bad = [d for d in self.joint_friction.dofs if not 0 <= d < self.model.nv]
-            if bad:
-                raise ValueError(f"joint_friction.dofs {bad} out of range [0, {self.model.nv})")
-        if self.joint_couplings is not None:
-            if not isinstance(self.joint_couplings, JointCoupling):
-                raise ValueError(f"joint_couplings must be a JointCoupling or None, got {self.joint_couplings!r}")
-            if not isinstance(self.contact, str):
-                raise ValueError("joint_couplings are solved by the hard-contact NCP: use contact='hard'")
-            types = self.model.joint_types
-            for joint, other in zip(self.joint_couplings.joints, self.joint_couplings.others):
-                for index, allowed in ((joint, (REVOLUTE, PRISMATIC)), (other, (UNIVERSE, REVOLUTE, PRISMATIC))):
-                    if not 0 <= index < len(types) or types[index] not in allowed:
-                        raise ValueError(
-                            f"joint_couplings: joint {index} must be a revolute or prismatic joint of the model"
-                            f"{' (or 0)' if UNIVERSE in allowed else ''}"
-                        )
-        if self.joint_springs is not None:
-            if not isinstance(self.joint_springs, JointSprings):
-                raise ValueError(f"joint_springs must be a JointSprings or None, got {self.joint_springs!r}")
-            types = self.model.joint_types
-            bad = [j for j in self.joint_springs.joints if not 0 <= j < len(types) or types[j] not in _SPRING_TYPES]
-            if bad:
-                raise ValueError(f"joint_springs: joints {bad} are not revolute, prismatic or spherical joints of the model")
-            if jnp.shape(self.joint_springs.reference) != (self.model.nq,):
-                raise ValueError(
-                    f"joint_springs.reference must have shape (nq,) = ({self.model.nq},), got "
-                    f"{jnp.shape(self.joint_springs.reference)}"
-                )
-        if not isinstance(self.geom_pairs, tuple) or not all(isinstance(p, GeomPair) for p in self.geom_pairs):
-            raise ValueError(f"geom_pairs must be a tuple of GeomPair, got {self.geom_pairs!r}")
-        for index, pair in enumerate(self.geom_pairs):
+            if not isinstance(value, kind):
+                article = "an" if kind.__name__[0] in "AEIOU" else "a"
+                raise ValueError(f"{name} must be {article} {kind.__name__}, got {value!r}")
+        if self.initial_configuration is not None and jnp.shape(self.initial_configuration) != (model.nq,):
+            raise ValueError(
+                f"initial_configuration must have shape (nq,) = ({model.nq},), got {jnp.shape(self.initial_configuration)}"
+            )
+        for frame in self.geometry.sphere_frames:
+            model.frame_id(frame)
+        for index, pair in enumerate(self.geometry.geom_pairs):
             for name, frame in (("frame1", pair.frame1), ("frame2", pair.frame2)):
                 if frame is not None:
                     try:
-                        self.model.frame_id(frame)
+                        model.frame_id(frame)
                     except ValueError as error:
                         raise ValueError(f"geom_pairs[{index}].{name}: {error}") from None
+        for dof in self.actuation.dofs:
+            if not 0 <= dof < model.nv:
+                raise ValueError(f"actuated dof {dof} out of range [0, {model.nv})")
+        if self.actuation.kind == "wrench":
+            model.frame_id(self.actuation.wrench_frame)
+        hard = isinstance(self.contact, str)
+        if joints.damping is not None and jnp.shape(joints.damping) != (model.nv,):
+            raise ValueError(f"joints.damping must have shape ({model.nv},), got {jnp.shape(joints.damping)}")
+        _limit_rows(model, joints.limits)  # raises on a bad entry
+        for name, present in (("limits", joints.limits), ("friction", joints.friction), ("couplings", joints.couplings)):
+            if present and not hard:
+                raise ValueError(f"joints.{name} are solved by the hard-contact NCP: use contact='hard'")
+        if joints.friction is not None:
+            bad = [d for d in joints.friction.dofs if not 0 <= d < model.nv]
+            if bad:
+                raise ValueError(f"joints.friction.dofs {bad} out of range [0, {model.nv})")
+        if joints.couplings is not None:
+            types = model.joint_types
+            for joint, other in zip(joints.couplings.joints, joints.couplings.others):
+                for index, allowed in ((joint, (REVOLUTE, PRISMATIC)), (other, (UNIVERSE, REVOLUTE, PRISMATIC))):
+                    if not 0 <= index < len(types) or types[index] not in allowed:
+                        raise ValueError(
+                            f"joints.couplings: joint {index} must be a revolute or prismatic joint of the model"
+                            f"{' (or 0)' if UNIVERSE in allowed else ''}"
+                        )
+        if joints.springs is not None:
+            types = model.joint_types
+            bad = [j for j in joints.springs.joints if not 0 <= j < len(types) or types[j] not in _SPRING_TYPES]
+            if bad:
+                raise ValueError(f"joints.springs: joints {bad} are not revolute, prismatic or spherical joints of the model")
+            if jnp.shape(joints.springs.reference) != (model.nq,):
+                raise ValueError(
+                    f"joints.springs.reference must have shape (nq,) = ({model.nq},), got "
+                    f"{jnp.shape(joints.springs.reference)}"
+                )
 
     # -- options ------------------------------------------------------------------------
 
@@ -737,20 +798,19 @@ class RigidBodySystem(eqx.Module):
     @property
     def nu(self) -> int:
         """Input dimension."""
-        return len(self.actuated_dofs) if self.actuation == "joints" else len(self.wrench_components)
+        return self.actuation.nu
 
     @property
     def num_contacts(self) -> int:
         """Number of candidate contacts: every sphere against every half-space, then the
         manifold entries of every geometry pair, then the joint limits."""
-        return (
-            len(self.sphere_frames) * self.plane_normals.shape[0]
-            + sum(pair.size for pair in self.geom_pairs)
-            + len(self.joint_limits)
-        )
+        return self.geometry.num_contacts + len(self.joints.limits)
+
+    def _with_joints(self, **changes) -> "RigidBodySystem":
+        return dataclasses.replace(self, joints=dataclasses.replace(self.joints, **changes))
 
     def with_joint_friction(self, effort: ArrayLike | None) -> "RigidBodySystem":
-        """This system with dry friction on its joints (:attr:`joint_friction`).
+        """This system with dry friction on its joints (:attr:`Joints.friction`).
 
         Args:
             effort: ``(nv,)``, the friction effort of every dof (N m or N), ``>= 0``; the dofs
@@ -761,7 +821,7 @@ class RigidBodySystem(eqx.Module):
                 or a compliant contact law.
         """
         if effort is None:
-            return dataclasses.replace(self, joint_friction=None)
+            return self._with_joints(friction=None)
         values = np.asarray(effort, dtype=np.float64)
         if values.shape != (self.model.nv,):
             raise ValueError(f"effort must have shape (nv,) = ({self.model.nv},), got {values.shape}")
@@ -770,12 +830,22 @@ class RigidBodySystem(eqx.Module):
             raise ValueError(f"effort must be finite and >= 0 (N m or N); dofs {bad.tolist()} have {values[bad].tolist()}")
         dofs = np.flatnonzero(values > 0)
         if dofs.size == 0:
-            return dataclasses.replace(self, joint_friction=None)
+            return self._with_joints(friction=None)
         friction = JointFriction(tuple(int(d) for d in dofs), device_array(values[dofs]))
-        return dataclasses.replace(self, joint_friction=friction)
+        return self._with_joints(friction=friction)
+
+    def with_joint_couplings(self, couplings: JointCoupling | None) -> "RigidBodySystem":
+        """This system with the joint equality constraints ``couplings`` (:attr:`Joints.couplings`;
+        ``None``: none), e.g. a loaded model's :attr:`~rsmooth.sim.MujocoModel.joint_couplings`.
+
+        Raises:
+            ValueError: a joint that is not a revolute or prismatic joint of the model, or a
+                compliant contact law.
+        """
+        return self._with_joints(couplings=couplings)
 
     def with_joint_springs(self, stiffness: ArrayLike | None, reference: ArrayLike | None = None) -> "RigidBodySystem":
-        """This system with linear springs on its joints (:attr:`joint_springs`).
+        """This system with linear springs on its joints (:attr:`Joints.springs`).
 
         Args:
             stiffness: ``(nv,)``, the stiffness of every dof (N m/rad or N/m), ``>= 0``; zero
@@ -797,7 +867,7 @@ class RigidBodySystem(eqx.Module):
             -1.0
         """
         if stiffness is None:
-            return dataclasses.replace(self, joint_springs=None)
+            return self._with_joints(springs=None)
         model = self.model
         values = np.asarray(stiffness, dtype=np.float64)
         if values.shape != (model.nv,):
@@ -824,15 +894,15 @@ class RigidBodySystem(eqx.Module):
             joints.append(joint)
             per_joint.append(dofs[0])
         if not joints:
-            return dataclasses.replace(self, joint_springs=None)
+            return self._with_joints(springs=None)
         springs = JointSprings(tuple(joints), device_array(np.asarray(per_joint)), reference)
-        return dataclasses.replace(self, joint_springs=springs)
+        return self._with_joints(springs=springs)
 
     def _spring_displacements(self, q: Array) -> list[tuple[Array, np.ndarray, Array]]:
         """Per spring joint: ``(stiffness, its velocity indices, displacement)``, the
         displacement ``q - q_ref`` (revolute, prismatic) or the rotation vector of
         ``q_ref^-1 q`` (spherical)."""
-        model, springs = self.model, self.joint_springs
+        model, springs = self.model, self.joints.springs
         out = []
         for k, joint in enumerate(springs.joints):
             start_q, start_v = model.idx_q[joint], model.idx_v[joint]
@@ -847,34 +917,34 @@ class RigidBodySystem(eqx.Module):
         return out
 
     def spring_forces(self, q: Array) -> Array:
-        """The generalized forces ``(nv,)`` of :attr:`joint_springs` at ``q`` (zeros without)."""
+        """The generalized forces ``(nv,)`` of :attr:`Joints.springs` at ``q`` (zeros without)."""
         forces = jnp.zeros(self.model.nv, q.dtype)
-        if self.joint_springs is None:
+        if self.joints.springs is None:
             return forces
         for stiffness, dofs, displacement in self._spring_displacements(q):
             forces = forces.at[dofs].set(-stiffness.astype(q.dtype) * displacement)
         return forces
 
     def spring_energy(self, q: Array) -> Array:
-        """The potential energy ``sum k |displacement|^2 / 2`` of :attr:`joint_springs` at ``q``
+        """The potential energy ``sum k |displacement|^2 / 2`` of :attr:`Joints.springs` at ``q``
         (zero without)."""
-        if self.joint_springs is None:
+        if self.joints.springs is None:
             return jnp.zeros((), q.dtype)
         return sum(0.5 * stiffness.astype(q.dtype) * jnp.sum(d * d) for stiffness, _, d in self._spring_displacements(q))
 
     def joint_rows(self, q: Array) -> tuple[Array, Array, Array]:
-        """The joints' box rows of the contact problem at ``q``: :attr:`joint_friction`'s, then
-        :attr:`joint_couplings`', as ``(rows (m, nv), correction (m,), bounds (m,))``: the row
+        """The joints' box rows of the contact problem at ``q``: :attr:`Joints.friction`'s, then
+        :attr:`Joints.couplings`', as ``(rows (m, nv), correction (m,), bounds (m,))``: the row
         ``k`` constrains ``rows[k] v+ + correction[k]`` with the impulse bound ``bounds[k]``
         (``effort h`` for friction, ``inf`` for a coupling, whose correction is ``baumgarte
         e / h``); ``m = 0`` without either."""
         dtype = q.dtype
-        dofs = () if self.joint_friction is None else self.joint_friction.dofs
+        dofs = () if self.joints.friction is None else self.joints.friction.dofs
         friction = np.zeros((len(dofs), self.model.nv))
         friction[np.arange(len(dofs)), list(dofs)] = 1.0
         rows, correction = [jnp.asarray(friction, dtype)], [jnp.zeros(len(dofs), dtype)]
-        bounds = [jnp.zeros(0, dtype) if self.joint_friction is None else self.time_step * self.joint_friction.effort]
-        if self.joint_couplings is not None:
+        bounds = [jnp.zeros(0, dtype) if self.joints.friction is None else self.time_step * self.joints.friction.effort]
+        if self.joints.couplings is not None:
             error, row = self._coupling_terms(q)
             rows.append(row)
             correction.append(self.baumgarte * error / self.time_step)
@@ -882,15 +952,15 @@ class RigidBodySystem(eqx.Module):
         return jnp.concatenate(rows), jnp.concatenate(correction), jnp.concatenate(bounds).astype(dtype)
 
     def coupling_errors(self, q: Array) -> Array:
-        """How far each of :attr:`joint_couplings` is from holding at ``q``, ``q_a - p(q_b)``
+        """How far each of :attr:`Joints.couplings` is from holding at ``q``, ``q_a - p(q_b)``
         (rad or m), ``(k,)``; empty without couplings."""
-        if self.joint_couplings is None:
+        if self.joints.couplings is None:
             return jnp.zeros(0, q.dtype)
         return self._coupling_terms(q)[0]
 
     def _coupling_terms(self, q: Array) -> tuple[Array, Array]:
         """The couplings' position errors ``(k,)`` and their velocity rows ``(k, nv)`` at ``q``."""
-        model, coupling, dtype = self.model, self.joint_couplings, q.dtype
+        model, coupling, dtype = self.model, self.joints.couplings, q.dtype
         a_q, a_v = (np.array([getattr(model, field)[j] for j in coupling.joints]) for field in ("idx_q", "idx_v"))
         b_q, b_v = (np.array([getattr(model, field)[j] for j in coupling.others]) for field in ("idx_q", "idx_v"))
         leader = np.array([j != 0 for j in coupling.others])
@@ -905,7 +975,7 @@ class RigidBodySystem(eqx.Module):
         return q[a_q] - value, row
 
     def with_joint_limits(self, joints: Sequence[str] | None = None) -> "RigidBodySystem":
-        """This system with its model's finite position limits enforced (:attr:`joint_limits`).
+        """This system with its model's finite position limits enforced (:attr:`Joints.limits`).
 
         Args:
             joints: names of the revolute, prismatic or spherical joints whose limits to
@@ -944,36 +1014,36 @@ class RigidBodySystem(eqx.Module):
             if joints is not None and not sides:
                 raise ValueError(f"joints: {name!r} has no finite position limit in the model")
             limits.extend((dof, side) for side in sides)
-        return dataclasses.replace(self, joint_limits=tuple(limits))
+        return self._with_joints(limits=tuple(limits))
 
     def with_contact_budget(
         self, max_contacts: int | None, max_pairs: int | None = None, max_limits: int | None = None
     ) -> "RigidBodySystem":
         """This system with at most ``max_contacts`` contacts between shapes and ``max_limits``
-        joint limits in each step's solve (:attr:`max_contacts`, :attr:`max_limits`) and at
-        most ``max_pairs`` pairs of each pair group collided (:attr:`max_pairs`); ``None``
+        joint limits in each step's solve (:attr:`Options.max_contacts`, :attr:`Options.max_limits`) and at
+        most ``max_pairs`` pairs of each pair group collided (:attr:`Options.max_pairs`); ``None``
         removes a budget.
 
         Raises:
             ValueError: unless each is a positive integer or ``None``, or a contact budget
                 with a compliant contact law.
         """
-        return dataclasses.replace(self, max_contacts=max_contacts, max_pairs=max_pairs, max_limits=max_limits)
+        return self.with_options(max_contacts=max_contacts, max_pairs=max_pairs, max_limits=max_limits)
 
     def with_gravity_compensation(self, on: bool = True) -> "RigidBodySystem":
-        """This system with (or without) :attr:`gravity_compensation` on its actuated dofs.
+        """This system with (or without) :attr:`Actuation.gravity_compensation` on its actuated dofs.
 
         Raises:
-            ValueError: with ``actuation="wrench"``.
+            ValueError: with a wrench actuation (:attr:`Actuation.kind`).
         """
-        return dataclasses.replace(self, gravity_compensation=on)
+        return dataclasses.replace(self, actuation=dataclasses.replace(self.actuation, gravity_compensation=on))
 
     def _contact_selection(self, distance: Array) -> Array | None:
         """Indices ``(K,)`` (ascending) of the candidates the NCP solves under
-        :attr:`max_contacts` and :attr:`max_limits`, or ``None`` where the budgets hold every
+        :attr:`Options.max_contacts` and :attr:`Options.max_limits`, or ``None`` where the budgets hold every
         candidate."""
         distance = lax.stop_gradient(distance)
-        shapes, limits = distance.shape[0] - len(self.joint_limits), len(self.joint_limits)
+        shapes, limits = distance.shape[0] - len(self.joints.limits), len(self.joints.limits)
 
         def nearest(budget, first, count):  # the `budget` smallest distances of a block
             if budget is None or budget >= count:
@@ -981,7 +1051,7 @@ class RigidBodySystem(eqx.Module):
             _, index = lax.top_k(-distance[first : first + count], budget)
             return first + jnp.sort(index).astype(jnp.int32)
 
-        contacts, limit_rows = nearest(self.max_contacts, 0, shapes), nearest(self.max_limits, shapes, limits)
+        contacts, limit_rows = nearest(self.options.max_contacts, 0, shapes), nearest(self.options.max_limits, shapes, limits)
         if contacts is None and limit_rows is None:
             return None
         contacts = jnp.arange(shapes, dtype=jnp.int32) if contacts is None else contacts
@@ -1068,11 +1138,11 @@ class RigidBodySystem(eqx.Module):
 
     def generalized_forces(self, q: Array, u: Array, kinematics=None) -> tuple[Array, Array]:
         """``(tau, clipped)``: the generalized forces of input ``u`` (after clipping)."""
-        limited = jnp.clip(u, -self.input_limit, self.input_limit)
+        limited = jnp.clip(u, -self.actuation.input_limit, self.actuation.input_limit)
         clipped = jnp.any(limited != u)
-        if self.actuation == "joints":
-            dofs = np.asarray(self.actuated_dofs, dtype=np.int64)
-            if self.gravity_compensation:
+        if self.actuation.kind == "joints":
+            dofs = np.asarray(self.actuation.dofs, dtype=np.int64)
+            if self.actuation.gravity_compensation:
                 if kinematics is None:
                     kinematics = _dynamics._kinematics(self.model, q)
                 inertias = _dynamics._world_inertias(self.model, kinematics)
@@ -1084,13 +1154,13 @@ class RigidBodySystem(eqx.Module):
         if kinematics is None:
             kinematics = _dynamics._kinematics(self.model, q)
         rotation, translation = _dynamics._frame_placement(
-            self.model, kinematics.rotation, kinematics.translation, self.wrench_frame
+            self.model, kinematics.rotation, kinematics.translation, self.actuation.wrench_frame
         )
         del rotation
-        jacobian = _point_jacobian(self.model, kinematics, self.model.frame_parents[self.wrench_frame], translation)
-        angular = _angular_jacobian(self.model, kinematics, self.model.frame_parents[self.wrench_frame])
+        jacobian = _point_jacobian(self.model, kinematics, self.model.frame_parents[self.actuation.wrench_frame], translation)
+        angular = _angular_jacobian(self.model, kinematics, self.model.frame_parents[self.actuation.wrench_frame])
         full = jnp.concatenate([jacobian, angular])  # (6, nv), world-aligned at the frame origin
-        wrench_jacobian = full[np.asarray(self.wrench_components)]
+        wrench_jacobian = full[np.asarray(self.actuation.wrench_components)]
         return wrench_jacobian.T @ limited, clipped
 
     def contacts(self, q: Array, kinematics=None) -> tuple[Array, Array, Array]:
@@ -1103,11 +1173,11 @@ class RigidBodySystem(eqx.Module):
         (for geometry pairs, of shape 2's witness point relative to shape 1's).
         """
         distance, frames, jacobian = self._shape_contacts(q, kinematics)
-        if not self.joint_limits:
+        if not self.joints.limits:
             return distance, frames, jacobian
         # Joint limits: frictionless contacts whose normal is the joint's own coordinate, or
         # for a spherical joint's cone the axis of its rotation (the angle's rate is axisᵀ omega).
-        indices, dofs, sides = _limit_rows(self.model, self.joint_limits)
+        indices, dofs, sides = _limit_rows(self.model, self.joints.limits)
         lower, upper = self.model.lower_position_limit[indices], self.model.upper_position_limit[indices]
         limit_distance = jnp.where(sides > 0, q[indices] - lower, upper - q[indices])
         rows = jnp.zeros((len(dofs), 3, self.model.nv), jacobian.dtype).at[np.arange(len(dofs)), 2, dofs].set(sides)
@@ -1131,8 +1201,8 @@ class RigidBodySystem(eqx.Module):
         model = self.model
         if kinematics is None:
             kinematics = _dynamics._kinematics(model, q)
-        if not self.sphere_frames:
-            if not self.geom_pairs:
+        if not self.geometry.sphere_frames:
+            if not self.geometry.geom_pairs:
                 dtype = kinematics.translation.dtype
                 return jnp.zeros(0, dtype), jnp.zeros((0, 3, 3), dtype), jnp.zeros((0, model.nv), dtype)
             distance, frames, jacobians = self._geom_pairs_contacts(kinematics)
@@ -1141,15 +1211,15 @@ class RigidBodySystem(eqx.Module):
         # traced graph, and the compile time of every solver built on the step, would grow
         # with the number of spheres). The contact -> joint map is static.
         centres, points, joints, rotations = self._sphere_geometry(kinematics)  # (n, 3) x2, (n,), (n, 3, 3)
-        num_spheres, num_planes = len(self.sphere_frames), self.plane_normals.shape[0]
-        normals = jnp.tile(self.plane_normals, (num_spheres, 1))
-        offsets = jnp.tile(self.plane_offsets, num_spheres)
-        distance = spatial.sum_last(centres * normals) - offsets - jnp.repeat(self.sphere_radii, num_planes)
+        num_spheres, num_planes = len(self.geometry.sphere_frames), self.geometry.plane_normals.shape[0]
+        normals = jnp.tile(self.geometry.plane_normals, (num_spheres, 1))
+        offsets = jnp.tile(self.geometry.plane_offsets, num_spheres)
+        distance = spatial.sum_last(centres * normals) - offsets - jnp.repeat(self.geometry.sphere_radii, num_planes)
         point_jacobians = _dynamics._point_velocity_columns(model, kinematics, joints, points)  # (n, nv, 3)
         # R^T J_p, unrolled over the 3-axis (a batched 3x3 dot is slow on CPU: _spatial)
         jacobians = sum(rotations[:, j, :, None] * point_jacobians[:, None, :, j] for j in range(3))  # (n, 3, nv)
         distances, frames, jacobians = [distance], [rotations], [jacobians]
-        if self.geom_pairs:
+        if self.geometry.geom_pairs:
             distance, rotation, jacobian = self._geom_pairs_contacts(kinematics)
             distances.append(distance)
             frames.append(rotation)
@@ -1160,7 +1230,7 @@ class RigidBodySystem(eqx.Module):
     def _sphere_centres(self, kinematics) -> tuple[Array, np.ndarray]:
         """World centres of the spheres ``(S, 3)`` and the (static) joint carrying each."""
         model = self.model
-        sphere_frames = np.asarray(self.sphere_frames, dtype=np.int64)  # int even when empty
+        sphere_frames = np.asarray(self.geometry.sphere_frames, dtype=np.int64)  # int even when empty
         joints = np.asarray(model.frame_parents)[sphere_frames]
         rotation, translation = _dynamics._compose(
             kinematics.rotation[joints],
@@ -1168,15 +1238,15 @@ class RigidBodySystem(eqx.Module):
             model.frame_placement_rotation[sphere_frames],
             model.frame_placement_translation[sphere_frames],
         )
-        return translation + jax.vmap(spatial.rotate)(rotation, self.sphere_offsets), joints
+        return translation + jax.vmap(spatial.rotate)(rotation, self.geometry.sphere_offsets), joints
 
     def _sphere_geometry(self, kinematics) -> tuple[Array, Array, np.ndarray, Array]:
         """Per sphere-half-space contact (the order of :meth:`contacts`): sphere centre ``(n, 3)``, contact point ``(n, 3)``, joint ``(n,)`` (static)
         and contact frame ``(n, 3, 3)``."""
         centres, joints = self._sphere_centres(kinematics)
-        num_spheres, num_planes = centres.shape[0], self.plane_normals.shape[0]
-        points = centres[:, None, :] - self.sphere_radii[:, None, None] * self.plane_normals[None]
-        frames = jnp.broadcast_to(contact_frame(self.plane_normals), (num_spheres, num_planes, 3, 3))
+        num_spheres, num_planes = centres.shape[0], self.geometry.plane_normals.shape[0]
+        points = centres[:, None, :] - self.geometry.sphere_radii[:, None, None] * self.geometry.plane_normals[None]
+        frames = jnp.broadcast_to(contact_frame(self.geometry.plane_normals), (num_spheres, num_planes, 3, 3))
         return (
             jnp.broadcast_to(centres[:, None, :], points.shape).reshape(-1, 3),
             points.reshape(-1, 3),
@@ -1201,14 +1271,14 @@ class RigidBodySystem(eqx.Module):
         :func:`_pair_groups`) are evaluated by one ``vmap``-ed collision: the traced program
         holds one copy of each pair type's collision code rather than one per pair, which keeps
         the compile time of a scene of many bodies from growing with the number of pairs (a
-        box-box pair is about 3,000 lines of HLO). Under :attr:`max_pairs` the collision runs
+        box-box pair is about 3,000 lines of HLO). Under :attr:`Options.max_pairs` the collision runs
         on a group's ``max_pairs`` pairs of smallest bounding gap (:func:`_bounding_gaps`); the
         other pairs' entries are inactive."""
-        sizes = [pair.size for pair in self.geom_pairs]
+        sizes = [pair.size for pair in self.geometry.geom_pairs]
         offsets = np.cumsum([0] + sizes)
         parts, positions = [], []
-        for group in _pair_groups(self.geom_pairs):
-            pairs = [self.geom_pairs[i] for i in group]
+        for group in _pair_groups(self.geometry.geom_pairs):
+            pairs = [self.geometry.geom_pairs[i] for i in group]
             positions.extend(np.arange(offsets[i], offsets[i + 1]) for i in group)
             if len(pairs) == 1:
                 parts.append(self._geom_pair_contacts(kinematics, pairs[0]))
@@ -1216,11 +1286,11 @@ class RigidBodySystem(eqx.Module):
             first = pairs[0]
             shape1, pose1, shape2, pose2 = self._group_shapes(kinematics, pairs)
             collide_all = jax.vmap(lambda a, pa, b, pb: collide(a, pa, b, pb, margin=first.margin))
-            if self.max_pairs is None or len(pairs) <= self.max_pairs:
+            if self.options.max_pairs is None or len(pairs) <= self.options.max_pairs:
                 manifold = collide_all(shape1, pose1, shape2, pose2)
             else:
                 gaps = lax.stop_gradient(_bounding_gaps(shape1, pose1, shape2, pose2))
-                _, chosen = lax.top_k(-gaps, self.max_pairs)
+                _, chosen = lax.top_k(-gaps, self.options.max_pairs)
                 take = lambda tree: jax.tree.map(lambda leaf: leaf[chosen], tree)  # noqa: E731
                 evaluated = collide_all(take(shape1), take(pose1), take(shape2), take(pose2))
                 # the pairs not evaluated: inactive entries with finite values (normal +z)
@@ -1263,20 +1333,20 @@ class RigidBodySystem(eqx.Module):
         return shape1, pose1, shape2, pose2
 
     def skipped_pairs(self, q: ArrayLike) -> Array:
-        """How many geometry pairs :attr:`max_pairs` leaves out although their bounding
+        """How many geometry pairs :attr:`Options.max_pairs` leaves out although their bounding
         volumes are within the pair's margin (they may touch, and are not collided), summed
         over the pair groups, at configuration ``q`` (int, ``()``; 0 without the limit)."""
         count = jnp.zeros((), jnp.int32)
-        if self.max_pairs is None:
+        if self.options.max_pairs is None:
             return count
         kinematics = _dynamics._kinematics(self.model, jnp.asarray(q))
-        for group in _pair_groups(self.geom_pairs):
-            if len(group) <= self.max_pairs:
+        for group in _pair_groups(self.geometry.geom_pairs):
+            if len(group) <= self.options.max_pairs:
                 continue
-            pairs = [self.geom_pairs[i] for i in group]
+            pairs = [self.geometry.geom_pairs[i] for i in group]
             gaps = lax.stop_gradient(_bounding_gaps(*self._group_shapes(kinematics, pairs)))
             near = jnp.sum(gaps <= pairs[0].margin, dtype=jnp.int32)
-            count = count + jnp.maximum(near - self.max_pairs, 0)
+            count = count + jnp.maximum(near - self.options.max_pairs, 0)
         return count
 
     def _geom_pair_contacts(self, kinematics, pair: GeomPair) -> tuple[Array, Array, Array]:
@@ -1361,17 +1431,17 @@ class RigidBodySystem(eqx.Module):
         return force, mode.astype(jnp.int32)
 
     def damping(self) -> Array:
-        """The joint damping ``(nv,)`` (zeros when :attr:`joint_damping` is ``None``)."""
-        if self.joint_damping is None:
+        """The joint damping ``(nv,)`` (zeros when :attr:`Joints.damping` is ``None``)."""
+        if self.joints.damping is None:
             return jnp.zeros(self.model.nv, self.time_step.dtype)
-        return self.joint_damping
+        return self.joints.damping
 
     def contact_friction(self) -> Array:
         """Coulomb coefficient of every candidate contact, ``(n,)`` (order of :meth:`contacts`)."""
         return jnp.concatenate([
-            jnp.repeat(self.friction[None, :], len(self.sphere_frames), axis=0).reshape(-1),
-        ] + [jnp.full(pair.size, pair.friction, self.friction.dtype) for pair in self.geom_pairs]
-          + [jnp.zeros(len(self.joint_limits), self.friction.dtype)])
+            jnp.repeat(self.geometry.friction[None, :], len(self.geometry.sphere_frames), axis=0).reshape(-1),
+        ] + [jnp.full(pair.size, pair.friction, self.geometry.friction.dtype) for pair in self.geometry.geom_pairs]
+          + [jnp.zeros(len(self.joints.limits), self.geometry.friction.dtype)])
 
     def _velocity_update(self, q: Array, v: Array, u: Array, warm_start) -> _VelocityUpdate:
         """The velocity update of one step (stages 1 to 4, :mod:`._stages`) and the quantities
@@ -1520,14 +1590,14 @@ def _pair_groups(pairs: tuple[GeomPair, ...]) -> list[list[int]]:
     return list(groups.values())
 
 
-# joints whose position limits RigidBodySystem.joint_limits enforces
+# joints whose position limits Joints.limits enforces
 _LIMITED_TYPES = ("revolute", "prismatic", "spherical")
 _SPRING_TYPES = (REVOLUTE, PRISMATIC, SPHERICAL)
 
 
 def _limit_rows(model: Model, joint_limits) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Configuration indices, velocity indices and sides (``+1`` lower, ``-1`` upper) of
-    :attr:`RigidBodySystem.joint_limits`, checked against the model (side 0: a spherical
+    :attr:`Joints.limits`, checked against the model (side 0: a spherical
     joint's cone, its configuration index the joint's first)."""
     if not isinstance(joint_limits, tuple):
         raise ValueError(f"joint_limits must be a tuple of (dof, side) pairs, got {joint_limits!r}")
@@ -1566,13 +1636,6 @@ def _check_concrete(name, value, positive=False, allow_inf=False) -> None:
     if np.any(bad):
         bound = "positive" if positive else "non-negative"
         raise ValueError(f"{name} must be {bound}{'' if allow_inf else ' and finite'}, got {array}")
-
-
-def _check_physical(system: RigidBodySystem) -> None:
-    """Host checks of the values that make a system physical (those not traced)."""
-    _check_concrete("sphere_radii", system.sphere_radii)
-    _check_concrete("friction", system.friction)
-    _check_concrete("input_limit", system.input_limit, positive=True, allow_inf=True)
 
 
 @eqx.filter_custom_jvp
@@ -1766,10 +1829,10 @@ def check_steps(infos: StepInfo, *, what: str = "the simulation") -> dict[str, i
         ``{"steps", "unconverged_steps", "diverged_steps", "dropped_contact_steps",
         "skipped_pair_steps"}``: ``unconverged_steps`` counts the contact solves whose result
         is not ``RESULTS.successful``, ``dropped_contact_steps`` the steps with
-        ``infos.dropped_contacts > 0`` (:attr:`RigidBodySystem.max_contacts` or
-        :attr:`RigidBodySystem.max_limits` too small),
+        ``infos.dropped_contacts > 0`` (:attr:`Options.max_contacts` or
+        :attr:`Options.max_limits` too small),
         ``skipped_pair_steps`` those with ``infos.skipped_pairs > 0``
-        (:attr:`RigidBodySystem.max_pairs` too small).
+        (:attr:`Options.max_pairs` too small).
     """
     result = infos.ncp.result
     diverged = np.asarray(infos.diverged)

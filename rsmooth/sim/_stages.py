@@ -135,12 +135,12 @@ class ContactSolution(eqx.Module):
             the Baumgarte and gap corrections on the contacts and the couplings, the NCP's; a
             compliant law: ``J v_f``).
         friction: the solved contacts' Coulomb coefficients.
-        selection: the solved contacts' indices under a budget (:attr:`RigidBodySystem.max_contacts`);
+        selection: the solved contacts' indices under a budget (:attr:`Options.max_contacts`);
             ``None``: every candidate.
         dropped: :attr:`StepInfo.dropped_contacts` (``()``, int).
         joint_impulse: ``(m,)`` the impulses of the joints' box rows: each dof's dry
-            friction (:attr:`RigidBodySystem.joint_friction`, ``|.| <= effort h``), then each
-            coupling's (:attr:`RigidBodySystem.joint_couplings`).
+            friction (:attr:`Joints.friction`, ``|.| <= effort h``), then each
+            coupling's (:attr:`Joints.couplings`).
     """
 
     velocity: Array

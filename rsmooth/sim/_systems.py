@@ -24,7 +24,9 @@ from rsmooth.sim._collision import manifold_size
 from rsmooth.sim._contact import contact_frame
 from rsmooth.sim._geometry import Box, Capsule, Cylinder, HalfSpace, Sphere
 from rsmooth.sim._ncp import NCPSolver
-from rsmooth.sim._simulator import ContactLaw, GeomPair, Options, RigidBodySystem, _point_jacobian
+from rsmooth.sim._simulator import (
+    Actuation, ContactLaw, GeomPair, Geometry, Joints, Options, RigidBodySystem, _point_jacobian,
+)
 
 __all__ = [
     "SOLO12_ARMATURE",
@@ -166,18 +168,21 @@ def _free_body_system(model, name, offsets, radii, planes, friction, time_step, 
         raise ValueError("one friction coefficient per plane needs contact='hard' or a contact law instance")
     return RigidBodySystem(
         model=model,
-        sphere_frames=(model.frame_id(name),) * len(radii),
-        sphere_offsets=device_array(offsets),
-        sphere_radii=device_array(radii),
-        plane_normals=normals,
-        plane_offsets=plane_offsets,
-        friction=mu,
+        geometry=Geometry(
+            sphere_frames=(model.frame_id(name),) * len(radii),
+            sphere_offsets=device_array(offsets),
+            sphere_radii=device_array(radii),
+            plane_normals=normals,
+            plane_offsets=plane_offsets,
+            friction=mu,
+        ),
         options=Options(_number("time_step", time_step), law, solver, baumgarte),
-        actuation="wrench",
-        actuated_dofs=(),
-        wrench_frame=model.frame_id(name),
-        wrench_components=tuple(int(c) for c in wrench_components),
-        input_limit=device_array(np.full(len(wrench_components), np.inf)),
+        actuation=Actuation(
+            "wrench",
+            device_array(np.full(len(wrench_components), np.inf)),
+            wrench_frame=model.frame_id(name),
+            wrench_components=tuple(int(c) for c in wrench_components),
+        ),
         initial_configuration=device_array(_resting_configuration(np.asarray(normals)[0], np.asarray(plane_offsets)[0], height)),
     )
 
@@ -482,11 +487,11 @@ def bodies(
             one body's).
         baumgarte: penetration correction rate.
         max_contacts: solve at most this many contacts per step, the closest candidates
-            (:attr:`~rsmooth.sim.RigidBodySystem.max_contacts`): ``n`` boxes have
+            (:attr:`~rsmooth.sim.Options.max_contacts`): ``n`` boxes have
             ``2 n (n - 1) + 4 n`` candidates on a floor, of which about ``4 n`` touch when
             they rest; ``None``: all.
         max_pairs: collide at most this many pairs of each pair group per step, those whose
-            bounding spheres are closest (:attr:`~rsmooth.sim.RigidBodySystem.max_pairs`,
+            bounding spheres are closest (:attr:`~rsmooth.sim.Options.max_pairs`,
             exact while no more are within the margin): ``n`` boxes have ``n (n - 1) / 2``
             box pairs, of which about ``n`` touch in a stack; ``None``: all.
 
@@ -569,20 +574,10 @@ def geom_pair_system(
     ``actuated_dofs``: what :func:`bodies` and :func:`~rsmooth.sim.scene` build."""
     return RigidBodySystem(
         model=model,
-        sphere_frames=(),
-        sphere_offsets=jnp.zeros((0, 3)),
-        sphere_radii=jnp.zeros(0),
-        plane_normals=jnp.zeros((0, 3)),
-        plane_offsets=jnp.zeros(0),
-        friction=jnp.zeros(0),
+        geometry=Geometry(geom_pairs=tuple(pairs)),
         options=Options(float(time_step), "hard", solver, baumgarte),
-        actuation="joints",
-        actuated_dofs=tuple(actuated_dofs),
-        wrench_frame=0,
-        wrench_components=(),
-        input_limit=jnp.asarray(input_limit),
-        geom_pairs=tuple(pairs),
-        **({} if joint_damping is None else {"joint_damping": jnp.asarray(joint_damping)}),
+        actuation=Actuation("joints", jnp.asarray(input_limit), dofs=tuple(actuated_dofs)),
+        joints=Joints(damping=None if joint_damping is None else jnp.asarray(joint_damping)),
         initial_configuration=jnp.asarray(initial_configuration),
     )
 
@@ -686,21 +681,19 @@ def pusher(
     )
     return RigidBodySystem(
         model=model,
-        # The finger is a sphere above the floor too, but it stays at the box's mid-height: its
-        # floor contact is a candidate that never acts.
-        sphere_frames=(box,) * 8 + (model.frame_id("finger"),),
-        sphere_offsets=jnp.zeros((9, 3)).at[:8].set(jnp.asarray(corners)),
-        sphere_radii=jnp.zeros(9).at[8].set(float(finger_radius)),
-        plane_normals=normals,
-        plane_offsets=offsets,
-        friction=mu,
+        geometry=Geometry(
+            # The finger is a sphere above the floor too, but it stays at the box's mid-height:
+            # its floor contact is a candidate that never acts.
+            sphere_frames=(box,) * 8 + (model.frame_id("finger"),),
+            sphere_offsets=jnp.zeros((9, 3)).at[:8].set(jnp.asarray(corners)),
+            sphere_radii=jnp.zeros(9).at[8].set(float(finger_radius)),
+            plane_normals=normals,
+            plane_offsets=offsets,
+            friction=mu,
+            geom_pairs=(finger,),
+        ),
         options=Options(float(time_step), _as_contact(contact, floor_friction), solver, baumgarte),
-        actuation="joints",
-        actuated_dofs=(6, 7),
-        wrench_frame=0,
-        wrench_components=(),
-        input_limit=jnp.full(2, float(force_limit)),
-        geom_pairs=(finger,),
+        actuation=Actuation("joints", jnp.full(2, float(force_limit)), dofs=(6, 7)),
         initial_configuration=jnp.asarray(_pusher_configuration(box_side / 2, finger_radius, 0.05, 0.0)),
     )
 
@@ -713,7 +706,7 @@ def _pusher_configuration(half: float, radius: float, finger_gap: float, finger_
 
 def _pusher_sizes(system: RigidBodySystem) -> tuple[float, float]:
     """The box's half side and the finger's radius of a :func:`pusher` system (m)."""
-    pair = system.geom_pairs[0]
+    pair = system.geometry.geom_pairs[0]
     return float(pair.shape1.half_extents[0]), float(pair.shape2.radius)
 
 
@@ -818,19 +811,19 @@ def solo12(
     normals, offsets, mu = _planes([FLOOR], friction)
     fields = dict(
         model=model,
-        sphere_frames=tuple(frames),
-        sphere_offsets=device_array(np.stack(centres)),
-        sphere_radii=device_array(radii),
-        plane_normals=normals,
-        plane_offsets=offsets,
-        friction=mu,
+        geometry=Geometry(
+            sphere_frames=tuple(frames),
+            sphere_offsets=device_array(np.stack(centres)),
+            sphere_radii=device_array(radii),
+            plane_normals=normals,
+            plane_offsets=offsets,
+            friction=mu,
+        ),
         options=Options(float(time_step), _as_contact(contact, friction), solver, baumgarte),
-        actuation="joints",
-        actuated_dofs=tuple(range(6, model.nv)),
-        wrench_frame=0,
-        wrench_components=(),
-        input_limit=device_array(np.full(model.nv - 6, float(torque_limit))),
-        joint_damping=device_array(np.r_[np.zeros(6), np.full(model.nv - 6, float(joint_damping))]),
+        actuation=Actuation(
+            "joints", device_array(np.full(model.nv - 6, float(torque_limit))), dofs=tuple(range(6, model.nv))
+        ),
+        joints=Joints(damping=device_array(np.r_[np.zeros(6), np.full(model.nv - 6, float(joint_damping))])),
     )
     # The start: the SRDF's standing posture, lowered until the lowest contact sphere (a foot)
     # touches the floor.
@@ -852,7 +845,7 @@ def solo12_foot_positions(system: RigidBodySystem, x: jax.Array) -> jax.Array:
     kinematics = _dynamics._kinematics(system.model, q)
     return jnp.stack([
         _dynamics._frame_placement(system.model, kinematics.rotation, kinematics.translation, f)[1]
-        for f in system.sphere_frames
+        for f in system.geometry.sphere_frames
     ])
 
 
@@ -876,12 +869,12 @@ def solo12_standing_torques(system: RigidBodySystem, x: jax.Array) -> jax.Array:
     gravity = _dynamics.gravity_torques(model, q)
     kinematics = _dynamics._kinematics(model, q)
     foot_jacobians = []
-    for frame in system.sphere_frames[: len(SOLO12_FEET)]:  # the feet come first
+    for frame in system.geometry.sphere_frames[: len(SOLO12_FEET)]:  # the feet come first
         _, translation = _dynamics._frame_placement(model, kinematics.rotation, kinematics.translation, frame)
         contact_point = translation - jnp.array([0.0, 0.0, SOLO12_FOOT_RADIUS])
         foot_jacobians.append(_point_jacobian(model, kinematics, model.frame_parents[frame], contact_point))
     foot_jacobian = jnp.concatenate(foot_jacobians)  # (12, nv)
-    selection = jnp.zeros((model.nv, system.nu)).at[np.asarray(system.actuated_dofs), jnp.arange(system.nu)].set(1.0)
+    selection = jnp.zeros((model.nv, system.nu)).at[np.asarray(system.actuation.dofs), jnp.arange(system.nu)].set(1.0)
     total_mass = jnp.sum(model.body_mass)
     scaled = jnp.concatenate([selection, foot_jacobian.T / total_mass], axis=1)
     solution = jnp.linalg.lstsq(scaled, gravity)[0]

@@ -15,8 +15,8 @@ from rsmooth.experiments import control_panda_push
 
 def test_the_scene_starts_where_it_says_and_holds_still_at_zero_torque():
     system = sim.panda_push(tool_gap=0.04)
-    assert (system.nx, system.nu) == (27, 7) and system.gravity_compensation
-    np.testing.assert_allclose(system.input_limit, sim.PANDA_TORQUE_LIMITS)
+    assert (system.nx, system.nu) == (27, 7) and system.actuation.gravity_compensation
+    np.testing.assert_allclose(system.actuation.input_limit, sim.PANDA_TORQUE_LIMITS)
     x0 = system.initial_state()
     # The tool (radius 1.5 cm) 4 cm behind the box's -x face (half side 5 cm), at its mid-height.
     _, tool = sim.frame_placement(system.model, x0[:14], "panda_hand_tcp")

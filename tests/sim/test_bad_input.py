@@ -119,9 +119,9 @@ def test_system_factories_reject_impossible_parameters_by_name(factory, name, va
 
 
 def test_system_factories_accept_the_limits_of_their_ranges():
-    assert float(sim.pusher(finger_radius=0.0, force_limit=INF).geom_pairs[0].shape2.radius) == 0.0  # a point finger, unlimited
-    assert float(sim.cube(friction=0.0).friction[0]) == 0.0
-    assert np.isfinite(float(sim.ball_wall(wall_distance=-1.0).plane_offsets[1]))
+    assert float(sim.pusher(finger_radius=0.0, force_limit=INF).geometry.geom_pairs[0].shape2.radius) == 0.0  # a point finger, unlimited
+    assert float(sim.cube(friction=0.0).geometry.friction[0]) == 0.0
+    assert np.isfinite(float(sim.ball_wall(wall_distance=-1.0).geometry.plane_offsets[1]))
 
 
 @pytest.mark.parametrize(
@@ -141,7 +141,8 @@ def test_a_system_built_directly_rejects_impossible_physics(field, value, match)
         if field == "time_step":
             cube.with_options(time_step=value)
         else:
-            dataclasses.replace(cube, **{field: jnp.asarray(value)})
+            group = "actuation" if field == "input_limit" else "geometry"
+            dataclasses.replace(cube, **{group: dataclasses.replace(getattr(cube, group), **{field: jnp.asarray(value)})})
 
 
 def test_options_are_checked_by_name():

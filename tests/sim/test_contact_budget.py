@@ -1,5 +1,5 @@
-"""The contact budget (`RigidBodySystem.max_contacts`) and the broad phase
-(`RigidBodySystem.max_pairs`): a limit that holds every touching contact or every pair within
+"""The contact budget (`Options.max_contacts`) and the broad phase
+(`Options.max_pairs`): a limit that holds every touching contact or every pair within
 its margin changes nothing (states, impulses, step Jacobians), one that leaves some out counts
 and reports them, and bad limits are refused by name."""
 

@@ -38,7 +38,7 @@ def _pusher_state(seed: int, spread: float):
     """The pusher without its finger-box contact (prismatic finger joints, a free box on 8
     corners): a system the closed form supports."""
     full = sim.pusher()
-    pusher = dataclasses.replace(full, geom_pairs=())
+    pusher = dataclasses.replace(full, geometry=dataclasses.replace(full.geometry, geom_pairs=()))
     x = full.initial_state()
     x = x + spread * jax.random.normal(jax.random.key(seed), x.shape)
     x = x.at[3:7].set(x[3:7] / jnp.linalg.norm(x[3:7])).at[2].set(0.099)  # corners 1 mm into the floor

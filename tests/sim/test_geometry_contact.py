@@ -28,7 +28,7 @@ def test_box_rests_on_floor_through_a_geom_pair():
     mass, half = 2.0, np.array([0.2, 0.1, 0.05])
     system = sim.bodies([sim.Box(half)], [mass], [[0.3, -0.2, half[2]]], time_step=H)
     assert system.num_contacts == 4
-    assert isinstance(system.geom_pairs[0].shape1, sim.HalfSpace) and system.geom_pairs[0].frame1 is None
+    assert isinstance(system.geometry.geom_pairs[0].shape1, sim.HalfSpace) and system.geometry.geom_pairs[0].frame1 is None
     x0 = np.asarray(system.initial_state())
     xs, infos = _rollout(system, x0, 100)
     sim.check_steps(infos, what="a box resting on the floor")  # warnings are errors
@@ -46,7 +46,7 @@ def test_box_stack_rests():
         [sim.Box([half] * 3), sim.Box([0.08, 0.06, half])], masses, [[0, 0, half], [0, 0, 3 * half]], time_step=H
     )
     # pairs: floor-body0, floor-body1, body0-body1
-    assert [type(p.shape1).__name__ for p in system.geom_pairs] == ["HalfSpace", "HalfSpace", "Box"]
+    assert [type(p.shape1).__name__ for p in system.geometry.geom_pairs] == ["HalfSpace", "HalfSpace", "Box"]
     x0 = np.asarray(system.initial_state())
     xs, infos = _rollout(system, x0, 100)
     sim.check_steps(infos, what="a box stack")
@@ -94,7 +94,7 @@ def test_a_tower_written_in_mjcf_rests_without_solver_iterations():
     )
     system = sim.scene(f'<mujoco><option timestep="{H}"/><worldbody><geom type="plane" size="1 1 0.1"/>{bodies}'
                        "</worldbody></mujoco>", max_contacts=8 * n)
-    assert len(system.geom_pairs) == n + n * (n - 1) // 2
+    assert len(system.geometry.geom_pairs) == n + n * (n - 1) // 2
     xs, infos = _rollout(system, system.initial_state(), 200)
     assert sim.check_steps(infos) == {"steps": 200, "unconverged_steps": 0, "diverged_steps": 0, "dropped_contact_steps": 0, "skipped_pair_steps": 0}
     assert np.max(np.asarray(infos.ncp.iterations)) == 0
@@ -112,15 +112,15 @@ def test_pairs_of_one_type_are_evaluated_together_with_the_same_contacts(getkey)
     shapes = [sim.Box([0.1, 0.1, 0.1]), sim.Box([0.05, 0.08, 0.1]), sim.Sphere(0.07)]
     slab = (sim.Box([1.0, 1.0, 0.1]), (jnp.eye(3), jnp.array([0.0, 0.0, -0.1])))
     system = sim.bodies(shapes, [1.0] * 3, [[0.2 * i, 0.05 * i, 0.15] for i in range(3)], obstacles=(slab,))
-    groups = sim._simulator._pair_groups(system.geom_pairs)
-    assert len(groups) < len(system.geom_pairs) and sorted(sum(groups, [])) == list(range(len(system.geom_pairs)))
+    groups = sim._simulator._pair_groups(system.geometry.geom_pairs)
+    assert len(groups) < len(system.geometry.geom_pairs) and sorted(sum(groups, [])) == list(range(len(system.geometry.geom_pairs)))
     quaternions = jax.random.normal(getkey(), (3, 3, 4))
     positions = jax.random.uniform(getkey(), (3, 3, 3), minval=-0.1, maxval=0.1) + jnp.array([[[0.08 * b, 0.0, 0.1] for b in range(3)]])
     qs = jnp.concatenate([positions, quaternions / jnp.linalg.norm(quaternions, axis=-1, keepdims=True)], axis=-1).reshape(3, -1)
 
     def both(q):
         kinematics = sim._dynamics._kinematics(system.model, q)
-        separate = [system._geom_pair_contacts(kinematics, pair) for pair in system.geom_pairs]
+        separate = [system._geom_pair_contacts(kinematics, pair) for pair in system.geometry.geom_pairs]
         return system._geom_pairs_contacts(kinematics), [jnp.concatenate(parts) for parts in zip(*separate)]
 
     grouped, separate = jax.jit(jax.vmap(both))(qs)
@@ -212,7 +212,7 @@ def test_step_jacobian_of_sliding_box_matches_finite_differences():
     of that free set, where one contact would be weakly active."""
     system = _slider(0.3, height=0.1 - 1e-4, solver=sim.NCPSolver())
     # joint-actuated, but its geometry pairs are outside the closed-form derivatives: forward mode
-    assert system.actuation == "joints" and not _derivatives.supported(system)
+    assert system.actuation.kind == "joints" and not _derivatives.supported(system)
     v = jnp.array([0.5, 0.1, 0.0, 0.0, 0.0, 0.0])
     x = system.state(system.initial_configuration, v)
     u = jnp.array([0.2, -0.1, 0.3, 0.0, 0.0, 0.0])
@@ -247,7 +247,7 @@ def test_bad_input_names_the_argument():
         sim.GeomPair(sim.HalfSpace(), None, box, "body0", friction=0.1, placement2=(2 * jnp.eye(3), jnp.zeros(3)))
     system = sim.bodies([box], [1.0], [[0, 0, 0.1]])
     with pytest.raises(ValueError, match=r"geom_pairs\[0\].frame2"):
-        dataclasses.replace(system, geom_pairs=(sim.GeomPair(sim.HalfSpace(), None, box, "nope", friction=0.1),))
+        dataclasses.replace(system, geometry=sim.Geometry(geom_pairs=(sim.GeomPair(sim.HalfSpace(), None, box, "nope", friction=0.1),)))
     with pytest.raises(ValueError, match="masses"):
         sim.bodies([box], [1.0, 2.0], [[0, 0, 0.1]])
     with pytest.raises(ValueError, match=r"shapes\[0\]"):

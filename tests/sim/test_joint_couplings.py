@@ -1,4 +1,4 @@
-"""Joint couplings (RigidBodySystem.joint_couplings: MuJoCo's joint equalities, a URDF's
+"""Joint couplings (Joints.couplings: MuJoCo's joint equalities, a URDF's
 <mimic>) against closed forms: two carts coupled by a ratio move as one mass, an initial
 error closes by the Baumgarte factor per step, and the step's implicit Jacobians against
 forward-mode autodiff; Panda's finger, loaded from its URDF, follows the other."""
@@ -36,7 +36,7 @@ step_and_forward_mode = eqx.filter_jit(lambda system, x, u: (system.step(x, u), 
 
 def test_coupled_carts_move_as_one_mass():
     system = coupled_carts(0.0)
-    assert system.joint_couplings.joints == (2,) and system.joint_couplings.others == (1,)
+    assert system.joints.couplings.joints == (2,) and system.joints.couplings.others == (1,)
     steps, force = 20, 1.5
     xs, infos = rollout(system, system.initial_state(), jnp.full((steps, 1), force))
     assert bool(jnp.all(infos.ncp.converged))
@@ -73,7 +73,7 @@ def test_implicit_jacobians_match_forward_mode():
 def test_pandas_second_finger_follows_the_first():
     path = sim.example_robot_data_root() / "robots" / "panda_description" / "urdf" / "panda.urdf"
     system = sim.scene(path, floor=False, self_collision=False, joint_limits=False)  # its zero is beyond a limit
-    model, coupling = system.model, system.joint_couplings
+    model, coupling = system.model, system.joints.couplings
     assert [model.joint_names[j] for j in coupling.joints] == ["panda_finger_joint2"]
     assert [model.joint_names[j] for j in coupling.others] == ["panda_finger_joint1"]
     np.testing.assert_allclose(coupling.coefficients, [[0.0, 1.0, 0.0, 0.0, 0.0]])
@@ -91,6 +91,6 @@ def test_bad_couplings_are_refused_by_name():
     with pytest.raises(ValueError, match=r"JointCoupling.coefficients must have shape \(1, 5\)"):
         sim.JointCoupling((2,), (1,), jnp.ones((1, 4)))
     with pytest.raises(ValueError, match="joint 7 must be a revolute or prismatic joint"):
-        dataclasses.replace(system, joint_couplings=sim.JointCoupling((7,), (1,), jnp.zeros((1, 5))))
-    with pytest.raises(ValueError, match="joint_couplings are solved by the hard-contact NCP"):
+        system.with_joint_couplings(sim.JointCoupling((7,), (1,), jnp.zeros((1, 5))))
+    with pytest.raises(ValueError, match="joints.couplings are solved by the hard-contact NCP"):
         system.with_options(contact=sim.SpringDamper(stiffness=1e4, damping=10.0, friction=0.5))

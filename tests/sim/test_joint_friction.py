@@ -1,4 +1,4 @@
-"""Dry joint friction (RigidBodySystem.joint_friction, MuJoCo's frictionloss) against closed
+"""Dry joint friction (Joints.friction, MuJoCo's frictionloss) against closed
 forms: Coulomb's threshold on a slide and a hinge, the constant deceleration it gives a
 slipping dof and its derivative in the friction effort, the joint's friction added to a
 floor's, and the step's implicit Jacobians against forward-mode autodiff."""
@@ -34,8 +34,8 @@ rollout = eqx.filter_jit(lambda system, x0, us: system.rollout(x0, us))
 
 def test_the_cart_moves_only_beyond_its_friction_and_then_at_the_closed_form_rate():
     system = cart_and_arm(1.0)
-    assert system.joint_friction.dofs == (0, 1)
-    np.testing.assert_allclose(system.joint_friction.effort, [FRICTION, 1.0])
+    assert system.joints.friction.dofs == (0, 1)
+    np.testing.assert_allclose(system.joints.friction.effort, [FRICTION, 1.0])
     x0, steps = system.initial_state(), 40
     for force in (0.5 * FRICTION, 0.99 * FRICTION, -0.99 * FRICTION):  # held exactly
         xs, infos = rollout(system, x0, jnp.full((steps, 1), force))
@@ -55,7 +55,7 @@ def test_the_cart_moves_only_beyond_its_friction_and_then_at_the_closed_form_rat
     # The derivative of the slip speed in the friction effort: -T h / m, through the NCP's box
     # rows' implicit derivative (the bound's tangent), and in the push: T h / m.
     def final_speed(effort, force):
-        with_effort = eqx.tree_at(lambda system: system.joint_friction.effort, system, effort)
+        with_effort = eqx.tree_at(lambda system: system.joints.friction.effort, system, effort)
         return with_effort.rollout(x0, jnp.full((steps, 1), force))[0][-1, 2]
 
     effort = jnp.array([FRICTION, 1.0])
@@ -105,7 +105,7 @@ def test_the_joints_friction_adds_to_the_floors():
       <geom type="box" size="0.1 0.1 0.1" mass="{MASS}" friction="{mu}"/></body>
     </worldbody><actuator><motor joint="x"/></actuator></mujoco>"""
     system = sim.scene(xml, floor=False)
-    assert system.joint_friction.dofs == (1,)
+    assert system.joints.friction.dofs == (1,)
     resistance = FRICTION + mu * MASS * G
     x0, steps = system.initial_state(), 20
     xs, infos = rollout(system, x0, jnp.full((steps, 1), 0.95 * resistance))
@@ -139,8 +139,8 @@ def test_bad_friction_is_refused_by_name():
         system.with_joint_friction(np.ones(3))
     with pytest.raises(ValueError, match=r"effort must be finite and >= 0.*dofs \[1\] have \[-1.0\]"):
         system.with_joint_friction(np.array([1.0, -1.0]))
-    assert system.with_joint_friction(np.zeros(2)).joint_friction is None
+    assert system.with_joint_friction(np.zeros(2)).joints.friction is None
     with pytest.raises(ValueError, match="JointFriction.effort must have shape"):
         sim.JointFriction((0, 1), jnp.ones(3))
-    with pytest.raises(ValueError, match="joint_friction is solved by the hard-contact NCP"):
+    with pytest.raises(ValueError, match="joints.friction are solved by the hard-contact NCP"):
         system.with_options(contact=sim.SpringDamper(stiffness=1e4, damping=10.0, friction=0.5))

@@ -38,8 +38,8 @@ def _rollout(system, x0, steps, us=None):
 def test_a_falling_arm_stops_at_its_limit_and_is_held_by_the_static_torque():
     free = sim.scene(ARM, joint_limits=False)
     system = free.with_joint_limits()
-    assert system.joint_limits == ((0, 1), (0, -1)) and system.num_contacts == free.num_contacts + 2
-    assert sim.scene(ARM).joint_limits == system.joint_limits  # scene enforces them by default, as MuJoCo
+    assert system.joints.limits == ((0, 1), (0, -1)) and system.num_contacts == free.num_contacts + 2
+    assert sim.scene(ARM).joints.limits == system.joints.limits  # scene enforces them by default, as MuJoCo
     xs, infos = _rollout(system, system.initial_state(), 80)
     sim.check_steps(infos, what="the limited arm")
     q = np.asarray(xs[:, 0])
@@ -92,7 +92,7 @@ def test_a_slider_lands_on_its_lower_limit_inelastically_and_is_pushed_out_at_th
 def test_the_step_derivative_through_an_active_limit_is_the_constrained_one():
     system = sim.scene(SLIDER).with_joint_limits()
     rest = system.state(jnp.array([-0.3]))
-    actuated = dataclasses.replace(system, actuated_dofs=(0,), input_limit=jnp.array([100.0]), actuation="joints")
+    actuated = dataclasses.replace(system, actuation=sim.Actuation("joints", jnp.array([100.0]), dofs=(0,)))
     # resting on its lower limit, a small push down changes nothing; a push up above its
     # weight lifts it at (u - m g) / m: derivatives 0 and h / m of the next velocity
     step_and_jacobians = eqx.filter_jit(lambda s, x, u: s.step_and_jacobians(x, u))
@@ -120,7 +120,7 @@ ROD = f"""<mujoco><option timestep="{H}"/><worldbody><body name="rod" pos="0 0 1
 def test_a_toppling_rod_stops_at_its_ball_joints_cone_limit_and_rests_on_it():
     free = sim.scene(ROD, joint_limits=False)
     system = free.with_joint_limits()
-    assert system.joint_limits == ((0, 0),) and sim.scene(ROD).joint_limits == ((0, 0),)
+    assert system.joints.limits == ((0, 0),) and sim.scene(ROD).joints.limits == ((0, 0),)
     # tilted by 10 degrees about a horizontal axis: gravity topples it about that axis
     axis, tilt = np.array([1.0, 2.0, 0.0]) / np.sqrt(5.0), np.radians(10.0)
     x0 = system.state(jnp.asarray(np.r_[np.sin(tilt / 2) * axis, np.cos(tilt / 2)]))
@@ -150,21 +150,21 @@ def test_bad_joint_limits_are_refused_by_name():
     with pytest.raises(ValueError, match="unknown joint 'elbow'"):
         system.with_joint_limits(["elbow"])
     with pytest.raises(ValueError, match=r"joint_limits entries must be \(dof, side\)"):
-        dataclasses.replace(system, joint_limits=((0, 2),))
+        dataclasses.replace(system, joints=sim.Joints(limits=((0, 2),)))
     for bad in (0, -1, 1.5, True):
         with pytest.raises(ValueError, match="max_limits must be a positive integer or None"):
             system.with_contact_budget(None, max_limits=bad)
     unlimited = sim.scene(ARM.replace(f'limited="true" range="{LOWER} {UPPER}"', ""))
-    assert unlimited.with_joint_limits().joint_limits == ()
+    assert unlimited.with_joint_limits().joints.limits == ()
     with pytest.raises(ValueError, match="'hinge' has no finite position limit"):
         unlimited.with_joint_limits(["hinge"])
     with pytest.raises(ValueError, match="no finite upper position limit"):
-        dataclasses.replace(unlimited, joint_limits=((0, -1),))
+        dataclasses.replace(unlimited, joints=sim.Joints(limits=((0, -1),)))
     floating = sim.scene(ARM.replace('<joint name="hinge"', '<freejoint name="root"/><!--').replace(f'{UPPER}"/>', f'{UPPER}"/>-->'))
     with pytest.raises(ValueError, match="'root' is a free_flyer joint"):
         floating.with_joint_limits(["root"])
     rod = sim.scene(ROD)
     with pytest.raises(ValueError, match=r"joint_limits entries must be \(dof, side\)"):
-        dataclasses.replace(rod, joint_limits=((0, 1),))  # a spherical joint's limit is its cone: side 0
+        dataclasses.replace(rod, joints=sim.Joints(limits=((0, 1),)))  # a spherical joint's limit is its cone: side 0
     with pytest.raises(ValueError, match="'ball' has no finite cone position limit"):
-        dataclasses.replace(sim.scene(ROD.replace(f'limited="true" range="0 {CONE}"', "")), joint_limits=((0, 0),))
+        dataclasses.replace(sim.scene(ROD.replace(f'limited="true" range="0 {CONE}"', "")), joints=sim.Joints(limits=((0, 0),)))

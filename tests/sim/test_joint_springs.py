@@ -1,4 +1,4 @@
-"""Joint springs (RigidBodySystem.joint_springs, MuJoCo's joint stiffness and springref)
+"""Joint springs (Joints.springs, MuJoCo's joint stiffness and springref)
 against MuJoCo's Euler integrator, closed forms (the equilibrium of a sprung slide under
 gravity, a one-step derivative in the stiffness, the springs' potential energy) and
 forward-mode autodiff of the step, and their input checks."""
@@ -40,10 +40,10 @@ def test_springs_step_as_mujoco_euler():
     d.qvel[:] = [0.5, -0.3, 2.0, 1.0, -0.5]
     loaded = sim.load_mjcf(CHAIN)
     system = sim.scene(loaded)
-    assert system.joint_springs.joints == (1, 2, 3)
-    np.testing.assert_allclose(system.joint_springs.stiffness, [6.0, 40.0, 3.0])
+    assert system.joints.springs.joints == (1, 2, 3)
+    np.testing.assert_allclose(system.joints.springs.stiffness, [6.0, 40.0, 3.0])
     # the rest configuration in rsmooth's coordinates: springref less ref, the identity
-    np.testing.assert_allclose(system.joint_springs.reference, [-0.7, 0.05, 0.0, 0.0, 0.0, 1.0], atol=1e-15)
+    np.testing.assert_allclose(system.joints.springs.reference, [-0.7, 0.05, 0.0, 0.0, 0.0, 1.0], atol=1e-15)
     qpos0 = jnp.asarray(d.qpos)
     x0 = system.state(loaded.qpos_to_q(qpos0), loaded.qvel_to_v(qpos0, jnp.asarray(d.qvel)))
     steps = 200
@@ -70,7 +70,7 @@ def test_springs_step_as_mujoco_euler():
 def test_springs_potential_energy_and_forces_are_the_closed_forms():
     system = sim.scene(CHAIN)
     nq = system.model.nq
-    reference = system.joint_springs.reference
+    reference = system.joints.springs.reference
     angle, axis = 0.9, np.array([0.0, 0.6, 0.8])
     q = reference.at[0].add(0.25).at[1].add(-0.1).at[2:6].set(spatial.quaternion_exp(angle * axis))
     expected = 0.5 * (6.0 * 0.25**2 + 40.0 * 0.1**2 + 3.0 * angle**2)
@@ -108,7 +108,7 @@ def test_a_sprung_weight_rests_where_the_spring_holds_gravity_and_the_stiffness_
     q = 0.35
 
     def next_position(stiffness):
-        springy = eqx.tree_at(lambda s: s.joint_springs.stiffness, undamped, stiffness)
+        springy = eqx.tree_at(lambda s: s.joints.springs.stiffness, undamped, stiffness)
         return springy.step(springy.state(jnp.array([q])), jnp.zeros(0))[0]
 
     np.testing.assert_allclose(next_position(jnp.array([k])), q + H**2 * (-k * (q - 0.2) / mass - G), rtol=1e-14)
@@ -125,7 +125,7 @@ def test_bad_springs_are_refused_by_name():
         system.with_joint_springs(np.array([1.0, 1.0, 1.0, 2.0, 1.0]))
     with pytest.raises(ValueError, match=r"reference must have shape \(nq,\) = \(6,\)"):
         system.with_joint_springs(np.ones(5), np.zeros(5))
-    assert system.with_joint_springs(np.zeros(5)).joint_springs is None
+    assert system.with_joint_springs(np.zeros(5)).joints.springs is None
     cube = sim.cube()
     with pytest.raises(ValueError, match="joint 'root_joint' is a free_flyer"):
         cube.with_joint_springs(np.ones(6))

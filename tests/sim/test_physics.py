@@ -50,7 +50,7 @@ def _free_body(inertia: tuple[float, float, float], time_step: float = 0.01):
     system = sim.ball_wall(time_step=time_step, wall_distance=1e3)
     model = sim.free_body(1.0, np.asarray(inertia), name="ball", gravity=(0.0, 0.0, 0.0))
     system = eqx.tree_at(lambda s: s.model, system, model)
-    return eqx.tree_at(lambda s: s.plane_offsets, system, jnp.array([-100.0, -1e3]))
+    return eqx.tree_at(lambda s: s.geometry.plane_offsets, system, jnp.array([-100.0, -1e3]))
 
 
 def test_spinning_body_in_free_flight_keeps_its_world_velocity():
@@ -126,7 +126,7 @@ def test_box_slides_without_rocking_and_stops_where_coulomb_says(friction):
     # the weight, Coulomb's friction against the motion, and the front edge carrying mu m g
     # more than the back one (the friction's moment about the centre: the back edge carries
     # m g (1 - mu) / 2, nothing at mu = 1)
-    bottom, front = (np.asarray(system.sphere_offsets[:, k] > 0) for k in (2, 0))
+    bottom, front = (np.asarray(system.geometry.sphere_offsets[:, k] > 0) for k in (2, 0))
     bottom = ~bottom
     carrying = np.asarray(infos.impulse[1].reshape(8, 3)[:, 2] > 0)
     assert not carrying[~bottom].any()
@@ -161,7 +161,7 @@ def test_box_sticks_below_the_coulomb_threshold_and_slides_above(friction):
             x, info = step(x, push)
             assert bool(info.ncp.converged)
             carrying = np.asarray(info.impulse.reshape(8, 3)[:, 2] > 0)
-            assert not carrying[np.asarray(system.sphere_offsets[:, 2] > 0)].any()
+            assert not carrying[np.asarray(system.geometry.sphere_offsets[:, 2] > 0)].any()
             np.testing.assert_array_equal(info.mode, np.where(carrying, sim.STICKING if sticks else sim.SLIDING, sim.SEPARATED))
             # friction balances the push while sticking, and is mu m g against it while sliding
             np.testing.assert_allclose(info.force.sum(axis=0)[0], -min(scale, 1.0) * threshold, rtol=1e-6)
@@ -269,7 +269,7 @@ def test_thrown_spinning_solo12_keeps_its_centroidal_momentum_to_first_order_in_
     v0 = np.r_[1.0, 0.5, 0.2, 2.0, -1.0, 3.0, rng.uniform(-5.0, 5.0, 12)]
     x0 = system.initial_state().at[2].add(1.0).at[19:].set(v0)
     system = eqx.tree_at(lambda s: s.model.gravity, system, jnp.zeros(3))
-    system = eqx.tree_at(lambda s: s.plane_offsets, system, system.plane_offsets - 100.0)
+    system = eqx.tree_at(lambda s: s.geometry.plane_offsets, system, system.geometry.plane_offsets - 100.0)
     pin_model = pin.buildModelFromUrdf(str(sim.solo12_urdf_path()), pin.JointModelFreeFlyer())
     data = pin_model.createData()
 

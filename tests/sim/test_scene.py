@@ -47,8 +47,8 @@ REST_HEIGHTS = np.array([0.05, 0.1 + 0.04, 0.07, 0.04, 0.04, 0.06])
 def test_scene_comes_to_rest_at_the_analytic_heights():
     system = sim.scene(SCENE)
     assert float(system.time_step) == 0.02  # MuJoCo's opt.timestep
-    assert (system.nx, system.nu, len(system.geom_pairs), system.num_contacts) == (78, 0, 7, 23)
-    assert isinstance(system.geom_pairs[0].shape2, sim.Capsule)  # the explicit pair comes first
+    assert (system.nx, system.nu, len(system.geometry.geom_pairs), system.num_contacts) == (78, 0, 7, 23)
+    assert isinstance(system.geometry.geom_pairs[0].shape2, sim.Capsule)  # the explicit pair comes first
     steps = 100  # 2 s
     xs, infos = eqx.filter_jit(lambda s, x: s.rollout(x, jnp.zeros((steps, 0))))(system, system.initial_state())
     counts = sim.check_steps(infos, what="a MuJoCo scene settling")  # a warning is an error here
@@ -87,7 +87,7 @@ def _distances(m, loaded, system, qpos) -> tuple[np.ndarray, np.ndarray]:
         mujoco.mj_kinematics(m, data)
         expected.append([mujoco.mj_geomDistance(m, data, g1, g2, 1.0, None) for g1, g2 in loaded.collision_pairs])
     distances = jax.jit(jax.vmap(lambda q: system.contacts(q)[0]))(loaded.qpos_to_q(jnp.asarray(qpos)))
-    starts = np.cumsum([0] + [pair.size for pair in system.geom_pairs])[:-1]
+    starts = np.cumsum([0] + [pair.size for pair in system.geometry.geom_pairs])[:-1]
     return np.array(expected), np.asarray(distances)[:, starts]
 
 
@@ -97,12 +97,12 @@ def test_pairs_frictions_and_distances_match_mujoco():
     # a margin of 1 m makes entry 0 of every pair's manifold its signed distance in contacts()
     system = sim.scene(loaded, margin=1.0)
     names = [frozenset(loaded.geom_names[g] for g in pair) for pair in loaded.collision_pairs]
-    kinds = [(type(p.shape1).__name__, type(p.shape2).__name__) for p in system.geom_pairs]
+    kinds = [(type(p.shape1).__name__, type(p.shape2).__name__) for p in system.geometry.geom_pairs]
     expected_kinds = [(loaded.geom_types[a], loaded.geom_types[b]) for a, b in loaded.collision_pairs]
     shape_of = {"HalfSpace": "plane", "Box": "box", "Sphere": "sphere", "Capsule": "capsule", "Cylinder": "cylinder"}
     assert [(shape_of[a], shape_of[b]) for a, b in kinds] == expected_kinds
     # geoms on the world are fixed there, the others ride on their body's frame
-    for (g1, g2), pair in zip(loaded.collision_pairs, system.geom_pairs):
+    for (g1, g2), pair in zip(loaded.collision_pairs, system.geometry.geom_pairs):
         for geom, frame in ((g1, pair.frame1), (g2, pair.frame2)):
             body = loaded.geom_bodies[geom]
             assert frame == (None if body == 0 else system.model.frame_id(loaded.body_names[body]))
@@ -121,10 +121,10 @@ def test_pairs_frictions_and_distances_match_mujoco():
     for contact in data.contact[: data.ncon]:
         reported[frozenset(loaded.geom_names[g] for g in contact.geom)] = float(contact.friction[0])
     assert set(reported) == set(names)
-    assert {name: float(pair.friction) for name, pair in zip(names, system.geom_pairs)} == pytest.approx(reported)
+    assert {name: float(pair.friction) for name, pair in zip(names, system.geometry.geom_pairs)} == pytest.approx(reported)
     assert reported[frozenset(("floor", "ball"))] == 0.3 and reported[frozenset(("floor", "log"))] == 0.5
     # a friction given overrides MuJoCo's
-    assert {float(p.friction) for p in sim.scene(loaded, friction=0.25).geom_pairs} == {0.25}
+    assert {float(p.friction) for p in sim.scene(loaded, friction=0.25).geometry.geom_pairs} == {0.25}
 
 
 # A hinged arm (its axis off the body's origin) whose capsule link swings through the floor,
@@ -148,7 +148,7 @@ def test_hinged_and_welded_geoms_match_mujoco():
     loaded = sim.load_mjcf(m)
     system = sim.scene(loaded, margin=1.0)
     hand = system.model.frame_id("hand")
-    assert [(p.frame1, p.frame2) for p in system.geom_pairs] == [(None, system.model.frame_id("arm")), (None, hand)]
+    assert [(p.frame1, p.frame2) for p in system.geometry.geom_pairs] == [(None, system.model.frame_id("arm")), (None, hand)]
     qpos = np.random.default_rng(1).uniform(-np.pi, np.pi, size=(16, 1))
     expected, ours = _distances(m, loaded, system, qpos)
     assert 0.2 < np.mean(expected < 0) < 0.8
@@ -157,9 +157,9 @@ def test_hinged_and_welded_geoms_match_mujoco():
 
 def test_actuation_and_bad_input_are_named():
     arm = sim.scene(ARM.format(extra="", low=-1))
-    assert arm.actuated_dofs == (0,) and arm.nu == 1
-    np.testing.assert_allclose(arm.input_limit, [2.0])  # ctrlrange times gear
-    np.testing.assert_allclose(arm.joint_damping, [0.3])
+    assert arm.actuation.dofs == (0,) and arm.nu == 1
+    np.testing.assert_allclose(arm.actuation.input_limit, [2.0])  # ctrlrange times gear
+    np.testing.assert_allclose(arm.joints.damping, [0.3])
     assert float(arm.time_step) == 0.002  # MuJoCo's default
     with pytest.raises(ValueError, match=r"geom 'blob' \(ellipsoid\) collides with geom 'floor' \(plane\)"):
         sim.scene(ARM.format(extra='<geom name="blob" type="ellipsoid" size="0.1 0.2 0.1"/>', low=-1))
@@ -192,7 +192,7 @@ LOWEST = {  # geom attributes -> lowest point below the body's origin
 def test_floor_touches_the_lowest_point_of_a_turned_shape():
     for geom, depth in LOWEST.items():
         system = sim.scene(ONE_OBJECT.format(z=1.0, geom=geom), floor=True, friction=0.3)
-        (pair,) = system.geom_pairs
+        (pair,) = system.geometry.geom_pairs
         assert isinstance(pair.shape1, sim.HalfSpace) and pair.frame1 is None and float(pair.friction) == 0.3
         np.testing.assert_allclose(pair.placement1[0], np.eye(3), atol=0)
         tolerance = 1e-8 if "mesh" in geom else 1e-12  # MuJoCo stores mesh vertices in float32
@@ -221,8 +221,8 @@ def test_floor_holds_the_moving_colliding_geoms_only():
     loaded = sim.load_mjcf(FLOOR_SCENE)
     plain = sim.scene(loaded)
     system = sim.scene(loaded, floor=True)
-    floor_pairs = system.geom_pairs[len(plain.geom_pairs) :]
-    assert len(plain.geom_pairs) == 2  # shelf-ball, and the explicit shelf-link
+    floor_pairs = system.geometry.geom_pairs[len(plain.geometry.geom_pairs) :]
+    assert len(plain.geometry.geom_pairs) == 2  # shelf-ball, and the explicit shelf-link
     # the ball and the link, by geom id; each with its geom's own friction
     ball, arm = system.model.frame_id("ball"), system.model.frame_id("arm")
     assert [(type(p.shape2).__name__, p.frame2, float(p.friction)) for p in floor_pairs] == [
@@ -274,14 +274,14 @@ def test_without_self_collision_only_the_pairs_within_a_tree_are_dropped():
     assert within <= set(names)
 
     def keys(system):  # the frames and shape types of a system's pairs: one key per geom pair here
-        return [(type(p.shape1).__name__, p.frame1, type(p.shape2).__name__, p.frame2) for p in system.geom_pairs]
+        return [(type(p.shape1).__name__, p.frame1, type(p.shape2).__name__, p.frame2) for p in system.geometry.geom_pairs]
 
     every = keys(sim.scene(loaded))
     assert len(every) == 29
     kept = [key for key, name in zip(every, names) if name not in within]
     assert keys(sim.scene(loaded, self_collision=False)) == kept and len(kept) == 24
     # with a floor as well: its pairs (with the 6 moving geoms) come after those kept
-    assert len(sim.scene(loaded, self_collision=False, floor=True).geom_pairs) == 24 + 6
+    assert len(sim.scene(loaded, self_collision=False, floor=True).geometry.geom_pairs) == 24 + 6
 
 
 def test_a_scene_without_contacts_falls_freely():
@@ -313,8 +313,8 @@ def test_a_robot_with_undecodable_visual_meshes_stands_on_a_floor():
     with pytest.warns(UserWarning, match=r"limits of 4 joint\(s\) \('\w\w_calf_joint' by 0.838"):
         system = sim.scene(path, package_dirs=[root.parent], floating_base=True, floor=True, self_collision=False)
     assert (system.model.nq, system.model.nv) == (19, 18)
-    assert len(system.geom_pairs) == 19
-    assert all(isinstance(pair.shape1, sim.HalfSpace) and isinstance(pair.shape2, sim.ConvexMesh) for pair in system.geom_pairs)
+    assert len(system.geometry.geom_pairs) == 19
+    assert all(isinstance(pair.shape1, sim.HalfSpace) and isinstance(pair.shape2, sim.ConvexMesh) for pair in system.geometry.geom_pairs)
 
 
 def test_loading_options_are_refused_with_a_converted_model():

@@ -65,7 +65,7 @@ def test_resting_cube_stays_at_rest():
     np.testing.assert_allclose(x_admm[:7], q, atol=0.01 * velocity_bound)
     # The four bottom corners carry the weight, the top ones nothing.
     normal = info.impulse.reshape(8, 3)[:, 2]
-    bottom = np.asarray(cube.sphere_offsets[:, 2] < 0)
+    bottom = np.asarray(cube.geometry.sphere_offsets[:, 2] < 0)
     np.testing.assert_allclose(jnp.sum(normal[bottom]), GRAVITY * 1.0 * 0.01, rtol=1e-6)
     np.testing.assert_allclose(normal[~bottom], 0.0, atol=1e-12)
 
@@ -306,8 +306,8 @@ def test_joint_damping_is_implicit_and_dissipates():
     nq = solo.model.nq
     x0 = x0.at[nq + 6 :].set(5.0)
     free = dataclasses.replace(solo, model=dataclasses.replace(solo.model, gravity=jnp.zeros(3)))
-    undamped = dataclasses.replace(free, joint_damping=None)
-    heavy = dataclasses.replace(free, joint_damping=free.damping() * 1e4)
+    undamped = dataclasses.replace(free, joints=sim.Joints())
+    heavy = dataclasses.replace(free, joints=sim.Joints(damping=free.damping() * 1e4))
     us = jnp.zeros((20, 12))
 
     def energies(system):
@@ -337,7 +337,7 @@ def test_solo12_body_spheres_lie_within_the_urdf_collision_meshes():
     base = trimesh.load(meshes / "solo12" / "solo_12_base.stl").bounds
     solo = sim.solo12(body_contacts=True, model=_solo().model)
     assert solo.num_contacts == 12
-    centres, radii = np.asarray(solo.sphere_offsets[4:8]), np.asarray(solo.sphere_radii[4:8])
+    centres, radii = np.asarray(solo.geometry.sphere_offsets[4:8]), np.asarray(solo.geometry.sphere_radii[4:8])
     mm = 1e-4  # the constants are rounded to 0.1 mm
     assert np.all(centres - radii[:, None] >= base[0] - mm) and np.all(centres + radii[:, None] <= base[1] + mm)
     np.testing.assert_allclose(centres[:, 2] - radii, np.full(4, base[0, 2]), atol=mm)
@@ -422,8 +422,8 @@ def test_bad_input_is_named():
         sim.cube(side=-1.0)
     with pytest.raises(ValueError, match="joint_damping must be non-negative"):
         sim.solo12(joint_damping=-0.1, model=_solo().model)
-    with pytest.raises(ValueError, match=r"joint_damping must have shape \(6,\)"):
-        dataclasses.replace(cube, joint_damping=jnp.ones(3))
+    with pytest.raises(ValueError, match=r"joints.damping must have shape \(6,\)"):
+        dataclasses.replace(cube, joints=sim.Joints(damping=jnp.ones(3)))
     # Under jit a NaN state is caught at run time, with the same message.
     with pytest.raises(Exception, match="NaN"):
         jax.jit(lambda a: cube.step(a, jnp.zeros(6)))(rest.at[0].set(jnp.nan)).block_until_ready()
@@ -562,10 +562,10 @@ def test_implicit_step_derivative_with_respect_to_system_parameters():
 
     def by_parameters(s):
         def step(friction, time_step):
-            varied = eqx.tree_at(lambda t: (t.friction, t.options.time_step), s, (friction, time_step))
+            varied = eqx.tree_at(lambda t: (t.geometry.friction, t.options.time_step), s, (friction, time_step))
             return varied.step(x, u)
 
-        return jax.jit(jax.jacfwd(step, argnums=(0, 1)))(s.friction, s.time_step)
+        return jax.jit(jax.jacfwd(step, argnums=(0, 1)))(s.geometry.friction, s.time_step)
 
     for ours, theirs in zip(by_parameters(system), by_parameters(reference)):
         assert float(jnp.max(jnp.abs(theirs))) > 1e-3
@@ -620,7 +620,7 @@ def test_rollout_without_traced_checks_reports_an_invalid_contact_problem():
         assert "callback" not in str(jax.make_jaxpr(system.rollout)(x0, us))
 
     def rollout(mu):
-        return eqx.tree_at(lambda s: s.friction, system, jnp.reshape(mu, (1,))).rollout(x0, us)
+        return eqx.tree_at(lambda s: s.geometry.friction, system, jnp.reshape(mu, (1,))).rollout(x0, us)
 
     with _checks.without_traced_checks():
         _, infos = jax.jit(rollout)(jnp.asarray(-0.5))
