@@ -41,7 +41,8 @@ max_limit_violation (the deepest over the run, the start included), limits_activ
 max_limits (the contact budgets; null: none), dropped_contact_steps (steps where a budget
 left out a closing contact or limit), max_pairs (the
 broad phase's pairs per group; null: all), skipped_pair_steps (steps where it left out a pair
-within its margin), joint_friction_dofs (dofs with dry joint friction), joint_friction_held_mean
+within its margin), max_correction_speed (the bound on the Baumgarte correction's speed;
+null: none), joint_friction_dofs (dofs with dry joint friction), joint_friction_held_mean
 (those held still by it, per step: end-of-step speed below the contact solver's slip
 threshold), joint_friction_impulse_max (largest ratio of a friction impulse to its bound,
 at most 1), joint_couplings (joint equality constraints enforced), max_coupling_error (the
@@ -98,6 +99,10 @@ class Config:
         None, "Broad phase: collide at most this many pairs of each group of alike geom pairs per step, those whose "
         "bounding spheres are closest (exact while no more are within their margin; a step that leaves out one is "
         "reported). Default: all.", min=1)
+    max_correction_speed: float | None = _protocol.option(
+        None, "Largest speed (m/s, or rad/s for a joint) at which a penetration or a joint beyond its limit is "
+        "pushed back (a URDF's start often puts knees beyond their limits, which the full Baumgarte rate turns "
+        "into tens of joules). Default: no bound.", above=0.0)
     max_hull_vertices: int | None = _protocol.option(
         None, "Bound on the vertices of each mesh's convex hull, the shape collided (MuJoCo's maxhullvert; 16 to 32 "
         "make a robot's meshes tractable). Default: the whole hull.", min=4)
@@ -151,6 +156,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         loaded, time_step=config.time_step, floor=config.floor, self_collision=config.self_collision,
         joint_limits=config.joint_limits, max_contacts=config.max_contacts, max_limits=config.max_limits,
         max_pairs=config.max_pairs,
+        max_correction_speed=float("inf") if config.max_correction_speed is None else config.max_correction_speed,
     )
     limits = len(system.joints.limits)  # the last candidate contacts (RigidBodySystem.contacts)
     # the floor scene() adds is the last pair's half-space (drawn where it is)
@@ -208,6 +214,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         "max_limits": config.max_limits,
         "dropped_contact_steps": counts["dropped_contact_steps"],
         "max_pairs": config.max_pairs,
+        "max_correction_speed": config.max_correction_speed,
         "skipped_pair_steps": counts["skipped_pair_steps"],
         "joint_friction_dofs": len(friction_dofs),
         "joint_friction_held_mean": float(np.mean(held)) if friction_dofs else 0.0,

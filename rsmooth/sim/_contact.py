@@ -183,7 +183,13 @@ CONTACT_SKIN = 1e-6
 
 
 def corrected_free_velocity(
-    free_velocity: ArrayLike, distance: ArrayLike, time_step: ArrayLike, *, baumgarte=0.2, skin=CONTACT_SKIN
+    free_velocity: ArrayLike,
+    distance: ArrayLike,
+    time_step: ArrayLike,
+    *,
+    baumgarte=0.2,
+    skin=CONTACT_SKIN,
+    max_correction_speed=float("inf"),
 ) -> Array:
     """Adds the position term to the normal free velocity, ``g_N + phi / h``-style.
 
@@ -192,7 +198,10 @@ def corrected_free_velocity(
     beyond (``s`` the contact skin) makes a contact detected at a distance act only if the
     gap would close within the step, to within the skin (speculative contact: no force at a
     distance beyond it), and pushes a penetration out at the Baumgarte rate ``beta / h``
-    (``beta = 1`` removes it in one step, which injects energy; smaller values spread it).
+    (``beta = 1`` removes it in one step, which injects energy; smaller values spread it),
+    at most at ``max_correction_speed``: ``beta phi / h`` grows without bound as ``h``
+    shrinks or the penetration deepens (a body or a joint limit starting well inside),
+    and the speed it gives is kinetic energy the correction injects.
 
     Why a skin: resting contacts sit at distances of rounding size on both sides of zero (a
     box on four corners tilted by 1e-9 rad). With the rate ``1 / h`` above zero and
@@ -210,6 +219,8 @@ def corrected_free_velocity(
         skin: ``s >= 0`` (m, or rad for a joint limit); far below any gap that matters to
             the motion (a contact stops approaching at ``(1 - beta) s``, then closes the rest
             at the Baumgarte rate), far above the rounding of resting distances.
+        max_correction_speed: the largest speed (m/s, or rad/s for a joint limit) at which a
+            penetration is pushed out, ``> 0``; ``inf``: no bound.
 
     Returns:
         The corrected free velocity ``g``, shape ``(3 n,)``, to pass to :func:`solve_ncp`.
@@ -225,4 +236,5 @@ def corrected_free_velocity(
             f"{free_velocity.shape} and {distance.shape}."
         )
     correction = jnp.where(distance > skin, distance - (1.0 - baumgarte) * skin, baumgarte * distance) / time_step
+    correction = jnp.maximum(correction, -jnp.asarray(max_correction_speed, correction.dtype))
     return free_velocity.reshape(-1, 3).at[:, 2].add(correction).reshape(-1)

@@ -238,4 +238,4 @@ def tangent_jacobian(system, update, v: Array) -> tuple[Array, Array, Array]:
 
 
 def _corrected(system, free_velocity, distance):
-    return corrected_free_velocity(free_velocity, distance, system.time_step, baumgarte=system.baumgarte)
+    return corrected_free_velocity(free_velocity, distance, system.time_step, **system.options.correction)

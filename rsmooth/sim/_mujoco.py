@@ -89,7 +89,7 @@ class MujocoModel(eqx.Module):
             ``-damping * v``); zero where dampers are disabled.
         frictionloss: ``(nv,)``, dry joint friction ``dof_frictionloss``, the largest effort
             (N m or N) that resists a dof's motion (:class:`~rsmooth.sim.JointFriction`); zero
-            where it is disabled.
+            where it is disabled (the ``frictionloss`` or ``constraint`` flag).
         stiffness: ``(nv,)``, the joint springs' ``jnt_stiffness`` on each dof (a ball joint's
             on its three), ``-stiffness (q - q_ref)``; zero where springs are disabled
             (:meth:`~rsmooth.sim.RigidBodySystem.with_joint_springs`).
@@ -97,8 +97,11 @@ class MujocoModel(eqx.Module):
             ``springref``) in rsmooth's coordinates (:meth:`qpos_to_q`).
         joint_couplings: the active joint equality constraints (``<equality><joint>``, a
             URDF's ``<mimic>``) as a :class:`~rsmooth.sim.JointCoupling` (rsmooth joints, MuJoCo's
-            ``polycoef``), or ``None``; inactive ones (``active="false"``) are left out.
+            ``polycoef``), or ``None``; inactive ones (``active="false"``) are left out, and all
+            where the ``equality`` or ``constraint`` flag is disabled.
         timestep: ``opt.timestep``, in seconds.
+        limits_enforced: whether MuJoCo enforces the joints' position limits (``False`` where
+            its ``limit`` or ``constraint`` flag is disabled; the limits stay in ``model``).
         body_names: name of every MuJoCo body (``"world"`` first).
         body_parents: MuJoCo parent body of every body (``body_parentid``; 0 for the world).
         body_joints: the rsmooth joint every MuJoCo body moves with (0 for the world and
@@ -133,7 +136,8 @@ class MujocoModel(eqx.Module):
             distance test: the explicit pairs first, then the pairs ``(g1, g2)``, ``g1 < g2``,
             that MuJoCo's filters keep (bodies not welded together, nor parent and child
             unless ``filterparent`` is disabled, not excluded, ``contype``/``conaffinity``
-            compatible, not both planes, not already an explicit pair).
+            compatible, not both planes, not already an explicit pair); none where the
+            ``contact`` or ``constraint`` flag is disabled.
         actuator_names: name of every actuator (all are motors on one hinge or slide).
         actuator_dofs: the velocity index each actuator drives.
         actuator_gear: ``(nu,)``, transmission ratio (generalized force per unit actuator force).
@@ -159,6 +163,7 @@ class MujocoModel(eqx.Module):
     spring_reference: jax.Array
     joint_couplings: JointCoupling | None
     timestep: float = eqx.field(static=True)
+    limits_enforced: bool = eqx.field(static=True)
     body_names: tuple[str, ...] = eqx.field(static=True)
     body_parents: tuple[int, ...] = eqx.field(static=True)
     body_joints: tuple[int, ...] = eqx.field(static=True)
@@ -424,6 +429,11 @@ def _pose(position: np.ndarray, quaternion_wxyz: np.ndarray) -> tuple[np.ndarray
 _IDENTITY = (np.eye(3), np.zeros(3))
 
 
+def _disabled(mj: Any, m: Any, *flags: str) -> bool:
+    """Whether ``opt.disableflags`` disables any of ``flags`` (``"CONTACT"``: ``mjDSBL_CONTACT``...)."""
+    return any(m.opt.disableflags & int(getattr(mj.mjtDisableBit, f"mjDSBL_{flag}")) for flag in flags)
+
+
 def _reject_unsupported(mj: Any, m: Any) -> None:
     """Raises a ValueError naming the first element rsmooth cannot model faithfully."""
     joint_names = _names(m, "joint", m.njnt)
@@ -458,7 +468,9 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
         ("nskin", "skins", mj.mjtObj.mjOBJ_SKIN),
         ("nplugin", "plugins", mj.mjtObj.mjOBJ_PLUGIN),
     ]
-    others = [e for e in range(m.neq) if int(m.eq_type[e]) != int(mj.mjtEq.mjEQ_JOINT)]
+    # equality constraints MuJoCo does not enforce (the equality or constraint flag disabled) are left alone
+    equalities_off = _disabled(mj, m, "EQUALITY", "CONSTRAINT")
+    others = [] if equalities_off else [e for e in range(m.neq) if int(m.eq_type[e]) != int(mj.mjtEq.mjEQ_JOINT)]
     for attribute, what, kind in counts:
         count = len(others) if attribute == "neq" else getattr(m, attribute)
         if count > 0:
@@ -481,9 +493,15 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
             f"MuJoCo model: fluid forces (density {m.opt.density}, viscosity {m.opt.viscosity}) are not modelled by "
             "rsmooth.sim (supported: density 0 and viscosity 0)"
         )
+    if _disabled(mj, m, "ACTUATION") and m.nu:
+        raise ValueError(
+            "MuJoCo model: its actuators are disabled (the actuation flag), which rsmooth.sim does not model "
+            "(supported: enabled actuators, or none)"
+        )
     geom_names = _names(m, "geom", m.ngeom)
     paired = set(int(g) for g in m.pair_geom1) | set(int(g) for g in m.pair_geom2)
-    for g in range(m.ngeom):
+    contacts_off = _disabled(mj, m, "CONTACT", "CONSTRAINT")
+    for g in range(m.ngeom if not contacts_off else 0):  # nothing collides where contacts are disabled
         kind = mj.mjtGeom(m.geom_type[g]).name.removeprefix("mjGEOM_").lower()
         collides = m.geom_contype[g] != 0 or m.geom_conaffinity[g] != 0 or g in paired
         if kind not in GEOM_TYPES and collides:
@@ -708,7 +726,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         start, count = m.mesh_faceadr[mesh], m.mesh_facenum[mesh]
         faces.append(device_array(m.mesh_face[start : start + count], np.int32))
     damping = np.zeros(m.nv) if disabled & int(mj.mjtDisableBit.mjDSBL_DAMPER) else np.asarray(m.dof_damping, dtype=np.float64)
-    friction_off = disabled & int(mj.mjtDisableBit.mjDSBL_FRICTIONLOSS)
+    friction_off = _disabled(mj, m, "FRICTIONLOSS", "CONSTRAINT")
     frictionloss = np.zeros(m.nv) if friction_off else np.asarray(m.dof_frictionloss, dtype=np.float64)
     stiffness = np.zeros(m.nv)
     if not disabled & int(mj.mjtDisableBit.mjDSBL_SPRING):
@@ -723,7 +741,8 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         frictionloss=_array(frictionloss),
         stiffness=_array(stiffness),
         spring_reference=_array(spring_reference),
-        joint_couplings=_joint_couplings(mj, m),
+        joint_couplings=None if _disabled(mj, m, "EQUALITY", "CONSTRAINT") else _joint_couplings(mj, m),
+        limits_enforced=not _disabled(mj, m, "LIMIT", "CONSTRAINT"),
         timestep=float(m.opt.timestep),
         body_names=body_names,
         body_parents=tuple(int(p) for p in m.body_parentid),
@@ -759,6 +778,8 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
 def _collision_pairs(mj: Any, m: Any) -> tuple[tuple[int, int], ...]:
     """The geom pairs MuJoCo's ``mj_collision`` may test, by its filters (see
     :attr:`MujocoModel.collision_pairs`); distances are left to the collision routines."""
+    if _disabled(mj, m, "CONTACT", "CONSTRAINT"):
+        return ()
     explicit = [(int(a), int(b)) for a, b in zip(m.pair_geom1, m.pair_geom2)]
     explicit_sets = {frozenset(pair) for pair in explicit}
     excluded = {frozenset((int(s) >> 16, int(s) & 0xFFFF)) for s in m.exclude_signature}

@@ -247,6 +247,7 @@ def scene(
     max_contacts: int | None = None,
     max_pairs: int | None = None,
     max_limits: int | None = None,
+    max_correction_speed: float = float("inf"),
 ) -> RigidBodySystem:
     """A MuJoCo model (MJCF or URDF) as a system with hard frictional contact.
 
@@ -264,7 +265,10 @@ def scene(
     ``qpos0`` (the configuration the file describes) at rest.
 
     The limits of limited hinges and slides are enforced as MuJoCo does, as hard constraints
-    here (:meth:`~rsmooth.sim.RigidBodySystem.with_joint_limits`). Not simulated, as
+    here (:meth:`~rsmooth.sim.RigidBodySystem.with_joint_limits`). MuJoCo's disable flags are
+    honoured: ``contact`` (no pair collides), ``limit``, ``equality``, ``frictionloss``,
+    ``spring``, ``damper``, ``gravity`` and ``constraint`` (all of contacts, limits, equalities
+    and dry friction). Not simulated, as
     :func:`~rsmooth.sim.load_mjcf` reads them: ``solref``/``solimp``, ``condim`` (every contact has sliding friction, none torsional or rolling), geom margins
     and gaps, MuJoCo's integrator and solver settings.
 
@@ -305,7 +309,8 @@ def scene(
         joint_limits: enforce the position limits of the limited hinges and slides and the
             cone limits of the limited ball joints (the
             system's :attr:`~rsmooth.sim.Joints.limits`, frictionless contacts
-            after the geometry pairs); ``False``: the joints move freely. A start beyond a
+            after the geometry pairs), unless the model disables them (its ``limit`` or
+            ``constraint`` flag); ``False``: the joints move freely. A start beyond a
             hinge's or slide's limits (a URDF's zero configuration often is: a quadruped's
             knees) is warned of: the limits push the joints back in during the first steps.
         max_contacts: solve at most this many contacts between shapes per step, the closest
@@ -317,6 +322,10 @@ def scene(
         max_limits: solve at most this many joint limits per step, those nearest their
             bounds (:attr:`~rsmooth.sim.Options.max_limits`): a humanoid has dozens;
             ``None``: all.
+        max_correction_speed: the largest speed (m/s, or rad/s) at which a penetration or a
+            joint beyond its limit is pushed back (:attr:`~rsmooth.sim.Options.max_correction_speed`):
+            a URDF whose start puts joints beyond their limits is otherwise set moving at
+            ``baumgarte d / h``; ``inf``: no bound.
 
     Returns:
         The system; its frames are the model's (bodies first, by MuJoCo body id), its geometry
@@ -373,6 +382,11 @@ def scene(
             drop_mimic=drop_mimic,
             drop_frictionloss=drop_frictionloss,
             max_hull_vertices=max_hull_vertices,
+        )
+    if loaded.model.nv == 0:
+        raise ValueError(
+            f"{source_label(source)}: the model has no joints (nq = nv = 0), so nothing in it moves: give a body a "
+            "joint (a <freejoint/> for a free body) or pass floating_base=True"
         )
     h = loaded.timestep if time_step is None else _number("time_step", time_step)
     if friction is not None:
@@ -434,10 +448,11 @@ def scene(
         initial_configuration=initial_configuration,
         joint_damping=loaded.damping,
     )
-    system = system.with_contact_budget(max_contacts, max_pairs, max_limits).with_joint_friction(np.asarray(loaded.frictionloss))
+    system = system.with_contact_budget(max_contacts, max_pairs, max_limits).with_options(max_correction_speed=max_correction_speed)
+    system = system.with_joint_friction(np.asarray(loaded.frictionloss))
     system = system.with_joint_springs(np.asarray(loaded.stiffness), loaded.spring_reference)
     system = system.with_joint_couplings(loaded.joint_couplings)
-    if not joint_limits:
+    if not joint_limits or not loaded.limits_enforced:
         return system
     _warn_if_beyond_limits(model, np.asarray(initial_configuration), source_label(source))
     return system.with_joint_limits()

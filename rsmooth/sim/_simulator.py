@@ -324,6 +324,12 @@ class Options(eqx.Module):
             kept as a reference. Compliant contact laws always use ``"autodiff"``.
         max_motion_per_step: bound on ``|v+| h`` (rad or m) beyond which a step is reported
             as diverged (static; ``inf`` reports only non-finite states).
+        max_correction_speed: the largest speed (m/s, or rad/s for a joint limit or coupling)
+            at which the Baumgarte correction pushes a penetration, a joint beyond its limit
+            or a coupling's error back (hard contact; ``inf``, the default: no bound; a
+            scalar array, traced as ``time_step``). ``baumgarte d / h`` grows without bound as ``h`` shrinks: a quadruped's
+            knee starting 0.9 rad beyond its limit is pushed back at 90 rad/s at ``h = 2``
+            ms, which injects tens of joules; a bound turns that into a slower return.
         max_contacts: a budget on the contacts the NCP solves (static; hard contact only):
             at each step the ``max_contacts`` candidates between shapes with the smallest
             signed distance (ties to the lower index), plus the joint limits (every one, or
@@ -366,6 +372,9 @@ class Options(eqx.Module):
     baumgarte: float = eqx.field(static=True, default=0.2)
     derivative: str = eqx.field(static=True, default="implicit")
     max_motion_per_step: float = eqx.field(static=True, default=1.0)
+    max_correction_speed: Array = eqx.field(
+        converter=lambda v: jnp.asarray(v, dtype=float), default=float("inf")
+    )
     max_contacts: int | None = eqx.field(static=True, default=None)
     max_pairs: int | None = eqx.field(static=True, default=None)
     max_limits: int | None = eqx.field(static=True, default=None)
@@ -383,6 +392,9 @@ class Options(eqx.Module):
         if self.derivative not in ("implicit", "autodiff"):
             raise ValueError(f"derivative must be 'implicit' or 'autodiff', got {self.derivative!r}")
         _check_concrete("max_motion_per_step", self.max_motion_per_step, positive=True, allow_inf=True)
+        if jnp.ndim(self.max_correction_speed) != 0:
+            raise ValueError(f"max_correction_speed must be a scalar, got shape {jnp.shape(self.max_correction_speed)}")
+        _check_concrete("max_correction_speed", self.max_correction_speed, positive=True, allow_inf=True)
         for name in ("max_contacts", "max_pairs", "max_limits"):
             budget = getattr(self, name)
             if budget is None:
@@ -391,6 +403,12 @@ class Options(eqx.Module):
                 raise ValueError(f"{name} must be a positive integer or None, got {budget!r}")
             if name != "max_pairs" and not isinstance(self.contact, str):
                 raise ValueError(f"{name} budgets the hard-contact NCP: use contact='hard'")
+
+    @property
+    def correction(self) -> dict:
+        """The keyword arguments of :func:`~rsmooth.sim.corrected_free_velocity` these options
+        set (``baumgarte``, ``max_correction_speed``)."""
+        return {"baumgarte": self.baumgarte, "max_correction_speed": self.max_correction_speed}
 
 
 class JointFriction(eqx.Module):
@@ -947,7 +965,8 @@ class RigidBodySystem(eqx.Module):
         if self.joints.couplings is not None:
             error, row = self._coupling_terms(q)
             rows.append(row)
-            correction.append(self.baumgarte * error / self.time_step)
+            limit = self.options.max_correction_speed.astype(dtype)
+            correction.append(jnp.clip(self.baumgarte * error / self.time_step, -limit, limit))
             bounds.append(jnp.full(error.shape[0], jnp.inf, dtype))
         return jnp.concatenate(rows), jnp.concatenate(correction), jnp.concatenate(bounds).astype(dtype)
 
@@ -1409,7 +1428,7 @@ class RigidBodySystem(eqx.Module):
             v_next, impulse, distance, ncp, clipped, contact = update.public()
         q_next, v_next = _stages.advance(self, q, v_next)
         x_next = jnp.concatenate([q_next, v_next])
-        diverged = ~jnp.all(jnp.isfinite(x_next)) | ~(jnp.max(jnp.abs(v_next)) * self.time_step <= self.max_motion_per_step)
+        diverged = ~jnp.all(jnp.isfinite(x_next)) | ~(jnp.max(jnp.abs(v_next), initial=0.0) * self.time_step <= self.max_motion_per_step)
         frames, velocity, dropped, joint_impulse = lax.stop_gradient(contact)
         force, mode = self._contact_diagnostics(impulse, frames, velocity)
         info = StepInfo(
@@ -1702,7 +1721,7 @@ def _step_residuals(update: _VelocityUpdate):
         solved_distance, mu = distance, system.contact_friction()
         if update.selection is not None:  # the solved contacts' equations (a fixed selection)
             solved_distance, jacobian, mu = distance[update.selection], update.solved(jacobian), mu[update.selection]
-        velocity = corrected_free_velocity(jacobian @ v_next, solved_distance, h, baumgarte=system.baumgarte)
+        velocity = corrected_free_velocity(jacobian @ v_next, solved_distance, h, **system.options.correction)
         # the joints' box rows (dry friction within h effort, couplings with their correction)
         joint_rows, joint_correction, bounds = system.joint_rows(q)
         if joint_rows.shape[0]:

@@ -208,7 +208,7 @@ def solve_contacts(
     dropped = jnp.zeros((), jnp.int32)
     if selection is not None:
         rows = flat_rows(selection)
-        corrected = corrected_free_velocity(jacobian @ v_free, distance, h, baumgarte=system.baumgarte)
+        corrected = corrected_free_velocity(jacobian @ v_free, distance, h, **system.options.correction)
         closes = lax.stop_gradient(corrected[2::3]) < 0  # the solve would have had to act on it
         dropped = jnp.sum(closes.at[selection].set(False), dtype=jnp.int32)
         distance, jacobian, mu = distance[selection], jacobian[rows], mu[selection]
@@ -229,7 +229,7 @@ def solve_contacts(
         # colliding pair): nothing to solve, and an empty problem is not one the NCP solver accepts
         free_velocity, impulse, ncp = jacobian @ v_free, jnp.zeros(0, v_free.dtype), nothing_solved
     elif hard:
-        free_velocity = corrected_free_velocity(jacobian[:contact_rows] @ v_free, distance, h, baumgarte=system.baumgarte)
+        free_velocity = corrected_free_velocity(jacobian[:contact_rows] @ v_free, distance, h, **system.options.correction)
         if m:
             free_velocity = jnp.concatenate([free_velocity, jacobian[contact_rows:] @ v_free + joint_correction])
         # From a finite but absurd state (a simulation that has already diverged: positions

@@ -15,6 +15,7 @@ import pathlib
 import re
 import warnings
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -836,3 +837,56 @@ def test_mujocos_own_warnings_become_load_warnings_and_write_no_log_file(tmp_pat
         loaded = load_mjcf(path)
     assert loaded.model.joint_names == ("universe", "stuck")
     assert not (tmp_path / "MUJOCO_LOG.TXT").exists() and mujoco.get_mju_user_warning() is before
+
+
+FLAGGED = """<mujoco><option><flag {flag}="disable"/></option><worldbody>
+<geom name="floor" type="plane" size="1 1 0.1"/>
+<geom name="terrain" type="hfield" hfield="h"/>
+<body name="a" pos="0 0 0.5"><joint name="ja" limited="true" range="-1 1" frictionloss="0.3"/><geom size="0.1"/>
+  <body name="b" pos="0.3 0 0"><joint name="jb"/><geom size="0.1"/></body></body>
+<body name="c" pos="1 0 1"><freejoint/><geom size="0.1"/></body>
+</worldbody><asset><hfield name="h" nrow="2" ncol="2" size="1 1 0.1 0.1"/></asset>
+<equality><joint joint1="jb" joint2="ja"/><weld body1="c"/></equality></mujoco>"""
+
+
+@pytest.mark.parametrize("flag", ["contact", "limit", "equality", "frictionloss", "constraint"])
+def test_disabled_constraints_are_left_out_as_mujoco_leaves_them_out(flag):
+    """A model whose option flags disable a kind of constraint converts without it (and without
+    refusing an unsupported element of that kind: the colliding hfield, the weld)."""
+    off = {
+        "contact": {"contact"},
+        "limit": {"limit"},
+        "equality": {"equality"},
+        "frictionloss": {"frictionloss"},
+        "constraint": {"contact", "limit", "equality", "frictionloss"},
+    }[flag]
+    text = FLAGGED.format(flag=flag)
+    if off.isdisjoint({"contact"}):
+        text = text.replace('type="hfield" hfield="h"', 'type="hfield" hfield="h" contype="0" conaffinity="0"')
+    if off.isdisjoint({"equality"}):
+        text = text.replace('<weld body1="c"/>', "")
+    m = mujoco.MjModel.from_xml_string(text)
+    loaded = sim.from_mujoco(m)
+    assert (loaded.collision_pairs == ()) == ("contact" in off)
+    assert loaded.limits_enforced == ("limit" not in off)
+    assert (loaded.joint_couplings is None) == ("equality" in off)
+    assert float(loaded.frictionloss[0]) == (0.0 if "frictionloss" in off else 0.3)
+    system = sim.scene(loaded)
+    assert (system.joints.limits == ()) == ("limit" in off)
+    assert (system.joints.couplings is None) == ("equality" in off)
+    assert (len(system.geometry.geom_pairs) == 0) == ("contact" in off)
+    if "contact" in off:  # as in MuJoCo, the free ball falls through the floor
+        d = mujoco.MjData(m)
+        steps = 400  # 0.8 s of 2 ms: the ball, 1 m up, falls 3.1 m
+        for _ in range(steps):
+            mujoco.mj_step(m, d)
+        xs, _ = eqx.filter_jit(system.rollout)(system.initial_state(), jnp.zeros((steps, system.nu)))
+        ball = loaded.q_to_qpos(xs[-1, : system.model.nq])[2:5]  # the free ball's position
+        assert d.ncon == 0 and float(ball[2]) < -2.0
+        np.testing.assert_allclose(ball, d.qpos[2:5], atol=1e-9)
+
+
+def test_disabled_actuation_is_refused_by_name():
+    text = "<mujoco><option><flag actuation='disable'/></option><worldbody><body><joint name='j'/><geom size='0.1'/></body>"
+    with pytest.raises(ValueError, match="actuators are disabled"):
+        sim.load_mjcf(text + "</worldbody><actuator><motor joint='j'/></actuator></mujoco>")

@@ -156,6 +156,8 @@ def test_hinged_and_welded_geoms_match_mujoco():
 
 
 def test_actuation_and_bad_input_are_named():
+    with pytest.raises(ValueError, match=r"no joints \(nq = nv = 0\)"):
+        sim.scene("<mujoco><worldbody><geom type='plane' size='1 1 0.1'/><geom size='0.1'/></worldbody></mujoco>")
     arm = sim.scene(ARM.format(extra="", low=-1))
     assert arm.actuation.dofs == (0,) and arm.nu == 1
     np.testing.assert_allclose(arm.actuation.input_limit, [2.0])  # ctrlrange times gear
@@ -238,7 +240,10 @@ def test_floor_and_self_collision_refuse_bad_input_by_name():
         with pytest.raises(ValueError, match=rf"{argument} must be True or False"):
             sim.scene(ARM.format(extra="", low=-1), **{argument: value})
     with pytest.raises(ValueError, match=r"floor: the scene has no colliding geom on a moving body"):
-        sim.scene('<mujoco><worldbody><geom type="box" size="1 1 1"/></worldbody></mujoco>', floor=True)
+        sim.scene(
+            '<mujoco><worldbody><geom type="box" size="1 1 1"/><body pos="0 0 2"><joint/>'
+            '<geom size="0.1" contype="0" conaffinity="0"/></body></worldbody></mujoco>', floor=True
+        )
     blob = ONE_OBJECT.format(z=1.0, geom='name="blob" type="ellipsoid" size="0.1 0.2 0.1"')
     sim.scene(blob)  # alone, it collides with nothing
     with pytest.raises(ValueError, match=r"geom 'blob' \(ellipsoid\) collides with the floor.*no ellipsoid"):
