@@ -236,5 +236,6 @@ def corrected_free_velocity(
             f"{free_velocity.shape} and {distance.shape}."
         )
     correction = jnp.where(distance > skin, distance - (1.0 - baumgarte) * skin, baumgarte * distance) / time_step
-    correction = jnp.maximum(correction, -jnp.asarray(max_correction_speed, correction.dtype))
+    if max_correction_speed != float("inf"):  # (static: no operation without a bound)
+        correction = jnp.maximum(correction, -max_correction_speed)
     return free_velocity.reshape(-1, 3).at[:, 2].add(correction).reshape(-1)

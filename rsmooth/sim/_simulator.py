@@ -326,8 +326,8 @@ class Options(eqx.Module):
             as diverged (static; ``inf`` reports only non-finite states).
         max_correction_speed: the largest speed (m/s, or rad/s for a joint limit or coupling)
             at which the Baumgarte correction pushes a penetration, a joint beyond its limit
-            or a coupling's error back (hard contact; ``inf``, the default: no bound; a
-            scalar array, traced as ``time_step``). ``baumgarte d / h`` grows without bound as ``h`` shrinks: a quadruped's
+            or a coupling's error back (static; hard contact; ``inf``, the default: no
+            bound, and no operation in the step). ``baumgarte d / h`` grows without bound as ``h`` shrinks: a quadruped's
             knee starting 0.9 rad beyond its limit is pushed back at 90 rad/s at ``h = 2``
             ms, which injects tens of joules; a bound turns that into a slower return.
         max_contacts: a budget on the contacts the NCP solves (static; hard contact only):
@@ -372,9 +372,7 @@ class Options(eqx.Module):
     baumgarte: float = eqx.field(static=True, default=0.2)
     derivative: str = eqx.field(static=True, default="implicit")
     max_motion_per_step: float = eqx.field(static=True, default=1.0)
-    max_correction_speed: Array = eqx.field(
-        converter=lambda v: jnp.asarray(v, dtype=float), default=float("inf")
-    )
+    max_correction_speed: float = eqx.field(static=True, default=float("inf"))
     max_contacts: int | None = eqx.field(static=True, default=None)
     max_pairs: int | None = eqx.field(static=True, default=None)
     max_limits: int | None = eqx.field(static=True, default=None)
@@ -392,8 +390,8 @@ class Options(eqx.Module):
         if self.derivative not in ("implicit", "autodiff"):
             raise ValueError(f"derivative must be 'implicit' or 'autodiff', got {self.derivative!r}")
         _check_concrete("max_motion_per_step", self.max_motion_per_step, positive=True, allow_inf=True)
-        if jnp.ndim(self.max_correction_speed) != 0:
-            raise ValueError(f"max_correction_speed must be a scalar, got shape {jnp.shape(self.max_correction_speed)}")
+        if isinstance(self.max_correction_speed, bool) or not isinstance(self.max_correction_speed, (int, float)):
+            raise ValueError(f"max_correction_speed must be a Python number (m/s or rad/s), got {self.max_correction_speed!r}")
         _check_concrete("max_correction_speed", self.max_correction_speed, positive=True, allow_inf=True)
         for name in ("max_contacts", "max_pairs", "max_limits"):
             budget = getattr(self, name)
@@ -965,8 +963,9 @@ class RigidBodySystem(eqx.Module):
         if self.joints.couplings is not None:
             error, row = self._coupling_terms(q)
             rows.append(row)
-            limit = self.options.max_correction_speed.astype(dtype)
-            correction.append(jnp.clip(self.baumgarte * error / self.time_step, -limit, limit))
+            limit = self.options.max_correction_speed
+            speed = self.baumgarte * error / self.time_step
+            correction.append(speed if limit == float("inf") else jnp.clip(speed, -limit, limit))
             bounds.append(jnp.full(error.shape[0], jnp.inf, dtype))
         return jnp.concatenate(rows), jnp.concatenate(correction), jnp.concatenate(bounds).astype(dtype)
 

@@ -19,7 +19,7 @@ def test_a_sunk_cube_rises_at_the_bound_and_its_derivative_in_depth_vanishes():
     cube = sim.cube(time_step=H, baumgarte=BETA)
     x0 = cube.initial_state().at[2].add(-DEPTH)  # its four lower corners 5 cm into the floor
     full_rate = BETA * DEPTH / H  # 1 m/s
-    for bound, speed in ((float("inf"), full_rate), (0.3, 0.3), (2.0, full_rate)):  # one program: the bound is traced
+    for bound, speed in ((float("inf"), full_rate), (0.3, 0.3), (2.0, full_rate)):
         system = cube.with_options(max_correction_speed=bound)
         xs, infos = rollout(system, x0, jnp.zeros((3, 6)))
         assert bool(np.all(infos.ncp.converged))
