@@ -228,6 +228,10 @@ class ConvexMesh(eqx.Module):
             end points, ``(M, 2, 3)``.
         edge_directions: unit directions of the hull's edges, one per direction up to
             sign, shape ``(E, 3)``.
+        edge_normals: outward unit normals of the two faces that meet at each of
+            ``edge_segments``, ``(M, 2, 3)``: the arcs of the hull's Gauss map, which let the
+            separating-axis test of two meshes keep only the edge pairs that can separate
+            them (``O(M1 M2)`` instead of ``O(M1 M2 (V1 + V2))``).
     """
 
     vertices: Array = eqx.field(converter=_as_float)
@@ -236,6 +240,7 @@ class ConvexMesh(eqx.Module):
     face_polygons: Array = eqx.field(converter=_as_float)
     edge_segments: Array = eqx.field(converter=_as_float)
     edge_directions: Array = eqx.field(converter=_as_float)
+    edge_normals: Array = eqx.field(converter=_as_float)
 
     def __check_init__(self):
         if self.vertices.ndim != 2 or self.vertices.shape[1] != 3 or self.vertices.shape[0] < 4:
@@ -248,6 +253,10 @@ class ConvexMesh(eqx.Module):
             raise ValueError(f"face_polygons must have shape ({faces[0]}, P, 3), got {self.face_polygons.shape}.")
         if self.edge_segments.ndim != 3 or self.edge_segments.shape[1:] != (2, 3):
             raise ValueError(f"edge_segments must have shape (M, 2, 3), got {self.edge_segments.shape}.")
+        if self.edge_normals.shape != self.edge_segments.shape:
+            raise ValueError(
+                f"edge_normals must have the shape of edge_segments {self.edge_segments.shape}, got {self.edge_normals.shape}."
+            )
         if self.edge_directions.ndim != 2 or self.edge_directions.shape[1] != 3:
             raise ValueError(
                 f"edge_directions must have shape (E, 3), got {self.edge_directions.shape}."
@@ -365,9 +374,10 @@ def convex_mesh(source) -> ConvexMesh:
     # are no edges of the polytope and would only add useless separating axes.
     real = hull.face_adjacency_angles > 1e-9
     segments = vertices[hull.face_adjacency_edges[real]]
+    edge_normals = np.asarray(hull.face_normals, dtype=float)[hull.face_adjacency[real]]  # (M, 2, 3)
     directions = segments[:, 1] - segments[:, 0]
     directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
-    return ConvexMesh(vertices, normals, offsets, polygons, segments, _unique_directions(directions, 1e-9))
+    return ConvexMesh(vertices, normals, offsets, polygons, segments, _unique_directions(directions, 1e-9), edge_normals)
 
 
 def _face_polygon(vertices: np.ndarray, normal: np.ndarray, offset: float, tolerance: float) -> np.ndarray:

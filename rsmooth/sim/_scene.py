@@ -80,8 +80,8 @@ MESH_PADDING = 8
 
 
 def padded_mesh(mesh: ConvexMesh, multiple: int = MESH_PADDING) -> ConvexMesh:
-    """``mesh`` with each array's entries (vertices, faces, a face's polygon, edges, edge
-    directions) padded to a multiple of ``multiple`` by repeating its last entry: the same
+    """``mesh`` with each array's entries (vertices, faces, a face's polygon, edges with their
+    faces' normals, edge directions) padded to a multiple of ``multiple`` by repeating its last entry: the same
     polytope to the collision code, whose supports, separating axes and clipping take maxima
     and minima over these entries (a repeated polygon vertex is a zero-length side, already
     how polygons of fewer vertices are stored)."""
@@ -98,6 +98,7 @@ def padded_mesh(mesh: ConvexMesh, multiple: int = MESH_PADDING) -> ConvexMesh:
         face_polygons=pad(pad(mesh.face_polygons), axis=1),
         edge_segments=pad(mesh.edge_segments),
         edge_directions=pad(mesh.edge_directions),
+        edge_normals=pad(mesh.edge_normals),
     )
 
 

@@ -462,6 +462,9 @@ def test_convex_mesh_loader(tmp_path):
     assert isinstance(mesh, ConvexMesh)
     assert mesh.vertices.shape == (8, 3) and mesh.face_normals.shape == (6, 3)
     assert mesh.edge_segments.shape == (12, 2, 3) and mesh.edge_directions.shape == (3, 3)
+    # each edge joins two faces at a right angle
+    assert mesh.edge_normals.shape == (12, 2, 3)
+    np.testing.assert_allclose(np.einsum("ei,ei->e", mesh.edge_normals[:, 0], mesh.edge_normals[:, 1]), 0.0, atol=1e-12)
     # A non-convex mesh (two boxes in an L) warns and gives its hull.
     l_shape = trimesh.util.concatenate(
         [trimesh.creation.box(extents=[2, 1, 1]), trimesh.creation.box(extents=[1, 2, 1]).apply_translation([0.5, 0.5, 0])]
@@ -478,6 +481,42 @@ def test_convex_mesh_loader(tmp_path):
         convex_mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
     with pytest.raises(ValueError, match=r"\(V, 3\)"):
         convex_mesh(np.zeros((5, 2)))
+
+
+@jax.jit
+def _axes_of(mesh1, mesh2, pose1, pose2):
+    from rsmooth.sim import _collision
+
+    core1, core2 = _collision._polytope(mesh1, pose1), _collision._polytope(mesh2, pose2)
+    faces = jnp.maximum(jnp.max(_collision._gap(core1, core2, core1.face_normals)),
+                        jnp.max(_collision._gap(core1, core2, -core2.face_normals)))
+    every_gap, _ = _collision._edge_axis(core1, core2)
+    pruned_gap, axis = _collision._minkowski_edge_axis(core1, core2)
+    return faces, every_gap, pruned_gap, _collision._gap(core1, core2, axis[None])[0]
+
+
+def test_gauss_map_pruning_keeps_the_deepest_axis_of_overlapping_meshes():
+    """Two meshes' separating-axis test tries only the edge pairs whose Gauss-map arcs cross:
+    on overlapping random hulls the best axis (faces and edge pairs) is every edge pair's
+    (all vertices projected on all direction pairs), and its gap is the vertices' along it."""
+    from rsmooth.sim._scene import padded_mesh
+    from rsmooth.sim._spatial import exp3
+
+    rng = np.random.default_rng(7)
+    pruned_edge_wins = 0
+    for _ in range(60):
+        # padded to one shape (the same polytopes): one compiled program for every trial
+        meshes = [
+            padded_mesh(convex_mesh(rng.normal(size=(12, 3)) * rng.uniform(0.05, 0.3, size=3)), 64) for _ in range(2)
+        ]
+        poses = [(exp3(jnp.asarray(rng.normal(size=3))), jnp.asarray(rng.normal(size=3) * scale)) for scale in (0.0, 0.08)]
+        faces, every_gap, pruned_gap, along_axis = (float(v) for v in _axes_of(*meshes, *poses))
+        if max(faces, every_gap) >= 0:
+            continue  # separated: the distance is GJK's, not the axes'
+        np.testing.assert_allclose(max(faces, pruned_gap), max(faces, every_gap), atol=1e-12)
+        np.testing.assert_allclose(along_axis, pruned_gap, atol=1e-12)
+        pruned_edge_wins += pruned_gap > faces
+    assert pruned_edge_wins >= 5  # edge axes won often enough to be tested
 
 
 def test_broad_phase_keeps_every_overlapping_pair_and_reports_overflow():
