@@ -81,3 +81,36 @@ def _release_compiled_programs():
     yield
     if next(_tests_run) % 8 == 0:
         _xla.release_compiled_programs()
+
+
+@pytest.fixture
+def mujoco_and_rsmooth_trajectories():
+    """``run(text, qpos, qvel, steps) -> (system, loaded, xs, expected)``: MuJoCo's ``qpos`` after
+    each of ``steps`` ``mj_step`` calls from ``(qpos, qvel)`` (``expected``, ``(steps, nq)``), and
+    rsmooth's rollout of ``sim.scene(text)`` from the same state (``xs``, zero input); for
+    comparisons of scenes without contact with MuJoCo's Euler integrator."""
+    import equinox as eqx
+    import jax.numpy as jnp
+    import mujoco
+    import numpy as np
+
+    from rsmooth import sim
+
+    def run(text, qpos, qvel, steps):
+        m = mujoco.MjModel.from_xml_string(text)
+        d = mujoco.MjData(m)
+        if qpos is not None:
+            d.qpos[:] = qpos
+        d.qvel[:] = qvel
+        loaded = sim.load_mjcf(text)
+        system = sim.scene(loaded)
+        start = jnp.asarray(d.qpos)
+        x0 = system.state(loaded.qpos_to_q(start), loaded.qvel_to_v(start, jnp.asarray(d.qvel)))
+        expected = []
+        for _ in range(steps):
+            mujoco.mj_step(m, d)
+            expected.append(d.qpos.copy())
+        xs, _ = eqx.filter_jit(system.rollout)(x0, jnp.zeros((steps, system.nu)))
+        return system, loaded, xs, np.array(expected)
+
+    return run

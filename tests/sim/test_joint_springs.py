@@ -6,7 +6,6 @@ forward-mode autodiff of the step, and their input checks."""
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 import pytest
 
@@ -30,32 +29,20 @@ step_jacobians = eqx.filter_jit(lambda system, x, u: system.step_and_jacobians(x
 forward_jacobian = eqx.filter_jit(lambda system, x, u: jax.jacfwd(system.step)(x, u))
 
 
-def test_springs_step_as_mujoco_euler():
+def test_springs_step_as_mujoco_euler(mujoco_and_rsmooth_trajectories):
     """Without contact a step is MuJoCo's Euler step (the springs explicit, the damping
     implicit), so the trajectories agree to rounding; and the step's Jacobians are forward
     mode's."""
-    m = mujoco.MjModel.from_xml_string(CHAIN)
-    d = mujoco.MjData(m)
-    d.qpos[:] = [0.7, -0.1, np.cos(0.6), 0.0, np.sin(0.6) * 0.6, np.sin(0.6) * 0.8]
-    d.qvel[:] = [0.5, -0.3, 2.0, 1.0, -0.5]
-    loaded = sim.load_mjcf(CHAIN)
-    system = sim.scene(loaded)
+    qpos = [0.7, -0.1, np.cos(0.6), 0.0, np.sin(0.6) * 0.6, np.sin(0.6) * 0.8]
+    system, loaded, xs, expected = mujoco_and_rsmooth_trajectories(CHAIN, qpos, [0.5, -0.3, 2.0, 1.0, -0.5], 200)
     assert system.joints.springs.joints == (1, 2, 3)
     np.testing.assert_allclose(system.joints.springs.stiffness, [6.0, 40.0, 3.0])
     # the rest configuration in rsmooth's coordinates: springref less ref, the identity
     np.testing.assert_allclose(system.joints.springs.reference, [-0.7, 0.05, 0.0, 0.0, 0.0, 1.0], atol=1e-15)
-    qpos0 = jnp.asarray(d.qpos)
-    x0 = system.state(loaded.qpos_to_q(qpos0), loaded.qvel_to_v(qpos0, jnp.asarray(d.qvel)))
-    steps = 200
-    expected = []
-    for _ in range(steps):
-        mujoco.mj_step(m, d)
-        expected.append(d.qpos.copy())
-    xs, infos = rollout(system, x0, jnp.zeros((steps, 0)))
     ours = jax.vmap(loaded.q_to_qpos)(xs[1:, : system.model.nq])
     # the spring's pull is visible: the hinge swings far from where gravity alone takes it
-    assert np.ptp(np.array(expected)[:, 0]) > 0.3
-    np.testing.assert_allclose(ours, np.array(expected), rtol=0, atol=1e-11)
+    assert np.ptp(expected[:, 0]) > 0.3
+    np.testing.assert_allclose(ours, expected, rtol=0, atol=1e-11)
     x_next, fx, fu = step_jacobians(system, xs[50], jnp.zeros(0))
     np.testing.assert_allclose(x_next, xs[51], atol=1e-14)
     np.testing.assert_allclose(fx, forward_jacobian(system, xs[50], jnp.zeros(0)), atol=1e-10)

@@ -340,25 +340,13 @@ BALL_CHAIN = """<mujoco><option timestep="0.005" integrator="Euler"/><worldbody>
 </worldbody></mujoco>"""
 
 
-def test_ball_joints_step_as_mujoco_euler():
+def test_ball_joints_step_as_mujoco_euler(mujoco_and_rsmooth_trajectories):
     """Without contact, a step is MuJoCo's semi-implicit Euler step (implicit damping, the
     quaternion turned by exp(h omega / 2)), so the trajectories agree to rounding."""
-    m = mujoco.MjModel.from_xml_string(BALL_CHAIN)
-    d = mujoco.MjData(m)
-    d.qvel[:] = [0.5, -1.0, 2.0, 1.0, 0.3, -0.5]
-    loaded = sim.load_mjcf(BALL_CHAIN)
-    system = sim.scene(loaded)
+    system, loaded, xs, expected = mujoco_and_rsmooth_trajectories(BALL_CHAIN, None, [0.5, -1.0, 2.0, 1.0, 0.3, -0.5], 200)
     assert system.model.joint_types[1:] == ("spherical", "spherical")
-    qpos0 = jnp.asarray(d.qpos)
-    x0 = system.state(loaded.qpos_to_q(qpos0), loaded.qvel_to_v(qpos0, jnp.asarray(d.qvel)))
-    steps = 200
-    expected = []
-    for _ in range(steps):
-        mujoco.mj_step(m, d)
-        expected.append(d.qpos.copy())
-    xs, infos = eqx.filter_jit(system.rollout)(x0, jnp.zeros((steps, 0)))
     ours = jax.vmap(loaded.q_to_qpos)(xs[1:, : system.model.nq])
-    np.testing.assert_allclose(ours, np.array(expected), rtol=0, atol=1e-11)
+    np.testing.assert_allclose(ours, expected, rtol=0, atol=1e-11)
     x_next, fx, _ = eqx.filter_jit(lambda s, x, u: s.step_and_jacobians(x, u))(system, xs[50], jnp.zeros(0))
     np.testing.assert_allclose(x_next, xs[51], atol=1e-14)
     reference = eqx.filter_jit(lambda s, x, u: jax.jacfwd(s.step)(x, u))(system, xs[50], jnp.zeros(0))
