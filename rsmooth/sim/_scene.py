@@ -259,7 +259,7 @@ def scene(
     :func:`~rsmooth.sim.load_mjcf`; every colliding geom pair of MuJoCo is a
     :class:`~rsmooth.sim.GeomPair` with MuJoCo's friction (see the module's description for
     the mapping of geoms, frames and frictions). The input ``u`` ``(nu,)`` holds the
-    generalized forces on the dofs the model's motors drive (``actuated_dofs``, in increasing
+    generalized forces on the dofs the model's motors drive (``actuation.dofs``, in increasing
     order; ``nu = 0`` without motors), not MuJoCo's controls:
     :meth:`MujocoModel.ctrl_to_tau` gives the forces of given controls. Each is bounded by
     what the dof's motors can apply, ``+inf`` where unlimited. ``initial_state()`` is MuJoCo's

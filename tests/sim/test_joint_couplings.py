@@ -53,6 +53,8 @@ def test_an_initial_error_closes_by_the_baumgarte_factor():
     assert bool(jnp.all(infos.ncp.converged))
     error = np.asarray(xs[:, 1]) - (offset + RATIO * np.asarray(xs[:, 0]))
     np.testing.assert_allclose(error, -offset * (1 - system.baumgarte) ** np.arange(11), rtol=1e-9)
+    # coupling_errors is that error, q_a - p(q_b), at each state
+    np.testing.assert_allclose([float(system.coupling_errors(x[:2])[0]) for x in xs], error, rtol=1e-12, atol=1e-15)
     # The coupling's impulse acts as J^T lambda = (-RATIO, 1) lambda: it leaves the momentum
     # M1 v1 + RATIO M2 v2 unchanged (zero, from rest and without a push).
     v1, v2 = np.asarray(xs[:, 2]), np.asarray(xs[:, 3])
