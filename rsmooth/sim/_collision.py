@@ -690,20 +690,16 @@ def _polytope_pair(shape1, pose1, shape2, pose2, margin, count: int) -> Contacts
     scale = shape1.bounding_radius + shape2.bounding_radius + _safe_norm(pose1[1] - pose2[1])
     tolerance = 1e3 * _eps(dtype) * scale
     radius1, radius2 = core1.radius, core2.radius
-    v1, v2 = core1.vertices, core2.vertices
-
-    def gap(axes):  # separation of the cores along unit axes (N, 3) pointing from 1 to 2
-        return jnp.min(v2 @ axes.T, axis=0) - jnp.max(v1 @ axes.T, axis=0)
 
     minus_infinity = jnp.asarray(-jnp.inf, dtype)
     # Faces: of shape 1 (outward normals) and of shape 2 (reversed outward normals).
-    best_face, best_face_gap, face_of_1 = None, minus_infinity, jnp.asarray(True)
+    best_face_gap, face_of_1 = minus_infinity, jnp.asarray(True)
     if core1.face_normals is not None:
-        gaps1 = gap(core1.face_normals)
+        gaps1 = _gap(core1, core2, core1.face_normals)
         face1 = jnp.argmax(gaps1)
         best_face_gap = gaps1[face1]
     if core2.face_normals is not None:
-        gaps2 = gap(-core2.face_normals)
+        gaps2 = _gap(core1, core2, -core2.face_normals)
         face2 = jnp.argmax(gaps2)
         face_of_1 = best_face_gap >= gaps2[face2]
         best_face_gap = jnp.maximum(best_face_gap, gaps2[face2])

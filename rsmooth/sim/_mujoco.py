@@ -674,8 +674,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
     frame_poses = list(body_in_joint) + [_IDENTITY] * m.njnt + [
         _compose(body_in_joint[m.site_bodyid[s]], _pose(m.site_pos[s], m.site_quat[s])) for s in range(m.nsite)
     ]
-    disabled = m.opt.disableflags
-    gravity = np.zeros(3) if disabled & int(mj.mjtDisableBit.mjDSBL_GRAVITY) else np.asarray(m.opt.gravity, dtype=np.float64)
+    gravity = np.zeros(3) if _disabled(mj, m, "GRAVITY") else np.asarray(m.opt.gravity, dtype=np.float64)
     model = Model(
         joint_names=("universe",) + joint_names,
         joint_types=tuple(types),
@@ -725,11 +724,11 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
             hulls.append(vertices[-1])
         start, count = m.mesh_faceadr[mesh], m.mesh_facenum[mesh]
         faces.append(device_array(m.mesh_face[start : start + count], np.int32))
-    damping = np.zeros(m.nv) if disabled & int(mj.mjtDisableBit.mjDSBL_DAMPER) else np.asarray(m.dof_damping, dtype=np.float64)
+    damping = np.zeros(m.nv) if _disabled(mj, m, "DAMPER") else np.asarray(m.dof_damping, dtype=np.float64)
     friction_off = _disabled(mj, m, "FRICTIONLOSS", "CONSTRAINT")
     frictionloss = np.zeros(m.nv) if friction_off else np.asarray(m.dof_frictionloss, dtype=np.float64)
     stiffness = np.zeros(m.nv)
-    if not disabled & int(mj.mjtDisableBit.mjDSBL_SPRING):
+    if not _disabled(mj, m, "SPRING"):
         for j in range(m.njnt):  # a ball joint's one stiffness on its three dofs
             stiffness[m.jnt_dofadr[j] : m.jnt_dofadr[j] + (3 if int(m.jnt_type[j]) == ball else 1)] = m.jnt_stiffness[j]
     spring_reference = np.asarray(m.qpos_spring, dtype=np.float64) - qpos0  # rsmooth's coordinates
@@ -785,7 +784,7 @@ def _collision_pairs(mj: Any, m: Any) -> tuple[tuple[int, int], ...]:
     excluded = {frozenset((int(s) >> 16, int(s) & 0xFFFF)) for s in m.exclude_signature}
     weld = np.asarray(m.body_weldid)
     weld_parent = weld[np.asarray(m.body_parentid)[weld]]
-    filter_parent = not m.opt.disableflags & int(mj.mjtDisableBit.mjDSBL_FILTERPARENT)
+    filter_parent = not _disabled(mj, m, "FILTERPARENT")
     plane = int(mj.mjtGeom.mjGEOM_PLANE)
     pairs = list(explicit)
     for g1 in range(m.ngeom):

@@ -914,39 +914,43 @@ class RigidBodySystem(eqx.Module):
         springs = JointSprings(tuple(joints), device_array(np.asarray(per_joint)), reference)
         return self._with_joints(springs=springs)
 
-    def _spring_displacements(self, q: Array) -> list[tuple[Array, np.ndarray, Array]]:
-        """Per spring joint: ``(stiffness, its velocity indices, displacement)``, the
-        displacement ``q - q_ref`` (revolute, prismatic) or the rotation vector of
-        ``q_ref^-1 q`` (spherical)."""
+    def _spring_displacements(self, q: Array) -> tuple[np.ndarray, Array, Array]:
+        """The springs per dof: ``(dofs (d,), stiffness (d,), displacement (d,))``, the
+        displacement ``q - q_ref`` (revolute, prismatic; one batched expression for all) or the
+        rotation vector of ``q_ref^-1 q`` (spherical, three dofs sharing one stiffness)."""
         model, springs = self.model, self.joints.springs
-        out = []
+        reference, stiffness = springs.reference.astype(q.dtype), springs.stiffness.astype(q.dtype)
+        scalar = [k for k, joint in enumerate(springs.joints) if model.joint_types[joint] != SPHERICAL]
+        q_index = np.array([model.idx_q[springs.joints[k]] for k in scalar], dtype=np.int64)
+        dofs = [np.array([model.idx_v[springs.joints[k]] for k in scalar], dtype=np.int64)]
+        stiffnesses, displacements = [stiffness[np.array(scalar, dtype=np.int64)]], [q[q_index] - reference[q_index]]
         for k, joint in enumerate(springs.joints):
+            if model.joint_types[joint] != SPHERICAL:
+                continue
             start_q, start_v = model.idx_q[joint], model.idx_v[joint]
-            reference = springs.reference.astype(q.dtype)
-            if model.joint_types[joint] == SPHERICAL:
-                quaternion = q[start_q : start_q + 4]
-                quaternion = quaternion / jnp.sqrt(spatial.dot3(quaternion, quaternion) + quaternion[3] ** 2)
-                relative = spatial.quaternion_multiply(spatial.quaternion_conjugate(reference[start_q : start_q + 4]), quaternion)
-                out.append((springs.stiffness[k], np.arange(start_v, start_v + 3), spatial.quaternion_log(relative)))
-            else:
-                out.append((springs.stiffness[k], np.array([start_v]), q[start_q : start_q + 1] - reference[start_q : start_q + 1]))
-        return out
+            quaternion = q[start_q : start_q + 4]
+            quaternion = quaternion / jnp.sqrt(spatial.dot3(quaternion, quaternion) + quaternion[3] ** 2)
+            relative = spatial.quaternion_multiply(spatial.quaternion_conjugate(reference[start_q : start_q + 4]), quaternion)
+            dofs.append(np.arange(start_v, start_v + 3))
+            stiffnesses.append(jnp.repeat(stiffness[k], 3))
+            displacements.append(spatial.quaternion_log(relative))
+        return np.concatenate(dofs), jnp.concatenate(stiffnesses), jnp.concatenate(displacements)
 
     def spring_forces(self, q: Array) -> Array:
         """The generalized forces ``(nv,)`` of :attr:`Joints.springs` at ``q`` (zeros without)."""
         forces = jnp.zeros(self.model.nv, q.dtype)
         if self.joints.springs is None:
             return forces
-        for stiffness, dofs, displacement in self._spring_displacements(q):
-            forces = forces.at[dofs].set(-stiffness.astype(q.dtype) * displacement)
-        return forces
+        dofs, stiffness, displacement = self._spring_displacements(q)
+        return forces.at[dofs].set(-stiffness * displacement)
 
     def spring_energy(self, q: Array) -> Array:
         """The potential energy ``sum k |displacement|^2 / 2`` of :attr:`Joints.springs` at ``q``
         (zero without)."""
         if self.joints.springs is None:
             return jnp.zeros((), q.dtype)
-        return sum(0.5 * stiffness.astype(q.dtype) * jnp.sum(d * d) for stiffness, _, d in self._spring_displacements(q))
+        _, stiffness, displacement = self._spring_displacements(q)
+        return 0.5 * jnp.sum(stiffness * displacement * displacement)
 
     def joint_rows(self, q: Array) -> tuple[Array, Array, Array]:
         """The joints' box rows of the contact problem at ``q``: :attr:`Joints.friction`'s, then
