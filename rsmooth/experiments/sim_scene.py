@@ -38,7 +38,7 @@ normal impulse, per step), joint_limits (limit constraints enforced), initial_li
 (deepest excursion beyond a joint limit at the start: the file's configuration; rad or m),
 max_limit_violation (the deepest over the run, the start included), limits_active_max
 (limits holding a joint, per step), unconverged_steps, diverged_steps, max_contacts and
-max_limits (the contact budgets; null: none), dropped_contact_steps (steps where a budget
+max_limits (the contact budgets in effect; null: none), dropped_contact_steps (steps where a budget
 left out a closing contact or limit), max_pairs (the
 broad phase's pairs per group; null: all), skipped_pair_steps (steps where it left out a pair
 within its margin), max_correction_speed (the bound on the Baumgarte correction's speed;
@@ -89,8 +89,9 @@ class Config:
         "does; off: the joints move freely.")
     max_contacts: int | None = _protocol.option(
         None, "Solve at most this many contacts between shapes per step, the closest candidates (a robot's meshes "
-        "give hundreds of candidates, of which a few touch); a step that leaves out a closing contact is reported. "
-        "Default: all.", min=1)
+        "give hundreds of candidates, of which a few touch, and a step costs about the cube of the contacts solved); "
+        "a step that leaves out a closing contact is reported. Default: 4 per moving body that collides, at least "
+        "64 (all where there are no more candidates).", min=1)
     max_limits: int | None = _protocol.option(
         None, "Solve at most this many joint limits per step, those nearest their bounds (a humanoid has dozens, "
         "each in every solve however far from its bound); a step that leaves out a closing one is reported. "
@@ -154,7 +155,8 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
     )
     system = sim.scene(
         loaded, time_step=config.time_step, floor=config.floor, self_collision=config.self_collision,
-        joint_limits=config.joint_limits, max_contacts=config.max_contacts, max_limits=config.max_limits,
+        joint_limits=config.joint_limits, max_contacts="auto" if config.max_contacts is None else config.max_contacts,
+        max_limits=config.max_limits,
         max_pairs=config.max_pairs,
         max_correction_speed=float("inf") if config.max_correction_speed is None else config.max_correction_speed,
     )
@@ -210,7 +212,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         "contacts_active_max": int(np.max(active)),
         "unconverged_steps": counts["unconverged_steps"],
         "diverged_steps": counts["diverged_steps"],
-        "max_contacts": config.max_contacts,
+        "max_contacts": system.options.max_contacts,
         "max_limits": config.max_limits,
         "dropped_contact_steps": counts["dropped_contact_steps"],
         "max_pairs": config.max_pairs,

@@ -89,6 +89,7 @@ from rsmooth.sim._panda import (
     panda_push as panda_push,
     panda_push_model as panda_push_model,
 )
+from rsmooth.sim._scene import automatic_contact_budget as automatic_contact_budget
 from rsmooth.sim._scene import scene as scene
 from rsmooth.sim._simulator import (
     SEPARATED as SEPARATED,

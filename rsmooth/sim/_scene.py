@@ -245,7 +245,7 @@ def scene(
     floor: bool = False,
     self_collision: bool = True,
     joint_limits: bool = True,
-    max_contacts: int | None = None,
+    max_contacts: int | None | str = "auto",
     max_pairs: int | None = None,
     max_limits: int | None = None,
     max_correction_speed: float = float("inf"),
@@ -316,7 +316,10 @@ def scene(
             knees) is warned of: the limits push the joints back in during the first steps.
         max_contacts: solve at most this many contacts between shapes per step, the closest
             candidates (:attr:`~rsmooth.sim.Options.max_contacts`): a robot's meshes
-            give hundreds of candidates of which a few touch; ``None``: all.
+            give hundreds of candidates of which a few touch; ``None``: all; ``"auto"``:
+            :func:`automatic_contact_budget` of the scene (4 per moving body that collides, at
+            least 64; all where there are no more candidates). The NCP is dense: a hard
+            step costs about the cube of the contacts it solves, whether they touch or not.
         max_pairs: collide at most this many pairs of each pair group per step, those whose
             bounding spheres are closest (:attr:`~rsmooth.sim.Options.max_pairs`,
             exact while no more are within the margin); ``None``: all.
@@ -395,7 +398,7 @@ def scene(
     if isinstance(margin, bool) or not (np.ndim(margin) == 0 and np.isfinite(margin) and margin >= 0):
         raise ValueError(f"margin must be a non-negative, finite number (m), got {margin!r}")
     meshes: dict[int, Any] = {}
-    pairs = []
+    pairs, kept = [], []  # the geometry pairs and their geoms
     for index, (geom1, geom2) in enumerate(loaded.collision_pairs):
         tree1, tree2 = _tree(loaded, loaded.geom_bodies[geom1]), _tree(loaded, loaded.geom_bodies[geom2])
         if not self_collision and tree1 == tree2 != 0:
@@ -411,6 +414,7 @@ def scene(
                 shape1, frame1, shape2, frame2, friction=mu, placement1=placement1, placement2=placement2, margin=margin
             )
         )
+        kept.append((geom1, geom2))
     initial_configuration = loaded.qpos_to_q(loaded.default_qpos)
     if floor:
         paired = {geom for pair in loaded.collision_pairs for geom in pair}
@@ -436,6 +440,12 @@ def scene(
                     margin=margin,
                 )
             )
+            kept.append((geom,))
+    if isinstance(max_contacts, str):
+        if max_contacts != "auto":
+            raise ValueError(f"max_contacts must be a positive integer, None or 'auto', got {max_contacts!r}")
+        moving = {loaded.geom_joints[g] for pair in kept for g in pair if loaded.geom_joints[g] != 0}
+        max_contacts = automatic_contact_budget(sum(pair.size for pair in pairs), len(moving))
     dofs, limits = _actuation(loaded)
     model = loaded.model
     system = geom_pair_system(
@@ -457,6 +467,24 @@ def scene(
         return system
     _warn_if_beyond_limits(model, np.asarray(initial_configuration), source_label(source))
     return system.with_joint_limits()
+
+
+def automatic_contact_budget(candidates: int, moving_bodies: int) -> int | None:
+    """The contact budget (:attr:`~rsmooth.sim.Options.max_contacts`) :func:`scene` takes by
+    default: 4 contacts per moving body that collides (a body at rest on a face needs no more),
+    at least 64; ``None`` (all) where the scene has no more ``candidates`` than that.
+
+    The budget keeps the closest candidates each step, and a step that leaves out one whose gap
+    it closes is reported (:func:`~rsmooth.sim.check_steps`), so a budget that binds is not
+    silent; while it holds every touching contact, the step is the one without it (states,
+    impulses and Jacobians).
+
+    Example:
+        >>> automatic_contact_budget(40, 3), automatic_contact_budget(319, 16), automatic_contact_budget(400, 30)
+        (None, 64, 120)
+    """
+    budget = max(64, 4 * moving_bodies)
+    return None if candidates <= budget else budget
 
 
 def _warn_if_beyond_limits(model, q: np.ndarray, where: str) -> None:

@@ -158,3 +158,26 @@ def test_bounding_gaps_bound_each_pairs_distance():
                     - np.linalg.norm(boxes[k].half_extents) - np.linalg.norm(boxes[count + k].half_extents))
         np.testing.assert_allclose(gaps[k], expected, rtol=1e-12)
         assert gaps[k] <= distances[k] + 1e-12
+
+
+def _spheres_scene(count, **kwargs):
+    """``count`` free balls in a row above a floor: every ball pair and every ball-floor pair
+    collides (one candidate each)."""
+    balls = "".join(
+        f'<body pos="{0.3 * i} 0 0.2"><freejoint/><geom type="sphere" size="0.1"/></body>' for i in range(count)
+    )
+    xml = f'<mujoco><worldbody><geom type="plane" size="5 5 0.1"/>{balls}</worldbody></mujoco>'
+    return sim.scene(xml, **kwargs)
+
+
+def test_the_scenes_default_budget_is_four_contacts_per_moving_body_and_at_least_64():
+    # 11 balls: 55 + 11 = 66 candidates, above 64: the closest 64 (4 x 11 = 44 is less)
+    assert _spheres_scene(11).num_contacts == 66 and _spheres_scene(11).options.max_contacts == 64
+    # 10 balls: 45 + 10 = 55 candidates, all solved: no budget
+    assert _spheres_scene(10).options.max_contacts is None
+    # 20 balls: 210 candidates, 4 x 20 = 80 of them
+    assert _spheres_scene(20).options.max_contacts == sim.automatic_contact_budget(210, 20) == 80
+    assert _spheres_scene(11, max_contacts=None).options.max_contacts is None
+    assert _spheres_scene(11, max_contacts=7).options.max_contacts == 7
+    with pytest.raises(ValueError, match="max_contacts must be a positive integer, None or 'auto'"):
+        _spheres_scene(2, max_contacts="all")
