@@ -85,10 +85,11 @@ def _release_compiled_programs():
 
 @pytest.fixture
 def mujoco_and_rsmooth_trajectories():
-    """``run(text, qpos, qvel, steps) -> (system, loaded, xs, expected)``: MuJoCo's ``qpos`` after
-    each of ``steps`` ``mj_step`` calls from ``(qpos, qvel)`` (``expected``, ``(steps, nq)``), and
-    rsmooth's rollout of ``sim.scene(text)`` from the same state (``xs``, zero input); for
-    comparisons of scenes without contact with MuJoCo's Euler integrator."""
+    """``run(text, qpos, qvel, steps, ctrl=None, u=None) -> (system, loaded, xs, expected)``:
+    MuJoCo's ``qpos`` after each of ``steps`` ``mj_step`` calls from ``(qpos, qvel)`` under the
+    constant control ``ctrl`` (``expected``, ``(steps, nq)``), and rsmooth's rollout of
+    ``sim.scene(text)`` from the same state under the constant input ``u`` (zero by default);
+    for comparisons of scenes without contact with MuJoCo's Euler integrator."""
     import equinox as eqx
     import jax.numpy as jnp
     import mujoco
@@ -96,12 +97,14 @@ def mujoco_and_rsmooth_trajectories():
 
     from rsmooth import sim
 
-    def run(text, qpos, qvel, steps):
+    def run(text, qpos, qvel, steps, ctrl=None, u=None):
         m = mujoco.MjModel.from_xml_string(text)
         d = mujoco.MjData(m)
         if qpos is not None:
             d.qpos[:] = qpos
         d.qvel[:] = qvel
+        if ctrl is not None:
+            d.ctrl[:] = ctrl
         loaded = sim.load_mjcf(text)
         system = sim.scene(loaded)
         start = jnp.asarray(d.qpos)
@@ -110,7 +113,8 @@ def mujoco_and_rsmooth_trajectories():
         for _ in range(steps):
             mujoco.mj_step(m, d)
             expected.append(d.qpos.copy())
-        xs, _ = eqx.filter_jit(system.rollout)(x0, jnp.zeros((steps, system.nu)))
+        inputs = jnp.zeros((steps, system.nu)) if u is None else jnp.tile(jnp.asarray(u, float), (steps, 1))
+        xs, _ = eqx.filter_jit(system.rollout)(x0, inputs)
         return system, loaded, xs, np.array(expected)
 
     return run

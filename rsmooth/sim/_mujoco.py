@@ -8,6 +8,11 @@ geometry as plain data. The conversion is checked once on the host and refuses, 
 rsmooth's dynamics do not model (as MJX's ``put_model`` does), instead of simulating something
 else silently. Joint equalities (a URDF ``<mimic>``) are converted
 (:attr:`MujocoModel.joint_couplings`); :func:`load_mjcf` drops them on request, with a warning.
+Fixed tendons (lengths ``sum_i c_i qpos_i`` over hinges and slides) are converted for what
+drives or constrains them: motors on a tendon (:attr:`MujocoModel.tendon_moments`, the input's
+moment arms) and equalities of one tendon on at most two joints (joint couplings); a tendon's
+own spring, damping, friction, limits or armature, spatial tendons and equalities between two
+tendons are refused by name.
 
 Joint mapping. Every MuJoCo joint becomes one rsmooth joint, in MuJoCo's order, so rsmooth
 joint ``j + 1`` is MuJoCo joint ``j`` and ``q``/``v`` have the layout of ``qpos``/``qvel``:
@@ -138,8 +143,15 @@ class MujocoModel(eqx.Module):
             unless ``filterparent`` is disabled, not excluded, ``contype``/``conaffinity``
             compatible, not both planes, not already an explicit pair); none where the
             ``contact`` or ``constraint`` flag is disabled.
-        actuator_names: name of every actuator (all are motors on one hinge or slide).
-        actuator_dofs: the velocity index each actuator drives.
+        actuator_names: name of every actuator (all are motors on one hinge or slide, or on
+            one fixed tendon).
+        actuator_dofs: the velocity index each actuator drives, ``-1`` for a motor on a
+            tendon.
+        actuator_tendons: the tendon each actuator drives, ``-1`` for a motor on a joint.
+        tendon_names: name of every tendon (all fixed).
+        tendon_moments: ``(ntendon, nv)``, each tendon's coefficients on the dofs of its
+            joints: its length is ``tendon_moments @ qpos`` over hinges and slides, a force
+            ``f`` along it is the generalized force ``f tendon_moments[t]``.
         actuator_gear: ``(nu,)``, transmission ratio (generalized force per unit actuator force).
         actuator_gain: ``(nu,)``, actuator force per unit control (``gainprm[0]``).
         actuator_ctrl_range: ``(nu, 2)``, control range, ``[-inf, inf]`` where unlimited.
@@ -187,6 +199,9 @@ class MujocoModel(eqx.Module):
     collision_pairs: tuple[tuple[int, int], ...] = eqx.field(static=True)
     actuator_names: tuple[str, ...] = eqx.field(static=True)
     actuator_dofs: tuple[int, ...] = eqx.field(static=True)
+    actuator_tendons: tuple[int, ...] = eqx.field(static=True)
+    tendon_names: tuple[str, ...] = eqx.field(static=True)
+    tendon_moments: jax.Array
     actuator_gear: jax.Array
     actuator_gain: jax.Array
     actuator_ctrl_range: jax.Array
@@ -366,11 +381,12 @@ class MujocoModel(eqx.Module):
 
     def ctrl_to_tau(self, ctrl: ArrayLike) -> jax.Array:
         """Generalized force of the motors, as MuJoCo computes ``qfrc_actuator``: the control
-        clipped to its range, times the gain, clipped to the force range, times the gear, summed
-        per dof and clipped to the dof's actuator force range.
+        clipped to its range, times the gain, clipped to the force range, times the gear, along
+        its joint's dof or its tendon's moments, summed per dof and clipped to the dof's
+        actuator force range.
 
         The force is the same in rsmooth's and MuJoCo's bases: motors drive hinges and slides
-        only, whose velocities coincide.
+        only (directly or through fixed tendons), whose velocities coincide.
 
         Args:
             ctrl: shape ``(..., nu)``.
@@ -385,8 +401,14 @@ class MujocoModel(eqx.Module):
         ctrl = jnp.clip(ctrl, like(self.actuator_ctrl_range[:, 0], ctrl), like(self.actuator_ctrl_range[:, 1], ctrl))
         force = like(self.actuator_gain, ctrl) * ctrl
         force = jnp.clip(force, like(self.actuator_force_range[:, 0], force), like(self.actuator_force_range[:, 1], force))
+        force = like(self.actuator_gear, force) * force
         tau = jnp.zeros(ctrl.shape[:-1] + (self.model.nv,), dtype=force.dtype)
-        tau = tau.at[..., np.asarray(self.actuator_dofs, dtype=np.int64)].add(like(self.actuator_gear, force) * force)
+        on_joints = np.flatnonzero(np.asarray(self.actuator_dofs) >= 0)
+        tau = tau.at[..., np.asarray(self.actuator_dofs, dtype=np.int64)[on_joints]].add(force[..., on_joints])
+        on_tendons = np.flatnonzero(np.asarray(self.actuator_tendons) >= 0)
+        if on_tendons.size:
+            moments = self.tendon_moments[np.asarray(self.actuator_tendons, dtype=np.int64)[on_tendons]].astype(force.dtype)
+            tau = tau + jnp.tensordot(force[..., on_tendons], moments, axes=1)
         return jnp.clip(tau, like(self.dof_actuator_force_range[:, 0], tau), like(self.dof_actuator_force_range[:, 1], tau))
 
 
@@ -462,7 +484,6 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
                 "damping only"
             )
     counts = [
-        ("ntendon", "tendons", mj.mjtObj.mjOBJ_TENDON),
         ("neq", "equality constraints other than joint couplings", mj.mjtObj.mjOBJ_EQUALITY),
         ("nflex", "flexible bodies (flex)", mj.mjtObj.mjOBJ_FLEX),
         ("nskin", "skins", mj.mjtObj.mjOBJ_SKIN),
@@ -470,7 +491,8 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
     ]
     # equality constraints MuJoCo does not enforce (the equality or constraint flag disabled) are left alone
     equalities_off = _disabled(mj, m, "EQUALITY", "CONSTRAINT")
-    others = [] if equalities_off else [e for e in range(m.neq) if int(m.eq_type[e]) != int(mj.mjtEq.mjEQ_JOINT)]
+    converted = (int(mj.mjtEq.mjEQ_JOINT), int(mj.mjtEq.mjEQ_TENDON))
+    others = [] if equalities_off else [e for e in range(m.neq) if int(m.eq_type[e]) not in converted]
     for attribute, what, kind in counts:
         count = len(others) if attribute == "neq" else getattr(m, attribute)
         if count > 0:
@@ -509,21 +531,63 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
                 f"MuJoCo model: geom {geom_names[g]!r} is a colliding {kind}, which rsmooth.sim does not support "
                 f"(converted: {', '.join(GEOM_TYPES)}; a {kind} with contype = conaffinity = 0 is kept as visual)"
             )
+    _check_tendons(mj, m, joint_names)
     _check_actuators(mj, m, joint_names)
+
+
+def _check_tendons(mj: Any, m: Any, joint_names: tuple[str, ...]) -> None:
+    """Refuses spatial tendons and what rsmooth does not model of fixed ones (see the module's
+    description); tendon equalities are checked where they are converted
+    (:func:`_tendon_couplings`)."""
+    names = _names(m, "tendon", m.ntendon)
+    limits_off = _disabled(mj, m, "LIMIT", "CONSTRAINT")
+    friction_off = _disabled(mj, m, "FRICTIONLOSS", "CONSTRAINT")
+    supported = "supported: fixed tendons driven by motors or held by an equality of one tendon"
+    for t in range(m.ntendon):
+        wraps = range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t])
+        problem = None
+        if any(int(m.wrap_type[w]) != int(mj.mjtWrap.mjWRAP_JOINT) for w in wraps):
+            problem = "it is a spatial tendon (its length follows sites and wrapping geoms)"
+        elif m.tendon_stiffness[t] != 0 or np.any(m.tendon_stiffnesspoly[t] != 0):
+            problem = f"it has a spring (stiffness {m.tendon_stiffness[t]:g})"
+        elif m.tendon_damping[t] != 0 or np.any(m.tendon_dampingpoly[t] != 0):
+            problem = f"it has damping ({m.tendon_damping[t]:g})"
+        elif m.tendon_frictionloss[t] != 0 and not friction_off:
+            problem = f"it has dry friction (frictionloss {m.tendon_frictionloss[t]:g})"
+        elif m.tendon_limited[t] and not limits_off:
+            problem = f"it has length limits {m.tendon_range[t].tolist()}"
+        elif m.tendon_armature[t] != 0:
+            problem = f"it has armature ({m.tendon_armature[t]:g})"
+        elif m.tendon_actfrclimited[t]:
+            problem = f"it bounds its actuators' total force (actuatorfrcrange {m.tendon_actfrcrange[t].tolist()})"
+        if problem is not None:
+            raise ValueError(f"MuJoCo model: tendon {names[t]!r} is not supported: {problem} ({supported})")
+
+
+def _tendon_moments(m: Any) -> np.ndarray:
+    """``(ntendon, nv)``: the fixed tendons' coefficients on the dofs of their joints, the
+    derivative of each length ``sum_i c_i qpos_i`` (MuJoCo's ``ten_J``, constant)."""
+    moments = np.zeros((m.ntendon, m.nv))
+    for t in range(m.ntendon):
+        for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]):
+            moments[t, m.jnt_dofadr[m.wrap_objid[w]]] += m.wrap_prm[w]
+    return moments
 
 
 def _check_actuators(mj: Any, m: Any, joint_names: tuple[str, ...]) -> None:
     names = _names(m, "actuator", m.nu)
     supported = (
         "supported: motors (<motor>, or <general> with gaintype fixed, biastype none, dyntype none) "
-        "driving one hinge or slide joint"
+        "driving one hinge or slide joint or a fixed tendon"
     )
     for a in range(m.nu):
         problem = None
         trntype = int(m.actuator_trntype[a])
-        if trntype not in (int(mj.mjtTrn.mjTRN_JOINT), int(mj.mjtTrn.mjTRN_JOINTINPARENT)):
+        if trntype not in (int(mj.mjtTrn.mjTRN_JOINT), int(mj.mjtTrn.mjTRN_JOINTINPARENT), int(mj.mjtTrn.mjTRN_TENDON)):
             problem = f"its transmission is {mj.mjtTrn(trntype).name.removeprefix('mjTRN_').lower()}"
-        elif int(m.jnt_type[m.actuator_trnid[a, 0]]) not in (int(mj.mjtJoint.mjJNT_HINGE), int(mj.mjtJoint.mjJNT_SLIDE)):
+        elif trntype != int(mj.mjtTrn.mjTRN_TENDON) and int(m.jnt_type[m.actuator_trnid[a, 0]]) not in (
+            int(mj.mjtJoint.mjJNT_HINGE), int(mj.mjtJoint.mjJNT_SLIDE)
+        ):  # (a tendon is fixed: _check_tendons)
             problem = f"it drives joint {joint_names[m.actuator_trnid[a, 0]]!r}, which is not a hinge or slide"
         elif int(m.actuator_biastype[a]) != int(mj.mjtBias.mjBIAS_NONE):
             kind = "a position or velocity servo" if int(m.actuator_biastype[a]) == int(mj.mjtBias.mjBIAS_AFFINE) else "biased"
@@ -568,10 +632,12 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         ValueError: if the model uses a feature that rsmooth.sim does not model (the message
             names the element and what is supported): a ball joint's range beyond pi, a free joint's
             spring, nonlinear springs (``stiffnesspoly``),
-            frictionloss on a free joint's linear axes, nonlinear damping, tendons, equality
-            constraints other than joint couplings, flex, skins,
-            plugins, mocap bodies, gravity compensation, fluid forces, colliding height fields
-            or SDFs, actuators other than direct motors on a hinge or slide, and on a free
+            frictionloss on a free joint's linear axes, nonlinear damping, spatial tendons and a
+            fixed tendon's spring, damping, friction, limits or armature, equality constraints
+            other than joint couplings and equalities of one fixed tendon on at most two joints,
+            flex, skins, plugins, mocap bodies, gravity compensation, fluid forces, colliding
+            height fields or SDFs, actuators other than direct motors on a hinge, a slide or a
+            fixed tendon, and on a free
             joint's linear axes an armature (MuJoCo applies it to the world-axes acceleration)
             or a damping that differs between the three axes (it would not be diagonal in body
             axes).
@@ -819,13 +885,15 @@ def _actuator_limits(mj: Any, m: Any) -> tuple[np.ndarray, dict[str, Any]]:
     force_range = bounds(m.actuator_forcelimited, m.actuator_forcerange)
     gear = np.asarray(m.actuator_gear[:, 0], dtype=np.float64)
     gain = np.asarray(m.actuator_gainprm[:, 0], dtype=np.float64)
-    dofs = [int(m.jnt_dofadr[m.actuator_trnid[a, 0]]) for a in range(m.nu)]
+    on_tendon = [int(m.actuator_trntype[a]) == int(mj.mjtTrn.mjTRN_TENDON) for a in range(m.nu)]
+    dofs = [-1 if on_tendon[a] else int(m.jnt_dofadr[m.actuator_trnid[a, 0]]) for a in range(m.nu)]
+    tendons = [int(m.actuator_trnid[a, 0]) if on_tendon[a] else -1 for a in range(m.nu)]
     dof_range = np.tile([-np.inf, np.inf], (m.nv, 1))
     for j in range(m.njnt):
         if m.jnt_actfrclimited[j]:
             dof_range[m.jnt_dofadr[j]] = m.jnt_actfrcrange[j]
     effort = np.max(np.abs(dof_range), axis=1)
-    for dof in set(dofs):
+    for dof in set(dofs) - {-1}:
         motors = [a for a in range(m.nu) if dofs[a] == dof]
         if len(motors) != 1:
             continue
@@ -840,6 +908,9 @@ def _actuator_limits(mj: Any, m: Any) -> tuple[np.ndarray, dict[str, Any]]:
     return effort, dict(
         actuator_names=_names(m, "actuator", m.nu),
         actuator_dofs=tuple(dofs),
+        actuator_tendons=tuple(tendons),
+        tendon_names=_names(m, "tendon", m.ntendon),
+        tendon_moments=_array(_tendon_moments(m)).reshape(m.ntendon, m.nv),
         actuator_gear=_array(gear),
         actuator_gain=_array(gain),
         actuator_ctrl_range=_array(ctrl_range).reshape(-1, 2),
@@ -855,12 +926,54 @@ def _joint_couplings(mj: Any, m: Any) -> JointCoupling | None:
     equalities = [
         e for e in range(m.neq) if int(m.eq_type[e]) == int(mj.mjtEq.mjEQ_JOINT) and m.eq_active0[e]
     ]
-    if not equalities:
+    joints = [int(m.eq_obj1id[e]) + 1 for e in equalities]
+    others = [int(m.eq_obj2id[e]) + 1 if m.eq_obj2id[e] >= 0 else 0 for e in equalities]
+    coefficients = [np.asarray(m.eq_data[e, :5], dtype=np.float64) for e in equalities]
+    for joint, other, row in _tendon_couplings(mj, m):
+        joints.append(joint)
+        others.append(other)
+        coefficients.append(row)
+    if not joints:
         return None
-    joints = tuple(int(m.eq_obj1id[e]) + 1 for e in equalities)
-    others = tuple(int(m.eq_obj2id[e]) + 1 if m.eq_obj2id[e] >= 0 else 0 for e in equalities)
-    coefficients = np.array([m.eq_data[e, :5] for e in equalities], dtype=np.float64)
-    return JointCoupling(joints, others, _array(coefficients))
+    return JointCoupling(tuple(joints), tuple(others), _array(np.array(coefficients)))
+
+
+def _tendon_couplings(mj: Any, m: Any) -> list[tuple[int, int, np.ndarray]]:
+    """The active equalities of one fixed tendon as joint couplings ``(joint, other,
+    coefficients)`` (rsmooth joints). MuJoCo's equation ``L - L0 = c_0``, ``L0`` the length at
+    ``qpos0``, is ``a q_a + b q_b = c_0`` in rsmooth's coordinates (MuJoCo's less ``qpos0``):
+    ``q_a = c_0 / a - (b / a) q_b`` (``b = 0``, other 0, for a tendon on one joint); manipulator
+    grippers hold their two fingers together so. Equalities between two tendons, and of a tendon
+    on more than two joints, are refused by name."""
+    couplings = []
+    names, tendon_names = _names(m, "equality", m.neq), _names(m, "tendon", m.ntendon)
+    moments = _tendon_moments(m)
+    for e in range(m.neq):
+        if int(m.eq_type[e]) != int(mj.mjtEq.mjEQ_TENDON) or not m.eq_active0[e]:
+            continue
+        tendon = int(m.eq_obj1id[e])
+        where = f"MuJoCo model: equality {names[e]!r} on tendon {tendon_names[tendon]!r}"
+        if m.eq_obj2id[e] >= 0:
+            raise ValueError(
+                f"{where} couples it to a second tendon, which rsmooth.sim does not support (supported: an equality of "
+                "one fixed tendon on at most two joints)"
+            )
+        dofs = np.flatnonzero(moments[tendon])
+        if not 1 <= len(dofs) <= 2:
+            raise ValueError(
+                f"{where}: the tendon has nonzero coefficients on {len(dofs)} joints; rsmooth.sim supports an equality "
+                "of one fixed tendon on one or two joints"
+            )
+        joint_of_dof = {int(m.jnt_dofadr[j]): j for j in range(m.njnt)}
+        a = moments[tendon, dofs[0]]
+        row = np.zeros(5)
+        row[0] = m.eq_data[e, 0] / a
+        other = 0
+        if len(dofs) == 2:
+            row[1] = -moments[tendon, dofs[1]] / a
+            other = joint_of_dof[int(dofs[1])] + 1
+        couplings.append((joint_of_dof[int(dofs[0])] + 1, other, row))
+    return couplings
 
 
 def _array(values: Any) -> jax.Array:

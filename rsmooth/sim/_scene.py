@@ -33,6 +33,7 @@ MuJoCo).
 
 from __future__ import annotations
 
+import dataclasses
 import pathlib
 import warnings
 from typing import Any
@@ -40,15 +41,16 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
+from rsmooth._xla import device_array
 from rsmooth.sim._collision import manifold_size
 from rsmooth.sim._dynamics import forward_kinematics
 from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, HalfSpace, Sphere, convex_mesh
 from rsmooth.sim._mujoco import MujocoModel, load_mjcf, source_label
 from rsmooth.sim._ncp import NCPSolver
-from rsmooth.sim._simulator import GeomPair, RigidBodySystem
+from rsmooth.sim._simulator import Actuation, GeomPair, RigidBodySystem
 from rsmooth.sim._systems import _number, geom_pair_system
 
-__all__ = ["scene"]
+__all__ = ["automatic_contact_budget", "scene"]
 
 
 def _shape(loaded: MujocoModel, geom: int, meshes: dict[int, Any]):
@@ -192,30 +194,32 @@ def _floor_height(loaded: MujocoModel, geoms: list[int], q: jnp.ndarray) -> floa
     return min(heights)
 
 
-def _actuation(loaded: MujocoModel) -> tuple[tuple[int, ...], np.ndarray]:
-    """The dofs the motors drive and the symmetric bound of the generalized force on each.
+def _actuation(loaded: MujocoModel) -> tuple[tuple[int, ...], np.ndarray, np.ndarray | None]:
+    """The dofs the joint motors drive, the symmetric bound of each input, and ``None``, or,
+    where motors drive fixed tendons, the moment arms ``(nu, nv)`` of the inputs: the driven
+    dofs' unit rows, then the driven tendons' :attr:`~MujocoModel.tendon_moments` (in increasing
+    order).
 
-    The range of each motor's generalized force is its control range times its gain, clipped
-    to its force range, times its gear (MuJoCo's ``qfrc_actuator``); the ranges of the motors
-    of one dof add up and are clipped to the dof's ``actfrcrange``.
+    The range of each motor's force is its control range times its gain, clipped to its force
+    range, times its gear (MuJoCo's ``qfrc_actuator``); the ranges of the motors of one dof or
+    tendon add up, and a dof's are clipped to its ``actfrcrange`` (which a tendon's inputs cannot
+    be: refused where a tendon motor moves such a dof).
     """
-    dofs = tuple(sorted(set(loaded.actuator_dofs)))
     ctrl = np.asarray(loaded.actuator_ctrl_range, dtype=np.float64).reshape(-1, 2)
     force = np.asarray(loaded.actuator_force_range, dtype=np.float64).reshape(-1, 2)
     gain = np.asarray(loaded.actuator_gain, dtype=np.float64)
     gear = np.asarray(loaded.actuator_gear, dtype=np.float64)
     dof_range = np.asarray(loaded.dof_actuator_force_range, dtype=np.float64).reshape(-1, 2)
-    limits = []
-    for dof in dofs:
+
+    def bound(motors, clip=(-np.inf, np.inf)):
         low = high = 0.0
-        motors = [a for a, d in enumerate(loaded.actuator_dofs) if d == dof]
         for a in motors:
             # interval products; a zero gain or gear reaches nothing, even from an infinite range
             reach = np.sort(gain[a] * ctrl[a]) if gain[a] != 0 else np.zeros(2)
             reach = np.clip(reach, force[a, 0], force[a, 1])
             reach = np.sort(gear[a] * reach) if gear[a] != 0 else np.zeros(2)
             low, high = low + reach[0], high + reach[1]
-        low, high = max(low, dof_range[dof, 0]), min(high, dof_range[dof, 1])
+        low, high = max(low, clip[0]), min(high, clip[1])
         if not (np.isclose(low, -high, rtol=1e-9, atol=1e-12) and high > 0):
             names = ", ".join(repr(loaded.actuator_names[a]) for a in motors)
             raise ValueError(
@@ -223,8 +227,26 @@ def _actuation(loaded: MujocoModel) -> tuple[tuple[int, ...], np.ndarray]:
                 "symmetric about 0 of positive width; the system's inputs are generalized forces bounded symmetrically "
                 "(set symmetric ctrlrange/forcerange/actfrcrange, or leave them unlimited)"
             )
-        limits.append(high)
-    return dofs, np.asarray(limits, dtype=np.float64)
+        return high
+
+    dofs = tuple(sorted(set(loaded.actuator_dofs) - {-1}))
+    limits = [bound([a for a, d in enumerate(loaded.actuator_dofs) if d == dof], dof_range[dof]) for dof in dofs]
+    tendons = tuple(sorted(set(loaded.actuator_tendons) - {-1}))
+    if not tendons:
+        return dofs, np.asarray(limits, dtype=np.float64), None
+    tendon_moments = np.asarray(loaded.tendon_moments, dtype=np.float64)
+    for tendon in tendons:
+        motors = [a for a, t in enumerate(loaded.actuator_tendons) if t == tendon]
+        bounded = [d for d in np.flatnonzero(tendon_moments[tendon]) if np.any(np.isfinite(dof_range[d]))]
+        if bounded:
+            raise ValueError(
+                f"actuator {loaded.actuator_names[motors[0]]!r} drives tendon {loaded.tendon_names[tendon]!r}, which moves "
+                f"dof {int(bounded[0])}, whose total actuator force is bounded (actfrcrange): rsmooth bounds each input, "
+                "not a dof's sum of inputs along tendons (leave the joint's actuatorfrcrange unlimited)"
+            )
+        limits.append(bound(motors))
+    moments = np.concatenate([np.eye(loaded.model.nv)[list(dofs)], tendon_moments[list(tendons)]])
+    return dofs, np.asarray(limits, dtype=np.float64), moments
 
 
 def scene(
@@ -261,8 +283,11 @@ def scene(
     the mapping of geoms, frames and frictions). The input ``u`` ``(nu,)`` holds the
     generalized forces on the dofs the model's motors drive (``actuation.dofs``, in increasing
     order; ``nu = 0`` without motors), not MuJoCo's controls:
-    :meth:`MujocoModel.ctrl_to_tau` gives the forces of given controls. Each is bounded by
-    what the dof's motors can apply, ``+inf`` where unlimited. ``initial_state()`` is MuJoCo's
+    :meth:`MujocoModel.ctrl_to_tau` gives the forces of given controls. Where motors drive
+    fixed tendons, the actuation is ``"moments"``: ``u`` holds those dofs' forces, then the
+    force along each driven tendon (in increasing tendon order), ``tau = moments^T u``
+    (:attr:`~rsmooth.sim.Actuation.moments`). Each is bounded by what the motors of its dof or
+    tendon can apply, ``+inf`` where unlimited. ``initial_state()`` is MuJoCo's
     ``qpos0`` (the configuration the file describes) at rest.
 
     The limits of limited hinges and slides are enforced as MuJoCo does, as hard constraints
@@ -446,7 +471,7 @@ def scene(
             raise ValueError(f"max_contacts must be a positive integer, None or 'auto', got {max_contacts!r}")
         moving = {loaded.geom_joints[g] for pair in kept for g in pair if loaded.geom_joints[g] != 0}
         max_contacts = automatic_contact_budget(sum(pair.size for pair in pairs), len(moving))
-    dofs, limits = _actuation(loaded)
+    dofs, limits, moments = _actuation(loaded)
     model = loaded.model
     system = geom_pair_system(
         model,
@@ -455,10 +480,12 @@ def scene(
         solver=solver,
         baumgarte=baumgarte,
         actuated_dofs=dofs,
-        input_limit=limits,
+        input_limit=limits[: len(dofs)],
         initial_configuration=initial_configuration,
         joint_damping=loaded.damping,
     )
+    if moments is not None:  # motors on tendons: each input along its moment arms
+        system = dataclasses.replace(system, actuation=Actuation("moments", device_array(limits), moments=device_array(moments)))
     system = system.with_contact_budget(max_contacts, max_pairs, max_limits).with_options(max_correction_speed=max_correction_speed)
     system = system.with_joint_friction(np.asarray(loaded.frictionloss))
     system = system.with_joint_springs(np.asarray(loaded.stiffness), loaded.spring_reference)

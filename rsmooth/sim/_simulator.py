@@ -566,10 +566,13 @@ class Geometry(eqx.Module):
 
 
 class Actuation(eqx.Module):
-    """How the input ``u`` drives a system (:attr:`RigidBodySystem.actuation`), in one of two
+    """How the input ``u`` drives a system (:attr:`RigidBodySystem.actuation`), in one of three
     ways (``kind``):
 
     - ``"joints"``: ``u`` are the efforts of the dofs ``dofs`` (joint torques).
+    - ``"moments"``: ``u`` are forces along constant moment arms, the rows of ``moments``
+      (``tau = moments^T u``): a fixed tendon's coefficients (a MuJoCo motor on a tendon drives
+      several dofs with one input), or a unit row for a joint's own motor.
     - ``"wrench"``: ``u`` are components ``wrench_components`` of a wrench
       ``[force, torque]`` in world axes applied at the origin of frame ``wrench_frame``
       (``tau = J_frame^T w``).
@@ -578,8 +581,9 @@ class Actuation(eqx.Module):
     reported in :class:`StepInfo`; ``+inf`` means unlimited.
 
     Attributes:
-        kind: ``"joints"`` or ``"wrench"`` (static).
+        kind: ``"joints"``, ``"moments"`` or ``"wrench"`` (static).
         dofs: velocity indices driven by ``u`` (``"joints"``; static).
+        moments: ``(nu, nv)`` moment arms of the inputs (``"moments"``), finite.
         wrench_frame: frame index of the applied wrench (``"wrench"``; static).
         wrench_components: which of ``[fx, fy, fz, tx, ty, tz]`` ``u`` holds (``"wrench"``; static).
         input_limit: ``(nu,)`` symmetric bounds on ``u``, ``> 0``.
@@ -598,10 +602,18 @@ class Actuation(eqx.Module):
     wrench_frame: int = eqx.field(static=True, default=0)
     wrench_components: tuple[int, ...] = eqx.field(static=True, default=())
     gravity_compensation: bool = eqx.field(static=True, default=False)
+    moments: Array | None = None
 
     def __check_init__(self):
-        if self.kind not in ("joints", "wrench"):
-            raise ValueError(f"actuation kind must be 'joints' or 'wrench', got {self.kind!r}")
+        if self.kind not in ("joints", "moments", "wrench"):
+            raise ValueError(f"actuation kind must be 'joints', 'moments' or 'wrench', got {self.kind!r}")
+        if (self.kind == "moments") != (self.moments is not None):
+            raise ValueError("actuation moments are given with kind 'moments', and only then")
+        if self.moments is not None:
+            if jnp.ndim(self.moments) != 2:
+                raise ValueError(f"actuation moments must have shape (nu, nv), got {jnp.shape(self.moments)}")
+            if not _checks.is_traced(self.moments) and not np.all(np.isfinite(np.asarray(self.moments))):
+                raise ValueError("actuation moments must be finite")
         if jnp.shape(self.input_limit) != (self.nu,):
             raise ValueError(f"input_limit must have shape ({self.nu},), got {jnp.shape(self.input_limit)}")
         _check_concrete("input_limit", self.input_limit, positive=True, allow_inf=True)
@@ -615,6 +627,8 @@ class Actuation(eqx.Module):
     @property
     def nu(self) -> int:
         """Input dimension."""
+        if self.kind == "moments":
+            return jnp.shape(self.moments)[0]
         return len(self.dofs) if self.kind == "joints" else len(self.wrench_components)
 
 
@@ -727,6 +741,11 @@ class RigidBodySystem(eqx.Module):
                 raise ValueError(f"actuated dof {dof} out of range [0, {model.nv})")
         if self.actuation.kind == "wrench":
             model.frame_id(self.actuation.wrench_frame)
+        if self.actuation.kind == "moments" and jnp.shape(self.actuation.moments)[1] != model.nv:
+            raise ValueError(
+                f"actuation moments must have shape (nu, nv) = ({self.actuation.nu}, {model.nv}), got "
+                f"{jnp.shape(self.actuation.moments)}"
+            )
         hard = isinstance(self.contact, str)
         if joints.damping is not None and jnp.shape(joints.damping) != (model.nv,):
             raise ValueError(f"joints.damping must have shape ({model.nv},), got {jnp.shape(joints.damping)}")
@@ -1173,6 +1192,8 @@ class RigidBodySystem(eqx.Module):
                 limited = limited + holding[dofs]
             tau = jnp.zeros(self.model.nv, u.dtype).at[dofs].set(limited)
             return tau, clipped
+        if self.actuation.kind == "moments":
+            return self.actuation.moments.astype(limited.dtype).T @ limited, clipped
         if kinematics is None:
             kinematics = _dynamics._kinematics(self.model, q)
         rotation, translation = _dynamics._frame_placement(

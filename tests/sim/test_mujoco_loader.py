@@ -403,7 +403,6 @@ def wrap(body, extra=""):
 HINGE_BODY = "<body name='b'><joint name='j'/><geom name='g' size='0.1'/><site name='s'/></body>"
 UNSUPPORTED = {
     "ball_limit": (wrap("<body><joint name='shoulder' type='ball' range='0 4'/><geom size='0.1'/></body>"), "ball joint 'shoulder' has the range"),
-    "tendon": (wrap(HINGE_BODY, "<tendon><fixed name='t'><joint joint='j' coef='1'/></fixed></tendon>"), "tendons .*'t'"),
     "equality": (wrap(HINGE_BODY, "<equality><weld name='e' body1='b'/></equality>"), "equality constraints .*'e'"),
     "spring": (wrap("<body><joint name='j' type='free' stiffness='3'/><geom size='0.1'/></body>"), "free joint 'j' has a spring"),
     "free_frictionloss": (
