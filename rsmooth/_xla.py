@@ -90,9 +90,10 @@ def apply_cpu_defaults(environ: dict | None = None, *, render: bool = False) -> 
 
 
 CACHE_VARIABLE = "RSMOOTH_COMPILATION_CACHE"
-# Programs that compile faster than this are not written to the cache: reading one back costs
-# a file read, and the small programs of a run (key splits, reshapes) are many.
-CACHE_MIN_COMPILE_SECONDS = 0.2
+# Every program is written to the cache: reading back even the small programs of a run (key
+# splits, reshapes, a problem's set-up) is faster than compiling them again, and a warm run then
+# compiles nothing (python -m benchmarks startup).
+CACHE_MIN_COMPILE_SECONDS = 0.0
 
 
 def default_cache_dir(environ: dict | None = None) -> pathlib.Path:
