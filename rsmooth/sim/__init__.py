@@ -101,6 +101,7 @@ from rsmooth.sim._simulator import (
     JointCoupling as JointCoupling,
     JointFriction as JointFriction,
     JointSprings as JointSprings,
+    Tendons as Tendons,
     Joints as Joints,
     Options as Options,
     RigidBodySystem as RigidBodySystem,

@@ -10,9 +10,9 @@ else silently. Joint equalities (a URDF ``<mimic>``) are converted
 (:attr:`MujocoModel.joint_couplings`); :func:`load_mjcf` drops them on request, with a warning.
 Fixed tendons (lengths ``sum_i c_i qpos_i`` over hinges and slides) are converted for what
 drives or constrains them: motors on a tendon (:attr:`MujocoModel.tendon_moments`, the input's
-moment arms) and equalities of one tendon on at most two joints (joint couplings); a tendon's
-own spring, damping, friction, limits or armature, spatial tendons and equalities between two
-tendons are refused by name.
+moment arms), equalities of one tendon on at most two joints (joint couplings) and the
+tendon's linear spring and damper (:attr:`MujocoModel.tendons`); a tendon's friction, limits
+or armature, spatial tendons and equalities between two tendons are refused by name.
 
 Joint mapping. Every MuJoCo joint becomes one rsmooth joint, in MuJoCo's order, so rsmooth
 joint ``j + 1`` is MuJoCo joint ``j`` and ``q``/``v`` have the layout of ``qpos``/``qvel``:
@@ -62,7 +62,7 @@ from jax.typing import ArrayLike
 from rsmooth._xla import device_array
 from rsmooth.sim import _spatial as spatial
 from rsmooth.sim._model import FREE_FLYER, PRISMATIC, REVOLUTE, SPHERICAL, UNIVERSE, Model
-from rsmooth.sim._simulator import JointCoupling
+from rsmooth.sim._simulator import JointCoupling, Tendons
 
 # The geom types a collision routine may meet; height fields and SDFs are accepted only
 # when they cannot collide (purely visual), so that geom indices stay MuJoCo's.
@@ -103,7 +103,10 @@ class MujocoModel(eqx.Module):
         joint_couplings: the active joint equality constraints (``<equality><joint>``, a
             URDF's ``<mimic>``) as a :class:`~rsmooth.sim.JointCoupling` (rsmooth joints, MuJoCo's
             ``polycoef``), or ``None``; inactive ones (``active="false"``) are left out, and all
-            where the ``equality`` or ``constraint`` flag is disabled.
+            where the ``equality`` or ``constraint`` flag is disabled. An equality of one
+            fixed tendon on two joints is a coupling of one joint to the other.
+        tendons: the springs and dampers of the fixed tendons (:class:`~rsmooth.sim.Tendons`;
+            the ``spring`` and ``damper`` flags honoured), or ``None`` where none has either.
         timestep: ``opt.timestep``, in seconds.
         limits_enforced: whether MuJoCo enforces the joints' position limits (``False`` where
             its ``limit`` or ``constraint`` flag is disabled; the limits stay in ``model``).
@@ -174,6 +177,7 @@ class MujocoModel(eqx.Module):
     stiffness: jax.Array
     spring_reference: jax.Array
     joint_couplings: JointCoupling | None
+    tendons: Tendons | None
     timestep: float = eqx.field(static=True)
     limits_enforced: bool = eqx.field(static=True)
     body_names: tuple[str, ...] = eqx.field(static=True)
@@ -542,16 +546,18 @@ def _check_tendons(mj: Any, m: Any, joint_names: tuple[str, ...]) -> None:
     names = _names(m, "tendon", m.ntendon)
     limits_off = _disabled(mj, m, "LIMIT", "CONSTRAINT")
     friction_off = _disabled(mj, m, "FRICTIONLOSS", "CONSTRAINT")
-    supported = "supported: fixed tendons driven by motors or held by an equality of one tendon"
+    supported = (
+        "supported: fixed tendons with linear springs and dampers, driven by motors or held by an equality of one tendon"
+    )
     for t in range(m.ntendon):
         wraps = range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t])
         problem = None
         if any(int(m.wrap_type[w]) != int(mj.mjtWrap.mjWRAP_JOINT) for w in wraps):
             problem = "it is a spatial tendon (its length follows sites and wrapping geoms)"
-        elif m.tendon_stiffness[t] != 0 or np.any(m.tendon_stiffnesspoly[t] != 0):
-            problem = f"it has a spring (stiffness {m.tendon_stiffness[t]:g})"
-        elif m.tendon_damping[t] != 0 or np.any(m.tendon_dampingpoly[t] != 0):
-            problem = f"it has damping ({m.tendon_damping[t]:g})"
+        elif np.any(m.tendon_stiffnesspoly[t] != 0):
+            problem = "it has a nonlinear spring (stiffnesspoly)"
+        elif np.any(m.tendon_dampingpoly[t] != 0):
+            problem = "it has nonlinear damping (dampingpoly)"
         elif m.tendon_frictionloss[t] != 0 and not friction_off:
             problem = f"it has dry friction (frictionloss {m.tendon_frictionloss[t]:g})"
         elif m.tendon_limited[t] and not limits_off:
@@ -572,6 +578,28 @@ def _tendon_moments(m: Any) -> np.ndarray:
         for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]):
             moments[t, m.jnt_dofadr[m.wrap_objid[w]]] += m.wrap_prm[w]
     return moments
+
+
+def _tendons(mj: Any, m: Any) -> Tendons | None:
+    """The springs and dampers of the fixed tendons (``None`` where none has either, or both
+    are disabled): lengths in rsmooth's coordinates (MuJoCo's ``qpos`` less ``qpos0`` on hinges
+    and slides), so ``L = lengths q + offsets`` is MuJoCo's ``ten_length``."""
+    stiffness = np.zeros(m.ntendon) if _disabled(mj, m, "SPRING") else np.asarray(m.tendon_stiffness, dtype=np.float64)
+    damping = np.zeros(m.ntendon) if _disabled(mj, m, "DAMPER") else np.asarray(m.tendon_damping, dtype=np.float64)
+    if not (np.any(stiffness != 0) or np.any(damping != 0)):
+        return None
+    lengths = np.zeros((m.ntendon, m.nq))
+    for t in range(m.ntendon):
+        for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]):
+            lengths[t, m.jnt_qposadr[m.wrap_objid[w]]] += m.wrap_prm[w]
+    return Tendons(
+        lengths=_array(lengths),
+        moments=_array(_tendon_moments(m)).reshape(m.ntendon, m.nv),
+        offsets=_array(lengths @ np.asarray(m.qpos0, dtype=np.float64)),
+        stiffness=_array(stiffness),
+        spring_length=_array(m.tendon_lengthspring).reshape(m.ntendon, 2),
+        damping=_array(damping),
+    )
 
 
 def _check_actuators(mj: Any, m: Any, joint_names: tuple[str, ...]) -> None:
@@ -633,7 +661,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
             names the element and what is supported): a ball joint's range beyond pi, a free joint's
             spring, nonlinear springs (``stiffnesspoly``),
             frictionloss on a free joint's linear axes, nonlinear damping, spatial tendons and a
-            fixed tendon's spring, damping, friction, limits or armature, equality constraints
+            fixed tendon's nonlinear spring or damping, friction, limits or armature, equality constraints
             other than joint couplings and equalities of one fixed tendon on at most two joints,
             flex, skins, plugins, mocap bodies, gravity compensation, fluid forces, colliding
             height fields or SDFs, actuators other than direct motors on a hinge, a slide or a
@@ -807,6 +835,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         stiffness=_array(stiffness),
         spring_reference=_array(spring_reference),
         joint_couplings=None if _disabled(mj, m, "EQUALITY", "CONSTRAINT") else _joint_couplings(mj, m),
+        tendons=_tendons(mj, m),
         limits_enforced=not _disabled(mj, m, "LIMIT", "CONSTRAINT"),
         timestep=float(m.opt.timestep),
         body_names=body_names,

@@ -515,6 +515,58 @@ class JointSprings(eqx.Module):
             raise ValueError(f"JointSprings.stiffness must be >= 0 (N m/rad or N/m), got {np.asarray(self.stiffness)}")
 
 
+class Tendons(eqx.Module):
+    """Springs and dampers along fixed tendons (MuJoCo's tendon ``stiffness``,
+    ``springlength`` and ``damping``): tendon ``t`` has the length
+    ``L_t = lengths[t] . q + offsets[t]`` (linear in the coordinates of its hinges and slides)
+    and pulls its joints with the force ``f_t`` along ``moments[t]`` (the generalized force
+    ``moments^T f``, ``moments[t]`` the derivative of ``L_t`` in the velocities):
+
+    ``f_t = k_t (s_lo - L_t)`` below the spring's rest band ``[s_lo, s_hi]``
+    (``spring_length[t]``), ``k_t (s_hi - L_t)`` above it, 0 within it (a spring about one length
+    where ``s_lo = s_hi``), minus ``d_t dL_t/dt``.
+
+    Both are explicit in the step, as in MuJoCo's Euler integrator (which is implicit in the
+    joints' own damping only): a tendon stiff or damped enough for its joints' inertia makes
+    the step unstable, as there.
+
+    Attributes:
+        lengths: ``(T, nq)``, each length's coefficients on the coordinates.
+        moments: ``(T, nv)``, the same on the velocities.
+        offsets: ``(T,)``, the lengths at ``q = 0`` (m or rad).
+        stiffness: ``(T,)``, ``>= 0``.
+        spring_length: ``(T, 2)``, the rest band, lower <= upper.
+        damping: ``(T,)``, ``>= 0``.
+    """
+
+    lengths: Array
+    moments: Array
+    offsets: Array
+    stiffness: Array
+    spring_length: Array
+    damping: Array
+
+    def __check_init__(self):
+        count = jnp.shape(self.offsets)[0] if jnp.ndim(self.offsets) == 1 else -1
+        for name, shape in (("lengths", 2), ("moments", 2), ("offsets", 1), ("stiffness", 1), ("damping", 1)):
+            value = getattr(self, name)
+            if jnp.ndim(value) != shape or jnp.shape(value)[0] != count:
+                raise ValueError(f"Tendons.{name} must have {shape} dimension(s) and one row per tendon, got shape {jnp.shape(value)}")
+        if jnp.shape(self.spring_length) != (count, 2):
+            raise ValueError(f"Tendons.spring_length must have shape ({count}, 2), got {jnp.shape(self.spring_length)}")
+        for name in ("lengths", "moments", "offsets", "stiffness", "spring_length", "damping"):
+            value = getattr(self, name)
+            if not _checks.is_traced(value) and not np.all(np.isfinite(np.asarray(value))):
+                raise ValueError(f"Tendons.{name} must be finite")
+        for name in ("stiffness", "damping"):
+            value = getattr(self, name)
+            if not _checks.is_traced(value) and np.any(np.asarray(value) < 0):
+                raise ValueError(f"Tendons.{name} must be >= 0, got {np.asarray(value)}")
+        band = self.spring_length
+        if not _checks.is_traced(band) and np.any(np.asarray(band)[:, 0] > np.asarray(band)[:, 1]):
+            raise ValueError(f"Tendons.spring_length must hold lower <= upper, got {np.asarray(band)}")
+
+
 class Geometry(eqx.Module):
     """What a system's bodies touch (:attr:`RigidBodySystem.geometry`): contact spheres of the
     kinematic tree against the world's half-spaces, and pairs of collision shapes.
@@ -662,6 +714,8 @@ class Joints(eqx.Module):
             contacts (hard contact only); ``None``: none.
         springs: linear springs on joints (:class:`JointSprings`), explicit forces of
             the free motion; ``None``: none. See :meth:`RigidBodySystem.with_joint_springs`.
+        tendons: springs and dampers along fixed tendons (:class:`Tendons`), explicit
+            forces of the free motion; ``None``: none.
     """
 
     damping: Array | None = None
@@ -669,13 +723,14 @@ class Joints(eqx.Module):
     friction: JointFriction | None = None
     couplings: JointCoupling | None = None
     springs: JointSprings | None = None
+    tendons: Tendons | None = None
 
     def __check_init__(self):
         if self.damping is not None and not _checks.is_traced(self.damping) and np.any(np.asarray(self.damping) < 0):
             raise ValueError("joints.damping must be non-negative")
         for name, value, kind in (
             ("friction", self.friction, JointFriction), ("couplings", self.couplings, JointCoupling),
-            ("springs", self.springs, JointSprings),
+            ("springs", self.springs, JointSprings), ("tendons", self.tendons, Tendons),
         ):
             if value is not None and not isinstance(value, kind):
                 raise ValueError(f"joints.{name} must be a {kind.__name__} or None, got {value!r}")
@@ -776,6 +831,13 @@ class RigidBodySystem(eqx.Module):
                     f"joints.springs.reference must have shape (nq,) = ({model.nq},), got "
                     f"{jnp.shape(joints.springs.reference)}"
                 )
+        if joints.tendons is not None:
+            for name, width in (("lengths", model.nq), ("moments", model.nv)):
+                if jnp.shape(getattr(joints.tendons, name))[1] != width:
+                    raise ValueError(
+                        f"joints.tendons.{name} must have shape (T, {width}) for this model, got "
+                        f"{jnp.shape(getattr(joints.tendons, name))}"
+                    )
 
     # -- options ------------------------------------------------------------------------
 
@@ -879,6 +941,17 @@ class RigidBodySystem(eqx.Module):
         """
         return self._with_joints(couplings=couplings)
 
+    def with_tendons(self, tendons: Tendons | None) -> "RigidBodySystem":
+        """This system with the springs and dampers along fixed tendons ``tendons``
+        (:attr:`Joints.tendons`; ``None``: none), e.g. a loaded model's
+        :attr:`~rsmooth.sim.MujocoModel.tendons`.
+
+        Raises:
+            ValueError: if ``tendons`` does not fit the model (its ``(T, nq)`` lengths and
+                ``(T, nv)`` moments).
+        """
+        return self._with_joints(tendons=tendons)
+
     def with_joint_springs(self, stiffness: ArrayLike | None, reference: ArrayLike | None = None) -> "RigidBodySystem":
         """This system with linear springs on its joints (:attr:`Joints.springs`).
 
@@ -956,20 +1029,50 @@ class RigidBodySystem(eqx.Module):
         return np.concatenate(dofs), jnp.concatenate(stiffnesses), jnp.concatenate(displacements)
 
     def spring_forces(self, q: Array) -> Array:
-        """The generalized forces ``(nv,)`` of :attr:`Joints.springs` at ``q`` (zeros without)."""
+        """The generalized forces ``(nv,)`` of :attr:`Joints.springs` and of the tendons'
+        springs (:attr:`Joints.tendons`) at ``q`` (zeros without)."""
         forces = jnp.zeros(self.model.nv, q.dtype)
-        if self.joints.springs is None:
+        if self.joints.springs is not None:
+            dofs, stiffness, displacement = self._spring_displacements(q)
+            forces = forces.at[dofs].set(-stiffness * displacement)
+        if self.joints.tendons is not None:
+            tendons = self.joints.tendons
+            forces = forces - self._tendon_stretch(q) * tendons.stiffness.astype(q.dtype) @ tendons.moments.astype(q.dtype)
+        return forces
+
+    def passive_forces(self, q: Array, v: Array) -> Array:
+        """The explicit passive forces ``(nv,)`` of a step from ``(q, v)``: :meth:`spring_forces`
+        and the tendons' damping, ``-moments^T d (moments v)`` (:attr:`Joints.tendons`)."""
+        forces = self.spring_forces(q)
+        if self.joints.tendons is None:
             return forces
-        dofs, stiffness, displacement = self._spring_displacements(q)
-        return forces.at[dofs].set(-stiffness * displacement)
+        moments = self.joints.tendons.moments.astype(q.dtype)
+        return forces - (self.joints.tendons.damping.astype(q.dtype) * (moments @ v)) @ moments
+
+    def tendon_lengths(self, q: Array) -> Array:
+        """The lengths ``(T,)`` of :attr:`Joints.tendons` at ``q`` (empty without)."""
+        if self.joints.tendons is None:
+            return jnp.zeros(0, q.dtype)
+        tendons = self.joints.tendons
+        return tendons.lengths.astype(q.dtype) @ q + tendons.offsets.astype(q.dtype)
+
+    def _tendon_stretch(self, q: Array) -> Array:
+        """How far each tendon's length is beyond its spring's rest band ``(T,)`` (negative
+        below it, 0 within it)."""
+        length, band = self.tendon_lengths(q), self.joints.tendons.spring_length.astype(q.dtype)
+        return length - jnp.clip(length, band[:, 0], band[:, 1])
 
     def spring_energy(self, q: Array) -> Array:
-        """The potential energy ``sum k |displacement|^2 / 2`` of :attr:`Joints.springs` at ``q``
-        (zero without)."""
-        if self.joints.springs is None:
-            return jnp.zeros((), q.dtype)
-        _, stiffness, displacement = self._spring_displacements(q)
-        return 0.5 * jnp.sum(stiffness * displacement * displacement)
+        """The potential energy ``sum k |displacement|^2 / 2`` of :attr:`Joints.springs` and of
+        the tendons' springs (their stretch beyond the rest band) at ``q`` (zero without)."""
+        energy = jnp.zeros((), q.dtype)
+        if self.joints.springs is not None:
+            _, stiffness, displacement = self._spring_displacements(q)
+            energy = energy + 0.5 * jnp.sum(stiffness * displacement * displacement)
+        if self.joints.tendons is not None:
+            stretch = self._tendon_stretch(q)
+            energy = energy + 0.5 * jnp.sum(self.joints.tendons.stiffness.astype(q.dtype) * stretch * stretch)
+        return energy
 
     def joint_rows(self, q: Array) -> tuple[Array, Array, Array]:
         """The joints' box rows of the contact problem at ``q``: :attr:`Joints.friction`'s, then
@@ -1739,7 +1842,7 @@ def _step_residuals(update: _VelocityUpdate):
             - removed
             + model.armature * acceleration
             + system.damping() * v_next  # implicit damping: dE/dv+ = M + h D, the factored W
-            - system.spring_forces(q)  # explicit springs: at the step's start
+            - system.passive_forces(q, v)  # explicit springs and tendon dampers: at the step's start
         )
         tau, _ = system.generalized_forces(q, u, kinematics)
         solved_distance, mu = distance, system.contact_friction()

@@ -1,8 +1,10 @@
 """Fixed tendons of MuJoCo models: motors on a tendon drive several dofs with one input (the
-system's moment arms), an equality of one tendon couples its joints, and what rsmooth does not
-model of tendons is refused by name."""
+system's moment arms), an equality of one tendon couples its joints, springs and dampers pull
+along tendons as in MuJoCo's Euler integrator, and what rsmooth does not model of tendons is
+refused by name."""
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
@@ -167,8 +169,6 @@ FIXED = '<fixed name="t" {}><joint joint="j0" coef="1"/><joint joint="j1" coef="
     "text, message",
     [
         (_tendon_model('<spatial name="t"><site site="s0"/><site site="s1"/></spatial>'), "tendon 't'.*spatial"),
-        (_tendon_model(FIXED.format('stiffness="10"')), "tendon 't'.*spring"),
-        (_tendon_model(FIXED.format('damping="1"')), "tendon 't'.*damping"),
         (_tendon_model(FIXED.format('frictionloss="1"')), "tendon 't'.*dry friction"),
         (_tendon_model(FIXED.format('limited="true" range="-1 1"')), "tendon 't'.*length limits"),
         (_tendon_model(FIXED.format('armature="0.1"')), "tendon 't'.*armature"),
@@ -208,3 +208,49 @@ def test_moment_arms_of_the_wrong_shape_are_refused():
     system = sim.scene(GRIPPER)
     with pytest.raises(ValueError, match=r"actuation moments must have shape \(nu, nv\) = \(1, 2\)"):
         system.__class__(**{**vars(system), "actuation": sim.Actuation("moments", jnp.ones(1), moments=jnp.ones((1, 3)))})
+
+
+# The arm above with springs and dampers on its tendons: one about a rest band (no force while
+# its length is within it), one about a single length.
+SPRUNG_ARM = ARM.replace(
+    '<fixed name="pair">', '<fixed name="pair" stiffness="4" springlength="0.05 0.15" damping="0.3">'
+).replace('<fixed name="mixed">', '<fixed name="mixed" stiffness="2.5" springlength="0.1" damping="0.05">')
+
+
+def test_tendon_springs_and_dampers_step_as_mujocos_euler_integrator(mujoco_and_rsmooth_trajectories):
+    # From a swinging start, no input: the springs pull through their bands, the dampers
+    # (explicit in MuJoCo's Euler integrator, unlike a joint's own damping) slow the arm.
+    qvel = np.array([1.5, -2.0, 0.5, 0.3])
+    system, loaded, xs, expected = mujoco_and_rsmooth_trajectories(SPRUNG_ARM, None, qvel, 200)
+    tendons = system.joints.tendons
+    np.testing.assert_allclose(tendons.spring_length, [[0.05, 0.15], [0.1, 0.1]])
+    q = np.asarray(xs)[1:, :4] + np.asarray(loaded.qpos0)
+    np.testing.assert_allclose(q, expected, rtol=0, atol=1e-10)
+    # the lengths are MuJoCo's ten_length, and the first tendon crossed its band
+    m = mujoco.MjModel.from_xml_string(SPRUNG_ARM)
+    d = mujoco.MjData(m)
+    lengths = []
+    for x in np.asarray(xs)[::20]:
+        d.qpos[:] = x[:4] + np.asarray(loaded.qpos0)
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_tendon(m, d)
+        np.testing.assert_allclose(system.tendon_lengths(jnp.asarray(x[:4])), d.ten_length, rtol=0, atol=1e-14)
+        lengths.append(d.ten_length[0])
+    assert min(lengths) < 0.05 or max(lengths) > 0.15
+    # the springs' forces are minus the gradient of their energy (zero within the band)
+    for x in np.asarray(xs)[::40]:
+        q_ = jnp.asarray(x[:4])
+        np.testing.assert_allclose(system.spring_forces(q_), -jax.grad(system.spring_energy)(q_), rtol=0, atol=1e-12)
+    within = jnp.zeros(4).at[0].set(0.2)  # pair tendon at 0.1 + 0.5 qpos0_h0: inside its band
+    assert float(system._tendon_stretch(within)[0]) == 0.0
+
+
+def test_the_step_derivative_through_tendon_springs_and_dampers_matches_finite_differences():
+    system = sim.scene(SPRUNG_ARM)
+    x = jnp.array([0.3, -0.4, 0.2, 0.05, 1.0, -0.5, 0.8, 0.2])
+    u = jnp.zeros(system.nu)
+    _, fx, _ = eqx.filter_jit(lambda s, x_, u_: s.step_and_jacobians(x_, u_))(system, x, u)
+    step = eqx.filter_jit(lambda s, x_, u_: s.step(x_, u_))
+    eps = 1e-6
+    columns = [(step(system, x + eps * e, u) - step(system, x - eps * e, u)) / (2 * eps) for e in jnp.eye(8)]
+    np.testing.assert_allclose(fx, jnp.stack(columns, axis=1), rtol=0, atol=1e-7)
