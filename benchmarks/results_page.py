@@ -882,7 +882,8 @@ def startup_section(record: dict) -> list[str]:
     lines.append(
         "Each command in a fresh process, as a user starts it: cold with an empty persistent compilation cache, warm "
         f"with the cache the cold run filled (median of {results.get('repeats', '?')}). Trace, lower, compile and cache "
-        "read are JAX's own measurements inside the process; the rest of the wall time is Python's start, imports, "
+        "read are JAX's own measurements inside the process (on a warm run, compile is XLA loading the executables "
+        "read from the cache: every program is cached); the rest of the wall time is Python's start, imports, "
         "running the programs and writing outputs."
     )
     lines.append("")

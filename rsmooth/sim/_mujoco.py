@@ -153,8 +153,8 @@ class MujocoModel(eqx.Module):
         actuator_tendons: the tendon each actuator drives, ``-1`` for a motor on a joint.
         tendon_names: name of every tendon (all fixed).
         tendon_moments: ``(ntendon, nv)``, each tendon's coefficients on the dofs of its
-            joints: its length is ``tendon_moments @ qpos`` over hinges and slides, a force
-            ``f`` along it is the generalized force ``f tendon_moments[t]``.
+            joints (the derivative of its length in the velocities): a force ``f`` along tendon
+            ``t`` is the generalized force ``f tendon_moments[t]``.
         actuator_gear: ``(nu,)``, transmission ratio (generalized force per unit actuator force).
         actuator_gain: ``(nu,)``, actuator force per unit control (``gainprm[0]``).
         actuator_ctrl_range: ``(nu, 2)``, control range, ``[-inf, inf]`` where unlimited.
@@ -535,11 +535,11 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
                 f"MuJoCo model: geom {geom_names[g]!r} is a colliding {kind}, which rsmooth.sim does not support "
                 f"(converted: {', '.join(GEOM_TYPES)}; a {kind} with contype = conaffinity = 0 is kept as visual)"
             )
-    _check_tendons(mj, m, joint_names)
+    _check_tendons(mj, m)
     _check_actuators(mj, m, joint_names)
 
 
-def _check_tendons(mj: Any, m: Any, joint_names: tuple[str, ...]) -> None:
+def _check_tendons(mj: Any, m: Any) -> None:
     """Refuses spatial tendons and what rsmooth does not model of fixed ones (see the module's
     description); tendon equalities are checked where they are converted
     (:func:`_tendon_couplings`)."""
@@ -570,13 +570,15 @@ def _check_tendons(mj: Any, m: Any, joint_names: tuple[str, ...]) -> None:
             raise ValueError(f"MuJoCo model: tendon {names[t]!r} is not supported: {problem} ({supported})")
 
 
-def _tendon_moments(m: Any) -> np.ndarray:
+def _tendon_moments(m: Any, positions: bool = False) -> np.ndarray:
     """``(ntendon, nv)``: the fixed tendons' coefficients on the dofs of their joints, the
-    derivative of each length ``sum_i c_i qpos_i`` (MuJoCo's ``ten_J``, constant)."""
-    moments = np.zeros((m.ntendon, m.nv))
+    derivative of each length ``sum_i c_i qpos_i`` (MuJoCo's ``ten_J``, constant); with
+    ``positions``, ``(ntendon, nq)``, the coefficients on ``qpos``."""
+    address = m.jnt_qposadr if positions else m.jnt_dofadr
+    moments = np.zeros((m.ntendon, m.nq if positions else m.nv))
     for t in range(m.ntendon):
         for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]):
-            moments[t, m.jnt_dofadr[m.wrap_objid[w]]] += m.wrap_prm[w]
+            moments[t, address[m.wrap_objid[w]]] += m.wrap_prm[w]
     return moments
 
 
@@ -588,10 +590,7 @@ def _tendons(mj: Any, m: Any) -> Tendons | None:
     damping = np.zeros(m.ntendon) if _disabled(mj, m, "DAMPER") else np.asarray(m.tendon_damping, dtype=np.float64)
     if not (np.any(stiffness != 0) or np.any(damping != 0)):
         return None
-    lengths = np.zeros((m.ntendon, m.nq))
-    for t in range(m.ntendon):
-        for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]):
-            lengths[t, m.jnt_qposadr[m.wrap_objid[w]]] += m.wrap_prm[w]
+    lengths = _tendon_moments(m, positions=True)
     return Tendons(
         lengths=_array(lengths),
         moments=_array(_tendon_moments(m)).reshape(m.ntendon, m.nv),
@@ -971,8 +970,8 @@ def _tendon_couplings(mj: Any, m: Any) -> list[tuple[int, int, np.ndarray]]:
     """The active equalities of one fixed tendon as joint couplings ``(joint, other,
     coefficients)`` (rsmooth joints). MuJoCo's equation ``L - L0 = c_0``, ``L0`` the length at
     ``qpos0``, is ``a q_a + b q_b = c_0`` in rsmooth's coordinates (MuJoCo's less ``qpos0``):
-    ``q_a = c_0 / a - (b / a) q_b`` (``b = 0``, other 0, for a tendon on one joint); manipulator
-    grippers hold their two fingers together so. Equalities between two tendons, and of a tendon
+    ``q_a = c_0 / a - (b / a) q_b`` (``b = 0``, other 0, for a tendon on one joint); grippers
+    hold their two fingers together so (dm_control's manipulator). Equalities between two tendons, and of a tendon
     on more than two joints, are refused by name."""
     couplings = []
     names, tendon_names = _names(m, "equality", m.neq), _names(m, "tendon", m.ntendon)

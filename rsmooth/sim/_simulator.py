@@ -744,7 +744,8 @@ class RigidBodySystem(eqx.Module):
     :func:`~rsmooth.sim.solo12`, :func:`~rsmooth.sim.bodies`, :func:`~rsmooth.sim.scene` (or
     directly, for a new robot); the ``with_*`` methods change one part (:meth:`with_options`,
     :meth:`with_joint_limits`, :meth:`with_joint_friction`, :meth:`with_joint_springs`,
-    :meth:`with_contact_budget`, :meth:`with_gravity_compensation`); :meth:`initial_state` is
+    :meth:`with_joint_couplings`, :meth:`with_tendons`, :meth:`with_contact_budget`,
+    :meth:`with_gravity_compensation`); :meth:`initial_state` is
     the state each factory defines as the start.
 
     Attributes:
@@ -1037,7 +1038,7 @@ class RigidBodySystem(eqx.Module):
             forces = forces.at[dofs].set(-stiffness * displacement)
         if self.joints.tendons is not None:
             tendons = self.joints.tendons
-            forces = forces - self._tendon_stretch(q) * tendons.stiffness.astype(q.dtype) @ tendons.moments.astype(q.dtype)
+            forces = forces - (self._tendon_stretch(q) * tendons.stiffness.astype(q.dtype)) @ tendons.moments.astype(q.dtype)
         return forces
 
     def passive_forces(self, q: Array, v: Array) -> Array:
