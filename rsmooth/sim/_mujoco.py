@@ -11,8 +11,8 @@ else silently. Joint equalities (a URDF ``<mimic>``) are converted
 Fixed tendons (lengths ``sum_i c_i qpos_i`` over hinges and slides) are converted for what
 drives or constrains them: motors on a tendon (:attr:`MujocoModel.tendon_moments`, the input's
 moment arms), equalities of one tendon on at most two joints (joint couplings) and the
-tendon's linear spring and damper (:attr:`MujocoModel.tendons`); a tendon's friction, limits
-or armature, spatial tendons and equalities between two tendons are refused by name.
+tendon's linear spring, damper and dry friction (:attr:`MujocoModel.tendons`); a tendon's
+limits or armature, spatial tendons and equalities between two tendons are refused by name.
 
 Joint mapping. Every MuJoCo joint becomes one rsmooth joint, in MuJoCo's order, so rsmooth
 joint ``j + 1`` is MuJoCo joint ``j`` and ``q``/``v`` have the layout of ``qpos``/``qvel``:
@@ -105,8 +105,9 @@ class MujocoModel(eqx.Module):
             ``polycoef``), or ``None``; inactive ones (``active="false"``) are left out, and all
             where the ``equality`` or ``constraint`` flag is disabled. An equality of one
             fixed tendon on two joints is a coupling of one joint to the other.
-        tendons: the springs and dampers of the fixed tendons (:class:`~rsmooth.sim.Tendons`;
-            the ``spring`` and ``damper`` flags honoured), or ``None`` where none has either.
+        tendons: the springs, dampers and dry friction of the fixed tendons
+            (:class:`~rsmooth.sim.Tendons`; the ``spring``, ``damper`` and ``frictionloss`` flags
+            honoured), or ``None`` where none has any.
         timestep: ``opt.timestep``, in seconds.
         limits_enforced: whether MuJoCo enforces the joints' position limits (``False`` where
             its ``limit`` or ``constraint`` flag is disabled; the limits stay in ``model``).
@@ -545,9 +546,9 @@ def _check_tendons(mj: Any, m: Any) -> None:
     (:func:`_tendon_couplings`)."""
     names = _names(m, "tendon", m.ntendon)
     limits_off = _disabled(mj, m, "LIMIT", "CONSTRAINT")
-    friction_off = _disabled(mj, m, "FRICTIONLOSS", "CONSTRAINT")
     supported = (
-        "supported: fixed tendons with linear springs and dampers, driven by motors or held by an equality of one tendon"
+        "supported: fixed tendons with linear springs, dampers and dry friction, driven by motors or held by an "
+        "equality of one tendon"
     )
     for t in range(m.ntendon):
         wraps = range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t])
@@ -558,8 +559,6 @@ def _check_tendons(mj: Any, m: Any) -> None:
             problem = "it has a nonlinear spring (stiffnesspoly)"
         elif np.any(m.tendon_dampingpoly[t] != 0):
             problem = "it has nonlinear damping (dampingpoly)"
-        elif m.tendon_frictionloss[t] != 0 and not friction_off:
-            problem = f"it has dry friction (frictionloss {m.tendon_frictionloss[t]:g})"
         elif m.tendon_limited[t] and not limits_off:
             problem = f"it has length limits {m.tendon_range[t].tolist()}"
         elif m.tendon_armature[t] != 0:
@@ -583,12 +582,14 @@ def _tendon_moments(m: Any, positions: bool = False) -> np.ndarray:
 
 
 def _tendons(mj: Any, m: Any) -> Tendons | None:
-    """The springs and dampers of the fixed tendons (``None`` where none has either, or both
-    are disabled): lengths in rsmooth's coordinates (MuJoCo's ``qpos`` less ``qpos0`` on hinges
-    and slides), so ``L = lengths q + offsets`` is MuJoCo's ``ten_length``."""
+    """The springs, dampers and dry friction of the fixed tendons (``None`` where none has any,
+    or they are disabled): lengths in rsmooth's coordinates (MuJoCo's ``qpos`` less ``qpos0`` on
+    hinges and slides), so ``L = lengths q + offsets`` is MuJoCo's ``ten_length``."""
     stiffness = np.zeros(m.ntendon) if _disabled(mj, m, "SPRING") else np.asarray(m.tendon_stiffness, dtype=np.float64)
     damping = np.zeros(m.ntendon) if _disabled(mj, m, "DAMPER") else np.asarray(m.tendon_damping, dtype=np.float64)
-    if not (np.any(stiffness != 0) or np.any(damping != 0)):
+    friction_off = _disabled(mj, m, "FRICTIONLOSS", "CONSTRAINT")
+    frictionloss = np.zeros(m.ntendon) if friction_off else np.asarray(m.tendon_frictionloss, dtype=np.float64)
+    if not (np.any(stiffness != 0) or np.any(damping != 0) or np.any(frictionloss != 0)):
         return None
     lengths = _tendon_moments(m, positions=True)
     return Tendons(
@@ -598,6 +599,8 @@ def _tendons(mj: Any, m: Any) -> Tendons | None:
         stiffness=_array(stiffness),
         spring_length=_array(m.tendon_lengthspring).reshape(m.ntendon, 2),
         damping=_array(damping),
+        frictionloss=_array(frictionloss),
+        frictional=tuple(int(t) for t in np.flatnonzero(frictionloss)),
     )
 
 
@@ -660,7 +663,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
             names the element and what is supported): a ball joint's range beyond pi, a free joint's
             spring, nonlinear springs (``stiffnesspoly``),
             frictionloss on a free joint's linear axes, nonlinear damping, spatial tendons and a
-            fixed tendon's nonlinear spring or damping, friction, limits or armature, equality constraints
+            fixed tendon's nonlinear spring or damping, limits or armature, equality constraints
             other than joint couplings and equalities of one fixed tendon on at most two joints,
             flex, skins, plugins, mocap bodies, gravity compensation, fluid forces, colliding
             height fields or SDFs, actuators other than direct motors on a hinge, a slide or a

@@ -136,8 +136,8 @@ class StepInfo(eqx.Module):
             the collision although their bounding volumes were within their margin (int,
             ``()``; :meth:`RigidBodySystem.skipped_pairs`); 0 without the limit.
         joint_impulse: the impulses of the joints' box rows, ``(m,)`` in the order of
-            :meth:`RigidBodySystem.joint_rows` (dry friction's dofs, then the couplings; N m s
-            or N s); empty without either.
+            :meth:`RigidBodySystem.joint_rows` (dry friction's dofs, then the couplings, then the
+            tendons' dry friction; N m s or N s); empty without any.
     """
 
     distance: Array
@@ -516,8 +516,8 @@ class JointSprings(eqx.Module):
 
 
 class Tendons(eqx.Module):
-    """Springs and dampers along fixed tendons (MuJoCo's tendon ``stiffness``,
-    ``springlength`` and ``damping``): tendon ``t`` has the length
+    """Springs, dampers and dry friction along fixed tendons (MuJoCo's tendon ``stiffness``,
+    ``springlength``, ``damping`` and ``frictionloss``): tendon ``t`` has the length
     ``L_t = lengths[t] . q + offsets[t]`` (linear in the coordinates of its hinges and slides)
     and pulls its joints with the force ``f_t`` along ``moments[t]`` (the generalized force
     ``moments^T f``, ``moments[t]`` the derivative of ``L_t`` in the velocities):
@@ -528,7 +528,10 @@ class Tendons(eqx.Module):
 
     Both are explicit in the step, as in MuJoCo's Euler integrator (which is implicit in the
     joints' own damping only): a tendon stiff or damped enough for its joints' inertia makes
-    the step unstable, as there.
+    the step unstable, as there. The dry friction of the tendons ``frictional`` is a box row
+    of the contact problem, as a joint's (:class:`JointFriction`): the tendon does not slide
+    (``dL/dt = 0`` at the step's end) while the force along it stays within ``frictionloss``
+    (hard contact only; MuJoCo's friction loss is soft).
 
     Attributes:
         lengths: ``(T, nq)``, each length's coefficients on the coordinates.
@@ -537,6 +540,9 @@ class Tendons(eqx.Module):
         stiffness: ``(T,)``, ``>= 0``.
         spring_length: ``(T, 2)``, the rest band, lower <= upper.
         damping: ``(T,)``, ``>= 0``.
+        frictionloss: ``(T,)``, the dry friction force (N or N m along the tendon), ``>= 0``;
+            read for the tendons ``frictional`` only.
+        frictional: the tendons with dry friction (static, distinct indices).
     """
 
     lengths: Array
@@ -545,20 +551,27 @@ class Tendons(eqx.Module):
     stiffness: Array
     spring_length: Array
     damping: Array
+    frictionloss: Array | None = None
+    frictional: tuple[int, ...] = eqx.field(static=True, default=())
 
     def __check_init__(self):
         count = jnp.shape(self.offsets)[0] if jnp.ndim(self.offsets) == 1 else -1
-        for name, shape in (("lengths", 2), ("moments", 2), ("offsets", 1), ("stiffness", 1), ("damping", 1)):
-            value = getattr(self, name)
+        if self.frictional and self.frictionloss is None:
+            raise ValueError("Tendons.frictional needs Tendons.frictionloss")
+        if len(set(self.frictional)) != len(self.frictional) or not all(0 <= t < count for t in self.frictional):
+            raise ValueError(f"Tendons.frictional must be distinct tendon indices in [0, {count}), got {self.frictional!r}")
+        checked = ("lengths", "moments", "offsets", "stiffness", "damping") + (() if self.frictionloss is None else ("frictionloss",))
+        for name in checked:
+            value, shape = getattr(self, name), 2 if name in ("lengths", "moments") else 1
             if jnp.ndim(value) != shape or jnp.shape(value)[0] != count:
                 raise ValueError(f"Tendons.{name} must have {shape} dimension(s) and one row per tendon, got shape {jnp.shape(value)}")
         if jnp.shape(self.spring_length) != (count, 2):
             raise ValueError(f"Tendons.spring_length must have shape ({count}, 2), got {jnp.shape(self.spring_length)}")
-        for name in ("lengths", "moments", "offsets", "stiffness", "spring_length", "damping"):
+        for name in checked + ("spring_length",):
             value = getattr(self, name)
             if not _checks.is_traced(value) and not np.all(np.isfinite(np.asarray(value))):
                 raise ValueError(f"Tendons.{name} must be finite")
-        for name in ("stiffness", "damping"):
+        for name in ("stiffness", "damping") + (() if self.frictionloss is None else ("frictionloss",)):
             value = getattr(self, name)
             if not _checks.is_traced(value) and np.any(np.asarray(value) < 0):
                 raise ValueError(f"Tendons.{name} must be >= 0, got {np.asarray(value)}")
@@ -715,7 +728,8 @@ class Joints(eqx.Module):
         springs: linear springs on joints (:class:`JointSprings`), explicit forces of
             the free motion; ``None``: none. See :meth:`RigidBodySystem.with_joint_springs`.
         tendons: springs and dampers along fixed tendons (:class:`Tendons`), explicit
-            forces of the free motion; ``None``: none.
+            forces of the free motion, and their dry friction, solved with the contacts (hard
+            contact only); ``None``: none.
     """
 
     damping: Array | None = None
@@ -806,7 +820,11 @@ class RigidBodySystem(eqx.Module):
         if joints.damping is not None and jnp.shape(joints.damping) != (model.nv,):
             raise ValueError(f"joints.damping must have shape ({model.nv},), got {jnp.shape(joints.damping)}")
         _limit_rows(model, joints.limits)  # raises on a bad entry
-        for name, present in (("limits", joints.limits), ("friction", joints.friction), ("couplings", joints.couplings)):
+        tendon_friction = joints.tendons is not None and bool(joints.tendons.frictional)
+        for name, present in (
+            ("limits", joints.limits), ("friction", joints.friction), ("couplings", joints.couplings),
+            ("tendons' friction", tendon_friction),
+        ):
             if present and not hard:
                 raise ValueError(f"joints.{name} are solved by the hard-contact NCP: use contact='hard'")
         if joints.friction is not None:
@@ -1077,10 +1095,11 @@ class RigidBodySystem(eqx.Module):
 
     def joint_rows(self, q: Array) -> tuple[Array, Array, Array]:
         """The joints' box rows of the contact problem at ``q``: :attr:`Joints.friction`'s, then
-        :attr:`Joints.couplings`', as ``(rows (m, nv), correction (m,), bounds (m,))``: the row
-        ``k`` constrains ``rows[k] v+ + correction[k]`` with the impulse bound ``bounds[k]``
-        (``effort h`` for friction, ``inf`` for a coupling, whose correction is ``baumgarte
-        e / h``); ``m = 0`` without either."""
+        :attr:`Joints.couplings`', then the dry friction of :attr:`Joints.tendons`, as ``(rows
+        (m, nv), correction (m,), bounds (m,))``: the row ``k`` constrains ``rows[k] v+ +
+        correction[k]`` with the impulse bound ``bounds[k]`` (``effort h`` for friction, along a
+        tendon its moments; ``inf`` for a coupling, whose correction is ``baumgarte e / h``);
+        ``m = 0`` without any."""
         dtype = q.dtype
         dofs = () if self.joints.friction is None else self.joints.friction.dofs
         friction = np.zeros((len(dofs), self.model.nv))
@@ -1094,6 +1113,11 @@ class RigidBodySystem(eqx.Module):
             speed = self.baumgarte * error / self.time_step
             correction.append(speed if limit == float("inf") else jnp.clip(speed, -limit, limit))
             bounds.append(jnp.full(error.shape[0], jnp.inf, dtype))
+        if self.joints.tendons is not None and self.joints.tendons.frictional:
+            frictional = np.asarray(self.joints.tendons.frictional, dtype=np.int64)
+            rows.append(self.joints.tendons.moments[frictional].astype(dtype))
+            correction.append(jnp.zeros(frictional.size, dtype))
+            bounds.append(self.time_step * self.joints.tendons.frictionloss[frictional].astype(dtype))
         return jnp.concatenate(rows), jnp.concatenate(correction), jnp.concatenate(bounds).astype(dtype)
 
     def coupling_errors(self, q: Array) -> Array:

@@ -140,7 +140,8 @@ class ContactSolution(eqx.Module):
         dropped: :attr:`StepInfo.dropped_contacts` (``()``, int).
         joint_impulse: ``(m,)`` the impulses of the joints' box rows: each dof's dry
             friction (:attr:`Joints.friction`, ``|.| <= effort h``), then each
-            coupling's (:attr:`Joints.couplings`).
+            coupling's (:attr:`Joints.couplings`), then each tendon's dry friction
+            (:attr:`Joints.tendons`).
     """
 
     velocity: Array

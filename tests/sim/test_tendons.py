@@ -169,7 +169,6 @@ FIXED = '<fixed name="t" {}><joint joint="j0" coef="1"/><joint joint="j1" coef="
     "text, message",
     [
         (_tendon_model('<spatial name="t"><site site="s0"/><site site="s1"/></spatial>'), "tendon 't'.*spatial"),
-        (_tendon_model(FIXED.format('frictionloss="1"')), "tendon 't'.*dry friction"),
         (_tendon_model(FIXED.format('limited="true" range="-1 1"')), "tendon 't'.*length limits"),
         (_tendon_model(FIXED.format('armature="0.1"')), "tendon 't'.*armature"),
         (
@@ -254,3 +253,38 @@ def test_the_step_derivative_through_tendon_springs_and_dampers_matches_finite_d
     eps = 1e-6
     columns = [(step(system, x + eps * e, u) - step(system, x - eps * e, u)) / (2 * eps) for e in jnp.eye(8)]
     np.testing.assert_allclose(fx, jnp.stack(columns, axis=1), rtol=0, atol=1e-7)
+
+
+# A 2 kg cart on a slide, pushed along it by a motor, with dry friction of 1 N along a tendon of
+# twice its coordinate: the tendon holds generalized forces up to 2 x 1 N.
+CART = """
+<mujoco>
+  <option timestep="0.01" gravity="0 0 -9.81"/>
+  <worldbody>
+    <body name="cart"><joint name="x" type="slide" axis="1 0 0"/>
+      <geom type="box" size="0.1 0.1 0.1" mass="2" contype="0" conaffinity="0"/></body>
+  </worldbody>
+  <tendon><fixed name="t" frictionloss="1"><joint joint="x" coef="2"/></fixed></tendon>
+  <actuator><motor name="push" joint="x"/></actuator>
+</mujoco>
+"""
+
+
+def test_a_tendons_dry_friction_holds_the_cart_below_its_force_and_slows_it_beyond():
+    system = sim.scene(CART)
+    assert system.joints.tendons.frictional == (0,)
+    np.testing.assert_allclose(system.joints.tendons.frictionloss, [1.0])
+    rollout = eqx.filter_jit(lambda s, x, us: s.rollout(x, us))
+    steps, h, mass = 50, 0.01, 2.0
+    x0 = system.initial_state()
+    # 1.5 N: held, the friction impulse along the tendon 1.5 h / 2 (within its bound h)
+    xs, infos = rollout(system, x0, jnp.full((steps, 1), 1.5))
+    np.testing.assert_allclose(np.asarray(xs), 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(infos.joint_impulse), -1.5 * h / 2, rtol=1e-9)
+    # 3 N: it slides, at (3 - 2 x 1) / 2 kg = 0.5 m/s^2, the impulse on its bound
+    xs, infos = rollout(system, x0, jnp.full((steps, 1), 3.0))
+    np.testing.assert_allclose(np.asarray(xs)[1:, 1], (3.0 - 2.0) / mass * h * np.arange(1, steps + 1), rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(infos.joint_impulse), -h, rtol=1e-9)
+    assert bool(jnp.all(infos.ncp.converged))
+    with pytest.raises(ValueError, match="tendons' friction are solved by the hard-contact NCP"):
+        system.with_options(contact=sim.SpringDamper(stiffness=1e4, damping=10.0, friction=0.5))
