@@ -431,7 +431,7 @@ class _Polytope(NamedTuple):
     edges: Array | None
     edge_directions: Array | None
     radius: Array
-    edge_normals: Array | None = None  # a mesh's: the two face normals at each edge (Gauss-map arcs)
+    edge_normals: Array | None = None  # the two face normals at each edge (Gauss-map arcs)
 
 
 def _box_faces() -> tuple[np.ndarray, np.ndarray]:
@@ -463,6 +463,15 @@ _BOX_EDGES = np.array(
         for v in (-1.0, 1.0)
     ]
 )
+# the outward normals of the two faces at each edge of _BOX_EDGES (u e_{axis+1} and v e_{axis+2})
+_BOX_EDGE_NORMALS = np.array(
+    [
+        [np.eye(3)[(axis + 1) % 3] * u, np.eye(3)[(axis + 2) % 3] * v]
+        for axis in range(3)
+        for u in (-1.0, 1.0)
+        for v in (-1.0, 1.0)
+    ]
+)
 
 
 # A cylinder against anything but a half-space is the prism of this many sides inscribed in
@@ -478,7 +487,8 @@ def _prism_template(sides: int):
     """A prism of unit radius and half-length inscribed in the cylinder ``x^2 + y^2 <= 1``,
     ``|z| <= 1``: vertices ``(2 n, 3)``, outward face normals ``(n + 2, 3)``, face polygons
     counter-clockwise about their normals, padded to ``n`` vertices ``(n + 2, n, 3)``, edges
-    ``(3 n, 2, 3)`` and the distinct edge directions ``(n / 2 + 1, 3)``."""
+    ``(3 n, 2, 3)``, the distinct edge directions ``(n / 2 + 1, 3)`` and the normals of the two
+    faces at each edge ``(3 n, 2, 3)``."""
     angles = 2.0 * np.pi * np.arange(sides) / sides
     rim = np.stack([np.cos(angles), np.sin(angles)], axis=1)
     top = np.concatenate([rim, np.ones((sides, 1))], axis=1)
@@ -496,7 +506,14 @@ def _prism_template(sides: int):
     chords = (top[following] - top)[: (sides + 1) // 2]  # the rest are parallel to these (even n)
     directions = np.concatenate([chords, [[0.0, 0.0, 1.0]]])
     directions[:-1] /= np.linalg.norm(directions[:-1], axis=1, keepdims=True)
-    return np.concatenate([top, bottom]), normals, polygons, edges, directions
+    # rim edge k borders a cap and side k (which spans rim vertices k and k + 1); vertical edge k
+    # borders sides k - 1 and k
+    caps = np.repeat(normals[:2], sides, axis=0)  # top rims, then bottom rims
+    edge_normals = np.concatenate(
+        [np.stack([caps, np.tile(side_normals, (2, 1))], axis=1),
+         np.stack([side_normals[np.roll(np.arange(sides), 1)], side_normals], axis=1)]
+    )
+    return np.concatenate([top, bottom]), normals, polygons, edges, directions, edge_normals
 
 
 _PRISM = _prism_template(_CYLINDER_SIDES)
@@ -521,11 +538,12 @@ def _polytope(shape, pose) -> _Polytope:
             edges,
             rotation.T,
             shape.core_radius,
+            jnp.asarray(_BOX_EDGE_NORMALS, dtype) @ rotation.T,
         )
     if isinstance(shape, Cylinder):
         dtype = shape.radius.dtype
         scale = jnp.stack([shape.radius, shape.radius, shape.half_length])[None, :]
-        vertices, normals, polygons, edges, directions = (jnp.asarray(a, dtype) for a in _PRISM)
+        vertices, normals, polygons, edges, directions, edge_normals = (jnp.asarray(a, dtype) for a in _PRISM)
         faces, size = polygons.shape[:2]
         return _Polytope(
             _transform(pose, vertices * scale),
@@ -534,6 +552,7 @@ def _polytope(shape, pose) -> _Polytope:
             _transform(pose, edges.reshape(-1, 3) * scale).reshape(edges.shape[0], 2, 3),
             directions @ rotation.T,
             shape.core_radius,
+            edge_normals @ rotation.T,
         )
     if isinstance(shape, ConvexMesh):
         faces, size = shape.face_polygons.shape[:2]
@@ -635,6 +654,16 @@ def _gap(core1: _Polytope, core2: _Polytope, axes: Array) -> Array:
     return jnp.min(core2.vertices @ axes.T, axis=0) - jnp.max(core1.vertices @ axes.T, axis=0)
 
 
+def _face_gaps(owner: _Polytope, other: _Polytope) -> Array:
+    """Separation of ``other``'s vertices from each face plane of ``owner`` along the face's
+    outward normal ``(F,)``: ``owner``'s own support along its face normal is the face's plane,
+    so only ``other``'s vertices are projected, ``O(F V_other)`` instead of the
+    ``O(F (V_owner + V_other))`` of :func:`_gap` (a robot's hull of thousands of faces and
+    vertices makes the difference)."""
+    offsets = jnp.sum(owner.face_normals * owner.face_polygons[:, 0], axis=-1)
+    return jnp.min(other.vertices @ owner.face_normals.T, axis=0) - offsets
+
+
 def _edge_axis(core1: _Polytope, core2: _Polytope) -> tuple[Array, Array]:
     """The largest separation over the axes normal to an edge direction of each core (both
     orientations), and its axis (pointing from 1 to 2): every vertex projected on every
@@ -695,18 +724,22 @@ def _polytope_pair(shape1, pose1, shape2, pose2, margin, count: int) -> Contacts
     # Faces: of shape 1 (outward normals) and of shape 2 (reversed outward normals).
     best_face_gap, face_of_1 = minus_infinity, jnp.asarray(True)
     if core1.face_normals is not None:
-        gaps1 = _gap(core1, core2, core1.face_normals)
+        gaps1 = _face_gaps(core1, core2)
         face1 = jnp.argmax(gaps1)
         best_face_gap = gaps1[face1]
     if core2.face_normals is not None:
-        gaps2 = _gap(core1, core2, -core2.face_normals)
+        gaps2 = _face_gaps(core2, core1)
         face2 = jnp.argmax(gaps2)
         face_of_1 = best_face_gap >= gaps2[face2]
         best_face_gap = jnp.maximum(best_face_gap, gaps2[face2])
-    # Edges: cross products of edge directions, both orientations.
+    # Edges: cross products of edge directions, both orientations; by the Gauss maps where a
+    # mesh is in the pair (its edge directions are many: every pair projected with every
+    # vertex would be a (V, M1 M2) array, gigabytes for a robot's hulls).
     has_edges = core1.edges is not None and core2.edges is not None
     if has_edges:
-        if core1.edge_normals is not None and core2.edge_normals is not None:
+        if core1.edge_normals is not None and core2.edge_normals is not None and (
+            isinstance(shape1, ConvexMesh) or isinstance(shape2, ConvexMesh)
+        ):
             edge_gap, edge_axis = _minkowski_edge_axis(core1, core2)
         else:
             edge_gap, edge_axis = _edge_axis(core1, core2)

@@ -484,33 +484,44 @@ def test_convex_mesh_loader(tmp_path):
 
 
 @jax.jit
-def _axes_of(mesh1, mesh2, pose1, pose2):
+def _axes_of(shape1, mesh2, pose1, pose2):
     from rsmooth.sim import _collision
 
-    core1, core2 = _collision._polytope(mesh1, pose1), _collision._polytope(mesh2, pose2)
-    faces = jnp.maximum(jnp.max(_collision._gap(core1, core2, core1.face_normals)),
-                        jnp.max(_collision._gap(core1, core2, -core2.face_normals)))
+    core1, core2 = _collision._polytope(shape1, pose1), _collision._polytope(mesh2, pose2)
+    every_face = jnp.concatenate([_collision._gap(core1, core2, core1.face_normals),
+                                  _collision._gap(core1, core2, -core2.face_normals)])
+    planes = jnp.concatenate([_collision._face_gaps(core1, core2), _collision._face_gaps(core2, core1)])
     every_gap, _ = _collision._edge_axis(core1, core2)
     pruned_gap, axis = _collision._minkowski_edge_axis(core1, core2)
-    return faces, every_gap, pruned_gap, _collision._gap(core1, core2, axis[None])[0]
+    return every_face, planes, every_gap, pruned_gap, _collision._gap(core1, core2, axis[None])[0]
 
 
-def test_gauss_map_pruning_keeps_the_deepest_axis_of_overlapping_meshes():
-    """Two meshes' separating-axis test tries only the edge pairs whose Gauss-map arcs cross:
-    on overlapping random hulls the best axis (faces and edge pairs) is every edge pair's
-    (all vertices projected on all direction pairs), and its gap is the vertices' along it."""
+@pytest.mark.parametrize("kind", ["mesh", "box", "cylinder"])
+def test_gauss_map_pruning_keeps_the_deepest_axis_against_a_mesh(kind):
+    """A separating-axis test with a mesh tries only the edge pairs whose Gauss-map arcs cross
+    (a box's and a cylinder's prism's edges carry their faces' normals too): on overlapping
+    random poses the best axis (faces and edge pairs) is every edge pair's (all vertices
+    projected on all direction pairs), and its gap is the vertices' along it. A face's gap is
+    taken from its own plane: the same as projecting both shapes' vertices."""
     from rsmooth.sim._scene import padded_mesh
     from rsmooth.sim._spatial import exp3
 
     rng = np.random.default_rng(7)
+
+    def random_mesh():  # padded to one shape (the same polytopes): one compiled program per kind
+        return padded_mesh(convex_mesh(rng.normal(size=(12, 3)) * rng.uniform(0.05, 0.3, size=3)), 64)
+
     pruned_edge_wins = 0
     for _ in range(60):
-        # padded to one shape (the same polytopes): one compiled program for every trial
-        meshes = [
-            padded_mesh(convex_mesh(rng.normal(size=(12, 3)) * rng.uniform(0.05, 0.3, size=3)), 64) for _ in range(2)
-        ]
+        shape1 = {
+            "mesh": random_mesh,
+            "box": lambda: Box(rng.uniform(0.03, 0.2, size=3)),
+            "cylinder": lambda: Cylinder(rng.uniform(0.03, 0.15), rng.uniform(0.03, 0.2)),
+        }[kind]()
         poses = [(exp3(jnp.asarray(rng.normal(size=3))), jnp.asarray(rng.normal(size=3) * scale)) for scale in (0.0, 0.08)]
-        faces, every_gap, pruned_gap, along_axis = (float(v) for v in _axes_of(*meshes, *poses))
+        every_face, planes, every_gap, pruned_gap, along_axis = (np.asarray(v) for v in _axes_of(shape1, random_mesh(), *poses))
+        np.testing.assert_allclose(planes, every_face, atol=1e-12)
+        faces, every_gap, pruned_gap = float(np.max(every_face)), float(every_gap), float(pruned_gap)
         if max(faces, every_gap) >= 0:
             continue  # separated: the distance is GJK's, not the axes'
         np.testing.assert_allclose(max(faces, pruned_gap), max(faces, every_gap), atol=1e-12)
