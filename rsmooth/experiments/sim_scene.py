@@ -31,7 +31,9 @@ from rsmooth.experiments import _protocol, _scene_render
 
 METRICS_DOC = """metrics.json keys: file (the scene simulated; 'built-in' for the default), steps,
 time_step (s), bodies (MuJoCo bodies, the world included), geom_pairs, candidate_contacts,
-max_penetration (deepest penetration over the run, m), energy_initial, energy_final (J),
+max_penetration (deepest penetration over the run, m), initial_penetration (the deepest at
+the start, the file's configuration: shapes that overlap there are pushed apart by the contact
+correction, which injects energy; m), energy_initial, energy_final (J),
 energy_change (final - initial, J), energy_max_gain (largest rise above the initial energy
 over the run, J: energy injected), contacts_active_mean, contacts_active_max (contacts with a
 normal impulse, per step), joint_limits (limit constraints enforced), initial_limit_violation
@@ -200,6 +202,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         "geom_pairs": len(system.geometry.geom_pairs),
         "candidate_contacts": system.num_contacts - limits,
         "max_penetration": float(max(0.0, -distances.min())) if distances.size else 0.0,
+        "initial_penetration": float(max(0.0, -distances[0].min())) if distances.size else 0.0,
         "joint_limits": limits,
         "initial_limit_violation": float(max(0.0, -limit_distances[0].min())) if limits else 0.0,
         "max_limit_violation": float(max(0.0, -limit_distances.min())) if limits else 0.0,
@@ -258,6 +261,8 @@ def summary(metrics: dict) -> dict:
         "energy change (J)": f"{metrics['energy_change']:.3e} (largest gain {metrics['energy_max_gain']:.2e})",
         "active contacts per step": f"{metrics['contacts_active_mean']:.1f} (max {metrics['contacts_active_max']})",
         "unconverged / diverged steps": f"{metrics['unconverged_steps']} / {metrics['diverged_steps']}",
+        **({"penetration at the start (m)": f"{metrics['initial_penetration']:.2e} (pushed apart: see "
+            "--max-correction-speed)"} if metrics.get("initial_penetration", 0.0) > 0 else {}),
         **({"beyond a joint limit at the start (rad or m)": f"{metrics['initial_limit_violation']:.3g}"}
            if metrics.get("initial_limit_violation", 0.0) > 0 else {}),
         **({"dofs held by joint friction per step": f"{metrics['joint_friction_held_mean']:.1f} of "

@@ -24,7 +24,7 @@ def test_dropped_ball_and_box_land_without_sinking(tmp_path, getkey):
     # floor-ball (1 contact), floor-box (4), ball-box (1)
     assert metrics["geom_pairs"] == 3 and metrics["candidate_contacts"] == 1 + 4 + 1
     assert metrics["contacts_active_max"] == 5  # the ball's point and the box's four corners
-    assert metrics["max_penetration"] < 1e-3
+    assert metrics["max_penetration"] < 1e-3 and metrics["initial_penetration"] == 0.0
     # falling 5 cm and landing inelastically loses potential energy, and gains none on the way
     assert metrics["energy_change"] < 0 and metrics["energy_max_gain"] < 1e-6
     assert metrics["unconverged_steps"] == 0 and metrics["diverged_steps"] == 0
@@ -99,3 +99,12 @@ def test_solo12_urdf_stands_on_the_floor_put_under_it(tmp_path, getkey):
     assert metrics["max_penetration"] < 1e-2
     assert metrics["unconverged_steps"] == 0 and metrics["diverged_steps"] == 0
     assert metrics["energy_max_gain"] < 1e-4
+
+
+def test_a_start_with_overlapping_shapes_reports_the_penetration(tmp_path, getkey):
+    # the ball 4 mm into the floor in the file's own configuration
+    scene = tmp_path / "sunk.xml"
+    scene.write_text(SCENE.replace('pos="0.3 0 0.1"', 'pos="0.3 0 0.046"'))
+    metrics = sim_scene.run(sim_scene.Config(file=str(scene), steps=2, frames=2), tmp_path / "out", getkey(), progress=False)
+    assert metrics["initial_penetration"] == pytest.approx(0.004, abs=1e-12)
+    assert sim_scene.summary(metrics)["penetration at the start (m)"].startswith("4.00e-03")
