@@ -979,6 +979,7 @@ def _tendon_couplings(mj: Any, m: Any) -> list[tuple[int, int, np.ndarray]]:
     couplings = []
     names, tendon_names = _names(m, "equality", m.neq), _names(m, "tendon", m.ntendon)
     moments = _tendon_moments(m)
+    joint_of_dof = {int(m.jnt_dofadr[j]): j for j in range(m.njnt)}
     for e in range(m.neq):
         if int(m.eq_type[e]) != int(mj.mjtEq.mjEQ_TENDON) or not m.eq_active0[e]:
             continue
@@ -995,7 +996,6 @@ def _tendon_couplings(mj: Any, m: Any) -> list[tuple[int, int, np.ndarray]]:
                 f"{where}: the tendon has nonzero coefficients on {len(dofs)} joints; rsmooth.sim supports an equality "
                 "of one fixed tendon on one or two joints"
             )
-        joint_of_dof = {int(m.jnt_dofadr[j]): j for j in range(m.njnt)}
         a = moments[tendon, dofs[0]]
         row = np.zeros(5)
         row[0] = m.eq_data[e, 0] / a

@@ -400,10 +400,9 @@ def _mode_equations(x: Array, direction: Array, mode: Array, G: Array, g: Array,
     n = mu.shape[0]
     dtype = G.dtype
     impulse = _cone_impulse(x, direction, mode, mu)
-    if 3 * n <= _UNROLLED_COLUMNS:
-        c = (sum_last(G * impulse.reshape(1, -1)) + g).reshape(n, 3)
-    else:
-        c = (G @ impulse.reshape(-1) + g).reshape(n, 3)
+    flat = impulse.reshape(-1)
+    product = sum_last(G * flat[None, :]) if 3 * n <= _UNROLLED_COLUMNS else G @ flat
+    c = (product + g).reshape(n, 3)
     D, R, own, own_values = _cone_blocks(x, direction, mode, mu, c)
     # Products over the short axes written out (rsmooth._unrolled: einsum's small batched
     # dot products are several times slower under vmap on CPU).
