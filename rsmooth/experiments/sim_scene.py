@@ -36,10 +36,11 @@ the start, the file's configuration: shapes that overlap there are pushed apart 
 correction, which injects energy; m), energy_initial, energy_final (J),
 energy_change (final - initial, J), energy_max_gain (largest rise above the initial energy
 over the run, J: energy injected), contacts_active_mean, contacts_active_max (contacts with a
-normal impulse, per step), joint_limits (limit constraints enforced), initial_limit_violation
-(deepest excursion beyond a joint limit at the start: the file's configuration; rad or m),
+normal impulse, per step), joint_limits (limit constraints enforced: the joints', then the
+tendons' length limits), initial_limit_violation
+(deepest excursion beyond a limit at the start: the file's configuration; rad or m),
 max_limit_violation (the deepest over the run, the start included), limits_active_max
-(limits holding a joint, per step), unconverged_steps, diverged_steps, max_contacts and
+(limits holding a joint or a tendon, per step), unconverged_steps, diverged_steps, max_contacts and
 max_limits (the contact budgets in effect; null: none), dropped_contact_steps (steps where a budget
 left out a closing contact or limit), max_pairs (the
 broad phase's pairs per group; null: all), skipped_pair_steps (steps where it left out a pair
@@ -162,7 +163,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         max_pairs=config.max_pairs,
         max_correction_speed=float("inf") if config.max_correction_speed is None else config.max_correction_speed,
     )
-    limits = len(system.joints.limits)  # the last candidate contacts (RigidBodySystem.contacts)
+    limits = system.num_limits  # the last candidate contacts (RigidBodySystem.contacts)
     # the floor scene() adds is the last pair's half-space (drawn where it is)
     floor_height = float(system.geometry.geom_pairs[-1].placement1[1][2]) if config.floor else 0.0
     bar = tqdm(total=2 + config.frames, desc="sim scene", disable=not progress)

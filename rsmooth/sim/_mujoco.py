@@ -11,8 +11,10 @@ else silently. Joint equalities (a URDF ``<mimic>``) are converted
 Fixed tendons (lengths ``sum_i c_i qpos_i`` over hinges and slides) are converted for what
 drives or constrains them: motors on a tendon (:attr:`MujocoModel.tendon_moments`, the input's
 moment arms), equalities of one tendon on at most two joints (joint couplings) and the
-tendon's linear spring, damper and dry friction (:attr:`MujocoModel.tendons`); a tendon's
-limits or armature, spatial tendons and equalities between two tendons are refused by name.
+tendon's linear spring, damper, dry friction and length limits (:attr:`MujocoModel.tendons`).
+Spatial tendons through sites (a polyline; no wrapping around geoms, no pulleys) are converted
+for their springs, dampers, dry friction and limits (a string); motors and equalities on them,
+a tendon's armature and equalities between two tendons are refused by name.
 
 Joint mapping. Every MuJoCo joint becomes one rsmooth joint, in MuJoCo's order, so rsmooth
 joint ``j + 1`` is MuJoCo joint ``j`` and ``q``/``v`` have the layout of ``qpos``/``qvel``:
@@ -105,9 +107,10 @@ class MujocoModel(eqx.Module):
             ``polycoef``), or ``None``; inactive ones (``active="false"``) are left out, and all
             where the ``equality`` or ``constraint`` flag is disabled. An equality of one
             fixed tendon on two joints is a coupling of one joint to the other.
-        tendons: the springs, dampers and dry friction of the fixed tendons
-            (:class:`~rsmooth.sim.Tendons`; the ``spring``, ``damper`` and ``frictionloss`` flags
-            honoured), or ``None`` where none has any.
+        tendons: the springs, dampers, dry friction and length limits of the tendons
+            (:class:`~rsmooth.sim.Tendons`, spatial ones through their sites' frames; the
+            ``spring``, ``damper``, ``frictionloss`` and ``limit`` flags honoured), or ``None``
+            where none has any.
         timestep: ``opt.timestep``, in seconds.
         limits_enforced: whether MuJoCo enforces the joints' position limits (``False`` where
             its ``limit`` or ``constraint`` flag is disabled; the limits stay in ``model``).
@@ -152,10 +155,12 @@ class MujocoModel(eqx.Module):
         actuator_dofs: the velocity index each actuator drives, ``-1`` for a motor on a
             tendon.
         actuator_tendons: the tendon each actuator drives, ``-1`` for a motor on a joint.
-        tendon_names: name of every tendon (all fixed).
-        tendon_moments: ``(ntendon, nv)``, each tendon's coefficients on the dofs of its
+        tendon_names: name of every tendon.
+        tendon_moments: ``(ntendon, nv)``, each fixed tendon's coefficients on the dofs of its
             joints (the derivative of its length in the velocities): a force ``f`` along tendon
-            ``t`` is the generalized force ``f tendon_moments[t]``.
+            ``t`` is the generalized force ``f tendon_moments[t]``; zero rows for spatial tendons
+            (their moments vary with the configuration:
+            :meth:`~rsmooth.sim.RigidBodySystem.tendon_moments`).
         actuator_gear: ``(nu,)``, transmission ratio (generalized force per unit actuator force).
         actuator_gain: ``(nu,)``, actuator force per unit control (``gainprm[0]``).
         actuator_ctrl_range: ``(nu, 2)``, control range, ``[-inf, inf]`` where unlimited.
@@ -541,26 +546,28 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
 
 
 def _check_tendons(mj: Any, m: Any) -> None:
-    """Refuses spatial tendons and what rsmooth does not model of fixed ones (see the module's
-    description); tendon equalities are checked where they are converted
-    (:func:`_tendon_couplings`)."""
+    """Refuses what rsmooth does not model of tendons (see the module's description); tendon
+    equalities are checked where they are converted (:func:`_tendon_couplings`), motors on
+    spatial tendons here."""
     names = _names(m, "tendon", m.ntendon)
-    limits_off = _disabled(mj, m, "LIMIT", "CONSTRAINT")
     supported = (
-        "supported: fixed tendons with linear springs, dampers and dry friction, driven by motors or held by an "
-        "equality of one tendon"
+        "supported: fixed tendons and spatial tendons through sites, with linear springs, dampers, dry friction and "
+        "length limits; motors and equalities of one tendon on fixed ones"
     )
+    driven = {int(m.actuator_trnid[a, 0]) for a in range(m.nu) if int(m.actuator_trntype[a]) == int(mj.mjtTrn.mjTRN_TENDON)}
     for t in range(m.ntendon):
-        wraps = range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t])
+        types = [int(m.wrap_type[w]) for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t])]
         problem = None
-        if any(int(m.wrap_type[w]) != int(mj.mjtWrap.mjWRAP_JOINT) for w in wraps):
-            problem = "it is a spatial tendon (its length follows sites and wrapping geoms)"
+        if int(mj.mjtWrap.mjWRAP_PULLEY) in types:
+            problem = "it is a spatial tendon with a pulley"
+        elif int(mj.mjtWrap.mjWRAP_SPHERE) in types or int(mj.mjtWrap.mjWRAP_CYLINDER) in types:
+            problem = "it is a spatial tendon that wraps around a geom"
+        elif _is_spatial(mj, m, t) and t in driven:
+            problem = "it is a spatial tendon driven by a motor (its moment arms vary with the configuration)"
         elif np.any(m.tendon_stiffnesspoly[t] != 0):
             problem = "it has a nonlinear spring (stiffnesspoly)"
         elif np.any(m.tendon_dampingpoly[t] != 0):
             problem = "it has nonlinear damping (dampingpoly)"
-        elif m.tendon_limited[t] and not limits_off:
-            problem = f"it has length limits {m.tendon_range[t].tolist()}"
         elif m.tendon_armature[t] != 0:
             problem = f"it has armature ({m.tendon_armature[t]:g})"
         elif m.tendon_actfrclimited[t]:
@@ -569,29 +576,49 @@ def _check_tendons(mj: Any, m: Any) -> None:
             raise ValueError(f"MuJoCo model: tendon {names[t]!r} is not supported: {problem} ({supported})")
 
 
+def _is_spatial(mj: Any, m: Any, t: int) -> bool:
+    """Whether tendon ``t`` is spatial (its path goes through sites), not fixed."""
+    return any(int(m.wrap_type[w]) != int(mj.mjtWrap.mjWRAP_JOINT) for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]))
+
+
 def _tendon_moments(m: Any, positions: bool = False) -> np.ndarray:
     """``(ntendon, nv)``: the fixed tendons' coefficients on the dofs of their joints, the
     derivative of each length ``sum_i c_i qpos_i`` (MuJoCo's ``ten_J``, constant); with
-    ``positions``, ``(ntendon, nq)``, the coefficients on ``qpos``."""
+    ``positions``, ``(ntendon, nq)``, the coefficients on ``qpos``. Zero rows for spatial
+    tendons."""
+    mj = _mujoco()
     address = m.jnt_qposadr if positions else m.jnt_dofadr
     moments = np.zeros((m.ntendon, m.nq if positions else m.nv))
     for t in range(m.ntendon):
+        if _is_spatial(mj, m, t):
+            continue
         for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]):
             moments[t, address[m.wrap_objid[w]]] += m.wrap_prm[w]
     return moments
 
 
 def _tendons(mj: Any, m: Any) -> Tendons | None:
-    """The springs, dampers and dry friction of the fixed tendons (``None`` where none has any,
-    or they are disabled): lengths in rsmooth's coordinates (MuJoCo's ``qpos`` less ``qpos0`` on
-    hinges and slides), so ``L = lengths q + offsets`` is MuJoCo's ``ten_length``."""
+    """The springs, dampers, dry friction and length limits of the tendons (``None`` where none
+    has any, or they are disabled): lengths in rsmooth's coordinates (MuJoCo's ``qpos`` less
+    ``qpos0`` on hinges and slides), so ``L = lengths q + offsets`` is MuJoCo's ``ten_length``
+    for a fixed tendon; a spatial tendon's path goes through its sites' frames. A spatial
+    tendon's lower limit at or below 0 is left out (its length cannot go below it)."""
     stiffness = np.zeros(m.ntendon) if _disabled(mj, m, "SPRING") else np.asarray(m.tendon_stiffness, dtype=np.float64)
     damping = np.zeros(m.ntendon) if _disabled(mj, m, "DAMPER") else np.asarray(m.tendon_damping, dtype=np.float64)
     friction_off = _disabled(mj, m, "FRICTIONLOSS", "CONSTRAINT")
     frictionloss = np.zeros(m.ntendon) if friction_off else np.asarray(m.tendon_frictionloss, dtype=np.float64)
-    if not (np.any(stiffness != 0) or np.any(damping != 0) or np.any(frictionloss != 0)):
+    limits = []
+    if not _disabled(mj, m, "LIMIT", "CONSTRAINT"):
+        for t in np.flatnonzero(m.tendon_limited):
+            lower, upper = m.tendon_range[t]
+            if not (_is_spatial(mj, m, t) and lower <= 0):
+                limits.append((int(t), 1))
+            limits.append((int(t), -1))
+    if not (np.any(stiffness != 0) or np.any(damping != 0) or np.any(frictionloss != 0) or limits):
         return None
     lengths = _tendon_moments(m, positions=True)
+    spatial = [t for t in range(m.ntendon) if _is_spatial(mj, m, t)]
+    first_site = m.nbody + m.njnt  # frames: bodies, joints, then sites (from_mujoco)
     return Tendons(
         lengths=_array(lengths),
         moments=_array(_tendon_moments(m)).reshape(m.ntendon, m.nv),
@@ -601,6 +628,13 @@ def _tendons(mj: Any, m: Any) -> Tendons | None:
         damping=_array(damping),
         frictionloss=_array(frictionloss),
         frictional=tuple(int(t) for t in np.flatnonzero(frictionloss)),
+        range=_array(m.tendon_range).reshape(m.ntendon, 2) if limits else None,
+        limits=tuple(limits),
+        spatial=tuple(spatial),
+        paths=tuple(
+            tuple(first_site + int(m.wrap_objid[w]) for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]))
+            for t in spatial
+        ),
     )
 
 
@@ -662,8 +696,9 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         ValueError: if the model uses a feature that rsmooth.sim does not model (the message
             names the element and what is supported): a ball joint's range beyond pi, a free joint's
             spring, nonlinear springs (``stiffnesspoly``),
-            frictionloss on a free joint's linear axes, nonlinear damping, spatial tendons and a
-            fixed tendon's nonlinear spring or damping, limits or armature, equality constraints
+            frictionloss on a free joint's linear axes, nonlinear damping, a spatial tendon
+            that wraps around a geom or has a pulley, a tendon's nonlinear spring or damping or
+            armature, equality constraints
             other than joint couplings and equalities of one fixed tendon on at most two joints,
             flex, skins, plugins, mocap bodies, gravity compensation, fluid forces, colliding
             height fields or SDFs, actuators other than direct motors on a hinge, a slide or a
@@ -985,6 +1020,11 @@ def _tendon_couplings(mj: Any, m: Any) -> list[tuple[int, int, np.ndarray]]:
             continue
         tendon = int(m.eq_obj1id[e])
         where = f"MuJoCo model: equality {names[e]!r} on tendon {tendon_names[tendon]!r}"
+        if _is_spatial(mj, m, tendon):
+            raise ValueError(
+                f"{where}: the tendon is spatial, which rsmooth.sim does not support in an equality (supported: an "
+                "equality of one fixed tendon on at most two joints)"
+            )
         if m.eq_obj2id[e] >= 0:
             raise ValueError(
                 f"{where} couples it to a second tendon, which rsmooth.sim does not support (supported: an equality of "

@@ -277,8 +277,8 @@ def scene(
     The kinematic tree, gravity, armature, joint damping, joint springs (``stiffness``,
     :meth:`~rsmooth.sim.RigidBodySystem.with_joint_springs`), dry joint friction (``frictionloss``,
     :meth:`~rsmooth.sim.RigidBodySystem.with_joint_friction`), joint couplings (a URDF's
-    ``<mimic>``, :attr:`~rsmooth.sim.Joints.couplings`) and the springs, dampers and dry friction
-    of fixed tendons (:attr:`~rsmooth.sim.Joints.tendons`) are those of
+    ``<mimic>``, :attr:`~rsmooth.sim.Joints.couplings`) and the springs, dampers, dry friction
+    and length limits of fixed and spatial tendons (:attr:`~rsmooth.sim.Joints.tendons`) are those of
     :func:`~rsmooth.sim.load_mjcf`; every colliding geom pair of MuJoCo is a
     :class:`~rsmooth.sim.GeomPair` with MuJoCo's friction (see the module's description for
     the mapping of geoms, frames and frictions). The input ``u`` ``(nu,)`` holds the

@@ -342,7 +342,8 @@ class Options(eqx.Module):
             it holds. The selection is piecewise constant in the state: derivatives are those
             of the selected problem. ``None`` (default): every candidate. See
             :meth:`RigidBodySystem.with_contact_budget`.
-        max_limits: the same budget on the joint limits (:attr:`Joints.limits`; static): at
+        max_limits: the same budget on the joint and tendon limits (:attr:`Joints.limits`,
+            :attr:`Tendons.limits`; static): at
             each step the ``max_limits`` limits nearest their bounds (smallest distance, rad
             or m), left-out ones that the step would close counted as dropped contacts. A
             robot has two limits per joint (58 for a 29-joint humanoid), each a contact of
@@ -516,11 +517,15 @@ class JointSprings(eqx.Module):
 
 
 class Tendons(eqx.Module):
-    """Springs, dampers and dry friction along fixed tendons (MuJoCo's tendon ``stiffness``,
-    ``springlength``, ``damping`` and ``frictionloss``): tendon ``t`` has the length
-    ``L_t = lengths[t] . q + offsets[t]`` (linear in the coordinates of its hinges and slides)
-    and pulls its joints with the force ``f_t`` along ``moments[t]`` (the generalized force
-    ``moments^T f``, ``moments[t]`` the derivative of ``L_t`` in the velocities):
+    """Tendons (MuJoCo's fixed and spatial tendons): their springs, dampers, dry friction and
+    length limits. Tendon ``t`` has the length
+
+    ``L_t(q) = lengths[t] . q + offsets[t]`` (fixed: linear in the coordinates of its hinges
+    and slides), plus, for a spatial tendon (``spatial[k] = t``), the length of the polyline
+    through the origins of the frames ``paths[k]`` (MuJoCo's sites; no wrapping),
+
+    and pulls its joints with the force ``f_t`` along its moments ``M_t(q) = dL_t/dq``
+    (the generalized force ``M(q)^T f``; :meth:`RigidBodySystem.tendon_moments`):
 
     ``f_t = k_t (s_lo - L_t)`` below the spring's rest band ``[s_lo, s_hi]``
     (``spring_length[t]``), ``k_t (s_hi - L_t)`` above it, 0 within it (a spring about one length
@@ -531,18 +536,29 @@ class Tendons(eqx.Module):
     the step unstable, as there. The dry friction of the tendons ``frictional`` is a box row
     of the contact problem, as a joint's (:class:`JointFriction`): the tendon does not slide
     (``dL/dt = 0`` at the step's end) while the force along it stays within ``frictionloss``
-    (hard contact only; MuJoCo's friction loss is soft).
+    (hard contact only; MuJoCo's friction loss is soft). A length limit is a frictionless
+    contact along ``M_t`` (distance ``L_t - lower`` or ``upper - L_t``), solved with the
+    contacts after the joint limits (hard contact only): a string that goes taut (dm_control's
+    ball in cup).
 
     Attributes:
-        lengths: ``(T, nq)``, each length's coefficients on the coordinates.
+        lengths: ``(T, nq)``, each length's coefficients on the coordinates (zero rows for
+            spatial tendons).
         moments: ``(T, nv)``, the same on the velocities.
-        offsets: ``(T,)``, the lengths at ``q = 0`` (m or rad).
+        offsets: ``(T,)``, the lengths at ``q = 0`` less the spatial paths (m or rad).
         stiffness: ``(T,)``, ``>= 0``.
         spring_length: ``(T, 2)``, the rest band, lower <= upper.
         damping: ``(T,)``, ``>= 0``.
         frictionloss: ``(T,)``, the dry friction force (N or N m along the tendon), ``>= 0``;
             read for the tendons ``frictional`` only.
         frictional: the tendons with dry friction (static, distinct indices).
+        range: ``(T, 2)``, the length limits (lower, upper); read for the sides ``limits``
+            name only.
+        limits: the enforced length limits, ``((tendon, side), ...)`` (static): ``side`` ``+1``
+            for ``range[tendon, 0]``, ``-1`` for ``range[tendon, 1]``, which must be finite.
+        spatial: the spatial tendons (static, distinct indices).
+        paths: for each of ``spatial``, the frames (names or indices of the model's frames,
+            at least two) whose origins the tendon passes through, in order (static).
     """
 
     lengths: Array
@@ -553,9 +569,41 @@ class Tendons(eqx.Module):
     damping: Array
     frictionloss: Array | None = None
     frictional: tuple[int, ...] = eqx.field(static=True, default=())
+    range: Array | None = None
+    limits: tuple[tuple[int, int], ...] = eqx.field(static=True, default=())
+    spatial: tuple[int, ...] = eqx.field(static=True, default=())
+    paths: tuple[tuple[str | int, ...], ...] = eqx.field(static=True, default=())
 
     def __check_init__(self):
         count = jnp.shape(self.offsets)[0] if jnp.ndim(self.offsets) == 1 else -1
+        if len(set(self.spatial)) != len(self.spatial) or not all(0 <= t < count for t in self.spatial):
+            raise ValueError(f"Tendons.spatial must be distinct tendon indices in [0, {count}), got {self.spatial!r}")
+        if len(self.paths) != len(self.spatial) or any(not isinstance(p, tuple) or len(p) < 2 for p in self.paths):
+            raise ValueError(
+                f"Tendons.paths must hold one tuple of at least two frames per spatial tendon ({len(self.spatial)}), "
+                f"got {self.paths!r}"
+            )
+        if self.limits and self.range is None:
+            raise ValueError("Tendons.limits needs Tendons.range")
+        for entry in self.limits:
+            if not (isinstance(entry, tuple) and len(entry) == 2 and 0 <= entry[0] < count and entry[1] in (1, -1)):
+                raise ValueError(
+                    f"Tendons.limits entries must be (tendon, side) with tendon in [0, {count}) and side +1 (lower) or "
+                    f"-1 (upper), got {entry!r}"
+                )
+        if len(set(self.limits)) != len(self.limits):
+            raise ValueError(f"Tendons.limits must be distinct, got {self.limits!r}")
+        if self.range is not None:
+            if jnp.shape(self.range) != (count, 2):
+                raise ValueError(f"Tendons.range must have shape ({count}, 2), got {jnp.shape(self.range)}")
+            if not _checks.is_traced(self.range):
+                bounds = np.asarray(self.range)
+                if np.any(np.isnan(bounds)) or np.any(bounds[:, 0] > bounds[:, 1]):
+                    raise ValueError(f"Tendons.range must hold lower <= upper, got {bounds}")
+                for tendon, side in self.limits:
+                    if not np.isfinite(bounds[tendon, 0 if side > 0 else 1]):
+                        which = "lower" if side > 0 else "upper"
+                        raise ValueError(f"Tendons.limits: tendon {tendon} has no finite {which} limit in Tendons.range")
         if self.frictional and self.frictionloss is None:
             raise ValueError("Tendons.frictional needs Tendons.frictionloss")
         if len(set(self.frictional)) != len(self.frictional) or not all(0 <= t < count for t in self.frictional):
@@ -727,9 +775,9 @@ class Joints(eqx.Module):
             contacts (hard contact only); ``None``: none.
         springs: linear springs on joints (:class:`JointSprings`), explicit forces of
             the free motion; ``None``: none. See :meth:`RigidBodySystem.with_joint_springs`.
-        tendons: springs and dampers along fixed tendons (:class:`Tendons`), explicit
-            forces of the free motion, and their dry friction, solved with the contacts (hard
-            contact only); ``None``: none.
+        tendons: springs and dampers along fixed and spatial tendons (:class:`Tendons`),
+            explicit forces of the free motion, and their dry friction and length limits,
+            solved with the contacts (hard contact only); ``None``: none.
     """
 
     damping: Array | None = None
@@ -821,9 +869,10 @@ class RigidBodySystem(eqx.Module):
             raise ValueError(f"joints.damping must have shape ({model.nv},), got {jnp.shape(joints.damping)}")
         _limit_rows(model, joints.limits)  # raises on a bad entry
         tendon_friction = joints.tendons is not None and bool(joints.tendons.frictional)
+        tendon_limits = joints.tendons is not None and bool(joints.tendons.limits)
         for name, present in (
             ("limits", joints.limits), ("friction", joints.friction), ("couplings", joints.couplings),
-            ("tendons' friction", tendon_friction),
+            ("tendons' friction", tendon_friction), ("tendons' limits", tendon_limits),
         ):
             if present and not hard:
                 raise ValueError(f"joints.{name} are solved by the hard-contact NCP: use contact='hard'")
@@ -857,6 +906,12 @@ class RigidBodySystem(eqx.Module):
                         f"joints.tendons.{name} must have shape (T, {width}) for this model, got "
                         f"{jnp.shape(getattr(joints.tendons, name))}"
                     )
+            for tendon, path in zip(joints.tendons.spatial, joints.tendons.paths):
+                for frame in path:
+                    try:
+                        model.frame_id(frame)
+                    except ValueError as error:
+                        raise ValueError(f"joints.tendons.paths (tendon {tendon}): {error}") from None
 
     # -- options ------------------------------------------------------------------------
 
@@ -920,7 +975,14 @@ class RigidBodySystem(eqx.Module):
     def num_contacts(self) -> int:
         """Number of candidate contacts: every sphere against every half-space, then the
         manifold entries of every geometry pair, then the joint limits."""
-        return self.geometry.num_contacts + len(self.joints.limits)
+        return self.geometry.num_contacts + self.num_limits
+
+    @property
+    def num_limits(self) -> int:
+        """The candidate contacts that are limits, the last of :meth:`contacts`: the joint
+        limits (:attr:`Joints.limits`), then the tendons' (:attr:`Tendons.limits`)."""
+        tendons = self.joints.tendons
+        return len(self.joints.limits) + (0 if tendons is None else len(tendons.limits))
 
     def _with_joints(self, **changes) -> "RigidBodySystem":
         return dataclasses.replace(self, joints=dataclasses.replace(self.joints, **changes))
@@ -961,13 +1023,14 @@ class RigidBodySystem(eqx.Module):
         return self._with_joints(couplings=couplings)
 
     def with_tendons(self, tendons: Tendons | None) -> "RigidBodySystem":
-        """This system with the springs and dampers along fixed tendons ``tendons``
-        (:attr:`Joints.tendons`; ``None``: none), e.g. a loaded model's
+        """This system with the tendons ``tendons`` (:attr:`Joints.tendons`, their springs,
+        dampers, dry friction and length limits; ``None``: none), e.g. a loaded model's
         :attr:`~rsmooth.sim.MujocoModel.tendons`.
 
         Raises:
-            ValueError: if ``tendons`` does not fit the model (its ``(T, nq)`` lengths and
-                ``(T, nv)`` moments).
+            ValueError: if ``tendons`` does not fit the model (its ``(T, nq)`` lengths,
+                ``(T, nv)`` moments and the frames of its spatial paths), or has limits or
+                dry friction under a compliant contact law.
         """
         return self._with_joints(tendons=tendons)
 
@@ -1055,30 +1118,59 @@ class RigidBodySystem(eqx.Module):
             dofs, stiffness, displacement = self._spring_displacements(q)
             forces = forces.at[dofs].set(-stiffness * displacement)
         if self.joints.tendons is not None:
-            tendons = self.joints.tendons
-            forces = forces - (self._tendon_stretch(q) * tendons.stiffness.astype(q.dtype)) @ tendons.moments.astype(q.dtype)
+            length, moments = self._tendon_geometry(q)
+            forces = forces - (self._tendon_stretch(length) * self.joints.tendons.stiffness.astype(q.dtype)) @ moments
         return forces
 
     def passive_forces(self, q: Array, v: Array) -> Array:
         """The explicit passive forces ``(nv,)`` of a step from ``(q, v)``: :meth:`spring_forces`
-        and the tendons' damping, ``-moments^T d (moments v)`` (:attr:`Joints.tendons`)."""
+        and the tendons' damping, ``-M^T d (M v)`` (:attr:`Joints.tendons`, ``M`` their
+        :meth:`tendon_moments`)."""
         forces = self.spring_forces(q)
         if self.joints.tendons is None:
             return forces
-        moments = self.joints.tendons.moments.astype(q.dtype)
+        _, moments = self._tendon_geometry(q)
         return forces - (self.joints.tendons.damping.astype(q.dtype) * (moments @ v)) @ moments
 
     def tendon_lengths(self, q: Array) -> Array:
         """The lengths ``(T,)`` of :attr:`Joints.tendons` at ``q`` (empty without)."""
         if self.joints.tendons is None:
             return jnp.zeros(0, q.dtype)
-        tendons = self.joints.tendons
-        return tendons.lengths.astype(q.dtype) @ q + tendons.offsets.astype(q.dtype)
+        return self._tendon_geometry(q)[0]
 
-    def _tendon_stretch(self, q: Array) -> Array:
-        """How far each tendon's length is beyond its spring's rest band ``(T,)`` (negative
-        below it, 0 within it)."""
-        length, band = self.tendon_lengths(q), self.joints.tendons.spring_length.astype(q.dtype)
+    def tendon_moments(self, q: Array) -> Array:
+        """The moments ``(T, nv)`` of :attr:`Joints.tendons` at ``q``, the derivative of their
+        lengths in the velocities (MuJoCo's ``ten_J``; constant for fixed tendons)."""
+        if self.joints.tendons is None:
+            return jnp.zeros((0, self.model.nv), q.dtype)
+        return self._tendon_geometry(q)[1]
+
+    def _tendon_geometry(self, q: Array, kinematics=None) -> tuple[Array, Array]:
+        """The tendons' lengths ``(T,)`` and moments ``(T, nv)`` at ``q``."""
+        tendons, model = self.joints.tendons, self.model
+        length = tendons.lengths.astype(q.dtype) @ q + tendons.offsets.astype(q.dtype)
+        moments = tendons.moments.astype(q.dtype)
+        if not tendons.spatial:
+            return length, moments
+        if kinematics is None:
+            kinematics = _dynamics._kinematics(model, q)
+        for tendon, path in zip(tendons.spatial, tendons.paths):
+            ids = [model.frame_id(frame) for frame in path]
+            points = jnp.stack([_dynamics._frame_placement(model, kinematics.rotation, kinematics.translation, i)[1] for i in ids])
+            columns = _dynamics._point_velocity_columns(model, kinematics, np.asarray(model.frame_parents)[ids], points)
+            segments = points[1:] - points[:-1]
+            lengths = _safe_norm(segments)
+            # the unit direction of each segment (none where its ends meet: no pull there)
+            directions = segments / jnp.where(lengths > 0, lengths, 1.0)[:, None]
+            rate = columns[1:] - columns[:-1]  # (segments, nv, 3): the segments' rates per dof
+            length = length.at[tendon].add(jnp.sum(lengths).astype(q.dtype))
+            moments = moments.at[tendon].add(jnp.einsum("snk,sk->n", rate, directions).astype(q.dtype))
+        return length, moments
+
+    def _tendon_stretch(self, length: Array) -> Array:
+        """How far each tendon's length ``(T,)`` is beyond its spring's rest band ``(T,)``
+        (negative below it, 0 within it)."""
+        band = self.joints.tendons.spring_length.astype(length.dtype)
         return length - jnp.clip(length, band[:, 0], band[:, 1])
 
     def spring_energy(self, q: Array) -> Array:
@@ -1089,7 +1181,7 @@ class RigidBodySystem(eqx.Module):
             _, stiffness, displacement = self._spring_displacements(q)
             energy = energy + 0.5 * jnp.sum(stiffness * displacement * displacement)
         if self.joints.tendons is not None:
-            stretch = self._tendon_stretch(q)
+            stretch = self._tendon_stretch(self.tendon_lengths(q))
             energy = energy + 0.5 * jnp.sum(self.joints.tendons.stiffness.astype(q.dtype) * stretch * stretch)
         return energy
 
@@ -1115,7 +1207,7 @@ class RigidBodySystem(eqx.Module):
             bounds.append(jnp.full(error.shape[0], jnp.inf, dtype))
         if self.joints.tendons is not None and self.joints.tendons.frictional:
             frictional = np.asarray(self.joints.tendons.frictional, dtype=np.int64)
-            rows.append(self.joints.tendons.moments[frictional].astype(dtype))
+            rows.append(self.tendon_moments(q)[frictional])
             correction.append(jnp.zeros(frictional.size, dtype))
             bounds.append(self.time_step * self.joints.tendons.frictionloss[frictional].astype(dtype))
         return jnp.concatenate(rows), jnp.concatenate(correction), jnp.concatenate(bounds).astype(dtype)
@@ -1212,7 +1304,7 @@ class RigidBodySystem(eqx.Module):
         :attr:`Options.max_contacts` and :attr:`Options.max_limits`, or ``None`` where the budgets hold every
         candidate."""
         distance = lax.stop_gradient(distance)
-        shapes, limits = distance.shape[0] - len(self.joints.limits), len(self.joints.limits)
+        shapes, limits = distance.shape[0] - self.num_limits, self.num_limits
 
         def nearest(budget, first, count):  # the `budget` smallest distances of a block
             if budget is None or budget >= count:
@@ -1339,19 +1431,43 @@ class RigidBodySystem(eqx.Module):
 
         Ordered sphere-major: contact ``s * P + p`` is sphere ``s`` against half-space ``p``;
         then, pair by pair, the manifold entries of ``geom_pairs``
-        (:meth:`_geom_pair_contacts`); then the joint limits. ``J`` maps ``v`` to the
+        (:meth:`_geom_pair_contacts`); then the joint limits, then the tendons' limits
+        (:attr:`num_limits`). ``J`` maps ``v`` to the
         contact-frame velocity ``[t1, t2, n]`` of the sphere point deepest towards the plane
         (for geometry pairs, of shape 2's witness point relative to shape 1's).
         """
         distance, frames, jacobian = self._shape_contacts(q, kinematics)
-        if not self.joints.limits:
+        if not self.num_limits:
             return distance, frames, jacobian
-        # Joint limits: frictionless contacts whose normal is the joint's own coordinate, or
-        # for a spherical joint's cone the axis of its rotation (the angle's rate is axisᵀ omega).
+        parts = [(distance, jacobian.reshape(-1, 3, self.model.nv))]
+        if self.joints.limits:
+            parts.append(self._joint_limit_contacts(q, jacobian.dtype))
+        tendons = self.joints.tendons
+        if tendons is not None and tendons.limits:
+            # frictionless contacts along the tendons' moments: the length's rate
+            which, sides = (np.asarray([entry[k] for entry in tendons.limits], np.int64) for k in (0, 1))
+            length, moments = self._tendon_geometry(q, kinematics)
+            bounds = tendons.range.astype(q.dtype)
+            limit_distance = jnp.where(sides > 0, length[which] - bounds[which, 0], bounds[which, 1] - length[which])
+            rows = jnp.zeros((len(which), 3, self.model.nv), jacobian.dtype).at[:, 2].set(sides[:, None] * moments[which])
+            parts.append((limit_distance, rows))
+        count = self.num_limits
+        eye = jnp.broadcast_to(jnp.eye(3, dtype=frames.dtype), (count, 3, 3))
+        return (
+            jnp.concatenate([part[0].astype(distance.dtype) for part in parts]),
+            jnp.concatenate([frames, eye]),
+            jnp.concatenate([part[1] for part in parts]).reshape(-1, self.model.nv),
+        )
+
+    def _joint_limit_contacts(self, q: Array, dtype) -> tuple[Array, Array]:
+        """The joint limits' distances ``(l,)`` and contact Jacobians ``(l, 3, nv)``
+        (:meth:`contacts`)."""
+        # Frictionless contacts whose normal is the joint's own coordinate, or for a spherical
+        # joint's cone the axis of its rotation (the angle's rate is axisᵀ omega).
         indices, dofs, sides = _limit_rows(self.model, self.joints.limits)
         lower, upper = self.model.lower_position_limit[indices], self.model.upper_position_limit[indices]
         limit_distance = jnp.where(sides > 0, q[indices] - lower, upper - q[indices])
-        rows = jnp.zeros((len(dofs), 3, self.model.nv), jacobian.dtype).at[np.arange(len(dofs)), 2, dofs].set(sides)
+        rows = jnp.zeros((len(dofs), 3, self.model.nv), dtype).at[np.arange(len(dofs)), 2, dofs].set(sides)
         cones = np.flatnonzero(sides == 0)
         if cones.size:
             quaternion = q[indices[cones][:, None] + np.arange(4)]  # [qx, qy, qz, qw]
@@ -1360,15 +1476,10 @@ class RigidBodySystem(eqx.Module):
             axis = quaternion[:, :3] * (jnp.where(quaternion[:, 3] < 0, -1.0, 1.0) / jnp.maximum(sine, jnp.finfo(sine.dtype).tiny))[:, None]
             limit_distance = limit_distance.at[cones].set(upper[cones] - angle)
             rows = rows.at[cones[:, None], 2, dofs[cones][:, None] + np.arange(3)].set(-axis.astype(rows.dtype))
-        eye = jnp.broadcast_to(jnp.eye(3, dtype=frames.dtype), (len(dofs), 3, 3))
-        return (
-            jnp.concatenate([distance, limit_distance.astype(distance.dtype)]),
-            jnp.concatenate([frames, eye]),
-            jnp.concatenate([jacobian, rows.reshape(-1, self.model.nv)]),
-        )
+        return limit_distance, rows
 
     def _shape_contacts(self, q: Array, kinematics=None) -> tuple[Array, Array, Array]:
-        """The contacts of :meth:`contacts` between shapes (all but the joint limits)."""
+        """The contacts of :meth:`contacts` between shapes (all but the limits)."""
         model = self.model
         if kinematics is None:
             kinematics = _dynamics._kinematics(model, q)
@@ -1612,7 +1723,7 @@ class RigidBodySystem(eqx.Module):
         return jnp.concatenate([
             jnp.repeat(self.geometry.friction[None, :], len(self.geometry.sphere_frames), axis=0).reshape(-1),
         ] + [jnp.full(pair.size, pair.friction, self.geometry.friction.dtype) for pair in self.geometry.geom_pairs]
-          + [jnp.zeros(len(self.joints.limits), self.geometry.friction.dtype)])
+          + [jnp.zeros(self.num_limits, self.geometry.friction.dtype)])
 
     def _velocity_update(self, q: Array, v: Array, u: Array, warm_start) -> _VelocityUpdate:
         """The velocity update of one step (stages 1 to 4, :mod:`._stages`) and the quantities

@@ -1,7 +1,7 @@
-"""Fixed tendons of MuJoCo models: motors on a tendon drive several dofs with one input (the
+"""Tendons of MuJoCo models: motors on a fixed tendon drive several dofs with one input (the
 system's moment arms), an equality of one tendon couples its joints, springs and dampers pull
-along tendons as in MuJoCo's Euler integrator, and what rsmooth does not model of tendons is
-refused by name."""
+along fixed and spatial tendons as in MuJoCo's Euler integrator, length limits hold (a string),
+and what rsmooth does not model of tendons is refused by name."""
 
 import equinox as eqx
 import jax
@@ -145,7 +145,7 @@ def _tendon_model(tendon: str, equality: str = "", joint_extra: str = "", actuat
     return f"""
 <mujoco>
   <worldbody>
-    <body name="a"><joint name="j0" type="hinge" {joint_extra}/><geom type="sphere" size="0.1" contype="0" conaffinity="0"/>
+    <body name="a"><joint name="j0" type="hinge" {joint_extra}/><geom name="g" type="sphere" size="0.1" contype="0" conaffinity="0"/>
       <site name="s0"/>
       <body name="b" pos="0.3 0 0"><joint name="j1" type="hinge"/><geom type="sphere" size="0.1" contype="0" conaffinity="0"/>
         <site name="s1"/>
@@ -168,8 +168,22 @@ FIXED = '<fixed name="t" {}><joint joint="j0" coef="1"/><joint joint="j1" coef="
 @pytest.mark.parametrize(
     "text, message",
     [
-        (_tendon_model('<spatial name="t"><site site="s0"/><site site="s1"/></spatial>'), "tendon 't'.*spatial"),
-        (_tendon_model(FIXED.format('limited="true" range="-1 1"')), "tendon 't'.*length limits"),
+        (
+            _tendon_model('<spatial name="t"><site site="s0"/><geom geom="g"/><site site="s1"/></spatial>'),
+            "tendon 't'.*wraps around a geom",
+        ),
+        (
+            _tendon_model('<spatial name="t"><site site="s0"/><site site="s1"/><pulley divisor="2"/><site site="s0"/><site site="s1"/></spatial>'),
+            "tendon 't'.*pulley",
+        ),
+        (
+            _tendon_model('<spatial name="t"><site site="s0"/><site site="s1"/></spatial>', actuator='<motor name="m" tendon="t"/>'),
+            "tendon 't'.*spatial tendon driven by a motor",
+        ),
+        (
+            _tendon_model('<spatial name="t"><site site="s0"/><site site="s1"/></spatial>', '<tendon name="e" tendon1="t"/>'),
+            "equality 'e' on tendon 't'.*spatial",
+        ),
         (_tendon_model(FIXED.format('armature="0.1"')), "tendon 't'.*armature"),
         (
             _tendon_model(FIXED.format(""), '<tendon name="e" tendon1="t" tendon2="other"/>'),
@@ -241,7 +255,7 @@ def test_tendon_springs_and_dampers_step_as_mujocos_euler_integrator(mujoco_and_
         q_ = jnp.asarray(x[:4])
         np.testing.assert_allclose(system.spring_forces(q_), -jax.grad(system.spring_energy)(q_), rtol=0, atol=1e-12)
     within = jnp.zeros(4).at[0].set(0.2)  # pair tendon at 0.1 + 0.5 qpos0_h0: inside its band
-    assert float(system._tendon_stretch(within)[0]) == 0.0
+    assert float(system._tendon_stretch(system.tendon_lengths(within))[0]) == 0.0
 
 
 def test_the_step_derivative_through_tendon_springs_and_dampers_matches_finite_differences():
@@ -288,3 +302,198 @@ def test_a_tendons_dry_friction_holds_the_cart_below_its_force_and_slows_it_beyo
     assert bool(jnp.all(infos.ncp.converged))
     with pytest.raises(ValueError, match="tendons' friction are solved by the hard-contact NCP"):
         system.with_options(contact=sim.SpringDamper(stiffness=1e4, damping=10.0, friction=0.5))
+
+
+# A floating body carrying a chain of a ball joint and two hinges, with a spatial tendon from a
+# world site through sites on the floating body and the chain's last link (and a second one
+# between two sites of one link, whose length never changes).
+SPATIAL = """
+<mujoco>
+  <option timestep="0.01" gravity="0 0 0"/>
+  <worldbody>
+    <site name="anchor" pos="0.2 -0.1 0.5"/>
+    <body name="base" pos="0 0 1"><freejoint/>
+      <geom type="box" size="0.1 0.08 0.05" contype="0" conaffinity="0"/>
+      <site name="on_base" pos="0.1 0.05 -0.02"/>
+      <body name="upper" pos="0.1 0 0"><joint name="shoulder" type="ball"/>
+        <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" contype="0" conaffinity="0"/>
+        <site name="mid" pos="0.15 0.03 0"/>
+        <body name="lower" pos="0.3 0 0"><joint name="elbow" type="hinge" axis="0 1 0"/>
+          <joint name="twist" type="hinge" axis="1 0 0"/>
+          <geom type="capsule" fromto="0 0 0 0.25 0 0" size="0.03" contype="0" conaffinity="0"/>
+          <site name="tip" pos="0.25 0 0.02"/><site name="tip2" pos="0.1 0.02 0"/>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+  <tendon>
+    <spatial name="cable" stiffness="3" damping="0.2">
+      <site site="anchor"/><site site="on_base"/><site site="mid"/><site site="tip"/>
+    </spatial>
+    <spatial name="rigid" frictionloss="0.1"><site site="tip"/><site site="tip2"/></spatial>
+  </tendon>
+</mujoco>
+"""
+
+
+def test_spatial_tendon_lengths_and_rates_are_mujocos(getkey):
+    # On random configurations and velocities of a floating body with a ball joint: the
+    # lengths are MuJoCo's ten_length, and the moments times rsmooth's velocity equal
+    # ten_J times MuJoCo's qvel (the length's rate, whatever each side's velocity convention).
+    loaded = sim.load_mjcf(SPATIAL)
+    tendons = loaded.tendons
+    assert tendons.spatial == (0, 1) and [len(path) for path in tendons.paths] == [4, 2]
+    system = sim.scene(loaded, floor=False)
+    m = mujoco.MjModel.from_xml_string(SPATIAL)
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(0)
+    geometry = jax.jit(lambda q: (system.tendon_lengths(q), system.tendon_moments(q)))
+    for _ in range(6):
+        d.qpos[:3] = rng.normal(size=3)
+        d.qpos[3:7] = rng.normal(size=4) / 2
+        d.qpos[7:11] = rng.normal(size=4)
+        d.qpos[11:] = rng.uniform(-2, 2, size=2)
+        mujoco.mj_normalizeQuat(m, d.qpos)
+        d.qvel[:] = rng.normal(size=m.nv)
+        mujoco.mj_forward(m, d)
+        q = loaded.qpos_to_q(jnp.asarray(d.qpos))
+        v = loaded.qvel_to_v(jnp.asarray(d.qpos), jnp.asarray(d.qvel))
+        length, moments = geometry(q)
+        np.testing.assert_allclose(length, d.ten_length, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(moments @ v, d.ten_J.reshape(2, m.nv) @ d.qvel, rtol=0, atol=1e-12)
+    assert abs(float(moments[1] @ v)) < 1e-12  # two sites on one link: no rate
+    # on the hinges, the moments are the lengths' derivatives in the coordinates
+    np.testing.assert_allclose(moments[:, -2:], jax.jacfwd(system.tendon_lengths)(q)[:, -2:], rtol=0, atol=1e-12)
+
+
+def test_spatial_tendon_springs_and_dampers_step_as_mujocos_euler_integrator(mujoco_and_rsmooth_trajectories):
+    # The chain of SPATIAL without its floating base (hinges only, so that MuJoCo's qpos is
+    # rsmooth's q): the cable's spring and damper pull the arm as in MuJoCo's Euler steps.
+    text = SPATIAL.replace('<freejoint/>', '').replace('<joint name="shoulder" type="ball"/>', '<joint name="shoulder" type="hinge" axis="0 0 1"/>')
+    text = text.replace(' frictionloss="0.1"', '')
+    qvel = np.array([1.5, -2.0, 3.0])
+    system, loaded, xs, expected = mujoco_and_rsmooth_trajectories(text, None, qvel, 150)
+    np.testing.assert_allclose(np.asarray(xs)[1:, :3] + np.asarray(loaded.qpos0), expected, rtol=0, atol=1e-10)
+    # the springs' forces are minus the gradient of their energy
+    q = jnp.asarray(np.asarray(xs)[40, :3])
+    np.testing.assert_allclose(system.spring_forces(q), -jax.grad(system.spring_energy)(q), rtol=0, atol=1e-12)
+    # the step's state Jacobian (moments that vary with q) against central differences
+    x, u = jnp.asarray(np.asarray(xs)[40]), jnp.zeros(system.nu)
+    _, fx, _ = eqx.filter_jit(lambda s, x_, u_: s.step_and_jacobians(x_, u_))(system, x, u)
+    step = eqx.filter_jit(lambda s, x_, u_: s.step(x_, u_))
+    eps = 1e-6
+    columns = [(step(system, x + eps * e, u) - step(system, x - eps * e, u)) / (2 * eps) for e in jnp.eye(6)]
+    np.testing.assert_allclose(fx, jnp.stack(columns, axis=1), rtol=0, atol=1e-7)
+
+
+# A 0.2 kg ball on two slides (x, z) hanging from a world site by a string of 0.5 m (a spatial
+# tendon limited to [0, 0.5], as dm_control's ball in cup), no gravity on the ball's rotation.
+STRING = """
+<mujoco>
+  <option timestep="0.002" gravity="0 0 -9.81"/>
+  <worldbody>
+    <site name="hook" pos="0 0 1"/>
+    <body name="ball"><joint name="x" type="slide" axis="1 0 0"/><joint name="z" type="slide" axis="0 0 1"/>
+      <geom type="sphere" size="0.02" mass="0.2" contype="0" conaffinity="0"/><site name="knot"/>
+    </body>
+  </worldbody>
+  <tendon><spatial name="string" limited="true" range="0 0.5"><site site="hook"/><site site="knot"/></spatial></tendon>
+</mujoco>
+"""
+
+
+def test_a_string_holds_a_hanging_ball_and_swings_it_as_a_pendulum():
+    system = sim.scene(STRING, floor=False)
+    tendons = system.joints.tendons
+    assert tendons.limits == ((0, -1),)  # the lower limit (0) cannot be reached: left out
+    assert system.num_limits == 1 and system.num_contacts == 1
+    length, mass, h, g = 0.5, 0.2, 0.002, 9.81
+    rollout = eqx.filter_jit(lambda s, x, us: s.rollout(x, us))
+    # Hanging still, taut: the string's impulse is the ball's weight times the step.
+    x0 = system.state(jnp.array([0.0, 1.0 - length]), jnp.zeros(2))
+    xs, infos = rollout(system, x0, jnp.zeros((50, 0)))
+    np.testing.assert_allclose(np.asarray(xs), np.asarray(x0)[None].repeat(51, axis=0), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(infos.impulse)[:, -1], mass * g * h, rtol=1e-9)
+    # Released taut at 0.2 rad: a pendulum whose period is 2 pi sqrt(L / g) (1 + theta0^2 / 16)
+    # (to second order); the string stays taut (its impulse positive) and stretches only by the
+    # time stepping's drift off the circle, h^2 v^2 / (2 L) a step, which the contact's
+    # Baumgarte correction (a fraction of the gap a step) pulls back: their balance bounds it.
+    theta0 = 0.2
+    x0 = system.state(jnp.array([length * np.sin(theta0), 1.0 - length * np.cos(theta0)]), jnp.zeros(2))
+    steps = 1200
+    xs, infos = rollout(system, x0, jnp.zeros((steps, 0)))
+    q = np.asarray(xs)[:, :2]
+    lengths = np.hypot(q[:, 0], 1.0 - q[:, 1])
+    speed = np.sqrt(2 * g * length * (1 - np.cos(theta0)))  # at the bottom
+    assert lengths.max() - length < 1.1 * h**2 * speed**2 / (2 * length) / float(system.baumgarte)
+    assert np.all(np.asarray(infos.impulse)[:, -1] > 0) and bool(jnp.all(infos.ncp.converged))
+    downward = np.flatnonzero((q[:-1, 0] > 0) & (q[1:, 0] <= 0))  # crossings from the right
+    crossings = downward - q[downward, 0] / (q[downward + 1, 0] - q[downward, 0])  # interpolated steps
+    period = np.diff(crossings).mean() * h
+    expected = 2 * np.pi * np.sqrt(length / g) * (1 + theta0**2 / 16)
+    assert period == pytest.approx(expected, rel=2e-3)
+    # slack (shorter than its length): the ball falls freely
+    x0 = system.state(jnp.array([0.0, 0.6]), jnp.zeros(2))
+    xs, infos = rollout(system, x0, jnp.zeros((10, 0)))
+    np.testing.assert_allclose(np.asarray(xs)[-1, 3], -g * h * 10, rtol=1e-12)
+
+
+# Two 1 kg carts on slides whose tendon, the sum of their coordinates, is limited above.
+TWO_CARTS = """
+<mujoco>
+  <option timestep="0.01" gravity="0 0 0"/>
+  <worldbody>
+    <body name="a"><joint name="xa" type="slide" axis="1 0 0"/><geom type="box" size="0.1 0.1 0.1" mass="1" contype="0" conaffinity="0"/></body>
+    <body name="b"><joint name="xb" type="slide" axis="1 0 0"/><geom type="box" size="0.1 0.1 0.1" mass="1" contype="0" conaffinity="0"/></body>
+  </worldbody>
+  <tendon><fixed name="sum" limited="true" range="-0.3 0.1"><joint joint="xa" coef="1"/><joint joint="xb" coef="1"/></fixed></tendon>
+  <actuator><motor name="fa" joint="xa"/><motor name="fb" joint="xb"/></actuator>
+</mujoco>
+"""
+
+
+def test_a_fixed_tendons_limit_stops_the_sum_and_lets_the_difference_move():
+    # At its upper limit, pushed by 3 N and 1 N: the tendon's force (3 + 1) / 2 = 2 N holds the
+    # sum, and the difference accelerates at (3 - 1) / 1 kg (each cart at +-1 m/s^2).
+    system = sim.scene(TWO_CARTS, floor=False)
+    assert system.joints.tendons.limits == ((0, 1), (0, -1))
+    h, steps = 0.01, 40
+    x0 = system.state(jnp.array([0.05, 0.05]), jnp.zeros(2))
+    xs, infos = eqx.filter_jit(lambda s, x, us: s.rollout(x, us))(system, x0, jnp.tile(jnp.array([3.0, 1.0]), (steps, 1)))
+    xs = np.asarray(xs)
+    np.testing.assert_allclose(xs[:, 0] + xs[:, 1], 0.1, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(xs[1:, 2], h * np.arange(1, steps + 1), rtol=1e-9)
+    impulse = np.asarray(infos.impulse).reshape(steps, 2, 3)  # [t1, t2, n] of the lower side, the upper side
+    np.testing.assert_allclose(impulse[:, 1, 2], 2.0 * h, rtol=1e-9)
+    np.testing.assert_allclose(impulse[:, 0], 0.0, atol=1e-12)
+    np.testing.assert_allclose(impulse[:, 1, :2], 0.0, atol=1e-12)  # frictionless
+    # the lower side holds the pull the other way (1 N on each cart: 1 N along the tendon)
+    x0 = system.state(jnp.array([-0.2, -0.1]), jnp.zeros(2))
+    xs, infos = eqx.filter_jit(lambda s, x, us: s.rollout(x, us))(system, x0, jnp.tile(jnp.array([-1.0, -1.0]), (steps, 1)))
+    np.testing.assert_allclose(np.asarray(xs)[:, 0] + np.asarray(xs)[:, 1], -0.3, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(infos.impulse).reshape(steps, 2, 3)[:, 0, 2], 1.0 * h, rtol=1e-9)
+    with pytest.raises(ValueError, match="tendons' limits are solved by the hard-contact NCP"):
+        system.with_options(contact=sim.SpringDamper(stiffness=1e4, damping=10.0, friction=0.5))
+    # MuJoCo's limit flag disabled: none
+    off = sim.load_mjcf(TWO_CARTS.replace('gravity="0 0 0"', 'gravity="0 0 0"><flag limit="disable"/></option><option'))
+    assert off.tendons is None
+
+
+def test_bad_tendon_limits_and_paths_are_refused_by_name():
+    base = dict(
+        lengths=jnp.zeros((1, 2)), moments=jnp.zeros((1, 2)), offsets=jnp.zeros(1), stiffness=jnp.zeros(1),
+        spring_length=jnp.zeros((1, 2)), damping=jnp.zeros(1),
+    )
+    with pytest.raises(ValueError, match="Tendons.limits needs Tendons.range"):
+        sim.Tendons(**base, limits=((0, 1),))
+    with pytest.raises(ValueError, match=r"Tendons.limits entries must be \(tendon, side\)"):
+        sim.Tendons(**base, range=jnp.array([[0.0, 1.0]]), limits=((0, 2),))
+    with pytest.raises(ValueError, match="tendon 0 has no finite lower limit"):
+        sim.Tendons(**base, range=jnp.array([[-jnp.inf, 1.0]]), limits=((0, 1),))
+    with pytest.raises(ValueError, match="Tendons.range must hold lower <= upper"):
+        sim.Tendons(**base, range=jnp.array([[1.0, 0.0]]), limits=((0, -1),))
+    with pytest.raises(ValueError, match="Tendons.paths must hold one tuple of at least two frames"):
+        sim.Tendons(**base, spatial=(0,), paths=(("a",),))
+    system = sim.scene(TWO_CARTS, floor=False)
+    with pytest.raises(ValueError, match=r"joints.tendons.paths \(tendon 0\): .*no_such_frame"):
+        system.with_tendons(sim.Tendons(**base, spatial=(0,), paths=(("a", "no_such_frame"),)))
