@@ -5,7 +5,7 @@ URDF files through MuJoCo's compiler (:func:`load_mjcf`), and are frozen into JA
 (:class:`Model`); dynamics (CRBA, RNEA, Jacobians) are pure JAX functions;
 contact is a frictional complementarity problem solved by ADMM and differentiated
 implicitly (:func:`solve_ncp`); collision geometry (:class:`Sphere`, :class:`Capsule`,
-:class:`Box`, :class:`Cylinder`, :class:`HalfSpace`, :class:`ConvexMesh`) gives contact
+:class:`Box`, :class:`Cylinder`, :class:`Ellipsoid`, :class:`HalfSpace`, :class:`ConvexMesh`) gives contact
 manifolds between posed shapes (:func:`collide`, :func:`candidate_pairs`); :class:`RigidBodySystem` steps a system in time
 (its contacts: spheres against half-spaces, and any pairs of shapes, :class:`GeomPair`; how it
 steps: :class:`Options`, the time step, contact law, solver and derivative mode) and is the
@@ -49,6 +49,7 @@ from rsmooth.sim._geometry import (
     Capsule as Capsule,
     ConvexMesh as ConvexMesh,
     Cylinder as Cylinder,
+    Ellipsoid as Ellipsoid,
     HalfSpace as HalfSpace,
     NonConvexMeshWarning as NonConvexMeshWarning,
     Sphere as Sphere,

@@ -10,11 +10,13 @@ Algorithms, by pair:
 
 - Half-space against a shape: the shape's lowest points (the ends of a capsule, the corners
   of a box, rim points of a cylinder, the vertices of a mesh), reduced to at most 4 that
-  span the largest area, so that a resting face gives a stable manifold.
+  span the largest area, so that a resting face gives a stable manifold; an ellipsoid's
+  lowest point, exact (its support function).
 - Spheres and capsules among themselves, and sphere-box: closest points of points and
   segments (Ericson, *Real-Time Collision Detection*, 2005, sections 5.1.2, 5.1.9).
 - Polytope cores (a sphere is a point dilated, a capsule a segment dilated, boxes and convex
-  meshes are polytopes, a cylinder its inscribed prism of ``_CYLINDER_SIDES`` sides): the separating axis test over face normals and edge cross products
+  meshes are polytopes, a cylinder its inscribed prism of ``_CYLINDER_SIDES`` sides, an
+  ellipsoid its inscribed icosphere, :data:`_ELLIPSOID_SUBDIVISIONS`): the separating axis test over face normals and edge cross products
   (Gottschalk, Lin, Manocha, "OBBTree", SIGGRAPH 1996) gives the penetration depth of the
   cores; when the cores are apart, GJK (Gilbert, Johnson, Keerthi, IEEE J. Robotics and
   Automation 4(2), 1988, with the closest point of each simplex found by enumerating its
@@ -27,6 +29,12 @@ GJK runs in a ``lax.while_loop`` without derivatives; its final simplex is then 
 again from the poses, which gives derivatives of the closest points that are exact for the
 closest features found (no unrolling through iterations).
 
+A pair with an ellipsoid whose cores overlap takes its deepest entry on the exact shapes' best
+axis (:func:`_refined_axis`: the ellipsoid's inscribed polytope only approximates it), found
+without derivatives: the distance's derivative in the poses is exact (the axis is optimal, so
+its turning does not change the distance to first order), and the witness points' derivatives
+hold the axis fixed (they leave out how the contact point slides over the curved surface).
+
 MJX (``mujoco.mjx``) has collision functions for most of these pairs, but they are private
 (``mjx._src``, no stable API), they take MJX's ``Model``/``Data`` and geom-type tables rather
 than standalone shapes and poses, and some of them are written for speed of the forward value
@@ -37,6 +45,7 @@ write our own, standalone and tested against MuJoCo's own distance (``mj_geomDis
 
 from __future__ import annotations
 
+import functools
 import itertools
 
 import equinox as eqx
@@ -53,6 +62,7 @@ from rsmooth.sim._geometry import (
     Capsule,
     ConvexMesh,
     Cylinder,
+    Ellipsoid,
     HalfSpace,
     Sphere,
     _safe_normalize,
@@ -187,6 +197,14 @@ def _halfspace_box(plane, plane_pose, box: Box, pose, margin) -> Contacts:
 
 def _halfspace_mesh(plane, plane_pose, mesh: ConvexMesh, pose, margin) -> Contacts:
     return _halfspace_points(plane_pose, _transform(pose, mesh.vertices), 0.0, margin, 4)
+
+
+def _halfspace_ellipsoid(plane, plane_pose, ellipsoid: Ellipsoid, pose, margin) -> Contacts:
+    """The ellipsoid's lowest point, its support against the plane's normal: exact, one point
+    (a resting ellipsoid touches a plane at one point)."""
+    rotation, translation = pose
+    lowest = translation + rotation @ ellipsoid.support_core(rotation.T @ -plane_pose[0][:, 2])
+    return _halfspace_points(plane_pose, lowest[None, :], 0.0, margin, 1)
 
 
 def _halfspace_cylinder(plane, plane_pose, cylinder: Cylinder, pose, margin) -> Contacts:
@@ -519,6 +537,26 @@ def _prism_template(sides: int):
 _PRISM = _prism_template(_CYLINDER_SIDES)
 
 
+# An ellipsoid against anything but a half-space is the polytope inscribed in it whose vertices
+# are an icosphere's (this many subdivisions of the icosahedron: 642 vertices, 1280 triangles)
+# scaled by its radii, without edges: its faces' normals sample its Gauss map densely (4.6
+# degrees apart), so the axes of its edges would add nothing the faces' do not give to within
+# the same error, at O(M1 M2) cost (two ellipsoids: 1920^2 edge pairs). Penetration depths err
+# by about 0.45 % of its largest radius (the icosphere's sagitta); distances between separated
+# shapes are GJK's on the exact ellipsoid (its support function).
+_ELLIPSOID_SUBDIVISIONS = 3
+
+
+@functools.cache
+def _ellipsoid_template() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The unit icosphere (trimesh's): vertices ``(V, 3)``, triangles ``(F, 3)`` counter-clockwise
+    about their outward normals, and those normals ``(F, 3)``."""
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=_ELLIPSOID_SUBDIVISIONS, radius=1.0)
+    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces), np.asarray(mesh.face_normals, dtype=np.float64)
+
+
 def _polytope(shape, pose) -> _Polytope:
     rotation, translation = pose
     if isinstance(shape, Sphere):
@@ -553,6 +591,20 @@ def _polytope(shape, pose) -> _Polytope:
             directions @ rotation.T,
             shape.core_radius,
             edge_normals @ rotation.T,
+        )
+    if isinstance(shape, Ellipsoid):
+        vertices, triangles, normals = _ellipsoid_template()
+        radii = shape.radii
+        local = jnp.asarray(vertices, radii.dtype) * radii[None, :]
+        # a plane's normal maps by the inverse transpose of the scaling
+        face_normals, _ = _safe_normalize(jnp.asarray(normals, radii.dtype) / radii[None, :], jnp.zeros_like(local[:1]))
+        return _Polytope(
+            _transform(pose, local),
+            face_normals @ rotation.T,
+            _transform(pose, local[triangles.reshape(-1)]).reshape(triangles.shape[0], 3, 3),
+            None,
+            None,
+            shape.core_radius,
         )
     if isinstance(shape, ConvexMesh):
         faces, size = shape.face_polygons.shape[:2]
@@ -711,6 +763,122 @@ def _minkowski_edge_axis(core1: _Polytope, core2: _Polytope) -> tuple[Array, Arr
     return gaps[edge], axes.reshape(-1, 3)[edge]
 
 
+# The exact best axis of a pair with an ellipsoid (_refined_axis): rounds of the pattern search
+# and its first step (rad), wider than the icosphere's faces' spacing (4.6 degrees), halved
+# each round that finds no better axis; iterations of the golden-section search along each
+# edge's circle of axes, within this angle (rad) of the polytopes' best axis, on at most this
+# many edges of a shape (those that reach farthest towards the other).
+_REFINE_ROUNDS = 48
+_REFINE_STEP = 0.1
+_EDGE_SEARCH_ITERATIONS = 48
+_EDGE_SEARCH_WINDOW = 1.5
+_EDGE_SEARCH_COUNT = 16
+
+
+def _support(shape, pose, direction: Array) -> Array:
+    """The world point of ``shape``'s core farthest along the world ``direction``."""
+    rotation, translation = pose
+    return translation + rotation @ shape.support_core(rotation.T @ direction)
+
+
+def _axis_gap(shape1, pose1, shape2, pose2, axis: Array) -> Array:
+    """The separation of the two shapes along the unit ``axis`` (from 1 to 2): at most their
+    signed distance, equal to it at the best axis (convex shapes)."""
+    gap = axis @ (_support(shape2, pose2, -axis) - _support(shape1, pose1, axis))
+    return gap - shape1.core_radius - shape2.core_radius
+
+
+def _refined_axis(shape1, pose1, shape2, pose2, start: Array, core1: _Polytope, core2: _Polytope) -> Array:
+    """The best separating axis of a pair with an ellipsoid, from the polytopes' best one
+    ``start``: the separating axes of an ellipsoid's inscribed polytope are only within its
+    faces' spacing of the exact shapes' best axis, and a box's edge against it errs by that
+    angle times the box's size. The gap (:func:`_axis_gap`, on the shapes' exact support
+    functions) is largest, for convex shapes, on a face normal of the other shape (tried
+    exactly), across an edge of it (a golden-section search along the circle of axes normal to
+    each edge, near ``start``: the gap has a kink across the edge, which a search over the
+    sphere stalls at), or where it is smooth (a vertex, or two curved shapes): a pattern search
+    over the sphere (eight neighbours at a step that halves when none is better) from the best
+    of these finishes. Derivatives are not taken through the searches."""
+    start = lax.stop_gradient(start)
+    poses = jax.tree.map(lax.stop_gradient, (pose1, pose2))
+    cores = jax.tree.map(lambda a: None if a is None else lax.stop_gradient(a), (core1, core2), is_leaf=lambda a: a is None)
+    gap = lambda axis: _axis_gap(shape1, poses[0], shape2, poses[1], axis)  # noqa: E731
+    dtype = start.dtype
+    candidates = [start[None, :]]
+    # faces of a shape that is not the ellipsoid (outward from 1 towards 2); the edges of its
+    # polytope that reach farthest towards the other shape (a mesh's edges are many)
+    for core, sign, shape in ((cores[0], 1.0, shape1), (cores[1], -1.0, shape2)):
+        if isinstance(shape, Ellipsoid):
+            continue
+        if core.face_normals is not None:
+            candidates.append(sign * core.face_normals)
+        if core.edges is not None:
+            edges = core.edges
+            if edges.shape[0] > _EDGE_SEARCH_COUNT:
+                reach = jnp.max(edges @ (sign * start), axis=-1)
+                edges = edges[lax.top_k(reach, _EDGE_SEARCH_COUNT)[1]]
+            candidates.append(_edge_axes(gap, edges, start))
+    candidates = jnp.concatenate(candidates)
+    values = jax.vmap(gap)(candidates)
+    best = jnp.argmax(values)
+
+    helper_x, helper_y = jnp.array([1.0, 0.0, 0.0], dtype), jnp.array([0.0, 1.0, 0.0], dtype)
+    root_half = np.sqrt(0.5)
+    offsets = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [root_half, root_half], [-root_half, root_half],
+                        [root_half, -root_half], [-root_half, -root_half]])
+
+    def round_(_, carry):
+        axis, value, step = carry
+        helper = jnp.where(jnp.abs(axis[0]) < 0.9, helper_x, helper_y)
+        tangent1, _ = _safe_normalize(jnp.cross(axis, helper), jnp.array([0.0, 0.0, 1.0], dtype))
+        tangent2 = jnp.cross(axis, tangent1)
+        moves = jnp.asarray(offsets, dtype) @ jnp.stack([tangent1, tangent2])  # (8, 3)
+        trial = jnp.cos(step) * axis[None, :] + jnp.sin(step) * moves
+        trial = trial / _safe_norm(trial)[:, None]
+        trial_values = jax.vmap(gap)(trial)
+        pick = jnp.argmax(trial_values)
+        better = trial_values[pick] > value
+        return (
+            jnp.where(better, trial[pick], axis), jnp.where(better, trial_values[pick], value),
+            jnp.where(better, step, 0.5 * step),
+        )
+
+    carry = (candidates[best], values[best], jnp.asarray(_REFINE_STEP, dtype))
+    axis, _, _ = lax.fori_loop(0, _REFINE_ROUNDS, round_, carry)
+    return axis
+
+
+def _edge_axes(gap, edges: Array, start: Array) -> Array:
+    """For each edge ``(M, 2, 3)``, the axis normal to it of largest ``gap`` within
+    :data:`_EDGE_SEARCH_WINDOW` of ``start`` along the circle of such axes (golden-section
+    search from ``start``'s projection on it), ``(M, 3)``."""
+    dtype = start.dtype
+    direction, _ = _safe_normalize(edges[:, 1] - edges[:, 0], jnp.zeros_like(edges[:, 0]))
+    # the circle's basis: start's part normal to the edge, and the edge's direction times it
+    # (an edge along start, to rounding: any axis normal to it)
+    helper = jnp.where(jnp.abs(direction[:, :1]) < 0.9, jnp.array([1.0, 0.0, 0.0], dtype), jnp.array([0.0, 1.0, 0.0], dtype))
+    normal_to_edge, _ = _safe_normalize(jnp.cross(direction, helper), jnp.broadcast_to(start, direction.shape))
+    residual = start[None, :] - (direction @ start)[:, None] * direction
+    square = jnp.sum(residual * residual, axis=-1)
+    usable = square > 1e-12
+    first = jnp.where(usable[:, None], residual / jnp.sqrt(jnp.where(usable, square, 1.0))[:, None], normal_to_edge)
+    second = jnp.cross(direction, first)
+    on_circle = lambda angle: jnp.cos(angle)[:, None] * first + jnp.sin(angle)[:, None] * second  # noqa: E731
+    values = lambda angle: jax.vmap(gap)(on_circle(angle))  # noqa: E731
+    ratio = (np.sqrt(5.0) - 1.0) / 2.0
+    count = edges.shape[0]
+    low, high = jnp.full(count, -_EDGE_SEARCH_WINDOW, dtype), jnp.full(count, _EDGE_SEARCH_WINDOW, dtype)
+
+    def narrow(_, bracket):
+        low, high = bracket
+        left, right = high - ratio * (high - low), low + ratio * (high - low)
+        keep_left = values(left) >= values(right)
+        return jnp.where(keep_left, low, left), jnp.where(keep_left, right, high)
+
+    low, high = lax.fori_loop(0, _EDGE_SEARCH_ITERATIONS, narrow, (low, high))
+    return on_circle(0.5 * (low + high))
+
+
 def _polytope_pair(shape1, pose1, shape2, pose2, margin, count: int) -> Contacts:
     """Separating axes for overlapping cores, GJK for separated ones, face clipping for
     the manifold (see the module's docstring)."""
@@ -791,6 +959,17 @@ def _polytope_pair(shape1, pose1, shape2, pose2, margin, count: int) -> Contacts
     else:
         _, normal, point1, point2, distance, valid = candidates[0]
     manifold = _reduce(point1, point2, distance, normal, valid, margin, count)
+    if isinstance(shape1, Ellipsoid) or isinstance(shape2, Ellipsoid):
+        # the deepest entry on the exact shapes' best axis (see _refined_axis), from the
+        # polytopes' best one; its point on shape 2 is that shape's deepest along the axis
+        axis = _refined_axis(shape1, pose1, shape2, pose2, manifold.normal[0], core1, core2)
+        deepest = _axis_gap(shape1, pose1, shape2, pose2, axis)
+        point2 = _support(shape2, pose2, -axis) - radius2 * axis
+        manifold = Contacts(
+            manifold.distance.at[0].set(deepest), manifold.normal.at[0].set(axis),
+            manifold.point1.at[0].set(point2 - deepest * axis), manifold.point2.at[0].set(point2),
+            manifold.active.at[0].set(deepest <= margin),
+        )
 
     def replace_first(contacts, distance, normal, point1, point2, condition):
         update = lambda field, value: field.at[0].set(jnp.where(condition, value, field[0]))  # noqa: E731
@@ -828,6 +1007,10 @@ def _polytope_pair(shape1, pose1, shape2, pose2, margin, count: int) -> Contacts
     # direction of a 1e-13 m vector) is rounding noise, and the stack's sticking solve fails.
     gjk_tolerance = jnp.sqrt(jnp.asarray(_eps(dtype), dtype)) * scale
     separated = (separation > 0) & (jnp.abs(length - radius1 - radius2 - manifold.distance[0]) > gjk_tolerance)
+    if isinstance(shape1, Ellipsoid) or isinstance(shape2, Ellipsoid):
+        # the exact shapes' cores apart (GJK), not their inscribed polytopes: within the
+        # ellipsoid's sagitta the polytopes separate where the shapes overlap
+        separated = length > gjk_tolerance
     return replace_first(
         manifold,
         length - radius1 - radius2,
@@ -877,6 +1060,13 @@ _PAIR_FUNCTIONS = {
     (Box, Cylinder): (_polytope_pair_of(4), 4),
     (Cylinder, Cylinder): (_polytope_pair_of(4), 4),
     (Cylinder, ConvexMesh): (_polytope_pair_of(4), 4),
+    (HalfSpace, Ellipsoid): (_halfspace_ellipsoid, 1),
+    (Sphere, Ellipsoid): (_polytope_pair_of(1), 1),
+    (Capsule, Ellipsoid): (_polytope_pair_of(2), 2),
+    (Box, Ellipsoid): (_polytope_pair_of(4), 4),
+    (Cylinder, Ellipsoid): (_polytope_pair_of(4), 4),
+    (Ellipsoid, Ellipsoid): (_polytope_pair_of(4), 4),
+    (Ellipsoid, ConvexMesh): (_polytope_pair_of(4), 4),
 }
 
 

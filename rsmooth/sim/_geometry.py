@@ -1,4 +1,4 @@
-"""Collision shapes: spheres, capsules, boxes, cylinders, half-spaces and convex meshes.
+"""Collision shapes: spheres, capsules, boxes, cylinders, ellipsoids, half-spaces and convex meshes.
 
 Each shape is a frozen :class:`equinox.Module` in its own local frame; its array fields are
 traced (so shapes can be batched, differentiated and built inside ``jit``) and checked on the
@@ -13,7 +13,7 @@ frame, whose boundary plane has the outward normal ``+z`` (MuJoCo's plane).
 
 For the narrow phase (:mod:`rsmooth.sim._collision`) every bounded shape is described by a
 *core* and a *radius*: the shape is the core dilated by a ball of that radius (a sphere is a
-point dilated, a capsule a segment dilated; boxes, cylinders and meshes have radius 0). The
+point dilated, a capsule a segment dilated; boxes, cylinders, ellipsoids and meshes have radius 0). The
 core's support function, ``argmax_{x in core} x . d``, is all that the generic distance
 algorithm needs.
 """
@@ -36,6 +36,7 @@ __all__ = [
     "Capsule",
     "ConvexMesh",
     "Cylinder",
+    "Ellipsoid",
     "HalfSpace",
     "NonConvexMeshWarning",
     "Sphere",
@@ -201,6 +202,35 @@ class Cylinder(eqx.Module):
     @property
     def bounding_radius(self) -> Array:
         return jnp.sqrt(self.radius**2 + self.half_length**2)
+
+
+class Ellipsoid(eqx.Module):
+    """A solid ellipsoid ``(x / a)^2 + (y / b)^2 + (z / c)^2 <= 1`` of semi-axes
+    ``radii = (a, b, c)`` along its frame's axes (MuJoCo's ellipsoid).
+
+    Attributes:
+        radii: ``(3,)``, positive.
+    """
+
+    radii: Array = eqx.field(converter=_as_float)
+
+    def __check_init__(self):
+        _check("radii", self.radii, (3,))
+
+    @property
+    def core_radius(self) -> Array:
+        return jnp.zeros((), self.radii.dtype)
+
+    def support_core(self, direction: Array) -> Array:
+        """``diag(r)^2 d / |diag(r) d|``: the boundary point whose outward normal is ``d``."""
+        from rsmooth.sim._contact import _safe_norm
+
+        scaled = self.radii * direction
+        return self.radii * scaled / jnp.maximum(_safe_norm(scaled), jnp.finfo(scaled.dtype).tiny)[..., None]
+
+    @property
+    def bounding_radius(self) -> Array:
+        return jnp.max(self.radii)
 
 
 class HalfSpace(eqx.Module):

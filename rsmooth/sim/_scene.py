@@ -7,7 +7,7 @@ system that steps with hard frictional contact, as MuJoCo would pair its geoms:
 - every geom of a colliding pair becomes a collision shape with MuJoCo's sizes (``geom_size``:
   a plane is a :class:`~rsmooth.sim.HalfSpace`, infinite, ``z <= 0`` of its frame; a sphere
   its radius; a capsule and a cylinder their radius and half length along their ``z`` axis; a
-  box its half extents; a mesh the :class:`~rsmooth.sim.ConvexMesh` of its vertices' convex
+  box its half extents; an ellipsoid its three radii; a mesh the :class:`~rsmooth.sim.ConvexMesh` of its vertices' convex
   hull, the shape MuJoCo collides);
 - every pair of :attr:`MujocoModel.collision_pairs` (MuJoCo's filters: welded bodies, parent
   and child, ``<exclude>``, ``contype``/``conaffinity``, explicit ``<pair>``) becomes one
@@ -44,7 +44,7 @@ import numpy as np
 from rsmooth._xla import device_array
 from rsmooth.sim._collision import manifold_size
 from rsmooth.sim._dynamics import forward_kinematics
-from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, HalfSpace, Sphere, convex_mesh
+from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, Ellipsoid, HalfSpace, Sphere, convex_mesh
 from rsmooth.sim._mujoco import MujocoModel, load_mjcf, source_label
 from rsmooth.sim._ncp import NCPSolver
 from rsmooth.sim._simulator import Actuation, GeomPair, RigidBodySystem
@@ -65,6 +65,8 @@ def _shape(loaded: MujocoModel, geom: int, meshes: dict[int, Any]):
         return Capsule(size[0], size[1])
     if kind == "cylinder":
         return Cylinder(size[0], size[1])
+    if kind == "ellipsoid":
+        return Ellipsoid(size)
     if kind == "box":
         return Box(size)
     if kind == "mesh":
@@ -140,7 +142,7 @@ def _check_pair(names: tuple[str, str], kinds: tuple[str, str], shapes: tuple) -
         if shapes[side] is None:
             raise ValueError(
                 f"MuJoCo model: {names[side]} collides with {names[1 - side]}, but rsmooth.sim has no {kinds[side]} "
-                "collision shape (supported: plane, sphere, capsule, box, cylinder, mesh); give it contype = "
+                "collision shape (supported: plane, sphere, capsule, box, cylinder, ellipsoid, mesh); give it contype = "
                 "conaffinity = 0 or replace it"
             )
     try:
@@ -364,8 +366,7 @@ def scene(
 
     Raises:
         ValueError: if the model cannot be loaded or converted (see
-            :func:`~rsmooth.sim.load_mjcf`), if a colliding pair involves a geom with no
-            rsmooth shape (an ellipsoid) or a pair of shapes without a collision function (the
+            :func:`~rsmooth.sim.load_mjcf`), if a colliding pair has no collision function (the
             message names the geoms and their types), if the motors of a dof can apply a
             generalized force over a range that is not symmetric about zero (the message names
             them), if ``floating_base``, ``package_dirs``, ``visuals``, ``boundinertia``,

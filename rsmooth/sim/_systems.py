@@ -22,7 +22,7 @@ from rsmooth.sim._laws import LogBarrier, SpringDamper
 from rsmooth.sim._model import FREE_FLYER, PRISMATIC, UNIVERSE, Model, free_body, load_urdf, solo12_standing_configuration, solo12_urdf_path
 from rsmooth.sim._collision import manifold_size
 from rsmooth.sim._contact import contact_frame
-from rsmooth.sim._geometry import Box, Capsule, Cylinder, HalfSpace, Sphere
+from rsmooth.sim._geometry import Box, Capsule, Cylinder, Ellipsoid, HalfSpace, Sphere
 from rsmooth.sim._ncp import NCPSolver
 from rsmooth.sim._simulator import (
     Actuation, ContactLaw, GeomPair, Geometry, Joints, Options, RigidBodySystem, _point_jacobian,
@@ -390,6 +390,9 @@ def _inertia(shape, mass: float) -> np.ndarray:
     if isinstance(shape, Box):
         squares = np.asarray(shape.half_extents, dtype=np.float64) ** 2
         return mass / 3.0 * np.array([squares[1] + squares[2], squares[0] + squares[2], squares[0] + squares[1]])
+    if isinstance(shape, Ellipsoid):
+        squares = np.asarray(shape.radii, dtype=np.float64) ** 2
+        return mass / 5.0 * np.array([squares[1] + squares[2], squares[0] + squares[2], squares[0] + squares[1]])
     r, a = float(shape.radius), float(shape.half_length)  # Cylinder or Capsule, axis z
     if isinstance(shape, Cylinder):
         return np.array([mass * (3 * r**2 + 4 * a**2) / 12, mass * (3 * r**2 + 4 * a**2) / 12, mass * r**2 / 2])
@@ -467,7 +470,8 @@ def bodies(
 
     Args:
         shapes: one :class:`~rsmooth.sim.Sphere`, :class:`~rsmooth.sim.Box`,
-            :class:`~rsmooth.sim.Capsule` or :class:`~rsmooth.sim.Cylinder` per body.
+            :class:`~rsmooth.sim.Capsule`, :class:`~rsmooth.sim.Cylinder` or
+            :class:`~rsmooth.sim.Ellipsoid` per body.
         masses: a mass (kg) per body, positive.
         positions: the bodies' initial centres in the world, ``(n, 3)`` (m).
         orientations: their initial unit quaternions ``[qx, qy, qz, qw]``, ``(n, 4)``;
@@ -514,8 +518,8 @@ def bodies(
     if n == 0:
         raise ValueError("shapes must hold at least one shape")
     for i, shape in enumerate(shapes):
-        if not isinstance(shape, (Sphere, Box, Capsule, Cylinder)):
-            raise ValueError(f"shapes[{i}] must be a Sphere, Box, Capsule or Cylinder, got {type(shape).__name__}")
+        if not isinstance(shape, (Sphere, Box, Capsule, Cylinder, Ellipsoid)):
+            raise ValueError(f"shapes[{i}] must be a Sphere, Box, Capsule, Cylinder or Ellipsoid, got {type(shape).__name__}")
     masses = [_number(f"masses[{i}]", m) for i, m in enumerate(np.ravel(np.asarray(masses, dtype=object)))]
     if len(masses) != n:
         raise ValueError(f"masses must hold one mass per shape ({n}), got {len(masses)}")

@@ -59,6 +59,29 @@ def test_box_stack_rests():
     np.testing.assert_allclose(force[2], [0, 0, masses[1] * G], atol=1e-6)  # on the upper box (shape 2)
 
 
+def test_an_ellipsoid_rests_on_a_box_with_mujocos_inertia():
+    """An ellipsoid lying on its shortest axis on a box on the floor: both stay put, the box
+    carries the ellipsoid's weight through one contact; its inertia is MuJoCo's for the geom."""
+    import mujoco
+
+    radii, masses = np.array([0.12, 0.08, 0.05]), [1.0, 0.4]
+    system = sim.bodies(
+        [sim.Box([0.2, 0.2, 0.1]), sim.Ellipsoid(radii)], masses, [[0, 0, 0.1], [0.03, -0.02, 0.2 + radii[2]]], time_step=H
+    )
+    m = mujoco.MjModel.from_xml_string(
+        f'<mujoco><worldbody><body><freejoint/><geom type="ellipsoid" size="{" ".join(map(str, radii))}" mass="0.4"/>'
+        "</body></worldbody></mujoco>"
+    )
+    np.testing.assert_allclose(np.diag(np.asarray(system.model.body_inertia[2])), m.body_inertia[1], rtol=1e-12)
+    x0 = np.asarray(system.initial_state())
+    xs, infos = _rollout(system, x0, 100)
+    sim.check_steps(infos, what="an ellipsoid on a box")
+    np.testing.assert_allclose(xs[:, :14], np.broadcast_to(x0[:14], (101, 14)), atol=1e-6)
+    assert np.max(np.abs(xs[:, 14:])) < 1e-6
+    force = np.asarray(infos.force[-1])
+    np.testing.assert_allclose(force[-4:].sum(axis=0), [0.0, 0.0, masses[1] * G], atol=1e-6)  # the box-ellipsoid pair
+
+
 def test_equal_boxes_stacked_off_centre_rest():
     """Two equal boxes, the upper one shifted sideways by a quarter of its width (its centre
     of mass still over the lower box): it rests on the overlap of the faces, untilted, and

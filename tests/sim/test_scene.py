@@ -12,10 +12,11 @@ import pytest
 import rsmooth.sim as sim
 
 # A stack of two boxes of different sizes (the upper one turned) and, side by
-# side, a ball, a capsule lying on its side, a brick and a cylinder standing on its cap (its geom
-# off its body's origin), each 2 mm above what it falls on. The objects beside the stack collide
-# with the floor only (contype 2 meets the floor's conaffinity, nothing meets their
-# conaffinity 0), so that the scene has 7 pairs rather than 21. The ball's priority makes its
+# side, a ball, a capsule lying on its side, a brick, a cylinder standing on its cap (its geom
+# off its body's origin) and an ellipsoid lying on its shortest axis, each 2 mm above what it
+# falls on. The objects beside the stack collide with the floor only (contype 2 meets the
+# floor's conaffinity, nothing meets their conaffinity 0), so that the scene has 8 pairs rather
+# than 28. The ball's priority makes its
 # own friction apply against the floor; the capsule meets the floor through an explicit pair
 # with its own friction.
 SCENE = """<mujoco>
@@ -35,19 +36,22 @@ SCENE = """<mujoco>
       <geom name="brick" type="box" size="0.06 0.05 0.04"/></body>
     <body name="can" pos="0 -0.5 0.062"><freejoint/>
       <geom name="can" type="cylinder" size="0.05 0.06" pos="0.02 0 0"/></body>
+    <body name="egg" pos="0.5 0.5 0.052" euler="0 0 40"><freejoint/>
+      <geom name="egg" type="ellipsoid" size="0.08 0.06 0.05"/></body>
   </worldbody>
   <contact><pair geom1="floor" geom2="log" friction="0.5 0.5"/></contact>
 </mujoco>"""
-BODIES = ("base", "middle", "ball", "log", "brick", "can")
+BODIES = ("base", "middle", "ball", "log", "brick", "can", "egg")
 # Height of each body's frame above the floor at rest: the box stack's half heights, the
-# ball's radius, the lying capsule's radius, the brick's half height, the cylinder's half length.
-REST_HEIGHTS = np.array([0.05, 0.1 + 0.04, 0.07, 0.04, 0.04, 0.06])
+# ball's radius, the lying capsule's radius, the brick's half height, the cylinder's half length,
+# the ellipsoid's shortest radius.
+REST_HEIGHTS = np.array([0.05, 0.1 + 0.04, 0.07, 0.04, 0.04, 0.06, 0.05])
 
 
 def test_scene_comes_to_rest_at_the_analytic_heights():
     system = sim.scene(SCENE)
     assert float(system.time_step) == 0.02  # MuJoCo's opt.timestep
-    assert (system.nx, system.nu, len(system.geometry.geom_pairs), system.num_contacts) == (78, 0, 7, 23)
+    assert (system.nx, system.nu, len(system.geometry.geom_pairs), system.num_contacts) == (91, 0, 8, 24)
     assert isinstance(system.geometry.geom_pairs[0].shape2, sim.Capsule)  # the explicit pair comes first
     steps = 100  # 2 s
     xs, infos = eqx.filter_jit(lambda s, x: s.rollout(x, jnp.zeros((steps, 0))))(system, system.initial_state())
@@ -56,7 +60,7 @@ def test_scene_comes_to_rest_at_the_analytic_heights():
     xs = np.asarray(xs)
     poses = xs[:, : system.model.nq].reshape(steps + 1, len(BODIES), 7)
     # qpos0: every body 2 mm above what it falls on, as the file places it
-    np.testing.assert_allclose(poses[0, :, 2], REST_HEIGHTS + [0.002, 0.004, 0.002, 0.002, 0.002, 0.002], atol=1e-12)
+    np.testing.assert_allclose(poses[0, :, 2], REST_HEIGHTS + [0.002, 0.004, 0.002, 0.002, 0.002, 0.002, 0.002], atol=1e-12)
     np.testing.assert_allclose(poses[-1, :, 2], REST_HEIGHTS, atol=1e-3)
     # they settle straight down, without sliding or turning
     np.testing.assert_allclose(poses[-1, :, :2], poses[0, :, :2], atol=1e-3)
@@ -99,7 +103,7 @@ def test_pairs_frictions_and_distances_match_mujoco():
     names = [frozenset(loaded.geom_names[g] for g in pair) for pair in loaded.collision_pairs]
     kinds = [(type(p.shape1).__name__, type(p.shape2).__name__) for p in system.geometry.geom_pairs]
     expected_kinds = [(loaded.geom_types[a], loaded.geom_types[b]) for a, b in loaded.collision_pairs]
-    shape_of = {"HalfSpace": "plane", "Box": "box", "Sphere": "sphere", "Capsule": "capsule", "Cylinder": "cylinder"}
+    shape_of = {"HalfSpace": "plane", "Box": "box", "Sphere": "sphere", "Capsule": "capsule", "Cylinder": "cylinder", "Ellipsoid": "ellipsoid"}
     assert [(shape_of[a], shape_of[b]) for a, b in kinds] == expected_kinds
     # geoms on the world are fixed there, the others ride on their body's frame
     for (g1, g2), pair in zip(loaded.collision_pairs, system.geometry.geom_pairs):
@@ -163,8 +167,8 @@ def test_actuation_and_bad_input_are_named():
     np.testing.assert_allclose(arm.actuation.input_limit, [2.0])  # ctrlrange times gear
     np.testing.assert_allclose(arm.joints.damping, [0.3])
     assert float(arm.time_step) == 0.002  # MuJoCo's default
-    with pytest.raises(ValueError, match=r"geom 'blob' \(ellipsoid\) collides with geom 'floor' \(plane\)"):
-        sim.scene(ARM.format(extra='<geom name="blob" type="ellipsoid" size="0.1 0.2 0.1"/>', low=-1))
+    blob = sim.scene(ARM.format(extra='<geom name="blob" type="ellipsoid" size="0.1 0.2 0.1"/>', low=-1))
+    assert any(isinstance(pair.shape2, sim.Ellipsoid) for pair in blob.geometry.geom_pairs)
     with pytest.raises(ValueError, match=r"actuator 'motor'.*\[0.0, 2.0\].*symmetric"):
         sim.scene(ARM.format(extra="", low=0))
     for argument, value in (("time_step", 0.0), ("friction", -0.1), ("margin", -1.0)):
@@ -245,9 +249,9 @@ def test_floor_and_self_collision_refuse_bad_input_by_name():
             '<geom size="0.1" contype="0" conaffinity="0"/></body></worldbody></mujoco>', floor=True
         )
     blob = ONE_OBJECT.format(z=1.0, geom='name="blob" type="ellipsoid" size="0.1 0.2 0.1"')
-    sim.scene(blob)  # alone, it collides with nothing
-    with pytest.raises(ValueError, match=r"geom 'blob' \(ellipsoid\) collides with the floor.*no ellipsoid"):
-        sim.scene(blob, floor=True)
+    assert not sim.scene(blob).geometry.geom_pairs  # alone, it collides with nothing
+    pairs = sim.scene(blob, floor=True).geometry.geom_pairs
+    assert len(pairs) == 1 and isinstance(pairs[0].shape1, sim.HalfSpace) and isinstance(pairs[0].shape2, sim.Ellipsoid)
 
 
 # Two kinematic trees and the world. The world body carries a floor and a post; a fixed-base
