@@ -103,6 +103,7 @@ from rsmooth.sim._simulator import (
     JointFriction as JointFriction,
     JointSprings as JointSprings,
     Tendons as Tendons,
+    Fluid as Fluid,
     Joints as Joints,
     Options as Options,
     RigidBodySystem as RigidBodySystem,

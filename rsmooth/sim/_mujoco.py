@@ -64,7 +64,7 @@ from jax.typing import ArrayLike
 from rsmooth._xla import device_array
 from rsmooth.sim import _spatial as spatial
 from rsmooth.sim._model import FREE_FLYER, PRISMATIC, REVOLUTE, SPHERICAL, UNIVERSE, Model
-from rsmooth.sim._simulator import JointCoupling, Tendons
+from rsmooth.sim._simulator import Fluid, JointCoupling, Tendons
 
 # The geom types a collision routine may meet; height fields and SDFs are accepted only
 # when they cannot collide (purely visual), so that geom indices stay MuJoCo's.
@@ -111,6 +111,9 @@ class MujocoModel(eqx.Module):
             (:class:`~rsmooth.sim.Tendons`, spatial ones through their sites' frames; the
             ``spring``, ``damper``, ``frictionloss`` and ``limit`` flags honoured), or ``None``
             where none has any.
+        fluid: MuJoCo's inertia-box fluid model (``density``, ``viscosity``, ``wind``) on every
+            body of positive mass (:class:`~rsmooth.sim.Fluid`), or ``None`` without density
+            and viscosity.
         timestep: ``opt.timestep``, in seconds.
         limits_enforced: whether MuJoCo enforces the joints' position limits (``False`` where
             its ``limit`` or ``constraint`` flag is disabled; the limits stay in ``model``).
@@ -184,6 +187,7 @@ class MujocoModel(eqx.Module):
     spring_reference: jax.Array
     joint_couplings: JointCoupling | None
     tendons: Tendons | None
+    fluid: Fluid | None
     timestep: float = eqx.field(static=True)
     limits_enforced: bool = eqx.field(static=True)
     body_names: tuple[str, ...] = eqx.field(static=True)
@@ -521,10 +525,12 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
                 "not model"
             )
     if m.opt.density != 0 or m.opt.viscosity != 0:
-        raise ValueError(
-            f"MuJoCo model: fluid forces (density {m.opt.density}, viscosity {m.opt.viscosity}) are not modelled by "
-            "rsmooth.sim (supported: density 0 and viscosity 0)"
-        )
+        for g in range(m.ngeom):
+            if m.geom_fluid[g, 0] != 0:
+                raise ValueError(
+                    f"MuJoCo model: geom {_names(m, 'geom', m.ngeom)[g]!r} takes the ellipsoid fluid model (fluidshape), which "
+                    "rsmooth.sim does not model (supported: the inertia-box fluid model, fluidshape none)"
+                )
     if _disabled(mj, m, "ACTUATION") and m.nu:
         raise ValueError(
             "MuJoCo model: its actuators are disabled (the actuation flag), which rsmooth.sim does not model "
@@ -638,6 +644,29 @@ def _tendons(mj: Any, m: Any) -> Tendons | None:
     )
 
 
+def _fluid(m: Any) -> Fluid | None:
+    """MuJoCo's inertia-box fluid model (``None`` without density and viscosity): every body of
+    positive mass, its inertial frame placed in its frame (frames: bodies first, by id)."""
+    if m.opt.density == 0 and m.opt.viscosity == 0:
+        return None
+    bodies = [b for b in range(1, m.nbody) if m.body_mass[b] >= 1e-15]  # MuJoCo's mjMINVAL
+    inertia = np.asarray(m.body_inertia, dtype=np.float64)[bodies]
+    mass = np.asarray(m.body_mass, dtype=np.float64)[bodies, None]
+    # the equivalent inertia box's sides, as MuJoCo computes them
+    spans = np.stack([inertia[:, 1] + inertia[:, 2] - inertia[:, 0], inertia[:, 0] + inertia[:, 2] - inertia[:, 1],
+                      inertia[:, 0] + inertia[:, 1] - inertia[:, 2]], axis=1)
+    box = np.sqrt(np.maximum(1e-15, spans) / mass * 6.0)
+    return Fluid(
+        frames=tuple(bodies),
+        rotations=_array(np.stack([_pose(np.zeros(3), m.body_iquat[b])[0] for b in bodies]).reshape(len(bodies), 3, 3)),
+        offsets=_array(np.asarray(m.body_ipos, dtype=np.float64)[bodies]).reshape(len(bodies), 3),
+        box=_array(box).reshape(len(bodies), 3),
+        density=_array(float(m.opt.density)),
+        viscosity=_array(float(m.opt.viscosity)),
+        wind=_array(np.asarray(m.opt.wind, dtype=np.float64)),
+    )
+
+
 def _check_actuators(mj: Any, m: Any, joint_names: tuple[str, ...]) -> None:
     names = _names(m, "actuator", m.nu)
     supported = (
@@ -700,7 +729,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
             that wraps around a geom or has a pulley, a tendon's nonlinear spring or damping or
             armature, equality constraints
             other than joint couplings and equalities of one fixed tendon on at most two joints,
-            flex, skins, plugins, mocap bodies, gravity compensation, fluid forces, colliding
+            flex, skins, plugins, mocap bodies, gravity compensation, the ellipsoid fluid model, colliding
             height fields or SDFs, actuators other than direct motors on a hinge, a slide or a
             fixed tendon, and on a free
             joint's linear axes an armature (MuJoCo applies it to the world-axes acceleration)
@@ -873,6 +902,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         spring_reference=_array(spring_reference),
         joint_couplings=None if _disabled(mj, m, "EQUALITY", "CONSTRAINT") else _joint_couplings(mj, m),
         tendons=_tendons(mj, m),
+        fluid=_fluid(m),
         limits_enforced=not _disabled(mj, m, "LIMIT", "CONSTRAINT"),
         timestep=float(m.opt.timestep),
         body_names=body_names,

@@ -280,7 +280,8 @@ def scene(
     :meth:`~rsmooth.sim.RigidBodySystem.with_joint_springs`), dry joint friction (``frictionloss``,
     :meth:`~rsmooth.sim.RigidBodySystem.with_joint_friction`), joint couplings (a URDF's
     ``<mimic>``, :attr:`~rsmooth.sim.Joints.couplings`) and the springs, dampers, dry friction
-    and length limits of fixed and spatial tendons (:attr:`~rsmooth.sim.Joints.tendons`) are those of
+    and length limits of fixed and spatial tendons (:attr:`~rsmooth.sim.Joints.tendons`) and the fluid
+    (:attr:`~rsmooth.sim.Joints.fluid`) are those of
     :func:`~rsmooth.sim.load_mjcf`; every colliding geom pair of MuJoCo is a
     :class:`~rsmooth.sim.GeomPair` with MuJoCo's friction (see the module's description for
     the mapping of geoms, frames and frictions). The input ``u`` ``(nu,)`` holds the
@@ -491,7 +492,7 @@ def scene(
     system = system.with_contact_budget(max_contacts, max_pairs, max_limits).with_options(max_correction_speed=max_correction_speed)
     system = system.with_joint_friction(np.asarray(loaded.frictionloss))
     system = system.with_joint_springs(np.asarray(loaded.stiffness), loaded.spring_reference)
-    system = system.with_tendons(loaded.tendons)
+    system = system.with_tendons(loaded.tendons).with_fluid(loaded.fluid)
     system = system.with_joint_couplings(loaded.joint_couplings)
     if not joint_limits or not loaded.limits_enforced:
         return system

@@ -629,6 +629,58 @@ class Tendons(eqx.Module):
             raise ValueError(f"Tendons.spring_length must hold lower <= upper, got {np.asarray(band)}")
 
 
+class Fluid(eqx.Module):
+    """Forces of a surrounding fluid on bodies (MuJoCo's inertia-box fluid model): each body is,
+    for the fluid, the box of its mass with its rotational inertia (full side lengths ``box``,
+    along its principal axes), and its velocity relative to the fluid, ``(omega, v)`` in those
+    axes at its centre of mass (``v`` less the ``wind``), meets
+
+    ``f = -3 pi d beta v - rho / 2 (b_y b_z |v_x| v_x, b_x b_z |v_y| v_y, b_x b_y |v_z| v_z)`` and
+    ``tau = -pi d^3 beta omega - rho / 64 (b_x (b_y^4 + b_z^4) |omega_x| omega_x, ...)``,
+
+    ``d`` the box's mean side, ``beta`` the ``viscosity`` (Stokes drag of a sphere of diameter
+    ``d``), ``rho`` the ``density`` (quadratic drag on the box's faces). Explicit in the step, as
+    in MuJoCo's Euler integrator: a drag strong for a body's mass (``h c / m > 2`` for a linear
+    drag ``c``) makes the step unstable, as there. Reference: MuJoCo's documentation, "Fluid
+    forces", inertia model.
+
+    Attributes:
+        frames: the frame of each body (static), whose principal axes and centre of mass are
+            placed in it by ``rotations`` and ``offsets``.
+        rotations: ``(B, 3, 3)``, the principal axes in the frame.
+        offsets: ``(B, 3)``, the centre of mass in the frame (m).
+        box: ``(B, 3)``, the equivalent inertia box's side lengths along the principal axes
+            (m), ``>= 0``: ``sqrt(6 (I_y + I_z - I_x) / m)`` and its permutations.
+        density: ``rho`` (kg/m^3), ``>= 0``.
+        viscosity: ``beta`` (Pa s), ``>= 0``.
+        wind: ``(3,)``, the fluid's velocity in the world (m/s).
+    """
+
+    frames: tuple[str | int, ...] = eqx.field(static=True)
+    rotations: Array
+    offsets: Array
+    box: Array
+    density: Array
+    viscosity: Array
+    wind: Array
+
+    def __check_init__(self):
+        count = len(self.frames)
+        for name, shape in (("rotations", (count, 3, 3)), ("offsets", (count, 3)), ("box", (count, 3)), ("wind", (3,))):
+            if jnp.shape(getattr(self, name)) != shape:
+                raise ValueError(f"Fluid.{name} must have shape {shape}, got {jnp.shape(getattr(self, name))}")
+        for name in ("rotations", "offsets", "box", "density", "viscosity", "wind"):
+            value = getattr(self, name)
+            if not _checks.is_traced(value) and not np.all(np.isfinite(np.asarray(value))):
+                raise ValueError(f"Fluid.{name} must be finite")
+        for name in ("box", "density", "viscosity"):
+            value = getattr(self, name)
+            if jnp.ndim(value) != (2 if name == "box" else 0):
+                raise ValueError(f"Fluid.{name} must be {'(B, 3)' if name == 'box' else 'a scalar'}, got shape {jnp.shape(value)}")
+            if not _checks.is_traced(value) and np.any(np.asarray(value) < 0):
+                raise ValueError(f"Fluid.{name} must be >= 0, got {np.asarray(value)}")
+
+
 class Geometry(eqx.Module):
     """What a system's bodies touch (:attr:`RigidBodySystem.geometry`): contact spheres of the
     kinematic tree against the world's half-spaces, and pairs of collision shapes.
@@ -779,6 +831,8 @@ class Joints(eqx.Module):
         tendons: springs and dampers along fixed and spatial tendons (:class:`Tendons`),
             explicit forces of the free motion, and their dry friction and length limits,
             solved with the contacts (hard contact only); ``None``: none.
+        fluid: the forces of a surrounding fluid on the bodies (:class:`Fluid`), explicit
+            forces of the free motion; ``None``: none.
     """
 
     damping: Array | None = None
@@ -787,13 +841,14 @@ class Joints(eqx.Module):
     couplings: JointCoupling | None = None
     springs: JointSprings | None = None
     tendons: Tendons | None = None
+    fluid: Fluid | None = None
 
     def __check_init__(self):
         if self.damping is not None and not _checks.is_traced(self.damping) and np.any(np.asarray(self.damping) < 0):
             raise ValueError("joints.damping must be non-negative")
         for name, value, kind in (
             ("friction", self.friction, JointFriction), ("couplings", self.couplings, JointCoupling),
-            ("springs", self.springs, JointSprings), ("tendons", self.tendons, Tendons),
+            ("springs", self.springs, JointSprings), ("tendons", self.tendons, Tendons), ("fluid", self.fluid, Fluid),
         ):
             if value is not None and not isinstance(value, kind):
                 raise ValueError(f"joints.{name} must be a {kind.__name__} or None, got {value!r}")
@@ -913,6 +968,12 @@ class RigidBodySystem(eqx.Module):
                         model.frame_id(frame)
                     except ValueError as error:
                         raise ValueError(f"joints.tendons.paths (tendon {tendon}): {error}") from None
+        if joints.fluid is not None:
+            for frame in joints.fluid.frames:
+                try:
+                    model.frame_id(frame)
+                except ValueError as error:
+                    raise ValueError(f"joints.fluid.frames: {error}") from None
 
     # -- options ------------------------------------------------------------------------
 
@@ -1023,6 +1084,15 @@ class RigidBodySystem(eqx.Module):
         """
         return self._with_joints(couplings=couplings)
 
+    def with_fluid(self, fluid: Fluid | None) -> "RigidBodySystem":
+        """This system in the fluid ``fluid`` (:attr:`Joints.fluid`; ``None``: none), e.g. a
+        loaded model's :attr:`~rsmooth.sim.MujocoModel.fluid`.
+
+        Raises:
+            ValueError: if a frame of ``fluid`` is not the model's.
+        """
+        return self._with_joints(fluid=fluid)
+
     def with_tendons(self, tendons: Tendons | None) -> "RigidBodySystem":
         """This system with the tendons ``tendons`` (:attr:`Joints.tendons`, their springs,
         dampers, dry friction and length limits; ``None``: none), e.g. a loaded model's
@@ -1124,14 +1194,44 @@ class RigidBodySystem(eqx.Module):
         return forces
 
     def passive_forces(self, q: Array, v: Array) -> Array:
-        """The explicit passive forces ``(nv,)`` of a step from ``(q, v)``: :meth:`spring_forces`
-        and the tendons' damping, ``-M^T d (M v)`` (:attr:`Joints.tendons`, ``M`` their
-        :meth:`tendon_moments`)."""
+        """The explicit passive forces ``(nv,)`` of a step from ``(q, v)``: :meth:`spring_forces`,
+        the tendons' damping, ``-M^T d (M v)`` (:attr:`Joints.tendons`, ``M`` their
+        :meth:`tendon_moments`), and :meth:`fluid_forces`."""
         forces = self.spring_forces(q)
-        if self.joints.tendons is None:
-            return forces
-        _, moments = self._tendon_geometry(q)
-        return forces - (self.joints.tendons.damping.astype(q.dtype) * (moments @ v)) @ moments
+        if self.joints.tendons is not None:
+            _, moments = self._tendon_geometry(q)
+            forces = forces - (self.joints.tendons.damping.astype(q.dtype) * (moments @ v)) @ moments
+        if self.joints.fluid is not None:
+            forces = forces + self.fluid_forces(q, v)
+        return forces
+
+    def fluid_forces(self, q: Array, v: Array) -> Array:
+        """The generalized forces ``(nv,)`` of :attr:`Joints.fluid` at ``(q, v)`` (zeros
+        without): each body's force and torque (:class:`Fluid`) at its centre of mass."""
+        fluid, model = self.joints.fluid, self.model
+        if fluid is None:
+            return jnp.zeros(model.nv, q.dtype)
+        kinematics = _dynamics._kinematics(model, q)
+        ids = [model.frame_id(frame) for frame in fluid.frames]
+        joints = np.asarray(model.frame_parents)[ids]
+        placements = [_dynamics._frame_placement(model, kinematics.rotation, kinematics.translation, i) for i in ids]
+        rotation, translation = jnp.stack([p[0] for p in placements]), jnp.stack([p[1] for p in placements])
+        axes = rotation @ fluid.rotations.astype(q.dtype)  # (B, 3, 3): principal axes in the world
+        centres = translation + jnp.einsum("bij,bj->bi", rotation, fluid.offsets.astype(q.dtype))
+        linear = _dynamics._point_velocity_columns(model, kinematics, joints, centres)  # (B, nv, 3)
+        angular = _dynamics._support_columns(model, kinematics, joints)[..., 3:]  # (B, nv, 3)
+        # velocities relative to the fluid in the principal axes
+        omega = jnp.einsum("bij,bni,n->bj", axes, angular, v)
+        velocity = jnp.einsum("bij,bni,n->bj", axes, linear, v) - jnp.einsum("bij,i->bj", axes, fluid.wind.astype(q.dtype))
+        box, rho, beta = fluid.box.astype(q.dtype), fluid.density.astype(q.dtype), fluid.viscosity.astype(q.dtype)
+        diameter = jnp.mean(box, axis=-1, keepdims=True)
+        others = jnp.stack([box[:, 1] * box[:, 2], box[:, 0] * box[:, 2], box[:, 0] * box[:, 1]], axis=-1)
+        fourth = box**4
+        spans = jnp.stack([fourth[:, 1] + fourth[:, 2], fourth[:, 0] + fourth[:, 2], fourth[:, 0] + fourth[:, 1]], axis=-1)
+        force = -3.0 * jnp.pi * diameter * beta * velocity - 0.5 * rho * others * jnp.abs(velocity) * velocity
+        torque = -jnp.pi * diameter**3 * beta * omega - rho / 64.0 * box * spans * jnp.abs(omega) * omega
+        world_force, world_torque = jnp.einsum("bij,bj->bi", axes, force), jnp.einsum("bij,bj->bi", axes, torque)
+        return jnp.einsum("bni,bi->n", linear, world_force) + jnp.einsum("bni,bi->n", angular, world_torque)
 
     def tendon_lengths(self, q: Array) -> Array:
         """The lengths ``(T,)`` of :attr:`Joints.tendons` at ``q`` (empty without)."""
