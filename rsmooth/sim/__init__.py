@@ -104,6 +104,7 @@ from rsmooth.sim._simulator import (
     JointSprings as JointSprings,
     Tendons as Tendons,
     Fluid as Fluid,
+    Servos as Servos,
     Joints as Joints,
     Options as Options,
     RigidBodySystem as RigidBodySystem,

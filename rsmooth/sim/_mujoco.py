@@ -3,8 +3,9 @@
 MuJoCo compiles the file (defaults, ``fromto``, mesh inertia, angle units...) into an
 ``mujoco.MjModel``; :func:`from_mujoco` converts that into rsmooth's :class:`~rsmooth.sim.Model`
 (the kinematic tree, inertias, limits, armature, gravity) plus what the tree does not hold: the
-joint damping, springs and dry friction, the time step, the direct joint motors, and the collision
-geometry as plain data. The conversion is checked once on the host and refuses, by name, what
+joint damping, springs and dry friction, the time step, the actuators (motors, and position and
+velocity servos: a fixed gain and an affine bias), the fluid (MuJoCo's inertia-box model), and
+the collision geometry as plain data. The conversion is checked once on the host and refuses, by name, what
 rsmooth's dynamics do not model (as MJX's ``put_model`` does), instead of simulating something
 else silently. Joint equalities (a URDF ``<mimic>``) are converted
 (:attr:`MujocoModel.joint_couplings`); :func:`load_mjcf` drops them on request, with a warning.
@@ -158,6 +159,7 @@ class MujocoModel(eqx.Module):
         actuator_dofs: the velocity index each actuator drives, ``-1`` for a motor on a
             tendon.
         actuator_tendons: the tendon each actuator drives, ``-1`` for a motor on a joint.
+        servo_actuators: the actuators with a bias (position and velocity servos).
         tendon_names: name of every tendon.
         tendon_moments: ``(ntendon, nv)``, each fixed tendon's coefficients on the dofs of its
             joints (the derivative of its length in the velocities): a force ``f`` along tendon
@@ -166,6 +168,14 @@ class MujocoModel(eqx.Module):
             :meth:`~rsmooth.sim.RigidBodySystem.tendon_moments`).
         actuator_gear: ``(nu,)``, transmission ratio (generalized force per unit actuator force).
         actuator_gain: ``(nu,)``, actuator force per unit control (``gainprm[0]``).
+        actuator_bias: ``(nu, 3)``, the affine bias ``(b0, b1, b2)`` of the force in the
+            actuator's length and velocity (``biasprm[:3]``; zero for a motor): a position
+            servo has ``(0, -kp, -kv)``, a velocity servo ``(0, 0, -kv)``.
+        actuator_lengths: ``(nu, nq)``, the actuators' lengths' coefficients on MuJoCo's
+            ``qpos`` (``actuator_length``: the gear times the joint's coordinate or the fixed
+            tendon's length).
+        actuator_moments: ``(nu, nv)``, their moment arms (``actuator_moment``: the gear times
+            the joint's unit row or the tendon's moments).
         actuator_ctrl_range: ``(nu, 2)``, control range, ``[-inf, inf]`` where unlimited.
         actuator_force_range: ``(nu, 2)``, actuator force range, ``[-inf, inf]`` where
             unlimited.
@@ -214,10 +224,14 @@ class MujocoModel(eqx.Module):
     actuator_names: tuple[str, ...] = eqx.field(static=True)
     actuator_dofs: tuple[int, ...] = eqx.field(static=True)
     actuator_tendons: tuple[int, ...] = eqx.field(static=True)
+    servo_actuators: tuple[int, ...] = eqx.field(static=True)
     tendon_names: tuple[str, ...] = eqx.field(static=True)
     tendon_moments: jax.Array
     actuator_gear: jax.Array
     actuator_gain: jax.Array
+    actuator_bias: jax.Array
+    actuator_lengths: jax.Array
+    actuator_moments: jax.Array
     actuator_ctrl_range: jax.Array
     actuator_force_range: jax.Array
     dof_actuator_force_range: jax.Array
@@ -393,20 +407,26 @@ class MujocoModel(eqx.Module):
             velocity = velocity.at[..., adr_v : adr_v + 3].set(linear)
         return velocity
 
-    def ctrl_to_tau(self, ctrl: ArrayLike) -> jax.Array:
-        """Generalized force of the motors, as MuJoCo computes ``qfrc_actuator``: the control
-        clipped to its range, times the gain, clipped to the force range, times the gear, along
-        its joint's dof or its tendon's moments, summed per dof and clipped to the dof's
-        actuator force range.
+    def ctrl_to_tau(self, ctrl: ArrayLike, qpos: ArrayLike | None = None, qvel: ArrayLike | None = None) -> jax.Array:
+        """Generalized force of the actuators, as MuJoCo computes ``qfrc_actuator``: the control
+        clipped to its range, times the gain, plus the bias in the actuator's length and
+        velocity at ``(qpos, qvel)`` (servos), clipped to the force range, along the
+        actuator's moment arms (its gear times its joint's dof or its tendon's moments), summed
+        per dof and clipped to the dof's actuator force range.
 
-        The force is the same in rsmooth's and MuJoCo's bases: motors drive hinges and slides
+        The force is the same in rsmooth's and MuJoCo's bases: actuators drive hinges and slides
         only (directly or through fixed tendons), whose velocities coincide.
 
         Args:
             ctrl: shape ``(..., nu)``.
+            qpos: MuJoCo's configuration ``(..., nq)``; needed where an actuator has a bias.
+            qvel: MuJoCo's velocity ``(..., nv)``; likewise.
 
         Returns:
             ``tau``, shape ``(..., nv)``.
+
+        Raises:
+            ValueError: if an actuator has a bias and ``qpos`` or ``qvel`` is missing.
         """
         ctrl = self._check("ctrl", ctrl, self.nu)
         def like(values, target):  # explicit broadcasting over the batch dimensions
@@ -414,15 +434,16 @@ class MujocoModel(eqx.Module):
 
         ctrl = jnp.clip(ctrl, like(self.actuator_ctrl_range[:, 0], ctrl), like(self.actuator_ctrl_range[:, 1], ctrl))
         force = like(self.actuator_gain, ctrl) * ctrl
+        if self.servo_actuators:
+            if qpos is None or qvel is None:
+                raise ValueError("ctrl_to_tau: the model has servos (an actuator bias), whose force needs qpos and qvel")
+            qpos, qvel = self._check("qpos", qpos, self.model.nq), self._check("qvel", qvel, self.model.nv)
+            length = jnp.tensordot(qpos, self.actuator_lengths.T.astype(qpos.dtype), axes=1)
+            velocity = jnp.tensordot(qvel, self.actuator_moments.T.astype(qvel.dtype), axes=1)
+            bias = self.actuator_bias
+            force = force + like(bias[:, 0], force) + like(bias[:, 1], force) * length + like(bias[:, 2], force) * velocity
         force = jnp.clip(force, like(self.actuator_force_range[:, 0], force), like(self.actuator_force_range[:, 1], force))
-        force = like(self.actuator_gear, force) * force
-        tau = jnp.zeros(ctrl.shape[:-1] + (self.model.nv,), dtype=force.dtype)
-        on_joints = np.flatnonzero(np.asarray(self.actuator_dofs) >= 0)
-        tau = tau.at[..., np.asarray(self.actuator_dofs, dtype=np.int64)[on_joints]].add(force[..., on_joints])
-        on_tendons = np.flatnonzero(np.asarray(self.actuator_tendons) >= 0)
-        if on_tendons.size:
-            moments = self.tendon_moments[np.asarray(self.actuator_tendons, dtype=np.int64)[on_tendons]].astype(force.dtype)
-            tau = tau + jnp.tensordot(force[..., on_tendons], moments, axes=1)
+        tau = jnp.tensordot(force, self.actuator_moments.astype(force.dtype), axes=1)
         return jnp.clip(tau, like(self.dof_actuator_force_range[:, 0], tau), like(self.dof_actuator_force_range[:, 1], tau))
 
 
@@ -670,8 +691,8 @@ def _fluid(m: Any) -> Fluid | None:
 def _check_actuators(mj: Any, m: Any, joint_names: tuple[str, ...]) -> None:
     names = _names(m, "actuator", m.nu)
     supported = (
-        "supported: motors (<motor>, or <general> with gaintype fixed, biastype none, dyntype none) "
-        "driving one hinge or slide joint or a fixed tendon"
+        "supported: motors, position and velocity servos (<motor>, <position>, <velocity>, or <general> with gaintype "
+        "fixed, biastype none or affine, dyntype none) driving one hinge or slide joint or a fixed tendon"
     )
     for a in range(m.nu):
         problem = None
@@ -682,9 +703,8 @@ def _check_actuators(mj: Any, m: Any, joint_names: tuple[str, ...]) -> None:
             int(mj.mjtJoint.mjJNT_HINGE), int(mj.mjtJoint.mjJNT_SLIDE)
         ):  # (a tendon is fixed: _check_tendons)
             problem = f"it drives joint {joint_names[m.actuator_trnid[a, 0]]!r}, which is not a hinge or slide"
-        elif int(m.actuator_biastype[a]) != int(mj.mjtBias.mjBIAS_NONE):
-            kind = "a position or velocity servo" if int(m.actuator_biastype[a]) == int(mj.mjtBias.mjBIAS_AFFINE) else "biased"
-            problem = f"it is {kind} (biastype {mj.mjtBias(m.actuator_biastype[a]).name.removeprefix('mjBIAS_').lower()})"
+        elif int(m.actuator_biastype[a]) not in (int(mj.mjtBias.mjBIAS_NONE), int(mj.mjtBias.mjBIAS_AFFINE)):
+            problem = f"its bias type is {mj.mjtBias(m.actuator_biastype[a]).name.removeprefix('mjBIAS_').lower()}"
         elif int(m.actuator_gaintype[a]) != int(mj.mjtGain.mjGAIN_FIXED):
             problem = f"its gain type is {mj.mjtGain(m.actuator_gaintype[a]).name.removeprefix('mjGAIN_').lower()}"
         elif int(m.actuator_dyntype[a]) != int(mj.mjtDyn.mjDYN_NONE):
@@ -694,7 +714,7 @@ def _check_actuators(mj: Any, m: Any, joint_names: tuple[str, ...]) -> None:
         elif m.actuator_delay[a] != 0 or m.actuator_plugin[a] >= 0:
             problem = "it has a delay or a plugin"
         if problem is not None:
-            raise ValueError(f"MuJoCo model: actuator {names[a]!r} is not a direct joint motor: {problem} ({supported})")
+            raise ValueError(f"MuJoCo model: actuator {names[a]!r} is not supported: {problem} ({supported})")
 
 
 def _merge_inertias(parts: list[tuple[float, np.ndarray, np.ndarray]]) -> tuple[float, np.ndarray, np.ndarray]:
@@ -984,6 +1004,14 @@ def _actuator_limits(mj: Any, m: Any) -> tuple[np.ndarray, dict[str, Any]]:
     on_tendon = [int(m.actuator_trntype[a]) == int(mj.mjtTrn.mjTRN_TENDON) for a in range(m.nu)]
     dofs = [-1 if on_tendon[a] else int(m.jnt_dofadr[m.actuator_trnid[a, 0]]) for a in range(m.nu)]
     tendons = [int(m.actuator_trnid[a, 0]) if on_tendon[a] else -1 for a in range(m.nu)]
+    # each actuator's length on MuJoCo's qpos and its moment arms, gear included
+    lengths, moments = np.zeros((m.nu, m.nq)), np.zeros((m.nu, m.nv))
+    tendon_lengths, tendon_moments = _tendon_moments(m, positions=True), _tendon_moments(m)
+    for a in range(m.nu):
+        if on_tendon[a]:
+            lengths[a], moments[a] = gear[a] * tendon_lengths[tendons[a]], gear[a] * tendon_moments[tendons[a]]
+        else:
+            lengths[a, m.jnt_qposadr[m.actuator_trnid[a, 0]]] = moments[a, dofs[a]] = gear[a]
     dof_range = np.tile([-np.inf, np.inf], (m.nv, 1))
     for j in range(m.njnt):
         if m.jnt_actfrclimited[j]:
@@ -1005,10 +1033,19 @@ def _actuator_limits(mj: Any, m: Any) -> tuple[np.ndarray, dict[str, Any]]:
         actuator_names=_names(m, "actuator", m.nu),
         actuator_dofs=tuple(dofs),
         actuator_tendons=tuple(tendons),
+        servo_actuators=tuple(
+            a for a in range(m.nu)
+            if int(m.actuator_biastype[a]) == int(mj.mjtBias.mjBIAS_AFFINE) and np.any(m.actuator_biasprm[a, :3] != 0)
+        ),
         tendon_names=_names(m, "tendon", m.ntendon),
         tendon_moments=_array(_tendon_moments(m)).reshape(m.ntendon, m.nv),
         actuator_gear=_array(gear),
         actuator_gain=_array(gain),
+        actuator_bias=_array(np.where(
+            np.asarray(m.actuator_biastype)[:, None] == int(mj.mjtBias.mjBIAS_AFFINE), np.asarray(m.actuator_biasprm[:, :3], dtype=np.float64), 0.0
+        )).reshape(m.nu, 3),
+        actuator_lengths=_array(lengths).reshape(m.nu, m.nq),
+        actuator_moments=_array(moments).reshape(m.nu, m.nv),
         actuator_ctrl_range=_array(ctrl_range).reshape(-1, 2),
         actuator_force_range=_array(force_range).reshape(-1, 2),
         dof_actuator_force_range=_array(dof_range).reshape(-1, 2),

@@ -47,7 +47,7 @@ from rsmooth.sim._dynamics import forward_kinematics
 from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, Ellipsoid, HalfSpace, Sphere, convex_mesh
 from rsmooth.sim._mujoco import MujocoModel, load_mjcf, source_label
 from rsmooth.sim._ncp import NCPSolver
-from rsmooth.sim._simulator import Actuation, GeomPair, RigidBodySystem
+from rsmooth.sim._simulator import Actuation, GeomPair, RigidBodySystem, Servos
 from rsmooth.sim._systems import _number, geom_pair_system
 
 __all__ = ["automatic_contact_budget", "scene"]
@@ -251,6 +251,27 @@ def _actuation(loaded: MujocoModel) -> tuple[tuple[int, ...], np.ndarray, np.nda
     return dofs, np.asarray(limits, dtype=np.float64), moments
 
 
+def _servo_actuation(loaded: MujocoModel) -> Actuation:
+    """Every actuator of a model with servos, driven by its control (:class:`~rsmooth.sim.Servos`):
+    lengths on rsmooth's coordinates (MuJoCo's ``qpos`` less ``qpos0`` on hinges and slides, the
+    only joints actuators drive)."""
+    lengths = np.asarray(loaded.actuator_lengths, dtype=np.float64)
+    return Actuation(
+        "servos",
+        device_array(np.full(loaded.nu, np.inf)),
+        moments=loaded.actuator_moments,
+        servos=Servos(
+            gain=loaded.actuator_gain,
+            bias=loaded.actuator_bias,
+            lengths=loaded.actuator_lengths,
+            offsets=device_array(lengths @ np.asarray(loaded.qpos0, dtype=np.float64)),
+            ctrl_range=loaded.actuator_ctrl_range,
+            force_range=loaded.actuator_force_range,
+            dof_force_range=loaded.dof_actuator_force_range,
+        ),
+    )
+
+
 def scene(
     source: str | pathlib.Path | Any,
     *,
@@ -291,8 +312,10 @@ def scene(
     fixed tendons, the actuation is ``"moments"``: ``u`` holds those dofs' forces, then the
     force along each driven tendon (in increasing tendon order), ``tau = moments^T u``
     (:attr:`~rsmooth.sim.Actuation.moments`). Each is bounded by what the motors of its dof or
-    tendon can apply, ``+inf`` where unlimited. ``initial_state()`` is MuJoCo's
-    ``qpos0`` (the configuration the file describes) at rest.
+    tendon can apply, ``+inf`` where unlimited. A model with servos (position or velocity
+    actuators: an actuator bias) has the actuation ``"servos"`` instead: ``u`` holds MuJoCo's
+    controls of all its actuators, in MuJoCo's order (:class:`~rsmooth.sim.Servos`).
+    ``initial_state()`` is MuJoCo's ``qpos0`` (the configuration the file describes) at rest.
 
     The limits of limited hinges and slides are enforced as MuJoCo does, as hard constraints
     here (:meth:`~rsmooth.sim.RigidBodySystem.with_joint_limits`). MuJoCo's disable flags are
@@ -474,7 +497,8 @@ def scene(
             raise ValueError(f"max_contacts must be a positive integer, None or 'auto', got {max_contacts!r}")
         moving = {loaded.geom_joints[g] for pair in kept for g in pair if loaded.geom_joints[g] != 0}
         max_contacts = automatic_contact_budget(sum(pair.size for pair in pairs), len(moving))
-    dofs, limits, moments = _actuation(loaded)
+    servos = bool(loaded.servo_actuators)
+    dofs, limits, moments = ((), np.zeros(0), None) if servos else _actuation(loaded)
     model = loaded.model
     system = geom_pair_system(
         model,
@@ -489,6 +513,8 @@ def scene(
     )
     if moments is not None:  # motors on tendons: each input along its moment arms
         system = dataclasses.replace(system, actuation=Actuation("moments", device_array(limits), moments=device_array(moments)))
+    if servos:  # u: MuJoCo's controls of every actuator
+        system = dataclasses.replace(system, actuation=_servo_actuation(loaded))
     system = system.with_contact_budget(max_contacts, max_pairs, max_limits).with_options(max_correction_speed=max_correction_speed)
     system = system.with_joint_friction(np.asarray(loaded.frictionloss))
     system = system.with_joint_springs(np.asarray(loaded.stiffness), loaded.spring_reference)

@@ -731,8 +731,73 @@ class Geometry(eqx.Module):
         return len(self.sphere_frames) * self.plane_normals.shape[0] + sum(pair.size for pair in self.geom_pairs)
 
 
+class Servos(eqx.Module):
+    """MuJoCo's actuators of fixed gain and affine bias, as :class:`Actuation` kind
+    ``"servos"`` drives them: input ``a`` (MuJoCo's control) along its moment arms ``m_a``
+    applies the force
+
+    ``f_a = clip(gain_a clip(u_a, ctrl_range_a) + b0 + b1 L_a + b2 dL_a/dt, force_range_a)``,
+
+    ``L_a = lengths_a . q + offsets_a`` its length (``gear`` times its joint's coordinate or its
+    fixed tendon's length), ``dL_a/dt = m_a . v``, ``bias_a = (b0, b1, b2)``: a motor has no
+    bias, a position servo ``(0, -kp, -kv)`` with ``gain = kp`` (its control the target), a
+    velocity servo ``(0, 0, -kv)`` with ``gain = kv``. The generalized force ``sum_a f_a m_a``
+    is clipped per dof to ``dof_force_range`` (MuJoCo's ``actuatorfrcrange``). Explicit in the
+    step, as in MuJoCo's Euler integrator (a stiff servo, ``h^2 kp / m`` or ``h kv / m`` of order
+    1, makes the step unstable, as there).
+
+    Attributes:
+        gain: ``(nu,)``.
+        bias: ``(nu, 3)``.
+        lengths: ``(nu, nq)``, the lengths' coefficients on the coordinates.
+        offsets: ``(nu,)``, the lengths at ``q = 0``.
+        ctrl_range: ``(nu, 2)``, ``[-inf, inf]`` where unlimited.
+        force_range: ``(nu, 2)``, likewise.
+        dof_force_range: ``(nv, 2)``, likewise.
+    """
+
+    gain: Array
+    bias: Array
+    lengths: Array
+    offsets: Array
+    ctrl_range: Array
+    force_range: Array
+    dof_force_range: Array
+
+    def __check_init__(self):
+        count = jnp.shape(self.gain)[0] if jnp.ndim(self.gain) == 1 else -1
+        for name, shape in (("bias", (count, 3)), ("offsets", (count,)), ("ctrl_range", (count, 2)), ("force_range", (count, 2))):
+            if jnp.shape(getattr(self, name)) != shape:
+                raise ValueError(f"Servos.{name} must have shape {shape}, got {jnp.shape(getattr(self, name))}")
+        if jnp.ndim(self.lengths) != 2 or jnp.shape(self.lengths)[0] != count:
+            raise ValueError(f"Servos.lengths must have shape ({count}, nq), got {jnp.shape(self.lengths)}")
+        if jnp.ndim(self.dof_force_range) != 2 or jnp.shape(self.dof_force_range)[1] != 2:
+            raise ValueError(f"Servos.dof_force_range must have shape (nv, 2), got {jnp.shape(self.dof_force_range)}")
+        for name in ("gain", "bias", "lengths", "offsets"):
+            value = getattr(self, name)
+            if not _checks.is_traced(value) and not np.all(np.isfinite(np.asarray(value))):
+                raise ValueError(f"Servos.{name} must be finite")
+        for name in ("ctrl_range", "force_range", "dof_force_range"):
+            value = getattr(self, name)
+            if not _checks.is_traced(value) and not np.all(np.asarray(value)[:, 0] <= np.asarray(value)[:, 1]):
+                raise ValueError(f"Servos.{name} must hold lower <= upper, got {np.asarray(value)}")
+
+    def forces(self, moments: Array, q: Array, v: Array, u: Array) -> tuple[Array, Array]:
+        """``(tau (nv,), clipped)``: the generalized force of controls ``u`` at ``(q, v)``, and
+        whether a control was beyond its range."""
+        dtype = q.dtype
+        ctrl = jnp.clip(u, self.ctrl_range[:, 0].astype(dtype), self.ctrl_range[:, 1].astype(dtype))
+        moments = moments.astype(dtype)
+        length = self.lengths.astype(dtype) @ q + self.offsets.astype(dtype)
+        bias = self.bias.astype(dtype)
+        force = self.gain.astype(dtype) * ctrl + bias[:, 0] + bias[:, 1] * length + bias[:, 2] * (moments @ v)
+        force = jnp.clip(force, self.force_range[:, 0].astype(dtype), self.force_range[:, 1].astype(dtype))
+        tau = jnp.clip(moments.T @ force, self.dof_force_range[:, 0].astype(dtype), self.dof_force_range[:, 1].astype(dtype))
+        return tau, jnp.any(ctrl != u)
+
+
 class Actuation(eqx.Module):
-    """How the input ``u`` drives a system (:attr:`RigidBodySystem.actuation`), in one of three
+    """How the input ``u`` drives a system (:attr:`RigidBodySystem.actuation`), in one of four
     ways (``kind``):
 
     - ``"joints"``: ``u`` are the efforts of the dofs ``dofs`` (joint torques).
@@ -742,14 +807,20 @@ class Actuation(eqx.Module):
     - ``"wrench"``: ``u`` are components ``wrench_components`` of a wrench
       ``[force, torque]`` in world axes applied at the origin of frame ``wrench_frame``
       (``tau = J_frame^T w``).
+    - ``"servos"``: ``u`` are the controls of MuJoCo actuators with a gain and an affine bias
+      in their length and velocity (:class:`Servos`: position and velocity servos, motors),
+      along the rows of ``moments`` (``gear`` times a joint's unit row or a fixed tendon's
+      coefficients); the servos clip them to their control ranges (``input_limit`` is
+      ``inf`` there).
 
     Inputs beyond ``input_limit`` are clipped to it (componentwise, symmetric) and the clip is
     reported in :class:`StepInfo`; ``+inf`` means unlimited.
 
     Attributes:
-        kind: ``"joints"``, ``"moments"`` or ``"wrench"`` (static).
+        kind: ``"joints"``, ``"moments"``, ``"wrench"`` or ``"servos"`` (static).
         dofs: velocity indices driven by ``u`` (``"joints"``; static).
-        moments: ``(nu, nv)`` moment arms of the inputs (``"moments"``), finite.
+        moments: ``(nu, nv)`` moment arms of the inputs (``"moments"``, ``"servos"``), finite.
+        servos: the actuators' law (:class:`Servos`; ``"servos"`` only).
         wrench_frame: frame index of the applied wrench (``"wrench"``; static).
         wrench_components: which of ``[fx, fy, fz, tx, ty, tz]`` ``u`` holds (``"wrench"``; static).
         input_limit: ``(nu,)`` symmetric bounds on ``u``, ``> 0``.
@@ -769,12 +840,20 @@ class Actuation(eqx.Module):
     wrench_components: tuple[int, ...] = eqx.field(static=True, default=())
     gravity_compensation: bool = eqx.field(static=True, default=False)
     moments: Array | None = None
+    servos: Servos | None = None
 
     def __check_init__(self):
-        if self.kind not in ("joints", "moments", "wrench"):
-            raise ValueError(f"actuation kind must be 'joints', 'moments' or 'wrench', got {self.kind!r}")
-        if (self.kind == "moments") != (self.moments is not None):
-            raise ValueError("actuation moments are given with kind 'moments', and only then")
+        if self.kind not in ("joints", "moments", "wrench", "servos"):
+            raise ValueError(f"actuation kind must be 'joints', 'moments', 'wrench' or 'servos', got {self.kind!r}")
+        if (self.kind in ("moments", "servos")) != (self.moments is not None):
+            raise ValueError("actuation moments are given with kind 'moments' or 'servos', and only then")
+        if (self.kind == "servos") != isinstance(self.servos, Servos):
+            raise ValueError("actuation servos (a Servos) are given with kind 'servos', and only then")
+        if self.servos is not None and jnp.shape(self.servos.gain)[0] != jnp.shape(self.moments)[0]:
+            raise ValueError(
+                f"actuation servos must have one entry per input ({jnp.shape(self.moments)[0]}), got "
+                f"{jnp.shape(self.servos.gain)[0]}"
+            )
         if self.moments is not None:
             if jnp.ndim(self.moments) != 2:
                 raise ValueError(f"actuation moments must have shape (nu, nv), got {jnp.shape(self.moments)}")
@@ -793,7 +872,7 @@ class Actuation(eqx.Module):
     @property
     def nu(self) -> int:
         """Input dimension."""
-        if self.kind == "moments":
+        if self.kind in ("moments", "servos"):
             return jnp.shape(self.moments)[0]
         return len(self.dofs) if self.kind == "joints" else len(self.wrench_components)
 
@@ -915,7 +994,14 @@ class RigidBodySystem(eqx.Module):
                 raise ValueError(f"actuated dof {dof} out of range [0, {model.nv})")
         if self.actuation.kind == "wrench":
             model.frame_id(self.actuation.wrench_frame)
-        if self.actuation.kind == "moments" and jnp.shape(self.actuation.moments)[1] != model.nv:
+        if self.actuation.kind == "servos" and (
+            jnp.shape(self.actuation.servos.lengths)[1] != model.nq or jnp.shape(self.actuation.servos.dof_force_range)[0] != model.nv
+        ):
+            raise ValueError(
+                f"actuation servos must have lengths (nu, nq = {model.nq}) and dof_force_range (nv = {model.nv}, 2), got "
+                f"{jnp.shape(self.actuation.servos.lengths)} and {jnp.shape(self.actuation.servos.dof_force_range)}"
+            )
+        if self.actuation.kind in ("moments", "servos") and jnp.shape(self.actuation.moments)[1] != model.nv:
             raise ValueError(
                 f"actuation moments must have shape (nu, nv) = ({self.actuation.nu}, {model.nv}), got "
                 f"{jnp.shape(self.actuation.moments)}"
@@ -1498,8 +1584,13 @@ class RigidBodySystem(eqx.Module):
         u = _checks.check_finite(u, "u (the input) contains NaN or infinite values")
         return x, u
 
-    def generalized_forces(self, q: Array, u: Array, kinematics=None) -> tuple[Array, Array]:
-        """``(tau, clipped)``: the generalized forces of input ``u`` (after clipping)."""
+    def generalized_forces(self, q: Array, u: Array, kinematics=None, v: Array | None = None) -> tuple[Array, Array]:
+        """``(tau, clipped)``: the generalized forces of input ``u`` (after clipping) at
+        ``(q, v)`` (``v`` is read by servos only)."""
+        if self.actuation.kind == "servos":
+            if v is None:
+                raise ValueError("servos' forces depend on the velocity: pass v")
+            return self.actuation.servos.forces(self.actuation.moments, q, v, u)
         limited = jnp.clip(u, -self.actuation.input_limit, self.actuation.input_limit)
         clipped = jnp.any(limited != u)
         if self.actuation.kind == "joints":
@@ -2081,7 +2172,7 @@ def _step_residuals(update: _VelocityUpdate):
             + system.damping() * v_next  # implicit damping: dE/dv+ = M + h D, the factored W
             - system.passive_forces(q, v)  # explicit springs and tendon dampers: at the step's start
         )
-        tau, _ = system.generalized_forces(q, u, kinematics)
+        tau, _ = system.generalized_forces(q, u, kinematics, v)
         solved_distance, mu = distance, system.contact_friction()
         if update.selection is not None:  # the solved contacts' equations (a fixed selection)
             solved_distance, jacobian, mu = distance[update.selection], update.solved(jacobian), mu[update.selection]

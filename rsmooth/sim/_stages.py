@@ -183,7 +183,7 @@ def free_motion(system: RigidBodySystem, q: Array, v: Array, u: Array, kinematic
     # (_dynamics._free_flyer_start), not by explicit velocity-product terms
     v_start, removed = _dynamics._free_flyer_start(model, v, h)
     bias = _dynamics._rnea(model, kinematics, inertias, v, None, model.gravity) - removed + damping * v_start - system.passive_forces(q, v)
-    tau, clipped = system.generalized_forces(q, u, kinematics)
+    tau, clipped = system.generalized_forces(q, u, kinematics, v)
     cholesky = jax.scipy.linalg.cholesky(mass, lower=True)
     velocity = v_start + h * jax.scipy.linalg.cho_solve((cholesky, True), tau - bias)
     return FreeMotion(velocity, mass, cholesky, inertias, clipped)

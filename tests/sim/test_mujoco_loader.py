@@ -409,9 +409,9 @@ UNSUPPORTED = {
         wrap("<body><joint name='j' type='free' frictionloss='1'/><geom size='0.1'/></body>"),
         "free joint 'j' has frictionloss .* on its linear axes",
     ),
-    "position_servo": (
-        wrap(HINGE_BODY, "<actuator><position name='p' joint='j' kp='10'/></actuator>"),
-        "actuator 'p' is not a direct joint motor: it is a position",
+    "user_bias": (
+        wrap(HINGE_BODY, "<actuator><general name='p' joint='j' biastype='user'/></actuator>"),
+        "actuator 'p' is not supported: its bias type is user",
     ),
     "site_actuator": (
         wrap(HINGE_BODY, "<actuator><general name='a' site='s' gear='0 0 0 0 0 1'/></actuator>"),
@@ -430,9 +430,9 @@ UNSUPPORTED = {
         wrap("<body name='target' mocap='true'><geom size='0.1' contype='0' conaffinity='0'/></body>"),
         "body 'target' is a mocap body",
     ),
-    "fluid": (
-        "<mujoco><option density='1.2'/><worldbody><body><joint/><geom size='0.1'/></body></worldbody></mujoco>",
-        "fluid forces",
+    "ellipsoid_fluid": (
+        "<mujoco><option density='1.2'/><worldbody><body><joint/><geom name='g' size='0.1' fluidshape='ellipsoid'/></body></worldbody></mujoco>",
+        "geom 'g' takes the ellipsoid fluid model",
     ),
     "hfield": (
         wrap("<geom name='terrain' type='hfield' hfield='h'/>", "<asset><hfield name='h' nrow='2' ncol='2' size='1 1 0.1 0.1'/></asset>"),
