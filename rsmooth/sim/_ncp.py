@@ -370,10 +370,11 @@ def cholesky_inverse(factor) -> Array:
 _SEPARATED, _STICKING, _SLIDING = 0, 1, 2
 
 
-# The polish's product G lambda is an unrolled sum (rsmooth._unrolled) up to this many columns
-# (16 contacts: a robot's feet, a cube's corners) and a matrix product beyond: the unrolled chain
-# grows with the columns, and for a dm_control humanoid's 106 solved contacts the product made its
-# rollout twice as fast; for batched towers of 16 to 64 contacts both ran alike.
+# Up to this many rows (16 contacts: a robot's feet, a cube's corners) the polish computes G lambda
+# as an unrolled sum (rsmooth._unrolled) and solves its Newton systems by the unpivoted elimination
+# (_solve_unpivoted), both written for small problems under vmap; beyond, a matrix product and
+# LAPACK's LU, whose cost grows far more slowly with the rows than the unrolled chain's and the
+# elimination's row-by-row loop (a body lying on many contacts).
 _UNROLLED_COLUMNS = 48
 
 
@@ -554,7 +555,8 @@ def _polish(
         damping = 1e-12 * jnp.max(jnp.diagonal(normal)) + jnp.finfo(G.dtype).tiny ** 0.5
         normal = normal + damping * jnp.eye(residual.shape[0], dtype=G.dtype)
         matrix = jnp.where(least_squares, normal, jacobian)
-        step = _solve_unpivoted(matrix, jnp.where(least_squares, jacobian.T @ residual, residual))
+        rhs = jnp.where(least_squares, jacobian.T @ residual, residual)
+        step = _solve_unpivoted(matrix, rhs) if rhs.shape[0] <= _UNROLLED_COLUMNS else jnp.linalg.solve(matrix, rhs)
         cone_step = step[: 3 * n].reshape(n, 3)
         # Turn the direction by the angle step (a retraction onto the unit circle).
         turned = direction - cone_step[:, 1:2] * jnp.stack([-direction[:, 1], direction[:, 0]], axis=-1)
