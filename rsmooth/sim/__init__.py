@@ -5,7 +5,8 @@ URDF files through MuJoCo's compiler (:func:`load_mjcf`), and are frozen into JA
 (:class:`Model`); dynamics (CRBA, RNEA, Jacobians) are pure JAX functions;
 contact is a frictional complementarity problem solved by ADMM and differentiated
 implicitly (:func:`solve_ncp`); collision geometry (:class:`Sphere`, :class:`Capsule`,
-:class:`Box`, :class:`Cylinder`, :class:`Ellipsoid`, :class:`HalfSpace`, :class:`ConvexMesh`) gives contact
+:class:`Box`, :class:`Cylinder`, :class:`Ellipsoid`, :class:`HalfSpace`, :class:`HeightField`,
+:class:`ConvexMesh`) gives contact
 manifolds between posed shapes (:func:`collide`, :func:`candidate_pairs`); :class:`RigidBodySystem` steps a system in time
 (its contacts: spheres against half-spaces, and any pairs of shapes, :class:`GeomPair`; how it
 steps: :class:`Options`, the time step, contact law, solver and derivative mode) and is the
@@ -51,6 +52,7 @@ from rsmooth.sim._geometry import (
     Cylinder as Cylinder,
     Ellipsoid as Ellipsoid,
     HalfSpace as HalfSpace,
+    HeightField as HeightField,
     NonConvexMeshWarning as NonConvexMeshWarning,
     Sphere as Sphere,
     convex_mesh as convex_mesh,

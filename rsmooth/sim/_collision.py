@@ -16,7 +16,8 @@ Algorithms, by pair:
   segments (Ericson, *Real-Time Collision Detection*, 2005, sections 5.1.2, 5.1.9).
 - Polytope cores (a sphere is a point dilated, a capsule a segment dilated, boxes and convex
   meshes are polytopes, a cylinder its inscribed prism of ``_CYLINDER_SIDES`` sides, an
-  ellipsoid its inscribed icosphere, :data:`_ELLIPSOID_SUBDIVISIONS`): the separating axis test over face normals and edge cross products
+  ellipsoid its inscribed icosphere, :data:`_ELLIPSOID_SUBDIVISIONS`, a height field's cell a
+  pair of triangular prisms): the separating axis test over face normals and edge cross products
   (Gottschalk, Lin, Manocha, "OBBTree", SIGGRAPH 1996) gives the penetration depth of the
   cores; when the cores are apart, GJK (Gilbert, Johnson, Keerthi, IEEE J. Robotics and
   Automation 4(2), 1988, with the closest point of each simplex found by enumerating its
@@ -64,6 +65,7 @@ from rsmooth.sim._geometry import (
     Cylinder,
     Ellipsoid,
     HalfSpace,
+    HeightField,
     Sphere,
     _safe_normalize,
 )
@@ -1021,6 +1023,97 @@ def _polytope_pair(shape1, pose1, shape2, pose2, margin, count: int) -> Contacts
     )
 
 
+# --------------------------------------------------------------------------------------
+# Height fields: the prisms under the shape, each a convex polytope.
+# --------------------------------------------------------------------------------------
+
+
+def _prism(top: Array, base: Array) -> ConvexMesh:
+    """The vertical prism under the triangle ``top`` ``(3, 3)`` (counter-clockwise seen from
+    above) down to ``z = -base``, as a :class:`ConvexMesh` (its faces, edges and Gauss-map arcs)."""
+    dtype = top.dtype
+    bottom = top.at[:, 2].set(-base)
+    up = jnp.cross(top[1] - top[0], top[2] - top[0])
+    top_normal = up / _safe_norm(up)
+    following = np.array([1, 2, 0])
+    along = top[following, :2] - top[:, :2]  # the triangle's edges in the plane
+    length = _safe_norm(along)
+    outward = jnp.stack([along[:, 1], -along[:, 0], jnp.zeros(3, dtype)], axis=-1) / length[:, None]  # (3, 3)
+    down = jnp.array([0.0, 0.0, -1.0], dtype)
+    normals = jnp.concatenate([top_normal[None], down[None], outward])  # top, bottom, the sides
+    sides = jnp.stack([bottom, bottom[following], top[following], top], axis=1)  # (3, 4, 3), counter-clockwise from outside
+    polygons = jnp.concatenate([
+        jnp.concatenate([top, top[2:]])[None], jnp.concatenate([bottom[::-1], bottom[:1]])[None], sides,
+    ])
+    edges = jnp.concatenate([
+        jnp.stack([top, top[following]], axis=1), jnp.stack([bottom, bottom[following]], axis=1), jnp.stack([bottom, top], axis=1),
+    ])
+    previous = np.array([2, 0, 1])
+    edge_normals = jnp.concatenate([
+        jnp.stack([jnp.broadcast_to(top_normal, (3, 3)), outward], axis=1),
+        jnp.stack([jnp.broadcast_to(down, (3, 3)), outward], axis=1),
+        jnp.stack([outward[previous], outward], axis=1),  # vertical edge k: sides k - 1 and k
+    ])
+    directions = (edges[:, 1] - edges[:, 0]) / _safe_norm(edges[:, 1] - edges[:, 0])[:, None]
+    vertices = jnp.concatenate([top, bottom])
+    return ConvexMesh(
+        vertices=vertices, face_normals=normals, face_offsets=jnp.sum(normals * polygons[:, 0], axis=-1),
+        face_polygons=polygons, edge_segments=edges, edge_directions=directions, edge_normals=edge_normals,
+    )
+
+
+def _heightfield_prisms(field: HeightField, center: Array, reach: Array) -> ConvexMesh:
+    """The prisms ``(2 w_r w_c,)`` of the ``window`` x ``window`` cells (fewer on a smaller grid)
+    from the cell under the height field's local point ``center`` less ``reach`` (a shape's
+    bounding radius about it), clipped to the grid: MuJoCo's triangles, ``(c, r + 1), (c, r),
+    (c + 1, r + 1)`` and ``(c, r), (c + 1, r), (c + 1, r + 1)``."""
+    rows, columns = field.heights.shape
+    window_r, window_c = min(field.window, rows - 1), min(field.window, columns - 1)
+    cell = field.cell
+    start = jnp.floor((center[:2] - reach + field.half_size) / cell).astype(jnp.int32)
+    c0 = jnp.clip(start[0], 0, columns - 1 - window_c)
+    r0 = jnp.clip(start[1], 0, rows - 1 - window_r)
+    heights = lax.dynamic_slice(field.heights, (r0, c0), (window_r + 1, window_c + 1))
+    xs = -field.half_size[0] + cell[0] * (c0 + jnp.arange(window_c + 1)).astype(cell.dtype)
+    ys = -field.half_size[1] + cell[1] * (r0 + jnp.arange(window_r + 1)).astype(cell.dtype)
+    grid = jnp.stack(jnp.broadcast_arrays(xs[None, :], ys[:, None], heights), axis=-1)  # (rows, columns, 3)
+    low, high = grid[:-1], grid[1:]  # row r, row r + 1
+    a, b, c, d = high[:, :-1], low[:, :-1], high[:, 1:], low[:, 1:]  # (c, r+1), (c, r), (c+1, r+1), (c+1, r)
+    # counter-clockwise seen from above: (b, d, c) and (b, c, a)
+    triangles = jnp.concatenate([jnp.stack([b, c, a], axis=-2), jnp.stack([b, d, c], axis=-2)]).reshape(-1, 3, 3)
+    return jax.vmap(lambda top: _prism(top, field.base))(triangles)
+
+
+def _heightfield_pair(field: HeightField, field_pose, shape, pose, margin, count: int) -> Contacts:
+    """The ``count`` deepest contacts of ``shape`` with the prisms of the height field's cells
+    under it (:func:`_heightfield_prisms`), each a polytope pair; normals from the field."""
+    rotation, translation = field_pose
+    prisms = _heightfield_prisms(field, rotation.T @ (pose[1] - translation), shape.bounding_radius)
+    contacts = jax.vmap(lambda prism: _polytope_pair(prism, field_pose, shape, pose, margin, count))(prisms)
+    flat = jax.tree.map(lambda a: a.reshape((-1,) + a.shape[2:]), contacts)
+    # the deepest entries, each away from those chosen before it: a shape on a flat stretch
+    # touches the prisms that meet under it at one point, which one contact holds (copies of
+    # it would make the contact problem's impulses indeterminate)
+    gaps = jnp.where(flat.active, flat.distance, _INACTIVE_GAP)
+    tolerance = 1e3 * _eps(gaps.dtype) * (1.0 + shape.bounding_radius)
+    chosen, distinct, free = [], [], jnp.ones(gaps.shape, bool)
+    for _ in range(count):
+        index = jnp.argmin(jnp.where(free, gaps, 2 * _INACTIVE_GAP))
+        chosen.append(index)
+        distinct.append(free[index])
+        free = free & (_safe_norm(flat.point2 - flat.point2[index][None, :]) > tolerance)
+    result = jax.tree.map(lambda a: a[jnp.stack(chosen)], flat)
+    return eqx.tree_at(lambda c: c.active, result, result.active & jnp.stack(distinct))
+
+
+def _heightfield_pair_of(count):
+    return lambda s1, p1, s2, p2, margin: _heightfield_pair(s1, p1, s2, p2, margin, count)
+
+
+# an inactive entry's distance in the choice of a height field's deepest contacts
+_INACTIVE_GAP = 1e10
+
+
 def _pad(candidate, size):
     condition, normal, point1, point2, distance, valid = candidate
     extra = size - point1.shape[0]
@@ -1067,6 +1160,12 @@ _PAIR_FUNCTIONS = {
     (Cylinder, Ellipsoid): (_polytope_pair_of(4), 4),
     (Ellipsoid, Ellipsoid): (_polytope_pair_of(4), 4),
     (Ellipsoid, ConvexMesh): (_polytope_pair_of(4), 4),
+    # Height fields against spheres and capsules only: while their cores are above the terrain
+    # the nearest prism's distance is the terrain's; a polytope's overlap with one prism has
+    # its smallest way out through the prism's side, inside the terrain (MuJoCo's prisms give
+    # other depths there too).
+    (HeightField, Sphere): (_heightfield_pair_of(2), 2),
+    (HeightField, Capsule): (_heightfield_pair_of(2), 2),
 }
 
 

@@ -38,6 +38,7 @@ __all__ = [
     "Cylinder",
     "Ellipsoid",
     "HalfSpace",
+    "HeightField",
     "NonConvexMeshWarning",
     "Sphere",
     "convex_mesh",
@@ -240,6 +241,50 @@ class HalfSpace(eqx.Module):
     @property
     def bounding_radius(self) -> Array:
         return jnp.asarray(jnp.inf)
+
+
+class HeightField(eqx.Module):
+    """A height field (MuJoCo's hfield): the solid under the surface of heights ``heights``
+    ``(R, C)`` (m) on a grid of ``x`` from ``-half_size[0]`` to ``half_size[0]`` (columns) and
+    ``y`` from ``-half_size[1]`` to ``half_size[1]`` (rows), down to ``z = -base``. Each grid
+    cell is two triangles (MuJoCo's: split along the diagonal from ``(row, column)`` to ``(row +
+    1, column + 1)``), each the top of a vertical prism, which a shape collides with as a convex
+    polytope.
+
+    Attributes:
+        heights: ``(R, C)``, ``R, C >= 2``.
+        half_size: ``(2,)``, positive.
+        base: positive scalar, the depth of the solid below ``z = 0``.
+        window: the cells per side of the square of cells a shape is collided with (static):
+            at least its bounding diameter in cells plus one, so that the square from the cell
+            under its bounding sphere's corner holds it (:func:`~rsmooth.sim.scene` sets it per
+            pair); the square is clipped to the grid.
+    """
+
+    heights: Array = eqx.field(converter=_as_float)
+    half_size: Array = eqx.field(converter=_as_float)
+    base: Array = eqx.field(converter=_as_float)
+    window: int = eqx.field(static=True, default=2)
+
+    def __check_init__(self):
+        if self.heights.ndim != 2 or min(self.heights.shape) < 2:
+            raise ValueError(f"heights must have shape (R, C) with R, C >= 2, got {self.heights.shape}.")
+        _check("heights", self.heights, self.heights.shape, positive=False)
+        _check("half_size", self.half_size, (2,))
+        _check("base", self.base, ())
+        if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window < 1:
+            raise ValueError(f"window must be an int >= 1, got {self.window!r}.")
+
+    @property
+    def cell(self) -> Array:
+        """The cells' sides ``(dx, dy)`` (m)."""
+        rows, columns = self.heights.shape
+        return 2.0 * self.half_size / jnp.asarray([columns - 1, rows - 1], self.half_size.dtype)
+
+    @property
+    def bounding_radius(self) -> Array:
+        depth = jnp.maximum(jnp.max(jnp.abs(self.heights)), self.base)
+        return jnp.sqrt(jnp.sum(self.half_size**2) + depth**2)
 
 
 class ConvexMesh(eqx.Module):

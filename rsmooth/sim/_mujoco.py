@@ -65,11 +65,12 @@ from jax.typing import ArrayLike
 from rsmooth._xla import device_array
 from rsmooth.sim import _spatial as spatial
 from rsmooth.sim._model import FREE_FLYER, PRISMATIC, REVOLUTE, SPHERICAL, UNIVERSE, Model
+from rsmooth.sim._geometry import HeightField
 from rsmooth.sim._simulator import Fluid, JointCoupling, Tendons
 
-# The geom types a collision routine may meet; height fields and SDFs are accepted only
-# when they cannot collide (purely visual), so that geom indices stay MuJoCo's.
-GEOM_TYPES = ("plane", "sphere", "capsule", "ellipsoid", "cylinder", "box", "mesh")
+# The geom types a collision routine may meet; SDFs are accepted only when they cannot collide
+# (purely visual), so that geom indices stay MuJoCo's.
+GEOM_TYPES = ("plane", "hfield", "sphere", "capsule", "ellipsoid", "cylinder", "box", "mesh")
 
 
 def _mujoco() -> Any:
@@ -123,8 +124,8 @@ class MujocoModel(eqx.Module):
         body_joints: the rsmooth joint every MuJoCo body moves with (0 for the world and
             bodies welded to it).
         geom_names: name of every geom (``"geom <id>"`` when unnamed).
-        geom_types: MuJoCo type name of every geom (:data:`GEOM_TYPES`, or ``"hfield"`` /
-            ``"sdf"`` for geoms that cannot collide).
+        geom_types: MuJoCo type name of every geom (:data:`GEOM_TYPES`, or ``"sdf"`` for geoms
+            that cannot collide).
         geom_bodies: MuJoCo body of every geom.
         geom_joints: rsmooth joint every geom moves with.
         geom_size: ``(ngeom, 3)``, ``geom_size`` as MuJoCo defines it per type (radius, half
@@ -140,6 +141,9 @@ class MujocoModel(eqx.Module):
             (``mesh_vert``); ``None`` for other geoms.
         geom_faces: for a mesh geom, its triangles ``(nface, 3)``, indices into its vertices;
             ``None`` for other geoms.
+        geom_height_fields: for a height field geom, its :class:`~rsmooth.sim.HeightField`
+            (MuJoCo's ``hfield_data`` times its elevation, its size and base); ``None`` for
+            other geoms.
         geom_hull: for a mesh geom that MuJoCo collides, the vertices of the convex hull it
             collides (``mesh_graph``: at most the mesh's ``maxhullvert``, see
             :func:`load_mjcf`'s ``max_hull_vertices``), ``(nhull, 3)``; else its vertices.
@@ -217,6 +221,7 @@ class MujocoModel(eqx.Module):
     geom_vertices: tuple[jax.Array | None, ...]
     geom_faces: tuple[jax.Array | None, ...]
     geom_hull: tuple[jax.Array | None, ...]
+    geom_height_fields: tuple[Any, ...]
     contact_pairs: tuple[tuple[int, int], ...] = eqx.field(static=True)
     pair_friction: jax.Array
     excluded_body_pairs: tuple[tuple[int, int], ...] = eqx.field(static=True)
@@ -665,6 +670,19 @@ def _tendons(mj: Any, m: Any) -> Tendons | None:
     )
 
 
+def _height_field(mj: Any, m: Any, g: int) -> HeightField | None:
+    """Geom ``g``'s height field (MuJoCo's normalized ``hfield_data``, rows from ``-y`` to ``+y``,
+    times its elevation), ``None`` for another type."""
+    if int(m.geom_type[g]) != int(mj.mjtGeom.mjGEOM_HFIELD):
+        return None
+    h = int(m.geom_dataid[g])
+    rows, columns = int(m.hfield_nrow[h]), int(m.hfield_ncol[h])
+    start = int(m.hfield_adr[h])
+    data = np.asarray(m.hfield_data[start : start + rows * columns], dtype=np.float64).reshape(rows, columns)
+    size = np.asarray(m.hfield_size[h], dtype=np.float64)
+    return HeightField(_array(data * size[2]), _array(size[:2]), _array(size[3]))
+
+
 def _fluid(m: Any) -> Fluid | None:
     """MuJoCo's inertia-box fluid model (``None`` without density and viscosity): every body of
     positive mass, its inertial frame placed in its frame (frames: bodies first, by id)."""
@@ -942,6 +960,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         geom_vertices=tuple(vertices),
         geom_faces=tuple(faces),
         geom_hull=tuple(hulls),
+        geom_height_fields=tuple(_height_field(mj, m, g) for g in range(m.ngeom)),
         contact_pairs=tuple((int(a), int(b)) for a, b in zip(m.pair_geom1, m.pair_geom2)),
         pair_friction=_array(m.pair_friction[:, 0]).reshape(-1),
         # MuJoCo packs an excluded pair as body1 << 16 | body2.

@@ -7,7 +7,8 @@ system that steps with hard frictional contact, as MuJoCo would pair its geoms:
 - every geom of a colliding pair becomes a collision shape with MuJoCo's sizes (``geom_size``:
   a plane is a :class:`~rsmooth.sim.HalfSpace`, infinite, ``z <= 0`` of its frame; a sphere
   its radius; a capsule and a cylinder their radius and half length along their ``z`` axis; a
-  box its half extents; an ellipsoid its three radii; a mesh the :class:`~rsmooth.sim.ConvexMesh` of its vertices' convex
+  box its half extents; an ellipsoid its three radii; a height field (fixed in the world,
+  against spheres and capsules) its :class:`~rsmooth.sim.HeightField`; a mesh the :class:`~rsmooth.sim.ConvexMesh` of its vertices' convex
   hull, the shape MuJoCo collides);
 - every pair of :attr:`MujocoModel.collision_pairs` (MuJoCo's filters: welded bodies, parent
   and child, ``<exclude>``, ``contype``/``conaffinity``, explicit ``<pair>``) becomes one
@@ -44,7 +45,7 @@ import numpy as np
 from rsmooth._xla import device_array
 from rsmooth.sim._collision import manifold_size
 from rsmooth.sim._dynamics import forward_kinematics
-from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, Ellipsoid, HalfSpace, Sphere, convex_mesh
+from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, Ellipsoid, HalfSpace, HeightField, Sphere, convex_mesh
 from rsmooth.sim._mujoco import MujocoModel, load_mjcf, source_label
 from rsmooth.sim._ncp import NCPSolver
 from rsmooth.sim._simulator import Actuation, GeomPair, RigidBodySystem, Servos
@@ -67,6 +68,8 @@ def _shape(loaded: MujocoModel, geom: int, meshes: dict[int, Any]):
         return Cylinder(size[0], size[1])
     if kind == "ellipsoid":
         return Ellipsoid(size)
+    if kind == "hfield":
+        return loaded.geom_height_fields[geom]
     if kind == "box":
         return Box(size)
     if kind == "mesh":
@@ -142,7 +145,7 @@ def _check_pair(names: tuple[str, str], kinds: tuple[str, str], shapes: tuple) -
         if shapes[side] is None:
             raise ValueError(
                 f"MuJoCo model: {names[side]} collides with {names[1 - side]}, but rsmooth.sim has no {kinds[side]} "
-                "collision shape (supported: plane, sphere, capsule, box, cylinder, ellipsoid, mesh); give it contype = "
+                "collision shape (supported: plane, height field, sphere, capsule, box, cylinder, ellipsoid, mesh); give it contype = "
                 "conaffinity = 0 or replace it"
             )
     try:
@@ -152,6 +155,21 @@ def _check_pair(names: tuple[str, str], kinds: tuple[str, str], shapes: tuple) -
             f"MuJoCo model: {names[0]} collides with {names[1]}, a pair of shapes rsmooth.sim's collide does not "
             "support"
         ) from None
+
+
+def _height_field_window(loaded: MujocoModel, geom: int, shape, other):
+    """``shape``, a height field, with the window of cells that covers ``other`` (its bounding
+    diameter in the smaller cell side, plus one); any other shape as it is. A height field on a
+    moving body is refused by name."""
+    if not isinstance(shape, HeightField):
+        return shape
+    if loaded.geom_joints[geom] != 0:
+        raise ValueError(
+            f"MuJoCo model: {_describe(loaded, geom)} is on a moving body; rsmooth.sim collides height fields fixed in "
+            "the world only"
+        )
+    cells = 2.0 * float(other.bounding_radius) / float(np.min(np.asarray(shape.cell)))
+    return dataclasses.replace(shape, window=int(np.ceil(cells)) + 1)
 
 
 def _tree(loaded: MujocoModel, body: int) -> int:
@@ -457,6 +475,7 @@ def scene(
         shape1, shape2 = _shape(loaded, geom1, meshes), _shape(loaded, geom2, meshes)
         kinds = (loaded.geom_types[geom1], loaded.geom_types[geom2])
         _check_pair((_describe(loaded, geom1), _describe(loaded, geom2)), kinds, (shape1, shape2))
+        shape1, shape2 = _height_field_window(loaded, geom1, shape1, shape2), _height_field_window(loaded, geom2, shape2, shape1)
         frame1, placement1 = _placement(loaded, geom1)
         frame2, placement2 = _placement(loaded, geom2)
         mu = _pair_friction(loaded, index, geom1, geom2) if friction is None else friction

@@ -86,7 +86,7 @@ from rsmooth.sim import _derivatives, _dynamics, _stages
 from rsmooth.sim import _spatial as spatial
 from rsmooth.sim._contact import _safe_norm, contact_frame, corrected_free_velocity
 from rsmooth.sim._collision import Contacts, collide, manifold_size
-from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, Ellipsoid, HalfSpace, Sphere
+from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, Ellipsoid, HalfSpace, HeightField, Sphere
 from rsmooth.sim._laws import LogBarrier, SpringDamper
 from rsmooth.sim._model import JOINT_NV, PRISMATIC, REVOLUTE, SPHERICAL, UNIVERSE, Model
 from rsmooth.sim._ncp import (
@@ -191,7 +191,7 @@ class _VelocityUpdate(NamedTuple):
         return self.v_next, self.impulse, self.distance, self.ncp, self.clipped, diagnostics
 
 
-_SHAPES = (Sphere, Capsule, Box, Cylinder, Ellipsoid, HalfSpace, ConvexMesh)
+_SHAPES = (Sphere, Capsule, Box, Cylinder, Ellipsoid, HalfSpace, HeightField, ConvexMesh)
 # Signed distance given to the entries of a manifold that are not contacts (beyond the
 # pair's margin, or repeats of another entry): ten metres, a gap that no step that has not
 # diverged closes (StepInfo.diverged: at most max_motion_per_step, 1 m by default, per body
@@ -230,8 +230,8 @@ class GeomPair(eqx.Module):
     Attributes:
         shape1: a :class:`~rsmooth.sim.Sphere`, :class:`~rsmooth.sim.Capsule`,
             :class:`~rsmooth.sim.Box`, :class:`~rsmooth.sim.Cylinder`,
-            :class:`~rsmooth.sim.Ellipsoid`, :class:`~rsmooth.sim.HalfSpace` or
-            :class:`~rsmooth.sim.ConvexMesh`.
+            :class:`~rsmooth.sim.Ellipsoid`, :class:`~rsmooth.sim.HalfSpace`,
+            :class:`~rsmooth.sim.HeightField` or :class:`~rsmooth.sim.ConvexMesh`.
         frame1: frame index or name carrying shape 1 (static), ``None``: fixed in the world.
         placement1: ``(rotation (3, 3), translation (3,))`` of shape 1 in its frame.
         shape2: the other shape; the pair of types must be one that
@@ -253,10 +253,10 @@ class GeomPair(eqx.Module):
         4
     """
 
-    shape1: Sphere | Capsule | Box | Cylinder | Ellipsoid | HalfSpace | ConvexMesh
+    shape1: Sphere | Capsule | Box | Cylinder | Ellipsoid | HalfSpace | HeightField | ConvexMesh
     frame1: int | str | None = eqx.field(static=True)
     placement1: tuple[Array, Array]
-    shape2: Sphere | Capsule | Box | Cylinder | Ellipsoid | HalfSpace | ConvexMesh
+    shape2: Sphere | Capsule | Box | Cylinder | Ellipsoid | HalfSpace | HeightField | ConvexMesh
     frame2: int | str | None = eqx.field(static=True)
     placement2: tuple[Array, Array]
     friction: Array
