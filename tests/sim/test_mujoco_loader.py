@@ -434,10 +434,6 @@ UNSUPPORTED = {
         "<mujoco><option density='1.2'/><worldbody><body><joint/><geom name='g' size='0.1' fluidshape='ellipsoid'/></body></worldbody></mujoco>",
         "geom 'g' takes the ellipsoid fluid model",
     ),
-    "hfield": (
-        wrap("<geom name='terrain' type='hfield' hfield='h'/>", "<asset><hfield name='h' nrow='2' ncol='2' size='1 1 0.1 0.1'/></asset>"),
-        "geom 'terrain' is a colliding hfield",
-    ),
 }
 
 
@@ -464,12 +460,17 @@ def test_free_joint_armature_and_damping():
         load_mjcf(wrap("<body><joint name='f' type='free' armature='0.1'/><geom size='0.1'/></body>"))
 
 
-def test_visual_hfield_is_kept():
+def test_an_hfield_is_kept_with_its_heights():
     loaded = load_mjcf(wrap(
-        "<geom name='terrain' type='hfield' hfield='h' contype='0' conaffinity='0'/><geom name='ball' size='0.1'/>",
-        "<asset><hfield name='h' nrow='2' ncol='2' size='1 1 0.1 0.1'/></asset>",
+        "<geom name='terrain' type='hfield' hfield='h'/><geom name='ball' size='0.1'/>",
+        "<asset><hfield name='h' nrow='2' ncol='3' size='1 2 0.5 0.1' elevation='0 1 2 4 3 2'/></asset>",
     ))
-    assert loaded.geom_types == ("hfield", "sphere") and "hfield" not in GEOM_TYPES
+    assert loaded.geom_types == ("hfield", "sphere") and "hfield" in GEOM_TYPES
+    field = loaded.geom_height_fields[0]
+    # MuJoCo scales the elevation to [0, 1] (times size[2] = 0.5) and lists the file's rows from +y down
+    np.testing.assert_allclose(field.heights, [[0.5, 0.375, 0.25], [0.0, 0.125, 0.25]])
+    np.testing.assert_allclose(field.half_size, [1.0, 2.0])
+    assert float(field.base) == 0.1 and loaded.geom_height_fields[1] is None
 
 
 def test_bad_sources(tmp_path):
