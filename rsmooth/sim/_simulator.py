@@ -1270,25 +1270,31 @@ class RigidBodySystem(eqx.Module):
     def spring_forces(self, q: Array) -> Array:
         """The generalized forces ``(nv,)`` of :attr:`Joints.springs` and of the tendons'
         springs (:attr:`Joints.tendons`) at ``q`` (zeros without)."""
-        forces = jnp.zeros(self.model.nv, q.dtype)
-        if self.joints.springs is not None:
-            dofs, stiffness, displacement = self._spring_displacements(q)
-            forces = forces.at[dofs].set(-stiffness * displacement)
-        if self.joints.tendons is not None:
-            length, moments = self._tendon_geometry(q)
-            forces = forces - (self._tendon_stretch(length) * self.joints.tendons.stiffness.astype(q.dtype)) @ moments
-        return forces
+        return self._spring_forces(q, None)
 
     def passive_forces(self, q: Array, v: Array) -> Array:
         """The explicit passive forces ``(nv,)`` of a step from ``(q, v)``: :meth:`spring_forces`,
         the tendons' damping, ``-M^T d (M v)`` (:attr:`Joints.tendons`, ``M`` their
         :meth:`tendon_moments`), and :meth:`fluid_forces`."""
-        forces = self.spring_forces(q)
-        if self.joints.tendons is not None:
-            _, moments = self._tendon_geometry(q)
-            forces = forces - (self.joints.tendons.damping.astype(q.dtype) * (moments @ v)) @ moments
+        forces = self._spring_forces(q, v)
         if self.joints.fluid is not None:
             forces = forces + self.fluid_forces(q, v)
+        return forces
+
+    def _spring_forces(self, q: Array, v: Array | None) -> Array:
+        """:meth:`spring_forces`, plus the tendons' damping where ``v`` is given: one
+        evaluation of the tendons' geometry for both."""
+        forces = jnp.zeros(self.model.nv, q.dtype)
+        if self.joints.springs is not None:
+            dofs, stiffness, displacement = self._spring_displacements(q)
+            forces = forces.at[dofs].set(-stiffness * displacement)
+        tendons = self.joints.tendons
+        if tendons is not None:
+            length, moments = self._tendon_geometry(q)
+            along = self._tendon_stretch(length) * tendons.stiffness.astype(q.dtype)
+            if v is not None:
+                along = along + tendons.damping.astype(q.dtype) * (moments @ v)
+            forces = forces - along @ moments
         return forces
 
     def fluid_forces(self, q: Array, v: Array) -> Array:
