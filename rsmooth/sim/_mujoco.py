@@ -1057,7 +1057,7 @@ def _actuator_limits(mj: Any, m: Any) -> tuple[np.ndarray, dict[str, Any]]:
             if int(m.actuator_biastype[a]) == int(mj.mjtBias.mjBIAS_AFFINE) and np.any(m.actuator_biasprm[a, :3] != 0)
         ),
         tendon_names=_names(m, "tendon", m.ntendon),
-        tendon_moments=_array(_tendon_moments(m)).reshape(m.ntendon, m.nv),
+        tendon_moments=_array(tendon_moments).reshape(m.ntendon, m.nv),
         actuator_gear=_array(gear),
         actuator_gain=_array(gain),
         actuator_bias=_array(np.where(
