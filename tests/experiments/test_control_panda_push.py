@@ -41,7 +41,7 @@ def test_the_scene_starts_where_it_says_and_holds_still_at_zero_torque():
 
 @pytest.mark.slow
 def test_ddp_leaves_the_box_and_rddp_pushes_it(tmp_path, getkey):
-    config = control_panda_push.Config.quick(max_iterations=8, num_samples=8, frames=2)
+    config = control_panda_push.Config.quick(max_iterations=8, num_samples=8, frames=2, horizon=25)
     metrics = control_panda_push.run(config, tmp_path, getkey(), progress=False)
     assert metrics["methods"] == ["ddp", "rddp"]
     ddp, rddp = metrics["ddp"], metrics["rddp"]

@@ -318,8 +318,10 @@ def test_edge_neighbors_pair_the_faces_of_closed_and_open_meshes():
 
 def test_forward_and_reverse_mode_give_the_same_image_jacobian(getkey):
     # The image's Jacobian with respect to a pose (axis-angle, translation) by jacfwd (the
-    # fragments' hand-written forward mode, the estimator's linear tangent) and by jacrev
-    # (their transposes): equal up to rounding, for the same key.
+    # fragments' hand-written forward mode, the estimator's linear tangent) and reverse mode
+    # (their transposes): for the same key, vector-Jacobian products with random cotangents
+    # equal the forward Jacobian's transpose times them, up to rounding (jacrev would run one
+    # reverse pass per pixel and channel).
     renderer = render.Renderer(mode="perturbed", sigma=0.7, gamma=0.01, num_samples=8, faces_per_pixel=4, faces_per_tile=16)
     mesh = render.position_colors(square(side_for_pixels(12.0)))
     key = getkey()
@@ -329,9 +331,12 @@ def test_forward_and_reverse_mode_give_the_same_image_jacobian(getkey):
         return renderer(key, moved, CAMERA).rgb
 
     pose = jnp.array([0.3, -0.2, 0.1, 0.05, -0.03, 0.2])
-    forward, reverse = jax.jit(jax.jacfwd(image))(pose), jax.jit(jax.jacrev(image))(pose)
+    forward = jax.jit(jax.jacfwd(image))(pose)
     assert forward.shape == (SIZE, SIZE, 3, 6) and float(jnp.max(jnp.abs(forward))) > 0.1
-    np.testing.assert_allclose(forward, reverse, rtol=1e-9, atol=1e-12)
+    cotangents = jax.random.normal(getkey(), (6, SIZE, SIZE, 3), pose.dtype)
+    reverse = jax.jit(lambda c: jax.vmap(jax.vjp(image, pose)[1])(c)[0])(cotangents)
+    expected = jnp.einsum("kijc,ijcp->kp", cotangents, forward)
+    np.testing.assert_allclose(reverse, expected, rtol=1e-9, atol=1e-12)
 
 
 @pytest.mark.parametrize("mode", ["hard", "soft", "perturbed"])
@@ -356,7 +361,11 @@ def test_rendering_some_pixels_gives_their_values_and_derivatives_in_the_whole_i
     assert float(jnp.max(a[:, 3])) > 0.5 and float(jnp.min(a[:, 3])) < 1e-6  # inside, outside (and edges)
     np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-12, atol=1e-12)
     if mode != "hard":
-        ja, jb = jax.jit(jax.jacrev(whole))(t, key), jax.jit(jax.jacrev(some))(t, key)
+        # reverse mode: vector-Jacobian products with the same random cotangents (jacrev would
+        # run one reverse pass per entry)
+        cotangents = jax.random.normal(getkey(), (4,) + a.shape, a.dtype)
+        vjps = lambda f: jax.jit(lambda c: jax.vmap(jax.vjp(lambda t_: f(t_, key), t)[1])(c)[0])(cotangents)  # noqa: E731
+        ja, jb = vjps(whole), vjps(some)
         assert float(jnp.max(jnp.abs(ja))) > 0.1
         np.testing.assert_allclose(np.asarray(jb), np.asarray(ja), rtol=1e-9, atol=1e-9)
 
@@ -508,7 +517,7 @@ def test_pixels_the_noise_cannot_change_render_their_hard_value_with_zero_deriva
     got_alpha, got_rgb = jax.jit(alpha)(t, key)
     np.testing.assert_array_equal(np.asarray(got_alpha), np.asarray(expected.alpha).ravel()[np.asarray(certain)])
     np.testing.assert_allclose(np.asarray(got_rgb), np.asarray(expected.rgb).reshape(-1, 3)[np.asarray(certain)], atol=1e-12)
-    jac = jax.jit(jax.jacrev(lambda t, k: alpha(t, k)[0]))(t, key)
+    jac = jax.jit(jax.jacfwd(lambda t, k: alpha(t, k)[0]))(t, key)
     np.testing.assert_array_equal(np.asarray(jac), 0.0)
 
 
