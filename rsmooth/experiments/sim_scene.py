@@ -49,7 +49,9 @@ null: none), joint_friction_dofs (dofs with dry joint friction), joint_friction_
 (those held still by it, per step: end-of-step speed below the contact solver's slip
 threshold), joint_friction_impulse_max (largest ratio of a friction impulse to its bound,
 at most 1), joint_couplings (joint equality constraints enforced), max_coupling_error (the
-largest |q_a - p(q_b)| over the run, rad or m), joint_springs (joints with a spring),
+largest |q_a - p(q_b)| over the run, rad or m), connections (connect equalities enforced),
+max_connection_error (the largest distance between a connection's two points over the run,
+m), joint_springs (joints with a spring),
 wall_time_s (compile included)."""
 
 DEMO_SCENE = """<mujoco>
@@ -177,9 +179,10 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         energies = jax.vmap(lambda x: sim.energy(system, x))(xs)
         placements = jax.vmap(lambda x: sim.forward_kinematics(system.model, system.split(x)[0]))(xs)
         coupling_errors = jax.vmap(lambda x: system.coupling_errors(system.split(x)[0]))(xs)
-        return xs, infos, energies, placements, coupling_errors
+        connection_gaps = jax.vmap(lambda x: jnp.linalg.norm(system.connection_errors(system.split(x)[0]), axis=-1))(xs)
+        return xs, infos, energies, placements, coupling_errors, connection_gaps
 
-    xs, infos, energies, placements, coupling_errors = simulate(system.initial_state())
+    xs, infos, energies, placements, coupling_errors, connection_gaps = simulate(system.initial_state())
     xs = jax.block_until_ready(xs)
     counts = sim.check_steps(infos, what=f"the scene {config.file or 'built-in'}")
     bar.update()
@@ -227,6 +230,8 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         "joint_friction_impulse_max": float(friction_share.max()) if friction_dofs else 0.0,
         "joint_couplings": int(coupling_errors.shape[-1]),
         "max_coupling_error": float(np.abs(np.asarray(coupling_errors)).max()) if coupling_errors.shape[-1] else 0.0,
+        "connections": int(connection_gaps.shape[-1]),
+        "max_connection_error": float(np.asarray(connection_gaps).max()) if connection_gaps.shape[-1] else 0.0,
         "joint_springs": 0 if system.joints.springs is None else len(system.joints.springs.joints),
     }
     times = np.arange(config.steps + 1) * dt
@@ -270,6 +275,8 @@ def summary(metrics: dict) -> dict:
             f"{metrics['joint_friction_dofs']}"} if metrics.get("joint_friction_dofs") else {}),
         **({"largest coupling error (rad or m)": f"{metrics['max_coupling_error']:.2e}"}
            if metrics.get("joint_couplings") else {}),
+        **({"largest connection error (m)": f"{metrics['max_connection_error']:.2e}"}
+           if metrics.get("connections") else {}),
     }
 
 

@@ -102,6 +102,7 @@ from rsmooth.sim._simulator import (
     Actuation as Actuation,
     Geometry as Geometry,
     JointCoupling as JointCoupling,
+    PointConnection as PointConnection,
     JointFriction as JointFriction,
     JointSprings as JointSprings,
     Tendons as Tendons,

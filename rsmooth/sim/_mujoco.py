@@ -9,6 +9,7 @@ the collision geometry as plain data. The conversion is checked once on the host
 rsmooth's dynamics do not model (as MJX's ``put_model`` does), instead of simulating something
 else silently. Joint equalities (a URDF ``<mimic>``) are converted
 (:attr:`MujocoModel.joint_couplings`); :func:`load_mjcf` drops them on request, with a warning.
+Connect equalities (a closed kinematic loop) are converted too (:attr:`MujocoModel.connections`).
 Fixed tendons (lengths ``sum_i c_i qpos_i`` over hinges and slides) are converted for what
 drives or constrains them: motors on a tendon (:attr:`MujocoModel.tendon_moments`, the input's
 moment arms), equalities of one tendon on at most two joints (joint couplings) and the
@@ -66,7 +67,7 @@ from rsmooth._xla import device_array
 from rsmooth.sim import _spatial as spatial
 from rsmooth.sim._model import FREE_FLYER, PRISMATIC, REVOLUTE, SPHERICAL, UNIVERSE, Model
 from rsmooth.sim._geometry import HeightField
-from rsmooth.sim._simulator import Fluid, JointCoupling, Tendons
+from rsmooth.sim._simulator import Fluid, JointCoupling, PointConnection, Tendons
 
 # The geom types a collision routine may meet; SDFs are accepted only when they cannot collide
 # (purely visual), so that geom indices stay MuJoCo's.
@@ -109,6 +110,10 @@ class MujocoModel(eqx.Module):
             ``polycoef``), or ``None``; inactive ones (``active="false"``) are left out, and all
             where the ``equality`` or ``constraint`` flag is disabled. An equality of one
             fixed tendon on two joints is a coupling of one joint to the other.
+        connections: the active connect equalities (``<equality><connect>``, between bodies or
+            sites) as a :class:`~rsmooth.sim.PointConnection` (frames: MuJoCo's bodies by id,
+            its sites after the bodies and joints), or ``None``; inactive ones and all where the
+            ``equality`` or ``constraint`` flag is disabled are left out.
         tendons: the springs, dampers, dry friction and length limits of the tendons
             (:class:`~rsmooth.sim.Tendons`, spatial ones through their sites' frames; the
             ``spring``, ``damper``, ``frictionloss`` and ``limit`` flags honoured), or ``None``
@@ -200,6 +205,7 @@ class MujocoModel(eqx.Module):
     stiffness: jax.Array
     spring_reference: jax.Array
     joint_couplings: JointCoupling | None
+    connections: PointConnection | None
     tendons: Tendons | None
     fluid: Fluid | None
     timestep: float = eqx.field(static=True)
@@ -524,14 +530,15 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
                 "damping only"
             )
     counts = [
-        ("neq", "equality constraints other than joint couplings", mj.mjtObj.mjOBJ_EQUALITY),
+        ("neq", "equality constraints other than joint couplings and connections (weld, distance, flex)",
+         mj.mjtObj.mjOBJ_EQUALITY),
         ("nflex", "flexible bodies (flex)", mj.mjtObj.mjOBJ_FLEX),
         ("nskin", "skins", mj.mjtObj.mjOBJ_SKIN),
         ("nplugin", "plugins", mj.mjtObj.mjOBJ_PLUGIN),
     ]
     # equality constraints MuJoCo does not enforce (the equality or constraint flag disabled) are left alone
     equalities_off = _disabled(mj, m, "EQUALITY", "CONSTRAINT")
-    converted = (int(mj.mjtEq.mjEQ_JOINT), int(mj.mjtEq.mjEQ_TENDON))
+    converted = (int(mj.mjtEq.mjEQ_JOINT), int(mj.mjtEq.mjEQ_TENDON), int(mj.mjtEq.mjEQ_CONNECT))
     others = [] if equalities_off else [e for e in range(m.neq) if int(m.eq_type[e]) not in converted]
     for attribute, what, kind in counts:
         count = len(others) if attribute == "neq" else getattr(m, attribute)
@@ -939,6 +946,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         stiffness=_array(stiffness),
         spring_reference=_array(spring_reference),
         joint_couplings=None if _disabled(mj, m, "EQUALITY", "CONSTRAINT") else _joint_couplings(mj, m),
+        connections=None if _disabled(mj, m, "EQUALITY", "CONSTRAINT") else _connections(mj, m),
         tendons=_tendons(mj, m),
         fluid=_fluid(m),
         limits_enforced=not _disabled(mj, m, "LIMIT", "CONSTRAINT"),
@@ -1088,6 +1096,31 @@ def _joint_couplings(mj: Any, m: Any) -> JointCoupling | None:
     if not joints:
         return None
     return JointCoupling(tuple(joints), tuple(others), _array(np.array(coefficients)))
+
+
+def _connections(mj: Any, m: Any) -> PointConnection | None:
+    """The active connect equalities of ``m`` as a ``PointConnection``, or ``None``. Between
+    bodies, MuJoCo's ``eq_data[0:3]`` is the anchor in the first body's frame and
+    ``eq_data[3:6]`` the same point in the second's (where the compiler found it at ``qpos0``);
+    between sites, the sites' origins (frames: bodies by id, joints, then sites)."""
+    equalities = [e for e in range(m.neq) if int(m.eq_type[e]) == int(mj.mjtEq.mjEQ_CONNECT) and m.eq_active0[e]]
+    if not equalities:
+        return None
+    frames, others, anchors, other_anchors = [], [], [], []
+    first_site = m.nbody + m.njnt
+    for e in equalities:
+        data = np.asarray(m.eq_data[e], dtype=np.float64)
+        if int(m.eq_objtype[e]) == int(mj.mjtObj.mjOBJ_SITE):
+            frames.append(first_site + int(m.eq_obj1id[e]))
+            others.append(first_site + int(m.eq_obj2id[e]))
+            anchors.append(np.zeros(3))
+            other_anchors.append(np.zeros(3))
+        else:
+            frames.append(int(m.eq_obj1id[e]))
+            others.append(max(int(m.eq_obj2id[e]), 0))  # -1 or 0: the world
+            anchors.append(data[0:3])
+            other_anchors.append(data[3:6])
+    return PointConnection(tuple(frames), tuple(others), _array(np.array(anchors)), _array(np.array(other_anchors)))
 
 
 def _tendon_couplings(mj: Any, m: Any) -> list[tuple[int, int, np.ndarray]]:

@@ -477,6 +477,44 @@ class JointCoupling(eqx.Module):
             raise ValueError("JointCoupling.coefficients must be finite")
 
 
+class PointConnection(eqx.Module):
+    """Ball-joint equality constraints between two bodies (MuJoCo's ``<equality><connect>``):
+    the point ``anchors[k]`` of frame ``frames[k]`` stays at the point ``other_anchors[k]`` of
+    frame ``others[k]`` (each in its frame's coordinates; the world's frame, 0, for a point
+    fixed in the world). Closed kinematic loops (a four-bar linkage, a parallel gripper) are
+    written so.
+
+    A step enforces each as three bilateral rows of the NCP (box rows without bounds), at the
+    velocity level with the contacts' Baumgarte correction of the position error ``e = p_a -
+    p_b`` (world, m): ``(J_a - J_b) v+ + baumgarte e / h = 0``, ``J_a``, ``J_b`` the points'
+    world velocity Jacobians, so an error closes by the factor ``1 - baumgarte`` per step (a
+    connection MuJoCo makes soft, by its ``solref``, is hard here).
+
+    Attributes:
+        frames: the frames of the first points (indices into the model's frames; static).
+        others: the frames of the points they are held to (static).
+        anchors: ``(len(frames), 3)``, the first points in their frames (m).
+        other_anchors: ``(len(frames), 3)``, the second points in theirs (m).
+    """
+
+    frames: tuple[int, ...] = eqx.field(static=True)
+    others: tuple[int, ...] = eqx.field(static=True)
+    anchors: Array
+    other_anchors: Array
+
+    def __check_init__(self):
+        if len(self.others) != len(self.frames) or not self.frames:
+            raise ValueError(
+                f"PointConnection.others must have one frame per frame (at least one), got {self.frames!r} and "
+                f"{self.others!r}"
+            )
+        for name, value in (("anchors", self.anchors), ("other_anchors", self.other_anchors)):
+            if jnp.shape(value) != (len(self.frames), 3):
+                raise ValueError(f"PointConnection.{name} must have shape ({len(self.frames)}, 3), got {jnp.shape(value)}")
+            if not _checks.is_traced(value) and not np.all(np.isfinite(np.asarray(value))):
+                raise ValueError(f"PointConnection.{name} must be finite")
+
+
 class JointSprings(eqx.Module):
     """Linear springs on joints (MuJoCo's joint ``stiffness`` about its ``springref``): joint
     ``joints[k]`` is pulled towards its coordinates in ``reference`` with the stiffness
@@ -905,6 +943,8 @@ class Joints(eqx.Module):
             :meth:`RigidBodySystem.with_joint_friction`.
         couplings: joint equality constraints (:class:`JointCoupling`), solved with the
             contacts (hard contact only); ``None``: none.
+        connections: ball-joint equality constraints between bodies (:class:`PointConnection`),
+            solved with the contacts (hard contact only); ``None``: none.
         springs: linear springs on joints (:class:`JointSprings`), explicit forces of
             the free motion; ``None``: none. See :meth:`RigidBodySystem.with_joint_springs`.
         tendons: springs and dampers along fixed and spatial tendons (:class:`Tendons`),
@@ -918,6 +958,7 @@ class Joints(eqx.Module):
     limits: tuple[tuple[int, int], ...] = eqx.field(static=True, default=())
     friction: JointFriction | None = None
     couplings: JointCoupling | None = None
+    connections: PointConnection | None = None
     springs: JointSprings | None = None
     tendons: Tendons | None = None
     fluid: Fluid | None = None
@@ -927,6 +968,7 @@ class Joints(eqx.Module):
             raise ValueError("joints.damping must be non-negative")
         for name, value, kind in (
             ("friction", self.friction, JointFriction), ("couplings", self.couplings, JointCoupling),
+            ("connections", self.connections, PointConnection),
             ("springs", self.springs, JointSprings), ("tendons", self.tendons, Tendons), ("fluid", self.fluid, Fluid),
         ):
             if value is not None and not isinstance(value, kind):
@@ -1014,6 +1056,7 @@ class RigidBodySystem(eqx.Module):
         tendon_limits = joints.tendons is not None and bool(joints.tendons.limits)
         for name, present in (
             ("limits", joints.limits), ("friction", joints.friction), ("couplings", joints.couplings),
+            ("connections", joints.connections),
             ("tendons' friction", tendon_friction), ("tendons' limits", tendon_limits),
         ):
             if present and not hard:
@@ -1031,6 +1074,11 @@ class RigidBodySystem(eqx.Module):
                             f"joints.couplings: joint {index} must be a revolute or prismatic joint of the model"
                             f"{' (or 0)' if UNIVERSE in allowed else ''}"
                         )
+        if joints.connections is not None:
+            frames = len(model.frame_names)
+            bad = [f for f in joints.connections.frames + joints.connections.others if not 0 <= f < frames]
+            if bad:
+                raise ValueError(f"joints.connections: frames {bad} out of range [0, {frames})")
         if joints.springs is not None:
             types = model.joint_types
             bad = [j for j in joints.springs.joints if not 0 <= j < len(types) or types[j] not in _SPRING_TYPES]
@@ -1169,6 +1217,16 @@ class RigidBodySystem(eqx.Module):
                 compliant contact law.
         """
         return self._with_joints(couplings=couplings)
+
+    def with_connections(self, connections: PointConnection | None) -> "RigidBodySystem":
+        """This system with the ball-joint equality constraints ``connections``
+        (:attr:`Joints.connections`; ``None``: none), e.g. a loaded model's
+        :attr:`~rsmooth.sim.MujocoModel.connections`.
+
+        Raises:
+            ValueError: a frame that is not the model's, or a compliant contact law.
+        """
+        return self._with_joints(connections=connections)
 
     def with_fluid(self, fluid: Fluid | None) -> "RigidBodySystem":
         """This system in the fluid ``fluid`` (:attr:`Joints.fluid`; ``None``: none), e.g. a
@@ -1380,20 +1438,24 @@ class RigidBodySystem(eqx.Module):
 
     def joint_rows(self, q: Array) -> tuple[Array, Array, Array]:
         """The joints' box rows of the contact problem at ``q``: :attr:`Joints.friction`'s, then
-        :attr:`Joints.couplings`', then the dry friction of :attr:`Joints.tendons`, as ``(rows
-        (m, nv), correction (m,), bounds (m,))``: the row ``k`` constrains ``rows[k] v+ +
-        correction[k]`` with the impulse bound ``bounds[k]`` (``effort h`` for friction, along a
-        tendon its moments; ``inf`` for a coupling, whose correction is ``baumgarte e / h``);
-        ``m = 0`` without any."""
+        :attr:`Joints.couplings`', then :attr:`Joints.connections`' (three per connection, world
+        x, y, z), then the dry friction of :attr:`Joints.tendons`, as ``(rows (m, nv),
+        correction (m,), bounds (m,))``: the row ``k`` constrains ``rows[k] v+ + correction[k]``
+        with the impulse bound ``bounds[k]`` (``effort h`` for friction, along a tendon its
+        moments; ``inf`` for a coupling or a connection, whose correction is ``baumgarte e /
+        h``); ``m = 0`` without any."""
         dtype = q.dtype
         dofs = () if self.joints.friction is None else self.joints.friction.dofs
         friction = np.zeros((len(dofs), self.model.nv))
         friction[np.arange(len(dofs)), list(dofs)] = 1.0
         rows, correction = [jnp.asarray(friction, dtype)], [jnp.zeros(len(dofs), dtype)]
         bounds = [jnp.zeros(0, dtype) if self.joints.friction is None else self.time_step * self.joints.friction.effort]
-        if self.joints.couplings is not None:
-            error, row = self._coupling_terms(q)
-            rows.append(row)
+        for present, terms in ((self.joints.couplings, self._coupling_terms), (self.joints.connections, self._connection_terms)):
+            if present is None:
+                continue
+            error, row = terms(q)
+            error = error.reshape(-1)
+            rows.append(row.reshape(error.shape[0], self.model.nv))
             limit = self.options.max_correction_speed
             speed = self.baumgarte * error / self.time_step
             correction.append(speed if limit == float("inf") else jnp.clip(speed, -limit, limit))
@@ -1411,6 +1473,30 @@ class RigidBodySystem(eqx.Module):
         if self.joints.couplings is None:
             return jnp.zeros(0, q.dtype)
         return self._coupling_terms(q)[0]
+
+    def connection_errors(self, q: Array) -> Array:
+        """How far each of :attr:`Joints.connections` is from holding at ``q``: ``p_a - p_b``
+        (world, m), ``(k, 3)``; empty without connections."""
+        if self.joints.connections is None:
+            return jnp.zeros((0, 3), q.dtype)
+        return self._connection_terms(q)[0]
+
+    def _connection_terms(self, q: Array) -> tuple[Array, Array]:
+        """The connections' position errors ``(k, 3)`` and their velocity rows ``(k, 3, nv)``."""
+        model, connection, dtype = self.model, self.joints.connections, q.dtype
+        kinematics = _dynamics._kinematics(model, q)
+        frames = connection.frames + connection.others
+        anchors = jnp.concatenate([connection.anchors, connection.other_anchors]).astype(dtype)
+        points = []
+        for frame, anchor in zip(frames, anchors):
+            rotation, translation = _dynamics._frame_placement(model, kinematics.rotation, kinematics.translation, frame)
+            points.append(rotation @ anchor + translation)
+        points = jnp.stack(points)
+        columns = _dynamics._point_velocity_columns(model, kinematics, np.asarray(model.frame_parents)[list(frames)], points)
+        count = len(connection.frames)
+        error = points[:count] - points[count:]
+        rows = jnp.swapaxes(columns[:count] - columns[count:], 1, 2)  # (k, 3, nv)
+        return error, rows
 
     def _coupling_terms(self, q: Array) -> tuple[Array, Array]:
         """The couplings' position errors ``(k,)`` and their velocity rows ``(k, nv)`` at ``q``."""
