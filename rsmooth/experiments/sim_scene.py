@@ -51,7 +51,9 @@ threshold), joint_friction_impulse_max (largest ratio of a friction impulse to i
 at most 1), joint_couplings (joint equality constraints enforced), max_coupling_error (the
 largest |q_a - p(q_b)| over the run, rad or m), connections (connect equalities enforced),
 max_connection_error (the largest distance between a connection's two points over the run,
-m), joint_springs (joints with a spring),
+m), welds (weld equalities enforced), max_weld_error (the largest entry of a weld's error over
+the run: the points' gap in m, the orientation error's quaternion part), joint_springs (joints
+with a spring),
 wall_time_s (compile included)."""
 
 DEMO_SCENE = """<mujoco>
@@ -180,9 +182,10 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         placements = jax.vmap(lambda x: sim.forward_kinematics(system.model, system.split(x)[0]))(xs)
         coupling_errors = jax.vmap(lambda x: system.coupling_errors(system.split(x)[0]))(xs)
         connection_gaps = jax.vmap(lambda x: jnp.linalg.norm(system.connection_errors(system.split(x)[0]), axis=-1))(xs)
-        return xs, infos, energies, placements, coupling_errors, connection_gaps
+        weld_errors = jax.vmap(lambda x: system.weld_errors(system.split(x)[0]))(xs)
+        return xs, infos, energies, placements, coupling_errors, connection_gaps, weld_errors
 
-    xs, infos, energies, placements, coupling_errors, connection_gaps = simulate(system.initial_state())
+    xs, infos, energies, placements, coupling_errors, connection_gaps, weld_errors = simulate(system.initial_state())
     xs = jax.block_until_ready(xs)
     counts = sim.check_steps(infos, what=f"the scene {config.file or 'built-in'}")
     bar.update()
@@ -232,6 +235,8 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         "max_coupling_error": float(np.abs(np.asarray(coupling_errors)).max()) if coupling_errors.shape[-1] else 0.0,
         "connections": int(connection_gaps.shape[-1]),
         "max_connection_error": float(np.asarray(connection_gaps).max()) if connection_gaps.shape[-1] else 0.0,
+        "welds": int(weld_errors.shape[1]),
+        "max_weld_error": float(np.abs(np.asarray(weld_errors)).max()) if weld_errors.shape[1] else 0.0,
         "joint_springs": 0 if system.joints.springs is None else len(system.joints.springs.joints),
     }
     times = np.arange(config.steps + 1) * dt
@@ -277,6 +282,8 @@ def summary(metrics: dict) -> dict:
            if metrics.get("joint_couplings") else {}),
         **({"largest connection error (m)": f"{metrics['max_connection_error']:.2e}"}
            if metrics.get("connections") else {}),
+        **({"largest weld error (m, or quaternion part)": f"{metrics['max_weld_error']:.2e}"}
+           if metrics.get("welds") else {}),
     }
 
 

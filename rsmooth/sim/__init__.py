@@ -103,6 +103,7 @@ from rsmooth.sim._simulator import (
     Geometry as Geometry,
     JointCoupling as JointCoupling,
     PointConnection as PointConnection,
+    Weld as Weld,
     JointFriction as JointFriction,
     JointSprings as JointSprings,
     Tendons as Tendons,

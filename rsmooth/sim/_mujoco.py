@@ -9,7 +9,8 @@ the collision geometry as plain data. The conversion is checked once on the host
 rsmooth's dynamics do not model (as MJX's ``put_model`` does), instead of simulating something
 else silently. Joint equalities (a URDF ``<mimic>``) are converted
 (:attr:`MujocoModel.joint_couplings`); :func:`load_mjcf` drops them on request, with a warning.
-Connect equalities (a closed kinematic loop) are converted too (:attr:`MujocoModel.connections`).
+Connect and weld equalities (closed kinematic loops, bodies held together) are converted too
+(:attr:`MujocoModel.connections`, :attr:`MujocoModel.welds`).
 Fixed tendons (lengths ``sum_i c_i qpos_i`` over hinges and slides) are converted for what
 drives or constrains them: motors on a tendon (:attr:`MujocoModel.tendon_moments`, the input's
 moment arms), equalities of one tendon on at most two joints (joint couplings) and the
@@ -67,7 +68,7 @@ from rsmooth._xla import device_array
 from rsmooth.sim import _spatial as spatial
 from rsmooth.sim._model import FREE_FLYER, PRISMATIC, REVOLUTE, SPHERICAL, UNIVERSE, Model
 from rsmooth.sim._geometry import HeightField
-from rsmooth.sim._simulator import Fluid, JointCoupling, PointConnection, Tendons
+from rsmooth.sim._simulator import Fluid, JointCoupling, PointConnection, Tendons, Weld
 
 # The geom types a collision routine may meet; SDFs are accepted only when they cannot collide
 # (purely visual), so that geom indices stay MuJoCo's.
@@ -114,6 +115,9 @@ class MujocoModel(eqx.Module):
             sites) as a :class:`~rsmooth.sim.PointConnection` (frames: MuJoCo's bodies by id,
             its sites after the bodies and joints), or ``None``; inactive ones and all where the
             ``equality`` or ``constraint`` flag is disabled are left out.
+        welds: the active weld equalities (``<equality><weld>``, between bodies) as a
+            :class:`~rsmooth.sim.Weld` (frames: MuJoCo's bodies by id), or ``None``; left out
+            as connections are.
         tendons: the springs, dampers, dry friction and length limits of the tendons
             (:class:`~rsmooth.sim.Tendons`, spatial ones through their sites' frames; the
             ``spring``, ``damper``, ``frictionloss`` and ``limit`` flags honoured), or ``None``
@@ -206,6 +210,7 @@ class MujocoModel(eqx.Module):
     spring_reference: jax.Array
     joint_couplings: JointCoupling | None
     connections: PointConnection | None
+    welds: Weld | None
     tendons: Tendons | None
     fluid: Fluid | None
     timestep: float = eqx.field(static=True)
@@ -530,7 +535,7 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
                 "damping only"
             )
     counts = [
-        ("neq", "equality constraints other than joint couplings and connections (weld, distance, flex)",
+        ("neq", "equality constraints other than joint couplings, connections and welds (distance, flex)",
          mj.mjtObj.mjOBJ_EQUALITY),
         ("nflex", "flexible bodies (flex)", mj.mjtObj.mjOBJ_FLEX),
         ("nskin", "skins", mj.mjtObj.mjOBJ_SKIN),
@@ -538,7 +543,7 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
     ]
     # equality constraints MuJoCo does not enforce (the equality or constraint flag disabled) are left alone
     equalities_off = _disabled(mj, m, "EQUALITY", "CONSTRAINT")
-    converted = (int(mj.mjtEq.mjEQ_JOINT), int(mj.mjtEq.mjEQ_TENDON), int(mj.mjtEq.mjEQ_CONNECT))
+    converted = (int(mj.mjtEq.mjEQ_JOINT), int(mj.mjtEq.mjEQ_TENDON), int(mj.mjtEq.mjEQ_CONNECT), int(mj.mjtEq.mjEQ_WELD))
     others = [] if equalities_off else [e for e in range(m.neq) if int(m.eq_type[e]) not in converted]
     for attribute, what, kind in counts:
         count = len(others) if attribute == "neq" else getattr(m, attribute)
@@ -947,6 +952,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         spring_reference=_array(spring_reference),
         joint_couplings=None if _disabled(mj, m, "EQUALITY", "CONSTRAINT") else _joint_couplings(mj, m),
         connections=None if _disabled(mj, m, "EQUALITY", "CONSTRAINT") else _connections(mj, m),
+        welds=None if _disabled(mj, m, "EQUALITY", "CONSTRAINT") else _welds(mj, m),
         tendons=_tendons(mj, m),
         fluid=_fluid(m),
         limits_enforced=not _disabled(mj, m, "LIMIT", "CONSTRAINT"),
@@ -1121,6 +1127,33 @@ def _connections(mj: Any, m: Any) -> PointConnection | None:
             anchors.append(data[0:3])
             other_anchors.append(data[3:6])
     return PointConnection(tuple(frames), tuple(others), _array(np.array(anchors)), _array(np.array(other_anchors)))
+
+
+def _welds(mj: Any, m: Any) -> Weld | None:
+    """The active weld equalities of ``m`` as a ``Weld``, or ``None``. MuJoCo's ``eq_data`` holds
+    the weld point in the second body's frame (``[0:3]``), the first body's pose relative to it
+    (``relpose``: the point in the first body's frame ``[3:6]`` and the quaternion ``[6:10]``,
+    ``w`` first) and the ``torquescale`` (``[10]``). Welds between sites are refused by name."""
+    equalities = [e for e in range(m.neq) if int(m.eq_type[e]) == int(mj.mjtEq.mjEQ_WELD) and m.eq_active0[e]]
+    if not equalities:
+        return None
+    names = _names(m, "equality", m.neq)
+    frames, others, anchors, other_anchors, rotations, scales = [], [], [], [], [], []
+    for e in equalities:
+        if int(m.eq_objtype[e]) == int(mj.mjtObj.mjOBJ_SITE):
+            raise ValueError(
+                f"MuJoCo model: weld {names[e]!r} is between sites, which rsmooth.sim does not support (supported: welds "
+                "between bodies)"
+            )
+        data = np.asarray(m.eq_data[e], dtype=np.float64)
+        frames.append(int(m.eq_obj1id[e]))
+        others.append(max(int(m.eq_obj2id[e]), 0))  # -1 or 0: the world
+        anchors.append(data[3:6])
+        other_anchors.append(data[0:3])
+        rotations.append(_pose(np.zeros(3), data[6:10])[0])
+        scales.append(data[10])
+    return Weld(tuple(frames), tuple(others), _array(np.array(anchors)), _array(np.array(other_anchors)),
+                _array(np.array(rotations).reshape(len(frames), 3, 3)), _array(np.array(scales)))
 
 
 def _tendon_couplings(mj: Any, m: Any) -> list[tuple[int, int, np.ndarray]]:

@@ -318,8 +318,9 @@ def scene(
     The kinematic tree, gravity, armature, joint damping, joint springs (``stiffness``,
     :meth:`~rsmooth.sim.RigidBodySystem.with_joint_springs`), dry joint friction (``frictionloss``,
     :meth:`~rsmooth.sim.RigidBodySystem.with_joint_friction`), joint couplings (a URDF's
-    ``<mimic>``, :attr:`~rsmooth.sim.Joints.couplings`), connect equalities (closed kinematic
-    loops, :attr:`~rsmooth.sim.Joints.connections`) and the springs, dampers, dry friction
+    ``<mimic>``, :attr:`~rsmooth.sim.Joints.couplings`), connect and weld equalities (closed
+    kinematic loops, bodies held together: :attr:`~rsmooth.sim.Joints.connections`,
+    :attr:`~rsmooth.sim.Joints.welds`) and the springs, dampers, dry friction
     and length limits of fixed and spatial tendons (:attr:`~rsmooth.sim.Joints.tendons`) and the fluid
     (:attr:`~rsmooth.sim.Joints.fluid`) are those of
     :func:`~rsmooth.sim.load_mjcf`; every colliding geom pair of MuJoCo is a
@@ -539,7 +540,7 @@ def scene(
     system = system.with_joint_friction(np.asarray(loaded.frictionloss))
     system = system.with_joint_springs(np.asarray(loaded.stiffness), loaded.spring_reference)
     system = system.with_tendons(loaded.tendons).with_fluid(loaded.fluid)
-    system = system.with_joint_couplings(loaded.joint_couplings).with_connections(loaded.connections)
+    system = system.with_joint_couplings(loaded.joint_couplings).with_connections(loaded.connections).with_welds(loaded.welds)
     if not joint_limits or not loaded.limits_enforced:
         return system
     _warn_if_beyond_limits(model, np.asarray(initial_configuration), source_label(source))

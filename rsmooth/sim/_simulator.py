@@ -515,6 +515,51 @@ class PointConnection(eqx.Module):
                 raise ValueError(f"PointConnection.{name} must be finite")
 
 
+class Weld(eqx.Module):
+    """Weld equality constraints (MuJoCo's ``<equality><weld>``): frame ``frames[k]`` held at
+    a fixed pose relative to frame ``others[k]`` (the world's frame, 0, to fix it in the world).
+    Its point ``anchors[k]`` stays at the point ``other_anchors[k]`` of the other (each in its
+    frame's coordinates), and its rotation turned by ``rotations[k]`` stays the other's:
+    ``R_bᵀ R_a Q_k = I``.
+
+    A step enforces each as six bilateral rows of the NCP (box rows without bounds) with the
+    Baumgarte correction of the error: the points' gap ``p_a - p_b`` (world, m) as a
+    :class:`PointConnection`'s, then MuJoCo's orientation error, ``torque_scale[k]`` times the
+    vector part of the unit quaternion (``w >= 0``) of ``R_bᵀ R_a Q_k``, whose rate is
+    ``torque_scale / 2 (w I - [v]x) R_bᵀ (omega_a - omega_b)`` (the bodies' world angular
+    velocities). A weld MuJoCo makes soft, by its ``solref``, is hard here.
+
+    Attributes:
+        frames: the welded frames (indices into the model's frames; static).
+        others: the frames they are welded to (static).
+        anchors: ``(len(frames), 3)``, the weld points in the welded frames (m).
+        other_anchors: ``(len(frames), 3)``, the same points in the other frames (m).
+        rotations: ``(len(frames), 3, 3)``, the rotations ``Q``.
+        torque_scale: ``(len(frames),)``, the orientation rows' scale (MuJoCo's
+            ``torquescale``, > 0).
+    """
+
+    frames: tuple[int, ...] = eqx.field(static=True)
+    others: tuple[int, ...] = eqx.field(static=True)
+    anchors: Array
+    other_anchors: Array
+    rotations: Array
+    torque_scale: Array
+
+    def __check_init__(self):
+        count = len(self.frames)
+        if len(self.others) != count or not self.frames:
+            raise ValueError(f"Weld.others must have one frame per frame (at least one), got {self.frames!r} and {self.others!r}")
+        for name, value, shape in (("anchors", self.anchors, (count, 3)), ("other_anchors", self.other_anchors, (count, 3)),
+                                   ("rotations", self.rotations, (count, 3, 3)), ("torque_scale", self.torque_scale, (count,))):
+            if jnp.shape(value) != shape:
+                raise ValueError(f"Weld.{name} must have shape {shape}, got {jnp.shape(value)}")
+            if not _checks.is_traced(value) and not np.all(np.isfinite(np.asarray(value))):
+                raise ValueError(f"Weld.{name} must be finite")
+        if not _checks.is_traced(self.torque_scale) and np.any(np.asarray(self.torque_scale) <= 0):
+            raise ValueError(f"Weld.torque_scale must be > 0, got {np.asarray(self.torque_scale)}")
+
+
 class JointSprings(eqx.Module):
     """Linear springs on joints (MuJoCo's joint ``stiffness`` about its ``springref``): joint
     ``joints[k]`` is pulled towards its coordinates in ``reference`` with the stiffness
@@ -945,6 +990,8 @@ class Joints(eqx.Module):
             contacts (hard contact only); ``None``: none.
         connections: ball-joint equality constraints between bodies (:class:`PointConnection`),
             solved with the contacts (hard contact only); ``None``: none.
+        welds: weld equality constraints between bodies (:class:`Weld`), solved with the
+            contacts (hard contact only); ``None``: none.
         springs: linear springs on joints (:class:`JointSprings`), explicit forces of
             the free motion; ``None``: none. See :meth:`RigidBodySystem.with_joint_springs`.
         tendons: springs and dampers along fixed and spatial tendons (:class:`Tendons`),
@@ -959,6 +1006,7 @@ class Joints(eqx.Module):
     friction: JointFriction | None = None
     couplings: JointCoupling | None = None
     connections: PointConnection | None = None
+    welds: Weld | None = None
     springs: JointSprings | None = None
     tendons: Tendons | None = None
     fluid: Fluid | None = None
@@ -968,7 +1016,7 @@ class Joints(eqx.Module):
             raise ValueError("joints.damping must be non-negative")
         for name, value, kind in (
             ("friction", self.friction, JointFriction), ("couplings", self.couplings, JointCoupling),
-            ("connections", self.connections, PointConnection),
+            ("connections", self.connections, PointConnection), ("welds", self.welds, Weld),
             ("springs", self.springs, JointSprings), ("tendons", self.tendons, Tendons), ("fluid", self.fluid, Fluid),
         ):
             if value is not None and not isinstance(value, kind):
@@ -1056,7 +1104,7 @@ class RigidBodySystem(eqx.Module):
         tendon_limits = joints.tendons is not None and bool(joints.tendons.limits)
         for name, present in (
             ("limits", joints.limits), ("friction", joints.friction), ("couplings", joints.couplings),
-            ("connections", joints.connections),
+            ("connections", joints.connections), ("welds", joints.welds),
             ("tendons' friction", tendon_friction), ("tendons' limits", tendon_limits),
         ):
             if present and not hard:
@@ -1074,11 +1122,11 @@ class RigidBodySystem(eqx.Module):
                             f"joints.couplings: joint {index} must be a revolute or prismatic joint of the model"
                             f"{' (or 0)' if UNIVERSE in allowed else ''}"
                         )
-        if joints.connections is not None:
+        for name, held in (("connections", joints.connections), ("welds", joints.welds)):
             frames = len(model.frame_names)
-            bad = [f for f in joints.connections.frames + joints.connections.others if not 0 <= f < frames]
+            bad = [] if held is None else [f for f in held.frames + held.others if not 0 <= f < frames]
             if bad:
-                raise ValueError(f"joints.connections: frames {bad} out of range [0, {frames})")
+                raise ValueError(f"joints.{name}: frames {bad} out of range [0, {frames})")
         if joints.springs is not None:
             types = model.joint_types
             bad = [j for j in joints.springs.joints if not 0 <= j < len(types) or types[j] not in _SPRING_TYPES]
@@ -1227,6 +1275,15 @@ class RigidBodySystem(eqx.Module):
             ValueError: a frame that is not the model's, or a compliant contact law.
         """
         return self._with_joints(connections=connections)
+
+    def with_welds(self, welds: Weld | None) -> "RigidBodySystem":
+        """This system with the weld equality constraints ``welds`` (:attr:`Joints.welds`;
+        ``None``: none), e.g. a loaded model's :attr:`~rsmooth.sim.MujocoModel.welds`.
+
+        Raises:
+            ValueError: a frame that is not the model's, or a compliant contact law.
+        """
+        return self._with_joints(welds=welds)
 
     def with_fluid(self, fluid: Fluid | None) -> "RigidBodySystem":
         """This system in the fluid ``fluid`` (:attr:`Joints.fluid`; ``None``: none), e.g. a
@@ -1439,18 +1496,20 @@ class RigidBodySystem(eqx.Module):
     def joint_rows(self, q: Array) -> tuple[Array, Array, Array]:
         """The joints' box rows of the contact problem at ``q``: :attr:`Joints.friction`'s, then
         :attr:`Joints.couplings`', then :attr:`Joints.connections`' (three per connection, world
-        x, y, z), then the dry friction of :attr:`Joints.tendons`, as ``(rows (m, nv),
+        x, y, z), then :attr:`Joints.welds`' (six per weld: the points' gap, then the
+        orientation), then the dry friction of :attr:`Joints.tendons`, as ``(rows (m, nv),
         correction (m,), bounds (m,))``: the row ``k`` constrains ``rows[k] v+ + correction[k]``
         with the impulse bound ``bounds[k]`` (``effort h`` for friction, along a tendon its
-        moments; ``inf`` for a coupling or a connection, whose correction is ``baumgarte e /
-        h``); ``m = 0`` without any."""
+        moments; ``inf`` for a coupling, a connection or a weld, whose correction is
+        ``baumgarte e / h``); ``m = 0`` without any."""
         dtype = q.dtype
         dofs = () if self.joints.friction is None else self.joints.friction.dofs
         friction = np.zeros((len(dofs), self.model.nv))
         friction[np.arange(len(dofs)), list(dofs)] = 1.0
         rows, correction = [jnp.asarray(friction, dtype)], [jnp.zeros(len(dofs), dtype)]
         bounds = [jnp.zeros(0, dtype) if self.joints.friction is None else self.time_step * self.joints.friction.effort]
-        for present, terms in ((self.joints.couplings, self._coupling_terms), (self.joints.connections, self._connection_terms)):
+        for present, terms in ((self.joints.couplings, self._coupling_terms), (self.joints.connections, self._connection_terms),
+                               (self.joints.welds, self._weld_terms)):
             if present is None:
                 continue
             error, row = terms(q)
@@ -1481,22 +1540,52 @@ class RigidBodySystem(eqx.Module):
             return jnp.zeros((0, 3), q.dtype)
         return self._connection_terms(q)[0]
 
-    def _connection_terms(self, q: Array) -> tuple[Array, Array]:
-        """The connections' position errors ``(k, 3)`` and their velocity rows ``(k, 3, nv)``."""
-        model, connection, dtype = self.model, self.joints.connections, q.dtype
-        kinematics = _dynamics._kinematics(model, q)
-        frames = connection.frames + connection.others
-        anchors = jnp.concatenate([connection.anchors, connection.other_anchors]).astype(dtype)
-        points = []
+    def weld_errors(self, q: Array) -> Array:
+        """How far each of :attr:`Joints.welds` is from holding at ``q``: the points' gap
+        (world, m) then the orientation error (see :class:`Weld`), ``(k, 6)``; empty without
+        welds."""
+        if self.joints.welds is None:
+            return jnp.zeros((0, 6), q.dtype)
+        return self._weld_terms(q)[0]
+
+    def _held_points(self, held, q: Array, kinematics) -> tuple[Array, Array, Array]:
+        """The gaps ``p_a - p_b`` ``(k, 3)`` of a connection's or a weld's points, their
+        velocity rows ``(k, 3, nv)`` and the frames' world rotations ``(2 k, 3, 3)``."""
+        model, dtype = self.model, q.dtype
+        frames = held.frames + held.others
+        anchors = jnp.concatenate([held.anchors, held.other_anchors]).astype(dtype)
+        rotations, points = [], []
         for frame, anchor in zip(frames, anchors):
             rotation, translation = _dynamics._frame_placement(model, kinematics.rotation, kinematics.translation, frame)
+            rotations.append(rotation)
             points.append(rotation @ anchor + translation)
         points = jnp.stack(points)
         columns = _dynamics._point_velocity_columns(model, kinematics, np.asarray(model.frame_parents)[list(frames)], points)
-        count = len(connection.frames)
-        error = points[:count] - points[count:]
-        rows = jnp.swapaxes(columns[:count] - columns[count:], 1, 2)  # (k, 3, nv)
+        count = len(held.frames)
+        return points[:count] - points[count:], jnp.swapaxes(columns[:count] - columns[count:], 1, 2), jnp.stack(rotations)
+
+    def _connection_terms(self, q: Array) -> tuple[Array, Array]:
+        """The connections' position errors ``(k, 3)`` and their velocity rows ``(k, 3, nv)``."""
+        error, rows, _ = self._held_points(self.joints.connections, q, _dynamics._kinematics(self.model, q))
         return error, rows
+
+    def _weld_terms(self, q: Array) -> tuple[Array, Array]:
+        """The welds' errors ``(k, 6)`` (the points' gap, the orientation) and their velocity
+        rows ``(k, 6, nv)``."""
+        model, weld = self.model, self.joints.welds
+        kinematics = _dynamics._kinematics(model, q)
+        gap, point_rows, rotations = self._held_points(weld, q, kinematics)
+        count = len(weld.frames)
+        relative = jnp.einsum("kji,kjl,klm->kim", rotations[count:], rotations[:count], weld.rotations.astype(q.dtype))
+        quaternion = jax.vmap(spatial.rotation_to_quaternion)(relative)  # [x, y, z, w], w >= 0
+        scale = weld.torque_scale.astype(q.dtype)[:, None]
+        orientation = scale * quaternion[:, :3]
+        frames = weld.frames + weld.others
+        angular = jnp.swapaxes(_dynamics._support_columns(model, kinematics, np.asarray(model.frame_parents)[list(frames)])[..., 3:], 1, 2)
+        relative_rate = jnp.einsum("kji,kjn->kin", rotations[count:], angular[:count] - angular[count:])  # R_bᵀ (w_a - w_b)
+        rate = quaternion[:, 3, None, None] * jnp.eye(3, dtype=q.dtype)[None] - jax.vmap(spatial.skew)(quaternion[:, :3])
+        orientation_rows = 0.5 * scale[:, :, None] * jnp.einsum("kij,kjn->kin", rate, relative_rate)
+        return jnp.concatenate([gap, orientation], axis=1), jnp.concatenate([point_rows, orientation_rows], axis=1)
 
     def _coupling_terms(self, q: Array) -> tuple[Array, Array]:
         """The couplings' position errors ``(k,)`` and their velocity rows ``(k, nv)`` at ``q``."""

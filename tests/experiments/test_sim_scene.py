@@ -61,7 +61,7 @@ def test_options_that_need_a_file_are_refused_without_one(tmp_path):
     assert metrics["joint_limits"] == 2 and metrics["limits_active_max"] == 1
     assert metrics["max_limit_violation"] < 1e-9 and metrics["unconverged_steps"] == 0
     assert metrics["energy_max_gain"] <= 1e-9
-    assert metrics["joint_friction_dofs"] == metrics["joint_couplings"] == metrics["connections"] == metrics["joint_springs"] == 0
+    assert metrics["joint_friction_dofs"] == metrics["joint_couplings"] == metrics["connections"] == metrics["welds"] == metrics["joint_springs"] == 0
 
 
 ARM = 'type="capsule" size="0.05" fromto="0 0 0 0.5 0 0" contype="0" conaffinity="0"'
@@ -70,14 +70,15 @@ JOINTED = f"""<mujoco><option timestep="0.002"/><worldbody>
 <body name="leader" pos="0 1 1"><joint name="leader" axis="0 1 0" stiffness="50"/><geom {ARM}/></body>
 <body name="follower" pos="0 2 1"><joint name="follower" axis="0 1 0"/><geom {ARM}/></body>
 <body name="pinned" pos="0 3 1"><joint name="pinned" axis="0 1 0"/><geom {ARM}/></body>
+<body name="welded" pos="0 4 1"><joint name="welded" axis="0 1 0"/><geom {ARM}/></body>
 </worldbody><equality><joint joint1="follower" joint2="leader" polycoef="0 0.5 0 0 0"/>
-<connect body1="pinned" body2="world" anchor="0.5 0 0"/></equality></mujoco>"""
+<connect body1="pinned" body2="world" anchor="0.5 0 0"/><weld body1="welded" body2="world"/></equality></mujoco>"""
 
 
 def test_joint_friction_couplings_connections_and_springs_are_reported(tmp_path):
-    """Four horizontal arms of m = 4.45 kg, L = 0.5 m: one held by its dry friction (20 N m
+    """Five horizontal arms of m = 4.45 kg, L = 0.5 m: one held by its dry friction (20 N m
     against gravity's m g L / 2 = 10.9 N m), one sprung and followed at half its angle by the
-    third, the fourth held by its tip to the world."""
+    third, the fourth held by its tip to the world, the fifth welded to it."""
     jointed = tmp_path / "jointed.xml"
     jointed.write_text(JOINTED)
     metrics = sim_scene.run(sim_scene.Config(file=str(jointed), steps=50, frames=2), tmp_path / "out", None, progress=False)
@@ -86,6 +87,7 @@ def test_joint_friction_couplings_connections_and_springs_are_reported(tmp_path)
     assert metrics["joint_friction_impulse_max"] == pytest.approx(gravity_torque / 20.0, rel=1e-3)
     assert metrics["joint_couplings"] == 1 and metrics["max_coupling_error"] < 1e-12
     assert metrics["connections"] == 1 and metrics["max_connection_error"] < 1e-12
+    assert metrics["welds"] == 1 and metrics["max_weld_error"] < 1e-12
     assert metrics["joint_springs"] == 1 and metrics["unconverged_steps"] == 0
 
 

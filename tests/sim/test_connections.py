@@ -1,7 +1,7 @@
-"""Connect equalities (`sim.PointConnection`, MuJoCo's `<equality><connect>`): their errors and
-rows equal MuJoCo's, a closed loop moves as its one degree of freedom allows, a body hung by a
-point rests on its weight and swings at a physical pendulum's period, and what is not modelled is
-refused by name."""
+"""Connect and weld equalities (`sim.PointConnection`, `sim.Weld`: MuJoCo's `<equality><connect>`
+and `<weld>`): their errors and rows equal MuJoCo's, a closed loop moves as its one degree of
+freedom allows and swings at a physical pendulum's period, a hung or welded box rests on its
+weight, welded bodies fall as one, and what is not modelled is refused by name."""
 
 import equinox as eqx
 import jax
@@ -152,10 +152,132 @@ def test_a_hung_box_rests_on_its_weight_and_its_step_jacobian_is_central_differe
     np.testing.assert_allclose(fx, jnp.stack(columns, axis=1), rtol=0, atol=1e-7)
 
 
+# A free box welded to the world and a hinged chain welded to a hinged rocker (with a torque
+# scale), and a bar welded to the box with a given relative pose.
+WELDED = """
+<mujoco>
+  <worldbody>
+    <body name="a" pos="0 0 1" euler="10 20 30"><freejoint/>
+      <geom type="box" size="0.1 0.05 0.02" mass="1" contype="0" conaffinity="0"/></body>
+    <body name="l1" pos="0 0 0.5"><joint name="h1" axis="0 1 0"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.02" contype="0" conaffinity="0"/>
+      <body name="l2" pos="0.3 0 0"><joint name="h2" type="ball"/>
+        <geom type="capsule" fromto="0 0 0 0 0 -0.3" size="0.02" contype="0" conaffinity="0"/></body></body>
+    <body name="l3" pos="0.5 0 0.5" euler="0 0 40"><joint name="h3" axis="1 0 0"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -0.3" size="0.02" contype="0" conaffinity="0"/></body>
+  </worldbody>
+  <equality>
+    <weld body1="a" body2="world" anchor="-0.1 0.05 0.02"/>
+    <weld body1="l2" body2="l3" anchor="0 0 -0.3" torquescale="2.5"/>
+    <weld body1="l1" body2="a" relpose="0.1 0.2 0.3 0.9 0.1 0.3 0.2"/>
+  </equality>
+</mujoco>
+"""
+
+
+def test_weld_errors_and_rows_are_mujocos():
+    m = mujoco.MjModel.from_xml_string(WELDED)
+    d = mujoco.MjData(m)
+    loaded = sim.load_mjcf(WELDED)
+    system = sim.scene(loaded, floor=False)
+    np.testing.assert_allclose(np.asarray(loaded.welds.torque_scale), [1.0, 2.5, 1.0])
+    rng = np.random.default_rng(1)
+    for _ in range(4):
+        qpos = m.qpos0.copy()
+        qpos[:3] += rng.normal(size=3) * 0.1
+        for start in (3, 8):  # the free joint's and the ball's quaternions, turned up to about 80 degrees
+            quaternion = rng.normal(size=4)
+            quaternion[0] = abs(quaternion[0]) + 1.5
+            qpos[start : start + 4] = quaternion / np.linalg.norm(quaternion)
+        qpos[[7, 12]] += rng.normal(size=2) * 0.5
+        qvel = rng.normal(size=m.nv)
+        d.qpos[:], d.qvel[:] = qpos, qvel
+        mujoco.mj_forward(m, d)
+        equality = d.efc_type == mujoco.mjtConstraint.mjCNSTR_EQUALITY
+        q = loaded.qpos_to_q(jnp.asarray(qpos))
+        v = loaded.qvel_to_v(jnp.asarray(qpos), jnp.asarray(qvel))
+        # the points' gaps and MuJoCo's orientation errors, and their rates, six rows a weld
+        np.testing.assert_allclose(np.asarray(system.weld_errors(q)).reshape(-1), d.efc_pos[equality], rtol=0, atol=1e-12)
+        rows, _, _ = system.joint_rows(q)
+        assert rows.shape == (18, m.nv)
+        np.testing.assert_allclose(np.asarray(rows @ v), d.efc_J.reshape(-1, m.nv)[equality] @ qvel, rtol=0, atol=1e-12)
+
+
+def test_a_box_welded_to_the_world_by_a_corner_holds_its_weight_and_its_moment():
+    system = sim.scene(HUNG.replace("<connect", "<weld").replace('anchor="0 0 0.1"', 'anchor="0.1 0.1 0.1"'), floor=False)
+    h, mass, g = 0.01, 2.0, 9.81
+    x0 = system.initial_state()
+    xs, infos = eqx.filter_jit(lambda s, x: s.rollout(x, jnp.zeros((20, s.nu))))(system, x0)
+    np.testing.assert_allclose(np.asarray(xs), np.asarray(x0)[None].repeat(21, axis=0), rtol=0, atol=1e-12)
+    # the point's impulse carries the weight; the orientation rows the moment of the weight
+    # about the corner, (c - p) x F = (-0.1, -0.1, -0.1) x (0, 0, m g h), as 2 tau (their rate
+    # is omega / 2 at the weld's pose)
+    force = np.array([0.0, 0.0, mass * g * h])
+    np.testing.assert_allclose(np.asarray(infos.joint_impulse)[:, :3], force[None].repeat(20, 0), rtol=0, atol=1e-12)
+    moment = np.cross([-0.1, -0.1, -0.1], force)
+    np.testing.assert_allclose(np.asarray(infos.joint_impulse)[:, 3:], 2 * moment[None].repeat(20, 0), rtol=0, atol=1e-12)
+
+
+# Two free boxes welded side by side, thrown up spinning.
+PAIR = """
+<mujoco>
+  <option timestep="0.005"/>
+  <worldbody>
+    <body name="a" pos="0 0 1"><freejoint/><geom type="box" size="0.1 0.05 0.05" mass="1" contype="0" conaffinity="0"/></body>
+    <body name="b" pos="0.2 0 1" euler="0 0 30"><freejoint/><geom type="box" size="0.1 0.05 0.05" mass="3" contype="0" conaffinity="0"/></body>
+  </worldbody>
+  <equality><weld body1="b" body2="a" anchor="0.1 0 0"/></equality>
+</mujoco>
+"""
+
+
+def test_welded_boxes_fall_as_one_body_and_the_step_jacobian_is_central_differences():
+    system = sim.scene(PAIR, floor=False)
+    h, g, steps = 0.005, 9.81, 100
+    # a rigid motion of the pair: spinning at w about the vertical through a's centre
+    w = 3.0
+    x0 = np.array(system.initial_state())
+    v = x0[system.model.nq :].reshape(2, 6)
+    v[0] = [0.5, 0.0, 2.0, 0.0, 0.0, w]
+    b_rotation = np.array([[np.cos(np.pi / 6), -np.sin(np.pi / 6), 0], [np.sin(np.pi / 6), np.cos(np.pi / 6), 0], [0, 0, 1]])
+    v[1, :3] = b_rotation.T @ (np.array([0.5, 0.0, 2.0]) + np.cross([0, 0, w], [0.2, 0, 0]))  # body axes
+    v[1, 3:] = b_rotation.T @ np.array([0.0, 0.0, w])
+    x0 = jnp.asarray(np.concatenate([x0[: system.model.nq], v.reshape(-1)]))
+    np.testing.assert_allclose(np.asarray(system.weld_errors(x0[: system.model.nq])), 0.0, atol=1e-15)
+    xs, infos = eqx.filter_jit(lambda s, x: s.rollout(x, jnp.zeros((steps, s.nu))))(system, x0)
+    assert bool(jnp.all(infos.ncp.converged))
+    # The pair keeps its shape up to the time stepping's drift: each step moves b's centre
+    # (0.2 m off the axis) along a chord, off its circle by w^2 r h^2 / 2, which the Baumgarte
+    # correction (a fraction of the error a step) pulls back: their balance bounds the gap.
+    errors = np.asarray(jax.vmap(system.weld_errors)(xs[:, : system.model.nq]))
+    assert np.max(np.abs(errors)) < 1.1 * w**2 * 0.2 * h**2 / 2 / float(system.baumgarte)
+    # the weld's impulses are internal: the centre of mass falls freely
+    q = np.asarray(xs)[:, : system.model.nq]
+    centre = (1.0 * q[:, 0:3] + 3.0 * q[:, 7:10]) / 4.0
+    t = np.arange(steps + 1) * h
+    start = centre[0]
+    velocity = (1.0 * np.array([0.5, 0.0, 2.0]) + 3.0 * (np.array([0.5, 0.0, 2.0]) + np.cross([0, 0, w], [0.2, 0, 0]))) / 4.0
+    # semi-implicit Euler: z_n = z_0 + v_0 t_n - g h^2 n (n + 1) / 2
+    n = np.arange(steps + 1)
+    expected = start + velocity * t[:, None] - np.outer(g * h**2 * n * (n + 1) / 2, [0, 0, 1])
+    np.testing.assert_allclose(centre, expected, rtol=0, atol=1e-9)
+    # the step's state Jacobian against central differences, mid-flight
+    x, u = xs[40], jnp.zeros(system.nu)
+    _, fx, _ = eqx.filter_jit(lambda s, x_, u_: s.step_and_jacobians(x_, u_))(system, x, u)
+    step = eqx.filter_jit(lambda s, x_, u_: s.step(x_, u_))
+    eps = 1e-6
+    columns = [(step(system, x + eps * e, u) - step(system, x - eps * e, u)) / (2 * eps) for e in jnp.eye(x.shape[0])]
+    np.testing.assert_allclose(fx, jnp.stack(columns, axis=1), rtol=0, atol=1e-6)
+
+
 def test_what_is_not_modelled_and_bad_connections_are_refused_by_name():
-    weld = HUNG.replace("<connect", "<weld").replace(' anchor="0 0 0.1"', "")
-    with pytest.raises(ValueError, match="equality constraints other than joint couplings and connections"):
-        sim.load_mjcf(weld)
+    site_weld = WELDED.replace('<weld body1="a" body2="world" anchor="-0.1 0.05 0.02"/>', '<weld site1="s" site2="w"/>')
+    site_weld = site_weld.replace('<joint name="h1" axis="0 1 0"/>', '<joint name="h1" axis="0 1 0"/><site name="s"/>')
+    site_weld = site_weld.replace("</worldbody>", '<site name="w" pos="0 0 0.5"/></worldbody>')
+    with pytest.raises(ValueError, match="weld .* is between sites, which rsmooth.sim does not support"):
+        sim.load_mjcf(site_weld)
+    with pytest.raises(ValueError, match="Weld.torque_scale must be > 0"):
+        sim.Weld((1,), (0,), jnp.zeros((1, 3)), jnp.zeros((1, 3)), jnp.eye(3)[None], jnp.zeros(1))
     with pytest.raises(ValueError, match=r"PointConnection.anchors must have shape \(1, 3\)"):
         sim.PointConnection((1,), (0,), jnp.zeros((2, 3)), jnp.zeros((1, 3)))
     with pytest.raises(ValueError, match="PointConnection.other_anchors must be finite"):

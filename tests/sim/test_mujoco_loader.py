@@ -403,7 +403,8 @@ def wrap(body, extra=""):
 HINGE_BODY = "<body name='b'><joint name='j'/><geom name='g' size='0.1'/><site name='s'/></body>"
 UNSUPPORTED = {
     "ball_limit": (wrap("<body><joint name='shoulder' type='ball' range='0 4'/><geom size='0.1'/></body>"), "ball joint 'shoulder' has the range"),
-    "equality": (wrap(HINGE_BODY, "<equality><weld name='e' body1='b'/></equality>"), "equality constraints .*'e'"),
+    "equality": (wrap(HINGE_BODY + "<site name='w'/>", "<equality><weld name='e' site1='s' site2='w'/></equality>"),
+                 "weld 'e' is between sites"),
     "spring": (wrap("<body><joint name='j' type='free' stiffness='3'/><geom size='0.1'/></body>"), "free joint 'j' has a spring"),
     "free_frictionloss": (
         wrap("<body><joint name='j' type='free' frictionloss='1'/><geom size='0.1'/></body>"),
@@ -810,10 +811,11 @@ def test_loading_options_are_checked():
         with pytest.raises(ValueError, match=f"{name} applies to a file or XML text"):
             load_mjcf(compiled, **{name: value})
     # drop_mimic drops joint equalities only; the others are still refused by name.
-    equalities = "<equality><joint name='mimic' joint1='j2' joint2='j1'/><weld name='weld' body1='b'/></equality>"
-    bodies = "<body name='b'><joint name='j1'/><geom size='0.1'/><body><joint name='j2'/><geom size='0.1'/></body></body>"
+    equalities = "<equality><joint name='mimic' joint1='j2' joint2='j1'/><weld name='weld' site1='s' site2='w'/></equality>"
+    bodies = ("<body name='b'><joint name='j1'/><geom size='0.1'/><site name='s'/><body><joint name='j2'/><geom size='0.1'/>"
+              "</body></body><site name='w'/>")
     two = wrap(bodies, equalities)
-    weld = "equality constraints other than joint couplings .*'weld'"
+    weld = "weld 'weld' is between sites"
     with pytest.raises(ValueError, match=weld):  # the joint coupling is converted
         load_mjcf(two)
     with pytest.warns(MujocoLoadWarning, match="'j2' to 'j1'"), pytest.raises(ValueError, match=weld):
@@ -844,15 +846,15 @@ FLAGGED = """<mujoco><option><flag {flag}="disable"/></option><worldbody>
 <geom name="terrain" type="hfield" hfield="h"/>
 <body name="a" pos="0 0 0.5"><joint name="ja" limited="true" range="-1 1" frictionloss="0.3"/><geom size="0.1"/>
   <body name="b" pos="0.3 0 0"><joint name="jb"/><geom size="0.1"/></body></body>
-<body name="c" pos="1 0 1"><freejoint/><geom size="0.1"/></body>
+<body name="c" pos="1 0 1"><freejoint/><geom size="0.1"/><site name="sc"/></body><site name="sw"/>
 </worldbody><asset><hfield name="h" nrow="2" ncol="2" size="1 1 0.1 0.1"/></asset>
-<equality><joint joint1="jb" joint2="ja"/><weld body1="c"/></equality></mujoco>"""
+<equality><joint joint1="jb" joint2="ja"/><weld site1="sc" site2="sw"/></equality></mujoco>"""
 
 
 @pytest.mark.parametrize("flag", ["contact", "limit", "equality", "frictionloss", "constraint"])
 def test_disabled_constraints_are_left_out_as_mujoco_leaves_them_out(flag):
     """A model whose option flags disable a kind of constraint converts without it (and without
-    refusing an unsupported element of that kind: the colliding hfield, the weld)."""
+    refusing an unsupported element of that kind: the colliding hfield, the weld of sites)."""
     off = {
         "contact": {"contact"},
         "limit": {"limit"},
@@ -864,7 +866,7 @@ def test_disabled_constraints_are_left_out_as_mujoco_leaves_them_out(flag):
     if off.isdisjoint({"contact"}):
         text = text.replace('type="hfield" hfield="h"', 'type="hfield" hfield="h" contype="0" conaffinity="0"')
     if off.isdisjoint({"equality"}):
-        text = text.replace('<weld body1="c"/>', "")
+        text = text.replace('<weld site1="sc" site2="sw"/>', "")
     m = mujoco.MjModel.from_xml_string(text)
     loaded = sim.from_mujoco(m)
     assert (loaded.collision_pairs == ()) == ("contact" in off)
