@@ -85,7 +85,7 @@ def supported(system) -> bool:
         system.actuation.kind == "joints" and not system.actuation.gravity_compensation
         and not system.geometry.geom_pairs and not system.joints.limits and system.joints.friction is None
         and system.joints.couplings is None and system.joints.connections is None and system.joints.welds is None
-        and system.joints.springs is None and system.joints.tendons is None
+        and system.joints.springs is None and system.joints.tendons is None and system.joints.fluid is None
         and not len(_dynamics._tree(system.model).spherical)
         and (system.options.max_contacts is None or system.options.max_contacts >= system.num_contacts)
     )

@@ -64,6 +64,12 @@ def test_a_swimmer_steps_as_mujocos_euler_integrator(mujoco_and_rsmooth_trajecto
     system, loaded, xs, expected = mujoco_and_rsmooth_trajectories(text, None, np.array([4.0, -6.0]), 200)
     np.testing.assert_allclose(np.asarray(xs)[1:, :2] + np.asarray(loaded.qpos0), expected, rtol=0, atol=1e-10)
     assert np.all(np.abs(np.asarray(xs)[-1, 2:]) < [4.0, 6.0])  # slowed
+    # the step's Jacobians hold the fluid's dependence on the state (by forward mode: the
+    # closed-form derivatives of contact-free systems do not)
+    x, u = xs[50], jnp.zeros(system.nu)
+    _, fx, _ = eqx.filter_jit(lambda s, x_, u_: s.step_and_jacobians(x_, u_))(system, x, u)
+    expected_fx = eqx.filter_jit(lambda s, x_, u_: jax.jacfwd(s.step)(x_, u_))(system, x, u)
+    np.testing.assert_allclose(np.asarray(fx), np.asarray(expected_fx), rtol=0, atol=1e-12)
 
 
 def test_a_ball_sinks_at_the_stokes_terminal_velocity():
