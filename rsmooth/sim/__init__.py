@@ -108,6 +108,7 @@ from rsmooth.sim._simulator import (
     JointSprings as JointSprings,
     Tendons as Tendons,
     Fluid as Fluid,
+    GravityCompensation as GravityCompensation,
     Servos as Servos,
     Joints as Joints,
     Options as Options,

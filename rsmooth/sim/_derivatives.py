@@ -79,13 +79,15 @@ _apply = spatial.inertia_apply
 
 def supported(system) -> bool:
     """Whether :func:`configuration_jacobian` handles ``system`` (else use forward mode)."""
-    # (Gravity compensation's efforts depend on the configuration through terms the closed form
-    # does not hold: forward mode through the step's equations has them.)
+    # (Gravity compensation, by the inputs or of bodies, the fluid, springs, tendons and the
+    # joints' constraint rows depend on the state through terms the closed form does not hold:
+    # forward mode through the step's equations has them.)
     return (
         system.actuation.kind == "joints" and not system.actuation.gravity_compensation
         and not system.geometry.geom_pairs and not system.joints.limits and system.joints.friction is None
         and system.joints.couplings is None and system.joints.connections is None and system.joints.welds is None
         and system.joints.springs is None and system.joints.tendons is None and system.joints.fluid is None
+        and system.joints.gravcomp is None
         and not len(_dynamics._tree(system.model).spherical)
         and (system.options.max_contacts is None or system.options.max_contacts >= system.num_contacts)
     )

@@ -68,7 +68,7 @@ from rsmooth._xla import device_array
 from rsmooth.sim import _spatial as spatial
 from rsmooth.sim._model import FREE_FLYER, PRISMATIC, REVOLUTE, SPHERICAL, UNIVERSE, Model
 from rsmooth.sim._geometry import HeightField
-from rsmooth.sim._simulator import Fluid, JointCoupling, PointConnection, Tendons, Weld
+from rsmooth.sim._simulator import Fluid, GravityCompensation, JointCoupling, PointConnection, Tendons, Weld
 
 # The geom types a collision routine may meet; SDFs are accepted only when they cannot collide
 # (purely visual), so that geom indices stay MuJoCo's.
@@ -122,6 +122,9 @@ class MujocoModel(eqx.Module):
             (:class:`~rsmooth.sim.Tendons`, spatial ones through their sites' frames; the
             ``spring``, ``damper``, ``frictionloss`` and ``limit`` flags honoured), or ``None``
             where none has any.
+        gravcomp: the bodies' gravity compensation (``gravcomp``, a passive force) as a
+            :class:`~rsmooth.sim.GravityCompensation`, or ``None`` without any or where the
+            ``gravity`` flag is disabled.
         fluid: MuJoCo's inertia-box fluid model (``density``, ``viscosity``, ``wind``) on every
             body of positive mass (:class:`~rsmooth.sim.Fluid`), or ``None`` without density
             and viscosity.
@@ -212,6 +215,7 @@ class MujocoModel(eqx.Module):
     connections: PointConnection | None
     welds: Weld | None
     tendons: Tendons | None
+    gravcomp: GravityCompensation | None
     fluid: Fluid | None
     timestep: float = eqx.field(static=True)
     limits_enforced: bool = eqx.field(static=True)
@@ -557,10 +561,11 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
                 f"MuJoCo model: body {body_names[b]!r} is a mocap body (moved by data, not by joints), which "
                 "rsmooth.sim does not support"
             )
-        if m.body_gravcomp[b] != 0:
+    for j in range(m.njnt):
+        if m.jnt_actgravcomp[j] and np.any(m.body_gravcomp != 0):
             raise ValueError(
-                f"MuJoCo model: body {body_names[b]!r} has gravity compensation (gravcomp), which rsmooth.sim does "
-                "not model"
+                f"MuJoCo model: joint {joint_names[j]!r} takes its gravity compensation through its actuators "
+                "(actuatorgravcomp), which rsmooth.sim does not model (supported: gravity compensation as a passive force)"
             )
     if m.opt.density != 0 or m.opt.viscosity != 0:
         for g in range(m.ngeom):
@@ -695,6 +700,20 @@ def _height_field(mj: Any, m: Any, g: int) -> HeightField | None:
     return HeightField(_array(data * size[2]), _array(size[:2]), _array(size[3]))
 
 
+def _gravcomp(mj: Any, m: Any) -> GravityCompensation | None:
+    """The bodies' gravity compensation (``None`` without any, or with gravity disabled): each
+    compensated body's centre of mass in its frame (frames: bodies first, by id) and ``gravcomp``
+    times its mass."""
+    bodies = [b for b in range(1, m.nbody) if m.body_gravcomp[b] != 0]
+    if not bodies or _disabled(mj, m, "GRAVITY"):
+        return None
+    return GravityCompensation(
+        frames=tuple(bodies),
+        offsets=_array(np.asarray(m.body_ipos, dtype=np.float64)[bodies]).reshape(len(bodies), 3),
+        masses=_array(np.asarray(m.body_gravcomp, dtype=np.float64)[bodies] * np.asarray(m.body_mass, dtype=np.float64)[bodies]),
+    )
+
+
 def _fluid(m: Any) -> Fluid | None:
     """MuJoCo's inertia-box fluid model (``None`` without density and viscosity): every body of
     positive mass, its inertial frame placed in its frame (frames: bodies first, by id)."""
@@ -778,8 +797,9 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
             frictionloss on a free joint's linear axes, nonlinear damping, a spatial tendon
             that wraps around a geom or has a pulley, a tendon's nonlinear spring or damping or
             armature, equality constraints
-            other than joint couplings and equalities of one fixed tendon on at most two joints,
-            flex, skins, plugins, mocap bodies, gravity compensation, the ellipsoid fluid model, colliding
+            other than joint couplings, equalities of one fixed tendon on at most two joints,
+            connections and welds between bodies,
+            flex, skins, plugins, mocap bodies, gravity compensation through actuators, the ellipsoid fluid model, colliding
             height fields or SDFs, actuators other than direct motors on a hinge, a slide or a
             fixed tendon, and on a free
             joint's linear axes an armature (MuJoCo applies it to the world-axes acceleration)
@@ -954,6 +974,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         connections=None if _disabled(mj, m, "EQUALITY", "CONSTRAINT") else _connections(mj, m),
         welds=None if _disabled(mj, m, "EQUALITY", "CONSTRAINT") else _welds(mj, m),
         tendons=_tendons(mj, m),
+        gravcomp=_gravcomp(mj, m),
         fluid=_fluid(m),
         limits_enforced=not _disabled(mj, m, "LIMIT", "CONSTRAINT"),
         timestep=float(m.opt.timestep),

@@ -321,7 +321,8 @@ def scene(
     ``<mimic>``, :attr:`~rsmooth.sim.Joints.couplings`), connect and weld equalities (closed
     kinematic loops, bodies held together: :attr:`~rsmooth.sim.Joints.connections`,
     :attr:`~rsmooth.sim.Joints.welds`) and the springs, dampers, dry friction
-    and length limits of fixed and spatial tendons (:attr:`~rsmooth.sim.Joints.tendons`) and the fluid
+    and length limits of fixed and spatial tendons (:attr:`~rsmooth.sim.Joints.tendons`), the bodies'
+    gravity compensation (:attr:`~rsmooth.sim.Joints.gravcomp`) and the fluid
     (:attr:`~rsmooth.sim.Joints.fluid`) are those of
     :func:`~rsmooth.sim.load_mjcf`; every colliding geom pair of MuJoCo is a
     :class:`~rsmooth.sim.GeomPair` with MuJoCo's friction (see the module's description for
@@ -539,7 +540,7 @@ def scene(
     system = system.with_contact_budget(max_contacts, max_pairs, max_limits).with_options(max_correction_speed=max_correction_speed)
     system = system.with_joint_friction(np.asarray(loaded.frictionloss))
     system = system.with_joint_springs(np.asarray(loaded.stiffness), loaded.spring_reference)
-    system = system.with_tendons(loaded.tendons).with_fluid(loaded.fluid)
+    system = system.with_tendons(loaded.tendons).with_fluid(loaded.fluid).with_gravcomp(loaded.gravcomp)
     system = system.with_joint_couplings(loaded.joint_couplings).with_connections(loaded.connections).with_welds(loaded.welds)
     if not joint_limits or not loaded.limits_enforced:
         return system

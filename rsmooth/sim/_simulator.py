@@ -712,6 +712,32 @@ class Tendons(eqx.Module):
             raise ValueError(f"Tendons.spring_length must hold lower <= upper, got {np.asarray(band)}")
 
 
+class GravityCompensation(eqx.Module):
+    """Gravity compensation of bodies (MuJoCo's body ``gravcomp``): an upward force
+    ``-masses[k] g`` at the centre of mass of body ``k``, ``masses[k]`` the part of its mass
+    compensated (MuJoCo's ``gravcomp`` times ``mass``; 1: the body floats), an explicit passive
+    force of the step.
+
+    Attributes:
+        frames: the frame of each body (static).
+        offsets: ``(B, 3)``, the centre of mass in the frame (m).
+        masses: ``(B,)``, the compensated masses (kg), finite.
+    """
+
+    frames: tuple[int, ...] = eqx.field(static=True)
+    offsets: Array
+    masses: Array
+
+    def __check_init__(self):
+        count = len(self.frames)
+        for name, shape in (("offsets", (count, 3)), ("masses", (count,))):
+            value = getattr(self, name)
+            if jnp.shape(value) != shape:
+                raise ValueError(f"GravityCompensation.{name} must have shape {shape}, got {jnp.shape(value)}")
+            if not _checks.is_traced(value) and not np.all(np.isfinite(np.asarray(value))):
+                raise ValueError(f"GravityCompensation.{name} must be finite")
+
+
 class Fluid(eqx.Module):
     """Forces of a surrounding fluid on bodies (MuJoCo's inertia-box fluid model): each body is,
     for the fluid, the box of its mass with its rotational inertia (full side lengths ``box``,
@@ -997,6 +1023,8 @@ class Joints(eqx.Module):
         tendons: springs and dampers along fixed and spatial tendons (:class:`Tendons`),
             explicit forces of the free motion, and their dry friction and length limits,
             solved with the contacts (hard contact only); ``None``: none.
+        gravcomp: gravity compensation of bodies (:class:`GravityCompensation`, MuJoCo's
+            ``gravcomp``), explicit forces of the free motion; ``None``: none.
         fluid: the forces of a surrounding fluid on the bodies (:class:`Fluid`), explicit
             forces of the free motion; ``None``: none.
     """
@@ -1009,6 +1037,7 @@ class Joints(eqx.Module):
     welds: Weld | None = None
     springs: JointSprings | None = None
     tendons: Tendons | None = None
+    gravcomp: GravityCompensation | None = None
     fluid: Fluid | None = None
 
     def __check_init__(self):
@@ -1018,6 +1047,7 @@ class Joints(eqx.Module):
             ("friction", self.friction, JointFriction), ("couplings", self.couplings, JointCoupling),
             ("connections", self.connections, PointConnection), ("welds", self.welds, Weld),
             ("springs", self.springs, JointSprings), ("tendons", self.tendons, Tendons), ("fluid", self.fluid, Fluid),
+            ("gravcomp", self.gravcomp, GravityCompensation),
         ):
             if value is not None and not isinstance(value, kind):
                 raise ValueError(f"joints.{name} must be a {kind.__name__} or None, got {value!r}")
@@ -1150,12 +1180,12 @@ class RigidBodySystem(eqx.Module):
                         model.frame_id(frame)
                     except ValueError as error:
                         raise ValueError(f"joints.tendons.paths (tendon {tendon}): {error}") from None
-        if joints.fluid is not None:
-            for frame in joints.fluid.frames:
+        for name, part in (("fluid", joints.fluid), ("gravcomp", joints.gravcomp)):
+            for frame in () if part is None else part.frames:
                 try:
                     model.frame_id(frame)
                 except ValueError as error:
-                    raise ValueError(f"joints.fluid.frames: {error}") from None
+                    raise ValueError(f"joints.{name}.frames: {error}") from None
 
     # -- options ------------------------------------------------------------------------
 
@@ -1285,6 +1315,16 @@ class RigidBodySystem(eqx.Module):
         """
         return self._with_joints(welds=welds)
 
+    def with_gravcomp(self, gravcomp: GravityCompensation | None) -> "RigidBodySystem":
+        """This system with the gravity compensation ``gravcomp`` of its bodies
+        (:attr:`Joints.gravcomp`; ``None``: none), e.g. a loaded model's
+        :attr:`~rsmooth.sim.MujocoModel.gravcomp`.
+
+        Raises:
+            ValueError: if a frame of ``gravcomp`` is not the model's.
+        """
+        return self._with_joints(gravcomp=gravcomp)
+
     def with_fluid(self, fluid: Fluid | None) -> "RigidBodySystem":
         """This system in the fluid ``fluid`` (:attr:`Joints.fluid`; ``None``: none), e.g. a
         loaded model's :attr:`~rsmooth.sim.MujocoModel.fluid`.
@@ -1390,11 +1430,28 @@ class RigidBodySystem(eqx.Module):
     def passive_forces(self, q: Array, v: Array) -> Array:
         """The explicit passive forces ``(nv,)`` of a step from ``(q, v)``: :meth:`spring_forces`,
         the tendons' damping, ``-M^T d (M v)`` (:attr:`Joints.tendons`, ``M`` their
-        :meth:`tendon_moments`), and :meth:`fluid_forces`."""
+        :meth:`tendon_moments`), :meth:`fluid_forces` and :meth:`gravcomp_forces`."""
         forces = self._spring_forces(q, v)
         if self.joints.fluid is not None:
             forces = forces + self.fluid_forces(q, v)
+        if self.joints.gravcomp is not None:
+            forces = forces + self.gravcomp_forces(q)
         return forces
+
+    def gravcomp_forces(self, q: Array) -> Array:
+        """The generalized forces ``(nv,)`` of :attr:`Joints.gravcomp` at ``q`` (zeros
+        without): ``-m_k g`` at each compensated body's centre of mass."""
+        gravcomp, model = self.joints.gravcomp, self.model
+        if gravcomp is None:
+            return jnp.zeros(model.nv, q.dtype)
+        kinematics = _dynamics._kinematics(model, q)
+        ids = [model.frame_id(frame) for frame in gravcomp.frames]
+        placements = [_dynamics._frame_placement(model, kinematics.rotation, kinematics.translation, i) for i in ids]
+        centres = jnp.stack([rotation @ offset + translation for (rotation, translation), offset
+                             in zip(placements, gravcomp.offsets.astype(q.dtype))])
+        linear = _dynamics._point_velocity_columns(model, kinematics, np.asarray(model.frame_parents)[ids], centres)
+        forces = -gravcomp.masses.astype(q.dtype)[:, None] * model.gravity.astype(q.dtype)[None, :]  # (B, 3)
+        return jnp.einsum("bni,bi->n", linear, forces)
 
     def _spring_forces(self, q: Array, v: Array | None) -> Array:
         """:meth:`spring_forces`, plus the tendons' damping where ``v`` is given: one

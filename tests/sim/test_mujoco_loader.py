@@ -426,7 +426,8 @@ UNSUPPORTED = {
         wrap("<body><freejoint name='f'/><geom size='0.1'/></body>", "<actuator><motor name='a' joint='f' gear='1 0 0 0 0 0'/></actuator>"),
         "actuator 'a' .*not a hinge or slide",
     ),
-    "gravcomp": (wrap("<body name='b' gravcomp='1'><joint/><geom size='0.1'/></body>"), "body 'b' has gravity compensation"),
+    "gravcomp": (wrap("<body name='b' gravcomp='1'><joint name='j' actuatorgravcomp='true'/><geom size='0.1'/></body>"),
+                 "joint 'j' takes its gravity compensation through its actuators"),
     "mocap": (
         wrap("<body name='target' mocap='true'><geom size='0.1' contype='0' conaffinity='0'/></body>"),
         "body 'target' is a mocap body",
