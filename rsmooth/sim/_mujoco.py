@@ -555,12 +555,14 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
             first = mj.mj_id2name(m, kind, others[0] if attribute == "neq" else 0)
             named = f" (the first is {first!r})" if first else ""
             raise ValueError(f"MuJoCo model has {count} {what}{named}, which rsmooth.sim does not support")
-    for b in range(m.nbody):
-        if m.body_mocapid[b] >= 0:
-            raise ValueError(
-                f"MuJoCo model: body {body_names[b]!r} is a mocap body (moved by data, not by joints), which "
-                "rsmooth.sim does not support"
-            )
+    mocap = [body_names[b] for b in range(m.nbody) if m.body_mocapid[b] >= 0]
+    if mocap:
+        # A mocap body moves only where a program writes its pose into MuJoCo's data; rsmooth's
+        # state has no such input, so the body stays where the model places it.
+        warnings.warn(
+            f"MuJoCo model: mocap bodies {mocap} are held fixed at their poses in the model (rsmooth.sim has no "
+            "mocap data to move them)", MujocoLoadWarning, stacklevel=3,
+        )
     for j in range(m.njnt):
         if m.jnt_actgravcomp[j] and np.any(m.body_gravcomp != 0):
             raise ValueError(
@@ -799,12 +801,15 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
             armature, equality constraints
             other than joint couplings, equalities of one fixed tendon on at most two joints,
             connections and welds between bodies,
-            flex, skins, plugins, mocap bodies, gravity compensation through actuators, the ellipsoid fluid model, colliding
+            flex, skins, plugins, gravity compensation through actuators, the ellipsoid fluid model, colliding
             height fields or SDFs, actuators other than direct motors on a hinge, a slide or a
             fixed tendon, and on a free
             joint's linear axes an armature (MuJoCo applies it to the world-axes acceleration)
             or a damping that differs between the three axes (it would not be diagonal in body
             axes).
+
+    Warns:
+        MujocoLoadWarning: for mocap bodies, which are held fixed at their poses in the model.
     """
     mj = _mujoco()
     if not isinstance(mj_model, mj.MjModel):

@@ -1,7 +1,8 @@
 """Connect and weld equalities (`sim.PointConnection`, `sim.Weld`: MuJoCo's `<equality><connect>`
 and `<weld>`): their errors and rows equal MuJoCo's, a closed loop moves as its one degree of
 freedom allows and swings at a physical pendulum's period, a hung or welded box rests on its
-weight, welded bodies fall as one, and what is not modelled is refused by name."""
+weight, welded bodies fall as one, mocap bodies are held fixed, and what is not modelled is
+refused by name."""
 
 import equinox as eqx
 import jax
@@ -285,3 +286,31 @@ def test_what_is_not_modelled_and_bad_connections_are_refused_by_name():
     system = sim.scene(HUNG, floor=False)
     with pytest.raises(ValueError, match=r"joints.connections: frames \[99\] out of range"):
         system.with_connections(sim.PointConnection((99,), (0,), jnp.zeros((1, 3)), jnp.zeros((1, 3))))
+
+
+# A table that is a mocap body (an IK target's kind: moved by data in MuJoCo, fixed here), a ball
+# resting on it, and a box welded to a mocap handle above it.
+MOCAP = """
+<mujoco>
+  <option timestep="0.01"/>
+  <worldbody>
+    <body name="table" mocap="true" pos="0 0 0.5"><geom type="box" size="0.3 0.3 0.05"/></body>
+    <body name="ball" pos="0 0 0.65"><freejoint/><geom type="sphere" size="0.1" mass="1"/></body>
+    <body name="handle" mocap="true" pos="1 0 1"/>
+    <body name="box" pos="1 0 0.9"><freejoint/><geom type="box" size="0.05 0.05 0.05" mass="2" contype="0" conaffinity="0"/></body>
+  </worldbody>
+  <equality><weld body1="box" body2="handle"/></equality>
+</mujoco>
+"""
+
+
+def test_mocap_bodies_are_held_fixed_with_a_warning():
+    with pytest.warns(sim.MujocoLoadWarning, match=r"mocap bodies \['table', 'handle'\] are held fixed"):
+        loaded = sim.load_mjcf(MOCAP)
+    system = sim.scene(loaded, floor=False)
+    x0 = system.initial_state()
+    xs, infos = eqx.filter_jit(lambda s, x: s.rollout(x, jnp.zeros((50, s.nu))))(system, x0)
+    assert bool(jnp.all(infos.ncp.converged))
+    # the ball rests on the table's top (0.55 m) at its radius; the box hangs from the handle
+    np.testing.assert_allclose(float(xs[-1, 2]), 0.55 + 0.1, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(xs[-1, 7:10]), [1.0, 0.0, 0.9], atol=1e-9)

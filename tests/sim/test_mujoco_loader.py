@@ -428,10 +428,6 @@ UNSUPPORTED = {
     ),
     "gravcomp": (wrap("<body name='b' gravcomp='1'><joint name='j' actuatorgravcomp='true'/><geom size='0.1'/></body>"),
                  "joint 'j' takes its gravity compensation through its actuators"),
-    "mocap": (
-        wrap("<body name='target' mocap='true'><geom size='0.1' contype='0' conaffinity='0'/></body>"),
-        "body 'target' is a mocap body",
-    ),
     "ellipsoid_fluid": (
         "<mujoco><option density='1.2'/><worldbody><body><joint/><geom name='g' size='0.1' fluidshape='ellipsoid'/></body></worldbody></mujoco>",
         "geom 'g' takes the ellipsoid fluid model",
