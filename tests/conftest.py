@@ -118,3 +118,23 @@ def mujoco_and_rsmooth_trajectories():
         return system, loaded, xs, np.array(expected)
 
     return run
+
+
+@pytest.fixture
+def state_jacobian_is_central_differences():
+    """``check(system, x, atol=1e-7)``: asserts that the state Jacobian of ``system``'s
+    ``step_and_jacobians`` at ``x`` (zero input) equals central differences of its step (``eps
+    = 1e-6``) to ``atol``."""
+    import equinox as eqx
+    import jax.numpy as jnp
+    import numpy as np
+
+    def check(system, x, atol=1e-7):
+        u = jnp.zeros(system.nu)
+        _, fx, _ = eqx.filter_jit(lambda s, x_, u_: s.step_and_jacobians(x_, u_))(system, x, u)
+        step = eqx.filter_jit(lambda s, x_, u_: s.step(x_, u_))
+        eps = 1e-6
+        columns = [(step(system, x + eps * e, u) - step(system, x - eps * e, u)) / (2 * eps) for e in jnp.eye(x.shape[0])]
+        np.testing.assert_allclose(np.asarray(fx), np.asarray(jnp.stack(columns, axis=1)), rtol=0, atol=atol)
+
+    return check

@@ -56,31 +56,44 @@ PARALLELOGRAM = """
 """
 
 
-def test_connection_errors_and_rows_are_mujocos():
-    m = mujoco.MjModel.from_xml_string(MIXED)
+def _assert_equality_rows_are_mujocos(text, errors, rows_count, quaternions, seed):
+    """On random states of ``text`` (the free joint's and ball joints' quaternions at
+    ``quaternions``, turned up to about 80 degrees), ``errors(system, q)`` (flattened) equals
+    MuJoCo's equality constraint positions ``efc_pos``, and the system's equality rows times
+    ``v`` MuJoCo's ``efc_J qvel``, row for row; the rows' corrections are ``baumgarte e / h``."""
+    m = mujoco.MjModel.from_xml_string(text)
     d = mujoco.MjData(m)
-    loaded = sim.load_mjcf(MIXED)
-    assert len(loaded.connections.frames) == 3  # the inactive one left out
+    loaded = sim.load_mjcf(text)
     system = sim.scene(loaded, floor=False)
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(seed)
     for _ in range(4):
-        qpos = m.qpos0 + np.r_[rng.normal(size=3) * 0.1, np.zeros(4), rng.normal(size=3)]
-        qpos[3:7] = rng.normal(size=4)
-        qpos[3:7] /= np.linalg.norm(qpos[3:7])
+        qpos = m.qpos0 + np.r_[rng.normal(size=3) * 0.1, np.zeros(m.nq - 3)]
+        hinges = [a for a in range(7, m.nq) if not any(start <= a < start + 4 for start in quaternions)]
+        qpos[hinges] += rng.normal(size=len(hinges)) * 0.5
+        for start in quaternions:
+            quaternion = rng.normal(size=4)
+            quaternion[0] = abs(quaternion[0]) + 1.5
+            qpos[start : start + 4] = quaternion / np.linalg.norm(quaternion)
         qvel = rng.normal(size=m.nv)
         d.qpos[:], d.qvel[:] = qpos, qvel
         mujoco.mj_forward(m, d)
         equality = d.efc_type == mujoco.mjtConstraint.mjCNSTR_EQUALITY
         q = loaded.qpos_to_q(jnp.asarray(qpos))
         v = loaded.qvel_to_v(jnp.asarray(qpos), jnp.asarray(qvel))
-        # MuJoCo's constraint positions (p_a - p_b, world) and velocities (J qvel), row for row
-        np.testing.assert_allclose(np.asarray(system.connection_errors(q)).reshape(-1), d.efc_pos[equality], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(errors(system, q)).reshape(-1), d.efc_pos[equality], rtol=0, atol=1e-12)
         rows, correction, bounds = system.joint_rows(q)
-        assert rows.shape == (9, m.nv) and np.all(np.isinf(np.asarray(bounds)))
+        assert rows.shape == (rows_count, m.nv) and np.all(np.isinf(np.asarray(bounds)))
         np.testing.assert_allclose(np.asarray(rows @ v), d.efc_J.reshape(-1, m.nv)[equality] @ qvel, rtol=0, atol=1e-12)
         np.testing.assert_allclose(
             np.asarray(correction), float(system.baumgarte) * d.efc_pos[equality] / float(system.time_step), rtol=1e-12, atol=0
         )
+    return loaded
+
+
+def test_connection_errors_and_rows_are_mujocos():
+    # MuJoCo's constraint positions (p_a - p_b, world) and velocities (J qvel), three rows a connection
+    loaded = _assert_equality_rows_are_mujocos(MIXED, lambda s, q: s.connection_errors(q), 9, (3,), seed=0)
+    assert len(loaded.connections.frames) == 3  # the inactive one left out
 
 
 def _pivot_inertia(m, body, pivot):
@@ -133,7 +146,7 @@ HUNG = """
 """
 
 
-def test_a_hung_box_rests_on_its_weight_and_its_step_jacobian_is_central_differences():
+def test_a_hung_box_rests_on_its_weight_and_its_step_jacobian_is_central_differences(state_jacobian_is_central_differences):
     system = sim.scene(HUNG, floor=False)
     h, mass, g = 0.01, 2.0, 9.81
     x0 = system.initial_state()
@@ -144,13 +157,7 @@ def test_a_hung_box_rests_on_its_weight_and_its_step_jacobian_is_central_differe
     # swinging and spinning: the step's state Jacobian (through the rows' dependence on the
     # pose and the correction of the error) against central differences
     x = system.state(x0[:7].at[:3].add(jnp.array([0.01, -0.02, 0.005])), jnp.array([0.3, -0.2, 0.1, 1.0, -0.5, 2.0]))
-    x = system.project_state(x)
-    u = jnp.zeros(system.nu)
-    _, fx, _ = eqx.filter_jit(lambda s, x_, u_: s.step_and_jacobians(x_, u_))(system, x, u)
-    step = eqx.filter_jit(lambda s, x_, u_: s.step(x_, u_))
-    eps = 1e-6
-    columns = [(step(system, x + eps * e, u) - step(system, x - eps * e, u)) / (2 * eps) for e in jnp.eye(x.shape[0])]
-    np.testing.assert_allclose(fx, jnp.stack(columns, axis=1), rtol=0, atol=1e-7)
+    state_jacobian_is_central_differences(system, system.project_state(x), atol=1e-7)
 
 
 # A free box welded to the world and a hinged chain welded to a hinged rocker (with a torque
@@ -177,31 +184,9 @@ WELDED = """
 
 
 def test_weld_errors_and_rows_are_mujocos():
-    m = mujoco.MjModel.from_xml_string(WELDED)
-    d = mujoco.MjData(m)
-    loaded = sim.load_mjcf(WELDED)
-    system = sim.scene(loaded, floor=False)
+    # the points' gaps and MuJoCo's orientation errors, and their rates, six rows a weld
+    loaded = _assert_equality_rows_are_mujocos(WELDED, lambda s, q: s.weld_errors(q), 18, (3, 8), seed=1)
     np.testing.assert_allclose(np.asarray(loaded.welds.torque_scale), [1.0, 2.5, 1.0])
-    rng = np.random.default_rng(1)
-    for _ in range(4):
-        qpos = m.qpos0.copy()
-        qpos[:3] += rng.normal(size=3) * 0.1
-        for start in (3, 8):  # the free joint's and the ball's quaternions, turned up to about 80 degrees
-            quaternion = rng.normal(size=4)
-            quaternion[0] = abs(quaternion[0]) + 1.5
-            qpos[start : start + 4] = quaternion / np.linalg.norm(quaternion)
-        qpos[[7, 12]] += rng.normal(size=2) * 0.5
-        qvel = rng.normal(size=m.nv)
-        d.qpos[:], d.qvel[:] = qpos, qvel
-        mujoco.mj_forward(m, d)
-        equality = d.efc_type == mujoco.mjtConstraint.mjCNSTR_EQUALITY
-        q = loaded.qpos_to_q(jnp.asarray(qpos))
-        v = loaded.qvel_to_v(jnp.asarray(qpos), jnp.asarray(qvel))
-        # the points' gaps and MuJoCo's orientation errors, and their rates, six rows a weld
-        np.testing.assert_allclose(np.asarray(system.weld_errors(q)).reshape(-1), d.efc_pos[equality], rtol=0, atol=1e-12)
-        rows, _, _ = system.joint_rows(q)
-        assert rows.shape == (18, m.nv)
-        np.testing.assert_allclose(np.asarray(rows @ v), d.efc_J.reshape(-1, m.nv)[equality] @ qvel, rtol=0, atol=1e-12)
 
 
 def test_a_box_welded_to_the_world_by_a_corner_holds_its_weight_and_its_moment():
@@ -232,7 +217,7 @@ PAIR = """
 """
 
 
-def test_welded_boxes_fall_as_one_body_and_the_step_jacobian_is_central_differences():
+def test_welded_boxes_fall_as_one_body_and_the_step_jacobian_is_central_differences(state_jacobian_is_central_differences):
     system = sim.scene(PAIR, floor=False)
     h, g, steps = 0.005, 9.81, 100
     # a rigid motion of the pair: spinning at w about the vertical through a's centre
@@ -263,12 +248,7 @@ def test_welded_boxes_fall_as_one_body_and_the_step_jacobian_is_central_differen
     expected = start + velocity * t[:, None] - np.outer(g * h**2 * n * (n + 1) / 2, [0, 0, 1])
     np.testing.assert_allclose(centre, expected, rtol=0, atol=1e-9)
     # the step's state Jacobian against central differences, mid-flight
-    x, u = xs[40], jnp.zeros(system.nu)
-    _, fx, _ = eqx.filter_jit(lambda s, x_, u_: s.step_and_jacobians(x_, u_))(system, x, u)
-    step = eqx.filter_jit(lambda s, x_, u_: s.step(x_, u_))
-    eps = 1e-6
-    columns = [(step(system, x + eps * e, u) - step(system, x - eps * e, u)) / (2 * eps) for e in jnp.eye(x.shape[0])]
-    np.testing.assert_allclose(fx, jnp.stack(columns, axis=1), rtol=0, atol=1e-6)
+    state_jacobian_is_central_differences(system, xs[40], atol=1e-6)
 
 
 def test_what_is_not_modelled_and_bad_connections_are_refused_by_name():

@@ -258,18 +258,9 @@ def test_tendon_springs_and_dampers_step_as_mujocos_euler_integrator(mujoco_and_
     assert float(system._tendon_stretch(system.tendon_lengths(within))[0]) == 0.0
 
 
-def test_the_step_derivative_through_tendon_springs_and_dampers_matches_finite_differences():
-    _check_state_jacobian(sim.scene(SPRUNG_ARM), jnp.array([0.3, -0.4, 0.2, 0.05, 1.0, -0.5, 0.8, 0.2]))
-
-
-def _check_state_jacobian(system, x):
-    """The step's state Jacobian at ``x`` (zero input) against central differences."""
-    u = jnp.zeros(system.nu)
-    _, fx, _ = eqx.filter_jit(lambda s, x_, u_: s.step_and_jacobians(x_, u_))(system, x, u)
-    step = eqx.filter_jit(lambda s, x_, u_: s.step(x_, u_))
-    eps = 1e-6
-    columns = [(step(system, x + eps * e, u) - step(system, x - eps * e, u)) / (2 * eps) for e in jnp.eye(x.shape[0])]
-    np.testing.assert_allclose(fx, jnp.stack(columns, axis=1), rtol=0, atol=1e-7)
+def test_the_step_derivative_through_tendon_springs_and_dampers_matches_finite_differences(
+        state_jacobian_is_central_differences):
+    state_jacobian_is_central_differences(sim.scene(SPRUNG_ARM), jnp.array([0.3, -0.4, 0.2, 0.05, 1.0, -0.5, 0.8, 0.2]))
 
 
 # A 2 kg cart on a slide, pushed along it by a motor, with dry friction of 1 N along a tendon of
@@ -369,7 +360,8 @@ def test_spatial_tendon_lengths_and_rates_are_mujocos(getkey):
     np.testing.assert_allclose(moments[:, -2:], jax.jacfwd(system.tendon_lengths)(q)[:, -2:], rtol=0, atol=1e-12)
 
 
-def test_spatial_tendon_springs_and_dampers_step_as_mujocos_euler_integrator(mujoco_and_rsmooth_trajectories):
+def test_spatial_tendon_springs_and_dampers_step_as_mujocos_euler_integrator(
+        mujoco_and_rsmooth_trajectories, state_jacobian_is_central_differences):
     # The chain of SPATIAL without its floating base (hinges only, so that MuJoCo's qpos is
     # rsmooth's q): the cable's spring and damper pull the arm as in MuJoCo's Euler steps.
     text = SPATIAL.replace('<freejoint/>', '').replace('<joint name="shoulder" type="ball"/>', '<joint name="shoulder" type="hinge" axis="0 0 1"/>')
@@ -381,7 +373,7 @@ def test_spatial_tendon_springs_and_dampers_step_as_mujocos_euler_integrator(muj
     q = jnp.asarray(np.asarray(xs)[40, :3])
     np.testing.assert_allclose(system.spring_forces(q), -jax.grad(system.spring_energy)(q), rtol=0, atol=1e-12)
     # the step's state Jacobian (moments that vary with q) against central differences
-    _check_state_jacobian(system, jnp.asarray(np.asarray(xs)[40]))
+    state_jacobian_is_central_differences(system, jnp.asarray(np.asarray(xs)[40]))
 
 
 # A 0.2 kg ball on two slides (x, z) hanging from a world site by a string of 0.5 m (a spatial
