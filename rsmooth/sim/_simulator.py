@@ -29,9 +29,10 @@ state ``x = [q, v]``:
      ``g = J v_f`` corrected by ``max(phi, 0) / h`` (a gap that does not close within the
      step exerts no impulse) and ``baumgarte * min(phi, 0) / h`` (penetration is pushed out).
      The joints' dry friction (:attr:`Joints.friction`) adds one box row per
-     dof, ``|lambda_k| <= effort_k h`` opposing the dof's velocity, and each joint coupling
-     (:attr:`Joints.couplings`) a bilateral row with the Baumgarte correction
-     of its position error, solved with the contacts.
+     dof, ``|lambda_k| <= effort_k h`` opposing the dof's velocity; each joint coupling
+     (:attr:`Joints.couplings`) a bilateral row, each connection (:attr:`Joints.connections`)
+     three and each weld (:attr:`Joints.welds`) six, with the Baumgarte correction of their
+     position errors, solved with the contacts.
      Solved by :func:`~rsmooth.sim.solve_ncp` (ADMM), differentiated implicitly.
    - a :class:`~rsmooth.sim.SpringDamper` or :class:`~rsmooth.sim.LogBarrier`: the compliant
      force at ``(phi, J v)`` times ``h``.
@@ -136,8 +137,9 @@ class StepInfo(eqx.Module):
             the collision although their bounding volumes were within their margin (int,
             ``()``; :meth:`RigidBodySystem.skipped_pairs`); 0 without the limit.
         joint_impulse: the impulses of the joints' box rows, ``(m,)`` in the order of
-            :meth:`RigidBodySystem.joint_rows` (dry friction's dofs, then the couplings, then the
-            tendons' dry friction; N m s or N s); empty without any.
+            :meth:`RigidBodySystem.joint_rows` (dry friction's dofs, then the couplings, the
+            connections' and the welds' rows, then the tendons' dry friction; N m s or N s, the
+            welds' orientation rows in their own units); empty without any.
     """
 
     distance: Array
