@@ -115,9 +115,9 @@ class MujocoModel(eqx.Module):
             sites) as a :class:`~rsmooth.sim.PointConnection` (frames: MuJoCo's bodies by id,
             its sites after the bodies and joints), or ``None``; inactive ones and all where the
             ``equality`` or ``constraint`` flag is disabled are left out.
-        welds: the active weld equalities (``<equality><weld>``, between bodies) as a
-            :class:`~rsmooth.sim.Weld` (frames: MuJoCo's bodies by id), or ``None``; left out
-            as connections are.
+        welds: the active weld equalities (``<equality><weld>``, between bodies or sites) as a
+            :class:`~rsmooth.sim.Weld` (frames as for connections), or ``None``; left out as
+            connections are.
         tendons: the springs, dampers, dry friction and length limits of the tendons
             (:class:`~rsmooth.sim.Tendons`, spatial ones through their sites' frames; the
             ``spring``, ``damper``, ``frictionloss`` and ``limit`` flags honoured), or ``None``
@@ -800,7 +800,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
             that wraps around a geom or has a pulley, a tendon's nonlinear spring or damping or
             armature, equality constraints
             other than joint couplings, equalities of one fixed tendon on at most two joints,
-            connections and welds between bodies,
+            connections and welds,
             flex, skins, plugins, gravity compensation through actuators, the ellipsoid fluid model, colliding
             height fields or SDFs, actuators other than direct motors on a hinge, a slide or a
             fixed tendon, and on a free
@@ -1159,24 +1159,27 @@ def _welds(mj: Any, m: Any) -> Weld | None:
     """The active weld equalities of ``m`` as a ``Weld``, or ``None``. MuJoCo's ``eq_data`` holds
     the weld point in the second body's frame (``[0:3]``), the first body's pose relative to it
     (``relpose``: the point in the first body's frame ``[3:6]`` and the quaternion ``[6:10]``,
-    ``w`` first) and the ``torquescale`` (``[10]``). Welds between sites are refused by name."""
+    ``w`` first) and the ``torquescale`` (``[10]``). Between sites, the sites' frames are held
+    together (origins and axes; ``relpose`` does not apply)."""
     equalities = [e for e in range(m.neq) if int(m.eq_type[e]) == int(mj.mjtEq.mjEQ_WELD) and m.eq_active0[e]]
     if not equalities:
         return None
-    names = _names(m, "equality", m.neq)
     frames, others, anchors, other_anchors, rotations, scales = [], [], [], [], [], []
+    first_site = m.nbody + m.njnt
     for e in equalities:
-        if int(m.eq_objtype[e]) == int(mj.mjtObj.mjOBJ_SITE):
-            raise ValueError(
-                f"MuJoCo model: weld {names[e]!r} is between sites, which rsmooth.sim does not support (supported: welds "
-                "between bodies)"
-            )
         data = np.asarray(m.eq_data[e], dtype=np.float64)
-        frames.append(int(m.eq_obj1id[e]))
-        others.append(max(int(m.eq_obj2id[e]), 0))  # -1 or 0: the world
-        anchors.append(data[3:6])
-        other_anchors.append(data[0:3])
-        rotations.append(_pose(np.zeros(3), data[6:10])[0])
+        if int(m.eq_objtype[e]) == int(mj.mjtObj.mjOBJ_SITE):
+            frames.append(first_site + int(m.eq_obj1id[e]))
+            others.append(first_site + int(m.eq_obj2id[e]))
+            anchors.append(np.zeros(3))
+            other_anchors.append(np.zeros(3))
+            rotations.append(np.eye(3))
+        else:
+            frames.append(int(m.eq_obj1id[e]))
+            others.append(max(int(m.eq_obj2id[e]), 0))  # -1 or 0: the world
+            anchors.append(data[3:6])
+            other_anchors.append(data[0:3])
+            rotations.append(_pose(np.zeros(3), data[6:10])[0])
         scales.append(data[10])
     return Weld(tuple(frames), tuple(others), _array(np.array(anchors)), _array(np.array(other_anchors)),
                 _array(np.array(rotations).reshape(len(frames), 3, 3)), _array(np.array(scales)))

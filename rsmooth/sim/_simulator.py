@@ -1016,9 +1016,9 @@ class Joints(eqx.Module):
             :meth:`RigidBodySystem.with_joint_friction`.
         couplings: joint equality constraints (:class:`JointCoupling`), solved with the
             contacts (hard contact only); ``None``: none.
-        connections: ball-joint equality constraints between bodies (:class:`PointConnection`),
+        connections: ball-joint equality constraints between frames (:class:`PointConnection`),
             solved with the contacts (hard contact only); ``None``: none.
-        welds: weld equality constraints between bodies (:class:`Weld`), solved with the
+        welds: weld equality constraints between frames (:class:`Weld`), solved with the
             contacts (hard contact only); ``None``: none.
         springs: linear springs on joints (:class:`JointSprings`), explicit forces of
             the free motion; ``None``: none. See :meth:`RigidBodySystem.with_joint_springs`.

@@ -160,24 +160,26 @@ def test_a_hung_box_rests_on_its_weight_and_its_step_jacobian_is_central_differe
     state_jacobian_is_central_differences(system, system.project_state(x), atol=1e-7)
 
 
-# A free box welded to the world and a hinged chain welded to a hinged rocker (with a torque
-# scale), and a bar welded to the box with a given relative pose.
+# A free box welded to the world, a hinged chain welded to a hinged rocker (with a torque
+# scale), a bar welded to the box with a given relative pose, and two turned sites welded.
 WELDED = """
 <mujoco>
   <worldbody>
     <body name="a" pos="0 0 1" euler="10 20 30"><freejoint/>
       <geom type="box" size="0.1 0.05 0.02" mass="1" contype="0" conaffinity="0"/></body>
-    <body name="l1" pos="0 0 0.5"><joint name="h1" axis="0 1 0"/>
+    <body name="l1" pos="0 0 0.5"><joint name="h1" axis="0 1 0"/><site name="s1" pos="0.1 0.02 0" euler="10 20 30"/>
       <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.02" contype="0" conaffinity="0"/>
       <body name="l2" pos="0.3 0 0"><joint name="h2" type="ball"/>
         <geom type="capsule" fromto="0 0 0 0 0 -0.3" size="0.02" contype="0" conaffinity="0"/></body></body>
     <body name="l3" pos="0.5 0 0.5" euler="0 0 40"><joint name="h3" axis="1 0 0"/>
+      <site name="s2" pos="0 0.05 -0.1" euler="-20 5 40"/>
       <geom type="capsule" fromto="0 0 0 0 0 -0.3" size="0.02" contype="0" conaffinity="0"/></body>
   </worldbody>
   <equality>
     <weld body1="a" body2="world" anchor="-0.1 0.05 0.02"/>
     <weld body1="l2" body2="l3" anchor="0 0 -0.3" torquescale="2.5"/>
     <weld body1="l1" body2="a" relpose="0.1 0.2 0.3 0.9 0.1 0.3 0.2"/>
+    <weld site1="s1" site2="s2" torquescale="0.7"/>
   </equality>
 </mujoco>
 """
@@ -185,8 +187,8 @@ WELDED = """
 
 def test_weld_errors_and_rows_are_mujocos():
     # the points' gaps and MuJoCo's orientation errors, and their rates, six rows a weld
-    loaded = _assert_equality_rows_are_mujocos(WELDED, lambda s, q: s.weld_errors(q), 18, (3, 8), seed=1)
-    np.testing.assert_allclose(np.asarray(loaded.welds.torque_scale), [1.0, 2.5, 1.0])
+    loaded = _assert_equality_rows_are_mujocos(WELDED, lambda s, q: s.weld_errors(q), 24, (3, 8), seed=1)
+    np.testing.assert_allclose(np.asarray(loaded.welds.torque_scale), [1.0, 2.5, 1.0, 0.7])
 
 
 def test_a_box_welded_to_the_world_by_a_corner_holds_its_weight_and_its_moment():
@@ -251,12 +253,7 @@ def test_welded_boxes_fall_as_one_body_and_the_step_jacobian_is_central_differen
     state_jacobian_is_central_differences(system, xs[40], atol=1e-6)
 
 
-def test_what_is_not_modelled_and_bad_connections_are_refused_by_name():
-    site_weld = WELDED.replace('<weld body1="a" body2="world" anchor="-0.1 0.05 0.02"/>', '<weld site1="s" site2="w"/>')
-    site_weld = site_weld.replace('<joint name="h1" axis="0 1 0"/>', '<joint name="h1" axis="0 1 0"/><site name="s"/>')
-    site_weld = site_weld.replace("</worldbody>", '<site name="w" pos="0 0 0.5"/></worldbody>')
-    with pytest.raises(ValueError, match="weld .* is between sites, which rsmooth.sim does not support"):
-        sim.load_mjcf(site_weld)
+def test_bad_connections_and_welds_are_refused_by_name():
     with pytest.raises(ValueError, match="Weld.torque_scale must be > 0"):
         sim.Weld((1,), (0,), jnp.zeros((1, 3)), jnp.zeros((1, 3)), jnp.eye(3)[None], jnp.zeros(1))
     with pytest.raises(ValueError, match=r"PointConnection.anchors must have shape \(1, 3\)"):

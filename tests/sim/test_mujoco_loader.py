@@ -403,8 +403,10 @@ def wrap(body, extra=""):
 HINGE_BODY = "<body name='b'><joint name='j'/><geom name='g' size='0.1'/><site name='s'/></body>"
 UNSUPPORTED = {
     "ball_limit": (wrap("<body><joint name='shoulder' type='ball' range='0 4'/><geom size='0.1'/></body>"), "ball joint 'shoulder' has the range"),
-    "equality": (wrap(HINGE_BODY + "<site name='w'/>", "<equality><weld name='e' site1='s' site2='w'/></equality>"),
-                 "weld 'e' is between sites"),
+    "equality": (
+        wrap("<flexcomp name='f' type='grid' count='2 2 1' spacing='0.1 0.1 0.1' dim='2'><edge equality='true'/></flexcomp>"),
+        "1 equality constraints other than joint couplings, connections and welds",
+    ),
     "spring": (wrap("<body><joint name='j' type='free' stiffness='3'/><geom size='0.1'/></body>"), "free joint 'j' has a spring"),
     "free_frictionloss": (
         wrap("<body><joint name='j' type='free' frictionloss='1'/><geom size='0.1'/></body>"),
@@ -807,16 +809,16 @@ def test_loading_options_are_checked():
     for name, value in (("boundinertia", 1e-9), ("drop_mimic", True), ("drop_frictionloss", True)):
         with pytest.raises(ValueError, match=f"{name} applies to a file or XML text"):
             load_mjcf(compiled, **{name: value})
-    # drop_mimic drops joint equalities only; the others are still refused by name.
+    # drop_mimic drops joint equalities only; the others are still converted.
     equalities = "<equality><joint name='mimic' joint1='j2' joint2='j1'/><weld name='weld' site1='s' site2='w'/></equality>"
     bodies = ("<body name='b'><joint name='j1'/><geom size='0.1'/><site name='s'/><body><joint name='j2'/><geom size='0.1'/>"
               "</body></body><site name='w'/>")
     two = wrap(bodies, equalities)
-    weld = "weld 'weld' is between sites"
-    with pytest.raises(ValueError, match=weld):  # the joint coupling is converted
-        load_mjcf(two)
-    with pytest.warns(MujocoLoadWarning, match="'j2' to 'j1'"), pytest.raises(ValueError, match=weld):
-        load_mjcf(two, drop_mimic=True)
+    both = load_mjcf(two)
+    assert both.joint_couplings is not None and both.welds is not None
+    with pytest.warns(MujocoLoadWarning, match="'j2' to 'j1'"):
+        weld_only = load_mjcf(two, drop_mimic=True)
+    assert weld_only.joint_couplings is None and weld_only.welds.frames == both.welds.frames
     coupled = load_mjcf(wrap(bodies, "<equality><joint name='mimic' joint1='j2' joint2='j1' polycoef='0 2 0 0 0'/></equality>"))
     assert coupled.joint_couplings.joints == (2,) and coupled.joint_couplings.others == (1,)
     np.testing.assert_array_equal(coupled.joint_couplings.coefficients, [[0, 2, 0, 0, 0]])
@@ -851,7 +853,8 @@ FLAGGED = """<mujoco><option><flag {flag}="disable"/></option><worldbody>
 @pytest.mark.parametrize("flag", ["contact", "limit", "equality", "frictionloss", "constraint"])
 def test_disabled_constraints_are_left_out_as_mujoco_leaves_them_out(flag):
     """A model whose option flags disable a kind of constraint converts without it (and without
-    refusing an unsupported element of that kind: the colliding hfield, the weld of sites)."""
+    converting an element of that kind: the colliding hfield, the weld, which is in the model only
+    where equalities are disabled, so that a ball without contact falls freely)."""
     off = {
         "contact": {"contact"},
         "limit": {"limit"},
@@ -868,7 +871,7 @@ def test_disabled_constraints_are_left_out_as_mujoco_leaves_them_out(flag):
     loaded = sim.from_mujoco(m)
     assert (loaded.collision_pairs == ()) == ("contact" in off)
     assert loaded.limits_enforced == ("limit" not in off)
-    assert (loaded.joint_couplings is None) == ("equality" in off)
+    assert (loaded.joint_couplings is None) == ("equality" in off) and loaded.welds is None
     assert float(loaded.frictionloss[0]) == (0.0 if "frictionloss" in off else 0.3)
     system = sim.scene(loaded)
     assert (system.joints.limits == ()) == ("limit" in off)
