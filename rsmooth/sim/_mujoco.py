@@ -1130,29 +1130,35 @@ def _joint_couplings(mj: Any, m: Any) -> JointCoupling | None:
     return JointCoupling(tuple(joints), tuple(others), _array(np.array(coefficients)))
 
 
+def _held_ends(mj: Any, m: Any, kind: Any, first: slice, second: slice):
+    """The active equalities of type ``kind`` that hold two frames together: ``(equalities,
+    sites, frames, others, anchors, other_anchors)``. Between sites, the sites' frames (bodies
+    by id, joints, then sites) with their origins as anchors; between bodies, the bodies'
+    frames (the world's, 0, for ``-1``) with the anchors ``eq_data[first]`` and
+    ``eq_data[second]``."""
+    equalities = [e for e in range(m.neq) if int(m.eq_type[e]) == int(kind) and m.eq_active0[e]]
+    sites = [int(m.eq_objtype[e]) == int(mj.mjtObj.mjOBJ_SITE) for e in equalities]
+    first_site = m.nbody + m.njnt
+    frames, others, anchors, other_anchors = [], [], [], []
+    for e, site in zip(equalities, sites):
+        data = np.asarray(m.eq_data[e], dtype=np.float64)
+        offset = first_site if site else 0
+        frames.append(offset + int(m.eq_obj1id[e]))
+        others.append(offset + max(int(m.eq_obj2id[e]), 0))  # a body's -1 or 0: the world
+        anchors.append(np.zeros(3) if site else data[first])
+        other_anchors.append(np.zeros(3) if site else data[second])
+    return equalities, sites, tuple(frames), tuple(others), np.array(anchors), np.array(other_anchors)
+
+
 def _connections(mj: Any, m: Any) -> PointConnection | None:
     """The active connect equalities of ``m`` as a ``PointConnection``, or ``None``. Between
     bodies, MuJoCo's ``eq_data[0:3]`` is the anchor in the first body's frame and
     ``eq_data[3:6]`` the same point in the second's (where the compiler found it at ``qpos0``);
-    between sites, the sites' origins (frames: bodies by id, joints, then sites)."""
-    equalities = [e for e in range(m.neq) if int(m.eq_type[e]) == int(mj.mjtEq.mjEQ_CONNECT) and m.eq_active0[e]]
+    between sites, the sites' origins."""
+    equalities, _, frames, others, anchors, other_anchors = _held_ends(mj, m, mj.mjtEq.mjEQ_CONNECT, slice(0, 3), slice(3, 6))
     if not equalities:
         return None
-    frames, others, anchors, other_anchors = [], [], [], []
-    first_site = m.nbody + m.njnt
-    for e in equalities:
-        data = np.asarray(m.eq_data[e], dtype=np.float64)
-        if int(m.eq_objtype[e]) == int(mj.mjtObj.mjOBJ_SITE):
-            frames.append(first_site + int(m.eq_obj1id[e]))
-            others.append(first_site + int(m.eq_obj2id[e]))
-            anchors.append(np.zeros(3))
-            other_anchors.append(np.zeros(3))
-        else:
-            frames.append(int(m.eq_obj1id[e]))
-            others.append(max(int(m.eq_obj2id[e]), 0))  # -1 or 0: the world
-            anchors.append(data[0:3])
-            other_anchors.append(data[3:6])
-    return PointConnection(tuple(frames), tuple(others), _array(np.array(anchors)), _array(np.array(other_anchors)))
+    return PointConnection(frames, others, _array(anchors), _array(other_anchors))
 
 
 def _welds(mj: Any, m: Any) -> Weld | None:
@@ -1161,28 +1167,13 @@ def _welds(mj: Any, m: Any) -> Weld | None:
     (``relpose``: the point in the first body's frame ``[3:6]`` and the quaternion ``[6:10]``,
     ``w`` first) and the ``torquescale`` (``[10]``). Between sites, the sites' frames are held
     together (origins and axes; ``relpose`` does not apply)."""
-    equalities = [e for e in range(m.neq) if int(m.eq_type[e]) == int(mj.mjtEq.mjEQ_WELD) and m.eq_active0[e]]
+    equalities, sites, frames, others, anchors, other_anchors = _held_ends(mj, m, mj.mjtEq.mjEQ_WELD, slice(3, 6), slice(0, 3))
     if not equalities:
         return None
-    frames, others, anchors, other_anchors, rotations, scales = [], [], [], [], [], []
-    first_site = m.nbody + m.njnt
-    for e in equalities:
-        data = np.asarray(m.eq_data[e], dtype=np.float64)
-        if int(m.eq_objtype[e]) == int(mj.mjtObj.mjOBJ_SITE):
-            frames.append(first_site + int(m.eq_obj1id[e]))
-            others.append(first_site + int(m.eq_obj2id[e]))
-            anchors.append(np.zeros(3))
-            other_anchors.append(np.zeros(3))
-            rotations.append(np.eye(3))
-        else:
-            frames.append(int(m.eq_obj1id[e]))
-            others.append(max(int(m.eq_obj2id[e]), 0))  # -1 or 0: the world
-            anchors.append(data[3:6])
-            other_anchors.append(data[0:3])
-            rotations.append(_pose(np.zeros(3), data[6:10])[0])
-        scales.append(data[10])
-    return Weld(tuple(frames), tuple(others), _array(np.array(anchors)), _array(np.array(other_anchors)),
-                _array(np.array(rotations).reshape(len(frames), 3, 3)), _array(np.array(scales)))
+    rotations = [np.eye(3) if site else _pose(np.zeros(3), m.eq_data[e, 6:10])[0] for e, site in zip(equalities, sites)]
+    scales = np.array([m.eq_data[e, 10] for e in equalities], dtype=np.float64)
+    return Weld(frames, others, _array(anchors), _array(other_anchors), _array(np.array(rotations).reshape(len(frames), 3, 3)),
+                _array(scales))
 
 
 def _tendon_couplings(mj: Any, m: Any) -> list[tuple[int, int, np.ndarray]]:
