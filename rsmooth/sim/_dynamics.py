@@ -629,28 +629,49 @@ def integrate(model: Model, q: ArrayLike, v: ArrayLike, dt: ArrayLike = 1.0) -> 
     tree = _tree(model)
     step = v * dt
     result = q.at[tree.vector_q].add(step[tree.vector_v])
-    for joint in tree.free_flyer:
-        start_q, start_v = model.idx_q[joint], model.idx_v[joint]
-        position, quaternion = q[start_q : start_q + 3], q[start_q + 3 : start_q + 7]
-        linear, angular = step[start_v : start_v + 3], step[start_v + 3 : start_v + 6]
-        position = position + spatial.rotate(
-            spatial.quaternion_to_rotation(quaternion), spatial.rotate(spatial.left_jacobian_so3(angular), linear)
-        )
-        increment = spatial.quaternion_exp(angular)
-        new_quaternion = spatial.quaternion_multiply(quaternion, increment)
-        # Pinocchio flips the result into the input's hemisphere: dot(q, q dq) = w(dq) |q|^2.
-        new_quaternion = jnp.where(increment[3] < 0.0, -new_quaternion, new_quaternion)
-        # pinocchio::quaternion::firstOrderNormalize: q (3 - |q|^2) / 2.
-        new_quaternion = new_quaternion * (0.5 * (3.0 - jnp.sum(new_quaternion * new_quaternion)))
-        result = result.at[start_q : start_q + 7].set(jnp.concatenate([position, new_quaternion]))
-    for joint in tree.spherical:
-        start_q, start_v = model.idx_q[joint], model.idx_v[joint]
-        increment = spatial.quaternion_exp(step[start_v : start_v + 3])
-        new_quaternion = spatial.quaternion_multiply(q[start_q : start_q + 4], increment)
-        new_quaternion = jnp.where(increment[3] < 0.0, -new_quaternion, new_quaternion)
-        new_quaternion = new_quaternion * (0.5 * (3.0 - jnp.sum(new_quaternion * new_quaternion)))
-        result = result.at[start_q : start_q + 4].set(new_quaternion)
-    return result
+    result = _per_joint(model, tree.free_flyer, (7, 6), _integrate_free_flyer, result, q, step)
+    return _per_joint(model, tree.spherical, (4, 3), _integrate_spherical, result, q, step)
+
+
+def _joint_coordinates(model: Model, joints: np.ndarray, width_q: int, width_v: int) -> tuple[np.ndarray, np.ndarray]:
+    """Configuration and velocity indices ``(k, width_q)``, ``(k, width_v)`` of ``joints``."""
+    return (np.asarray(model.idx_q)[joints][:, None] + np.arange(width_q),
+            np.asarray(model.idx_v)[joints][:, None] + np.arange(width_v))
+
+
+def _per_joint(model: Model, joints: np.ndarray, widths: tuple[int, int], function, result: jax.Array, q: jax.Array,
+               v: jax.Array) -> jax.Array:
+    """``result`` with the configuration coordinates of ``joints`` (joints of one type, whose
+    configuration and velocity have ``widths``) set to ``function(q_j, v_j)``, in one vectorized
+    call: the program does not grow with the number of joints, as a loop over them would."""
+    if len(joints) == 0:
+        return result
+    iq, iv = _joint_coordinates(model, joints, *widths)
+    return result.at[iq].set(jax.vmap(function)(q[iq], v[iv]))
+
+
+def _first_order_normalized(quaternion: jax.Array, increment: jax.Array) -> jax.Array:
+    """``quaternion * increment`` in ``quaternion``'s hemisphere, normalized to first order."""
+    new_quaternion = spatial.quaternion_multiply(quaternion, increment)
+    # Pinocchio flips the result into the input's hemisphere: dot(q, q dq) = w(dq) |q|^2.
+    new_quaternion = jnp.where(increment[3] < 0.0, -new_quaternion, new_quaternion)
+    # pinocchio::quaternion::firstOrderNormalize: q (3 - |q|^2) / 2.
+    return new_quaternion * (0.5 * (3.0 - jnp.sum(new_quaternion * new_quaternion)))
+
+
+def _integrate_free_flyer(q: jax.Array, step: jax.Array) -> jax.Array:
+    """One free flyer's ``(7,)`` configuration moved by the twist ``step`` ``(6,)`` on SE(3)."""
+    position, quaternion = q[:3], q[3:]
+    linear, angular = step[:3], step[3:]
+    position = position + spatial.rotate(
+        spatial.quaternion_to_rotation(quaternion), spatial.rotate(spatial.left_jacobian_so3(angular), linear)
+    )
+    return jnp.concatenate([position, _first_order_normalized(quaternion, spatial.quaternion_exp(angular))])
+
+
+def _integrate_spherical(q: jax.Array, step: jax.Array) -> jax.Array:
+    """One spherical joint's quaternion ``(4,)`` turned by the rotation vector ``step``."""
+    return _first_order_normalized(q, spatial.quaternion_exp(step))
 
 
 @jax.jit
@@ -673,20 +694,25 @@ def difference(model: Model, q0: ArrayLike, q1: ArrayLike) -> jax.Array:
     tree = _tree(model)
     dtype = jnp.result_type(q0.dtype, q1.dtype)
     result = jnp.zeros(model.nv, dtype=dtype).at[tree.vector_v].set(q1[tree.vector_q] - q0[tree.vector_q])
-    for joint in tree.free_flyer:
-        start_q, start_v = model.idx_q[joint], model.idx_v[joint]
-        position0, quaternion0 = q0[start_q : start_q + 3], q0[start_q + 3 : start_q + 7]
-        position1, quaternion1 = q1[start_q : start_q + 3], q1[start_q + 3 : start_q + 7]
-        relative_quaternion = spatial.quaternion_multiply(spatial.quaternion_conjugate(quaternion0), quaternion1)
-        angular = spatial.quaternion_log(relative_quaternion)
-        relative_position = spatial.rotate_inverse(spatial.quaternion_to_rotation(quaternion0), position1 - position0)
-        linear = spatial.left_jacobian_so3_inverse_apply(angular, relative_position)
-        result = result.at[start_v : start_v + 6].set(jnp.concatenate([linear, angular]))
-    for joint in tree.spherical:
-        start_q, start_v = model.idx_q[joint], model.idx_v[joint]
-        relative = spatial.quaternion_multiply(spatial.quaternion_conjugate(q0[start_q : start_q + 4]), q1[start_q : start_q + 4])
-        result = result.at[start_v : start_v + 3].set(spatial.quaternion_log(relative))
+    for joints, width_q, width_v, function in ((tree.free_flyer, 7, 6, _difference_free_flyer),
+                                              (tree.spherical, 4, 3, _difference_spherical)):
+        if len(joints):
+            iq, iv = _joint_coordinates(model, joints, width_q, width_v)
+            result = result.at[iv].set(jax.vmap(function)(q0[iq], q1[iq]))
     return result
+
+
+def _difference_free_flyer(q0: jax.Array, q1: jax.Array) -> jax.Array:
+    """The twist ``(6,)`` from one free flyer's configuration ``q0`` to ``q1``, ``log6(M0^-1 M1)``."""
+    relative_quaternion = spatial.quaternion_multiply(spatial.quaternion_conjugate(q0[3:]), q1[3:])
+    angular = spatial.quaternion_log(relative_quaternion)
+    relative_position = spatial.rotate_inverse(spatial.quaternion_to_rotation(q0[3:]), q1[:3] - q0[:3])
+    return jnp.concatenate([spatial.left_jacobian_so3_inverse_apply(angular, relative_position), angular])
+
+
+def _difference_spherical(q0: jax.Array, q1: jax.Array) -> jax.Array:
+    """The rotation vector ``(3,)`` from one spherical joint's quaternion ``q0`` to ``q1``."""
+    return spatial.quaternion_log(spatial.quaternion_multiply(spatial.quaternion_conjugate(q0), q1))
 
 
 
@@ -707,13 +733,12 @@ def _free_flyer_transport(model: Model, v: jax.Array) -> jax.Array:
     explicit ``-h omega x v_lin`` followed by the rotation of the frame scales the velocity
     across the spin axis by ``sqrt(1 + (h omega)^2)`` every step.
     """
-    tree = _tree(model)
-    result = jnp.zeros_like(v)
-    for joint in tree.free_flyer:
-        start = model.idx_v[joint]
-        linear, angular = v[start : start + 3], v[start + 3 : start + 6]
-        result = result.at[start : start + 3].set(jnp.cross(angular, linear))
-    return result
+    joints = _tree(model).free_flyer
+    if len(joints) == 0:
+        return jnp.zeros_like(v)
+    _, iv = _joint_coordinates(model, joints, 7, 6)
+    twists = v[iv]
+    return jnp.zeros_like(v).at[iv[:, :3]].set(jnp.cross(twists[:, 3:], twists[:, :3]))
 
 
 def _lone_free_flyers(model: Model) -> tuple[int, ...]:
@@ -736,11 +761,13 @@ def _free_body_rotation(model: Model, v: jax.Array, dt: jax.Array) -> tuple[jax.
     up to about 1). Bodies with joints below keep the explicit term (their coupling to the
     joints is not a rigid body's).
     """
-    gyroscopic = jnp.zeros_like(v)
-    for joint in _lone_free_flyers(model):
-        start = model.idx_v[joint] + 3
-        omega, inertia = v[start : start + 3], model.body_inertia[joint]
-        gyroscopic = gyroscopic.at[start : start + 3].set(jnp.cross(omega, inertia @ omega))
+    joints = np.asarray(_lone_free_flyers(model), dtype=np.int32)
+    if len(joints) == 0:
+        return v, jnp.zeros_like(v)
+    angular = np.asarray(model.idx_v)[joints][:, None] + np.arange(3, 6)
+    omega, inertia = v[angular], model.body_inertia[joints]
+
+    def rotate(omega, inertia):
         rotated = omega
         for _ in range(4):
             middle = 0.5 * (omega + rotated)
@@ -748,8 +775,10 @@ def _free_body_rotation(model: Model, v: jax.Array, dt: jax.Array) -> tuple[jax.
             residual = inertia @ (rotated - omega) + dt * jnp.cross(middle, momentum)
             jacobian = inertia + 0.5 * dt * (spatial.skew(middle) @ inertia - spatial.skew(momentum))
             rotated = rotated - jnp.linalg.solve(jacobian, residual)
-        v = v.at[start : start + 3].set(rotated)
-    return v, gyroscopic
+        return rotated
+
+    gyroscopic = jnp.cross(omega, jnp.einsum("kij,kj->ki", inertia, omega))
+    return v.at[angular].set(jax.vmap(rotate)(omega, inertia)), jnp.zeros_like(v).at[angular].set(gyroscopic)
 
 
 def _free_flyer_start(model: Model, v: jax.Array, dt: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -765,9 +794,10 @@ def _free_flyer_new_axes(model: Model, v: jax.Array, dt: jax.Array) -> jax.Array
     """``v`` with every free flyer's linear velocity turned from its body axes at the start of
     a step to those at its end, ``exp(dt omega)^T v_lin`` (its angular velocity is unchanged by
     a rotation about itself): the same world velocity in the state's convention, body axes."""
-    tree = _tree(model)
-    for joint in tree.free_flyer:
-        start = model.idx_v[joint]
-        linear, angular = v[start : start + 3], v[start + 3 : start + 6]
-        v = v.at[start : start + 3].set(spatial.rotate_inverse(spatial.exp3(dt * angular), linear))
-    return v
+    joints = _tree(model).free_flyer
+    if len(joints) == 0:
+        return v
+    _, iv = _joint_coordinates(model, joints, 7, 6)
+    twists = v[iv]
+    turned = jax.vmap(lambda t: spatial.rotate_inverse(spatial.exp3(dt * t[3:]), t[:3]))(twists)
+    return v.at[iv[:, :3]].set(turned)

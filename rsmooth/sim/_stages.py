@@ -313,19 +313,21 @@ def integrate_decoupled(model: Model, q: Array, v: Array, h: Array) -> Array:
     tree = _dynamics._tree(model)
     step = v * h
     result = q.at[tree.vector_q].add(step[tree.vector_v])
-    for joint in tree.free_flyer:
-        start_q, start_v = model.idx_q[joint], model.idx_v[joint]
-        position, quaternion = q[start_q : start_q + 3], q[start_q + 3 : start_q + 7]
-        linear, angular = step[start_v : start_v + 3], step[start_v + 3 : start_v + 6]
-        position = position + spatial.rotate(spatial.quaternion_to_rotation(quaternion), linear)
-        quaternion = spatial.quaternion_multiply(quaternion, spatial.quaternion_exp(angular))
-        quaternion = quaternion / jnp.sqrt(spatial.sum_last(quaternion * quaternion))
-        result = result.at[start_q : start_q + 7].set(jnp.concatenate([position, quaternion]))
-    for joint in tree.spherical:
-        start_q, start_v = model.idx_q[joint], model.idx_v[joint]
-        quaternion = spatial.quaternion_multiply(q[start_q : start_q + 4], spatial.quaternion_exp(step[start_v : start_v + 3]))
-        result = result.at[start_q : start_q + 4].set(quaternion / jnp.sqrt(spatial.sum_last(quaternion * quaternion)))
-    return result
+    result = _dynamics._per_joint(model, tree.free_flyer, (7, 6), _free_flyer_decoupled, result, q, step)
+    return _dynamics._per_joint(model, tree.spherical, (4, 3), _turn_and_normalize, result, q, step)
+
+
+def _turn_and_normalize(quaternion: Array, rotation_vector: Array) -> Array:
+    """``quaternion * exp(rotation_vector)``, normalized."""
+    quaternion = spatial.quaternion_multiply(quaternion, spatial.quaternion_exp(rotation_vector))
+    return quaternion / jnp.sqrt(spatial.sum_last(quaternion * quaternion))
+
+
+def _free_flyer_decoupled(q: Array, step: Array) -> Array:
+    """One free flyer's ``(7,)`` configuration moved by ``step`` ``(6,)`` on ``R^3 x SO(3)``: the
+    position by the linear step turned to world axes, the orientation by the angular step."""
+    position = q[:3] + spatial.rotate(spatial.quaternion_to_rotation(q[3:]), step[:3])
+    return jnp.concatenate([position, _turn_and_normalize(q[3:], step[3:])])
 
 
 def block_diagonal(blocks: Array) -> Array:
