@@ -114,9 +114,9 @@ def configuration_jacobian(system, update, residuals, q: Array, v: Array, u: Arr
     *by_delta, by_v = tangent_jacobian(system, update, v)
     to_tangent, radial, coefficients = tangent_map(system.model, q)
     by_q = [part @ to_tangent for part in by_delta]
-    for direction, coefficient in zip(radial, coefficients):
-        along = jax.jvp(lambda q_: residuals(system, q_, v, u)[:2], (q,), (direction,))[1]
-        by_q = [part + jnp.outer(a, coefficient) for part, a in zip(by_q, along)]
+    if radial.shape[0]:  # all radial directions in one vectorized pass (one copy of the residuals)
+        along = jax.vmap(lambda d: jax.jvp(lambda q_: residuals(system, q_, v, u)[:2], (q,), (d,))[1])(radial)
+        by_q = [part + a.T @ coefficients for part, a in zip(by_q, along)]
     return by_q, [by_v, jnp.zeros((by_delta[1].shape[0], v.shape[0]), v.dtype)]
 
 
