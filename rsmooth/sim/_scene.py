@@ -214,16 +214,18 @@ def _floor_height(loaded: MujocoModel, geoms: list[int], q: jnp.ndarray) -> floa
     return min(heights)
 
 
-def _actuation(loaded: MujocoModel) -> tuple[tuple[int, ...], np.ndarray, np.ndarray | None]:
+def _actuation(loaded: MujocoModel) -> tuple[tuple[int, ...], np.ndarray, np.ndarray | None] | str:
     """The dofs the joint motors drive, the symmetric bound of each input, and ``None``, or,
     where motors drive fixed tendons, the moment arms ``(nu, nv)`` of the inputs: the driven
     dofs' unit rows, then the driven tendons' :attr:`~MujocoModel.tendon_moments` (in increasing
-    order).
+    order). Where generalized forces bounded symmetrically cannot express the motors, the reason
+    instead (:func:`scene` then drives them by their controls, as servos without a bias).
 
     The range of each motor's force is its control range times its gain, clipped to its force
     range, times its gear (MuJoCo's ``qfrc_actuator``); the ranges of the motors of one dof or
-    tendon add up, and a dof's are clipped to its ``actfrcrange`` (which a tendon's inputs cannot
-    be: refused where a tendon motor moves such a dof).
+    tendon add up, and a dof's are clipped to its ``actfrcrange``. Not expressible: a range not
+    symmetric about 0 (a gripper's ``ctrlrange="0 255"``), and a tendon motor that moves a dof
+    whose total actuator force is bounded (the bound is on a sum of inputs, not on each).
     """
     ctrl = np.asarray(loaded.actuator_ctrl_range, dtype=np.float64).reshape(-1, 2)
     force = np.asarray(loaded.actuator_force_range, dtype=np.float64).reshape(-1, 2)
@@ -242,35 +244,30 @@ def _actuation(loaded: MujocoModel) -> tuple[tuple[int, ...], np.ndarray, np.nda
         low, high = max(low, clip[0]), min(high, clip[1])
         if not (np.isclose(low, -high, rtol=1e-9, atol=1e-12) and high > 0):
             names = ", ".join(repr(loaded.actuator_names[a]) for a in motors)
-            raise ValueError(
-                f"actuator {names}: the generalized force it can apply ranges over [{low}, {high}], not a range "
-                "symmetric about 0 of positive width; the system's inputs are generalized forces bounded symmetrically "
-                "(set symmetric ctrlrange/forcerange/actfrcrange, or leave them unlimited)"
-            )
+            return f"actuator {names} applies a generalized force in [{low}, {high}], not a range symmetric about 0"
         return high
 
     dofs = tuple(sorted(set(loaded.actuator_dofs) - {-1}))
     limits = [bound([a for a, d in enumerate(loaded.actuator_dofs) if d == dof], dof_range[dof]) for dof in dofs]
     tendons = tuple(sorted(set(loaded.actuator_tendons) - {-1}))
-    if not tendons:
-        return dofs, np.asarray(limits, dtype=np.float64), None
     tendon_moments = np.asarray(loaded.tendon_moments, dtype=np.float64)
     for tendon in tendons:
         motors = [a for a, t in enumerate(loaded.actuator_tendons) if t == tendon]
         bounded = [d for d in np.flatnonzero(tendon_moments[tendon]) if np.any(np.isfinite(dof_range[d]))]
-        if bounded:
-            raise ValueError(
-                f"actuator {loaded.actuator_names[motors[0]]!r} drives tendon {loaded.tendon_names[tendon]!r}, which moves "
-                f"dof {int(bounded[0])}, whose total actuator force is bounded (actfrcrange): rsmooth bounds each input, "
-                "not a dof's sum of inputs along tendons (leave the joint's actuatorfrcrange unlimited)"
-            )
-        limits.append(bound(motors))
-    moments = np.concatenate([np.eye(loaded.model.nv)[list(dofs)], tendon_moments[list(tendons)]])
+        limits.append(
+            f"actuator {loaded.actuator_names[motors[0]]!r} drives tendon {loaded.tendon_names[tendon]!r}, which moves "
+            f"dof {int(bounded[0])}, whose total actuator force is bounded (actfrcrange)" if bounded else bound(motors)
+        )
+    reasons = [limit for limit in limits if isinstance(limit, str)]
+    if reasons:
+        return "; ".join(reasons)
+    moments = np.concatenate([np.eye(loaded.model.nv)[list(dofs)], tendon_moments[list(tendons)]]) if tendons else None
     return dofs, np.asarray(limits, dtype=np.float64), moments
 
 
 def _servo_actuation(loaded: MujocoModel) -> Actuation:
-    """Every actuator of a model with servos, driven by its control (:class:`~rsmooth.sim.Servos`):
+    """Every actuator of a model with servos (or with motors that :func:`_actuation` cannot
+    express), driven by its control (:class:`~rsmooth.sim.Servos`; a motor is one without bias):
     lengths on rsmooth's coordinates (MuJoCo's ``qpos`` less ``qpos0`` on hinges and slides, the
     only joints actuators drive)."""
     lengths = np.asarray(loaded.actuator_lengths, dtype=np.float64)
@@ -335,7 +332,11 @@ def scene(
     (:attr:`~rsmooth.sim.Actuation.moments`). Each is bounded by what the motors of its dof or
     tendon can apply, ``+inf`` where unlimited. A model with servos (position or velocity
     actuators: an actuator bias) has the actuation ``"servos"`` instead: ``u`` holds MuJoCo's
-    controls of all its actuators, in MuJoCo's order (:class:`~rsmooth.sim.Servos`).
+    controls of all its actuators, in MuJoCo's order (:class:`~rsmooth.sim.Servos`); so does a
+    model whose motors symmetric bounds on generalized forces cannot express (a control or force
+    range not symmetric about 0, such as a gripper's ``ctrlrange="0 255"``, or a tendon motor
+    moving a dof whose total actuator force is bounded), each motor a servo without a bias
+    (MuJoCo's ``qfrc_actuator`` exactly, clipped as MuJoCo clips it).
     ``initial_state()`` is MuJoCo's ``qpos0`` (the configuration the file describes) at rest.
 
     The limits of limited hinges and slides are enforced as MuJoCo does, as hard constraints
@@ -519,8 +520,9 @@ def scene(
             raise ValueError(f"max_contacts must be a positive integer, None or 'auto', got {max_contacts!r}")
         moving = {loaded.geom_joints[g] for pair in kept for g in pair if loaded.geom_joints[g] != 0}
         max_contacts = automatic_contact_budget(sum(pair.size for pair in pairs), len(moving))
-    servos = bool(loaded.servo_actuators)
-    dofs, limits, moments = ((), np.zeros(0), None) if servos else _actuation(loaded)
+    motors = None if loaded.servo_actuators else _actuation(loaded)
+    servos = motors is None or isinstance(motors, str)
+    dofs, limits, moments = ((), np.zeros(0), None) if servos else motors
     model = loaded.model
     system = geom_pair_system(
         model,
@@ -535,7 +537,7 @@ def scene(
     )
     if moments is not None:  # motors on tendons: each input along its moment arms
         system = dataclasses.replace(system, actuation=Actuation("moments", device_array(limits), moments=device_array(moments)))
-    if servos:  # u: MuJoCo's controls of every actuator
+    if servos:  # u: MuJoCo's controls of every actuator (servos, or motors that bounds on forces cannot express)
         system = dataclasses.replace(system, actuation=_servo_actuation(loaded))
     system = system.with_contact_budget(max_contacts, max_pairs, max_limits).with_options(max_correction_speed=max_correction_speed)
     system = system.with_joint_friction(np.asarray(loaded.frictionloss))

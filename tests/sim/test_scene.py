@@ -169,8 +169,15 @@ def test_actuation_and_bad_input_are_named():
     assert float(arm.time_step) == 0.002  # MuJoCo's default
     blob = sim.scene(ARM.format(extra='<geom name="blob" type="ellipsoid" size="0.1 0.2 0.1"/>', low=-1))
     assert any(isinstance(pair.shape2, sim.Ellipsoid) for pair in blob.geometry.geom_pairs)
-    with pytest.raises(ValueError, match=r"actuator 'motor'.*\[0.0, 2.0\].*symmetric"):
-        sim.scene(ARM.format(extra="", low=0))
+    # a force range of [0, 2]: no symmetric bound on the hinge's force expresses it, so u is
+    # the motor's control (a servo without a bias), clipped to [0, 1] as MuJoCo clips it
+    one_sided = sim.scene(ARM.format(extra="", low=0))
+    assert one_sided.actuation.kind == "servos" and one_sided.nu == 1
+    q, v = one_sided.split(one_sided.initial_state())
+    for ctrl, force in ((0.5, 1.0), (-0.5, 0.0), (3.0, 2.0)):
+        tau, clipped = one_sided.generalized_forces(q, jnp.array([ctrl]), None, v)
+        np.testing.assert_allclose(tau, [force], rtol=1e-15)
+        assert bool(clipped) == (not 0.0 <= ctrl <= 1.0)
     for argument, value in (("time_step", 0.0), ("friction", -0.1), ("margin", -1.0)):
         with pytest.raises(ValueError, match=argument):
             sim.scene(ARM.format(extra="", low=-1), **{argument: value})

@@ -90,6 +90,21 @@ def test_a_position_servo_holds_its_target_offset_by_gravity():
     assert not bool(jnp.any(infos.torque_clipped))
 
 
+def test_a_one_sided_motor_lifts_a_slide_as_mujocos_euler_integrator(mujoco_and_rsmooth_trajectories):
+    """A motor whose control range is [0, 1] (it can only push up): no symmetric bound on the
+    slide's force expresses it, so u is its control. Beyond the range it is clipped: a control
+    of 1.5 lifts with the force of 1 (14 N against 9.81 N of weight), as in MuJoCo."""
+    text = """<mujoco><option timestep="0.005"/><worldbody><body><joint name="z" type="slide" axis="0 0 1"/>
+      <geom type="sphere" size="0.05" mass="1" contype="0" conaffinity="0"/></body></worldbody>
+      <actuator><motor joint="z" gear="14" ctrlrange="0 1" ctrllimited="true"/></actuator></mujoco>"""
+    system, loaded, xs, expected = mujoco_and_rsmooth_trajectories(text, None, np.zeros(1), 100, ctrl=[1.5], u=[1.5])
+    assert system.actuation.kind == "servos"
+    np.testing.assert_allclose(np.asarray(xs)[1:, :1], expected, rtol=0, atol=1e-12)
+    # semi-implicit Euler under the clipped force: z_n = a h^2 n (n + 1) / 2
+    n, h = np.arange(1, 101), 0.005
+    np.testing.assert_allclose(expected[:, 0], (14.0 - 9.81) * h**2 * n * (n + 1) / 2, rtol=1e-9)
+
+
 def test_unsupported_actuators_are_refused_by_name():
     with pytest.raises(ValueError, match="actuator 'slow' is not supported: it has activation dynamics"):
         sim.load_mjcf(ARM.replace('<velocity name="slider"', '<position name="slow" timeconst="0.1"'))

@@ -203,14 +203,25 @@ def test_what_rsmooth_does_not_model_of_tendons_is_refused_by_name(text, message
         sim.load_mjcf(text)
 
 
-def test_a_tendon_motor_on_a_dof_with_a_bounded_total_force_is_refused_by_name():
+def test_a_tendon_motor_on_a_dof_with_a_bounded_total_force_is_driven_by_its_control():
+    """The dof's bound is on the sum of the motors' forces along it, which bounds on each input
+    cannot express: the motors are driven by their controls and the sum clipped, as MuJoCo does."""
     text = _tendon_model(
         FIXED.format(""), joint_extra='actuatorfrcrange="-1 1" actuatorfrclimited="true"',
-        actuator='<motor name="m" tendon="t"/>',
+        actuator='<motor name="m" tendon="t" gear="3"/><motor name="n" joint="j1"/>',
     )
-    loaded = sim.load_mjcf(text)  # converted: MuJoCo's forces are ctrl_to_tau's
-    with pytest.raises(ValueError, match="actuator 'm' drives tendon 't', which moves dof 0"):
-        sim.scene(loaded)
+    system = sim.scene(text)
+    assert system.actuation.kind == "servos" and system.nu == 2
+    m = mujoco.MjModel.from_xml_string(text)
+    d = mujoco.MjData(m)
+    forces = jax.jit(lambda q, v, u: system.generalized_forces(q, u, None, v)[0])
+    loaded = sim.load_mjcf(text)
+    for ctrl in ([0.2, 0.0], [1.0, -0.5], [-2.0, 4.0]):  # the first within dof 0's bound, then beyond it
+        d.ctrl[:] = ctrl
+        mujoco.mj_forward(m, d)
+        q, v = loaded.qpos_to_q(jnp.asarray(d.qpos)), jnp.asarray(d.qvel)
+        np.testing.assert_allclose(forces(q, v, jnp.asarray(ctrl)), d.qfrc_actuator, rtol=1e-12, atol=1e-12)
+    assert abs(d.qfrc_actuator[0]) == 1.0  # clipped at dof 0's bound
 
 
 def test_moment_arms_of_the_wrong_shape_are_refused():
