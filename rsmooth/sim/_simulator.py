@@ -2157,11 +2157,15 @@ class RigidBodySystem(eqx.Module):
         ] + [jnp.full(pair.size, pair.friction, self.geometry.friction.dtype) for pair in self.geometry.geom_pairs]
           + [jnp.zeros(self.num_limits, self.geometry.friction.dtype)])
 
-    def _velocity_update(self, q: Array, v: Array, u: Array, warm_start) -> _VelocityUpdate:
+    def _velocity_update(self, q: Array, v: Array, u: Array, warm_start, geometry=None) -> _VelocityUpdate:
         """The velocity update of one step (stages 1 to 4, :mod:`._stages`) and the quantities
-        its derivative reuses."""
-        posed = _stages.kinematics(self, q)
-        contacts = _stages.collision(self, q, posed)
+        its derivative reuses; ``geometry``: stages 1 and 2 at ``q`` where already computed,
+        ``(kinematics, contacts)``."""
+        if geometry is None:
+            posed = _stages.kinematics(self, q)
+            contacts = _stages.collision(self, q, posed)
+        else:
+            posed, contacts = geometry
         motion = _stages.free_motion(self, q, v, u, posed)
         solution = _stages.solve_contacts(self, motion, contacts, warm_start)
         return _VelocityUpdate(
@@ -2481,17 +2485,42 @@ def _step_and_jacobians(system: RigidBodySystem, q: Array, v: Array, u: Array) -
     derivatives of the step's equations with respect to ``q``, ``v`` and ``u`` (closed forms
     for ``q`` and ``v`` where :mod:`._derivatives` supports the system)."""
     model, h = system.model, system.time_step
-    update = system._velocity_update(q, v, u, None)
+    closed_form = _derivatives.supported(system)
+    if closed_form:
+        update = system._velocity_update(q, v, u, None)
+    else:
+        # The kinematics and the contacts linearized once: the update takes their primal
+        # values, the configuration pass their tangents, so that the traced graph holds the
+        # collision (and its GJK loops) once rather than again inside a forward-mode pass.
+        def geometry_of(q_):
+            kinematics = _stages.kinematics(system, q_)
+            distance, frames, jacobian = system.contacts(q_, kinematics)
+            return kinematics, distance, frames, jacobian
+
+        (kinematics, distance, frames, jacobian), geometry_tangent = jax.linearize(geometry_of, q)
+        contacts = _stages.ContactGeometry(distance, frames, jacobian, system.contact_friction(), system.joint_rows(q))
+        update = system._velocity_update(q, v, u, None, (kinematics, contacts))
     residuals = _step_residuals(update)
     # v and u do not enter the kinematics: their passes reuse the update's primal geometry,
     # so the traced graph (and the compile time of every solver built on it) holds it once.
     geometry = (update.kinematics, update.inertias, update.distance, update.jacobian)
-    if _derivatives.supported(system):
+    if closed_form:
         # closed forms over the configuration tangent and the velocity, plus one forward-mode
         # tangent per free flyer along its quaternion's radial direction
         by_q, by_v = _derivatives.configuration_jacobian(system, update, residuals, q, v, u)
     else:
-        by_q = jax.jacfwd(lambda q_: residuals(system, q_, v, u)[:2])(q)
+
+        def along(dq):
+            d_kinematics, d_distance, _, d_jacobian = geometry_tangent(dq)
+
+            def equations(q_, kinematics_, distance_, jacobian_):
+                inertias = _dynamics._world_inertias(model, kinematics_)
+                return residuals(system, q_, v, u, (kinematics_, inertias, distance_, jacobian_))[:2]
+
+            primals = (q, kinematics, distance, jacobian)
+            return jax.jvp(equations, primals, (dq, d_kinematics, d_distance, d_jacobian))[1]
+
+        by_q = jax.vmap(along, out_axes=-1)(jnp.eye(model.nq, dtype=q.dtype))
         by_v = jax.jacfwd(lambda v_: residuals(system, q, v_, u, geometry)[:2])(v)
     by_u = jax.jacfwd(lambda u_: residuals(system, q, v, u_, geometry)[:2])(u)
     momentum_dot, velocity_dot = (jnp.concatenate(parts, axis=1) for parts in zip(by_q, by_v, by_u))
