@@ -542,7 +542,6 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
         ("neq", "equality constraints other than joint couplings, connections and welds (distance, flex)",
          mj.mjtObj.mjOBJ_EQUALITY),
         ("nflex", "flexible bodies (flex)", mj.mjtObj.mjOBJ_FLEX),
-        ("nskin", "skins", mj.mjtObj.mjOBJ_SKIN),
         ("nplugin", "plugins", mj.mjtObj.mjOBJ_PLUGIN),
     ]
     # equality constraints MuJoCo does not enforce (the equality or constraint flag disabled) are left alone
@@ -555,6 +554,14 @@ def _reject_unsupported(mj: Any, m: Any) -> None:
             first = mj.mj_id2name(m, kind, others[0] if attribute == "neq" else 0)
             named = f" (the first is {first!r})" if first else ""
             raise ValueError(f"MuJoCo model has {count} {what}{named}, which rsmooth.sim does not support")
+    if m.nskin:
+        # A skin is a mesh MuJoCo's renderer deforms with the bodies it is bound to: no mass, no
+        # collision, nothing in the dynamics. rsmooth's animations draw the geoms instead.
+        skins = [mj.mj_id2name(m, mj.mjtObj.mjOBJ_SKIN, k) or f"#{k}" for k in range(m.nskin)]
+        warnings.warn(
+            f"MuJoCo model: skins {skins} are left out (visual only: they do not act in the physics, and rsmooth's "
+            "renderer draws the geoms instead)", MujocoLoadWarning, stacklevel=3,
+        )
     mocap = [body_names[b] for b in range(m.nbody) if m.body_mocapid[b] >= 0]
     if mocap:
         # A mocap body moves only where a program writes its pose into MuJoCo's data; rsmooth's
@@ -801,7 +808,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
             armature, equality constraints
             other than joint couplings, equalities of one fixed tendon on at most two joints,
             connections and welds,
-            flex, skins, plugins, gravity compensation through actuators, the ellipsoid fluid model, colliding
+            flex, plugins, gravity compensation through actuators, the ellipsoid fluid model, colliding
             height fields or SDFs, actuators other than direct motors on a hinge, a slide or a
             fixed tendon, and on a free
             joint's linear axes an armature (MuJoCo applies it to the world-axes acceleration)
@@ -809,7 +816,8 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
             axes).
 
     Warns:
-        MujocoLoadWarning: for mocap bodies, which are held fixed at their poses in the model.
+        MujocoLoadWarning: for mocap bodies, which are held fixed at their poses in the model,
+            and for skins, which are left out (visual only).
     """
     mj = _mujoco()
     if not isinstance(mj_model, mj.MjModel):

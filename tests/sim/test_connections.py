@@ -1,8 +1,8 @@
 """Connect and weld equalities (`sim.PointConnection`, `sim.Weld`: MuJoCo's `<equality><connect>`
 and `<weld>`): their errors and rows equal MuJoCo's, a closed loop moves as its one degree of
 freedom allows and swings at a physical pendulum's period, a hung or welded box rests on its
-weight, welded bodies fall as one, mocap bodies are held fixed, and what is not modelled is
-refused by name."""
+weight, welded bodies fall as one, mocap bodies are held fixed, skins (visual only) are left
+out, and what is not modelled is refused by name."""
 
 import equinox as eqx
 import jax
@@ -291,3 +291,19 @@ def test_mocap_bodies_are_held_fixed_with_a_warning():
     # the ball rests on the table's top (0.55 m) at its radius; the box hangs from the handle
     np.testing.assert_allclose(float(xs[-1, 2]), 0.55 + 0.1, atol=1e-6)
     np.testing.assert_allclose(np.asarray(xs[-1, 7:10]), [1.0, 0.0, 0.9], atol=1e-9)
+
+
+SKINNED = """<mujoco><worldbody><geom type="plane" size="1 1 0.1"/>
+  <body name="ball" pos="0 0 0.1"><freejoint/><geom size="0.1"/></body></worldbody>
+  <deformable><skin name="cover" vertex="0 0 0  0.1 0 0  0 0.1 0" face="0 1 2">
+    <bone body="ball" bindpos="0 0 0" bindquat="1 0 0 0" vertid="0 1 2" vertweight="1 1 1"/></skin></deformable>
+</mujoco>"""
+
+
+def test_skins_are_left_out_with_a_warning_and_change_nothing():
+    with pytest.warns(sim.MujocoLoadWarning, match=r"skins \['cover'\] are left out"):
+        skinned = sim.load_mjcf(SKINNED)
+    plain = sim.load_mjcf(SKINNED[: SKINNED.index("<deformable>")] + "</mujoco>")
+    for ours, theirs in zip(jax.tree.leaves(skinned.model), jax.tree.leaves(plain.model), strict=True):
+        np.testing.assert_array_equal(np.asarray(ours), np.asarray(theirs))
+    assert skinned.ngeom == plain.ngeom
