@@ -214,12 +214,12 @@ def _floor_height(loaded: MujocoModel, geoms: list[int], q: jnp.ndarray) -> floa
     return min(heights)
 
 
-def _actuation(loaded: MujocoModel) -> tuple[tuple[int, ...], np.ndarray, np.ndarray | None] | str:
+def _actuation(loaded: MujocoModel) -> tuple[tuple[int, ...], np.ndarray, np.ndarray | None] | None:
     """The dofs the joint motors drive, the symmetric bound of each input, and ``None``, or,
     where motors drive fixed tendons, the moment arms ``(nu, nv)`` of the inputs: the driven
     dofs' unit rows, then the driven tendons' :attr:`~MujocoModel.tendon_moments` (in increasing
-    order). Where generalized forces bounded symmetrically cannot express the motors, the reason
-    instead (:func:`scene` then drives them by their controls, as servos without a bias).
+    order). ``None`` where generalized forces bounded symmetrically cannot express the motors
+    (:func:`scene` then drives them by their controls, as servos without a bias).
 
     The range of each motor's force is its control range times its gain, clipped to its force
     range, times its gear (MuJoCo's ``qfrc_actuator``); the ranges of the motors of one dof or
@@ -234,6 +234,7 @@ def _actuation(loaded: MujocoModel) -> tuple[tuple[int, ...], np.ndarray, np.nda
     dof_range = np.asarray(loaded.dof_actuator_force_range, dtype=np.float64).reshape(-1, 2)
 
     def bound(motors, clip=(-np.inf, np.inf)):
+        """The motors' symmetric bound, ``None`` where their range is not symmetric about 0."""
         low = high = 0.0
         for a in motors:
             # interval products; a zero gain or gear reaches nothing, even from an infinite range
@@ -242,25 +243,18 @@ def _actuation(loaded: MujocoModel) -> tuple[tuple[int, ...], np.ndarray, np.nda
             reach = np.sort(gear[a] * reach) if gear[a] != 0 else np.zeros(2)
             low, high = low + reach[0], high + reach[1]
         low, high = max(low, clip[0]), min(high, clip[1])
-        if not (np.isclose(low, -high, rtol=1e-9, atol=1e-12) and high > 0):
-            names = ", ".join(repr(loaded.actuator_names[a]) for a in motors)
-            return f"actuator {names} applies a generalized force in [{low}, {high}], not a range symmetric about 0"
-        return high
+        return high if np.isclose(low, -high, rtol=1e-9, atol=1e-12) and high > 0 else None
 
     dofs = tuple(sorted(set(loaded.actuator_dofs) - {-1}))
     limits = [bound([a for a, d in enumerate(loaded.actuator_dofs) if d == dof], dof_range[dof]) for dof in dofs]
     tendons = tuple(sorted(set(loaded.actuator_tendons) - {-1}))
     tendon_moments = np.asarray(loaded.tendon_moments, dtype=np.float64)
     for tendon in tendons:
-        motors = [a for a, t in enumerate(loaded.actuator_tendons) if t == tendon]
-        bounded = [d for d in np.flatnonzero(tendon_moments[tendon]) if np.any(np.isfinite(dof_range[d]))]
-        limits.append(
-            f"actuator {loaded.actuator_names[motors[0]]!r} drives tendon {loaded.tendon_names[tendon]!r}, which moves "
-            f"dof {int(bounded[0])}, whose total actuator force is bounded (actfrcrange)" if bounded else bound(motors)
-        )
-    reasons = [limit for limit in limits if isinstance(limit, str)]
-    if reasons:
-        return "; ".join(reasons)
+        moved = np.flatnonzero(tendon_moments[tendon])
+        bounded = np.any(np.isfinite(dof_range[moved]))
+        limits.append(None if bounded else bound([a for a, t in enumerate(loaded.actuator_tendons) if t == tendon]))
+    if any(limit is None for limit in limits):
+        return None
     moments = np.concatenate([np.eye(loaded.model.nv)[list(dofs)], tendon_moments[list(tendons)]]) if tendons else None
     return dofs, np.asarray(limits, dtype=np.float64), moments
 
@@ -521,7 +515,7 @@ def scene(
         moving = {loaded.geom_joints[g] for pair in kept for g in pair if loaded.geom_joints[g] != 0}
         max_contacts = automatic_contact_budget(sum(pair.size for pair in pairs), len(moving))
     motors = None if loaded.servo_actuators else _actuation(loaded)
-    servos = motors is None or isinstance(motors, str)
+    servos = motors is None
     dofs, limits, moments = ((), np.zeros(0), None) if servos else motors
     model = loaded.model
     system = geom_pair_system(
