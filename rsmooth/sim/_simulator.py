@@ -2494,11 +2494,9 @@ def _step_and_jacobians(system: RigidBodySystem, q: Array, v: Array, u: Array) -
         # collision (and its GJK loops) once rather than again inside a forward-mode pass.
         def geometry_of(q_):
             kinematics = _stages.kinematics(system, q_)
-            distance, frames, jacobian = system.contacts(q_, kinematics)
-            return kinematics, distance, frames, jacobian
+            return kinematics, _stages.collision(system, q_, kinematics)
 
-        (kinematics, distance, frames, jacobian), geometry_tangent = jax.linearize(geometry_of, q)
-        contacts = _stages.ContactGeometry(distance, frames, jacobian, system.contact_friction(), system.joint_rows(q))
+        (kinematics, contacts), geometry_tangent = jax.linearize(geometry_of, q)
         update = system._velocity_update(q, v, u, None, (kinematics, contacts))
     residuals = _step_residuals(update)
     # v and u do not enter the kinematics: their passes reuse the update's primal geometry,
@@ -2511,14 +2509,14 @@ def _step_and_jacobians(system: RigidBodySystem, q: Array, v: Array, u: Array) -
     else:
 
         def along(dq):
-            d_kinematics, d_distance, _, d_jacobian = geometry_tangent(dq)
+            d_kinematics, d_contacts = geometry_tangent(dq)
 
             def equations(q_, kinematics_, distance_, jacobian_):
                 inertias = _dynamics._world_inertias(model, kinematics_)
                 return residuals(system, q_, v, u, (kinematics_, inertias, distance_, jacobian_))[:2]
 
-            primals = (q, kinematics, distance, jacobian)
-            return jax.jvp(equations, primals, (dq, d_kinematics, d_distance, d_jacobian))[1]
+            primals = (q, kinematics, contacts.distance, contacts.jacobian)
+            return jax.jvp(equations, primals, (dq, d_kinematics, d_contacts.distance, d_contacts.jacobian))[1]
 
         by_q = jax.vmap(along, out_axes=-1)(jnp.eye(model.nq, dtype=q.dtype))
         by_v = jax.jacfwd(lambda v_: residuals(system, q, v_, u, geometry)[:2])(v)
