@@ -764,7 +764,7 @@ def _free_body_rotation(model: Model, v: jax.Array, dt: jax.Array) -> tuple[jax.
     joints = np.asarray(_lone_free_flyers(model), dtype=np.int32)
     if len(joints) == 0:
         return v, jnp.zeros_like(v)
-    angular = np.asarray(model.idx_v)[joints][:, None] + np.arange(3, 6)
+    angular = _joint_coordinates(model, joints, 7, 6)[1][:, 3:]
     omega, inertia = v[angular], model.body_inertia[joints]
 
     def rotate(omega, inertia):

@@ -531,7 +531,7 @@ def scene(
     )
     if moments is not None:  # motors on tendons: each input along its moment arms
         system = dataclasses.replace(system, actuation=Actuation("moments", device_array(limits), moments=device_array(moments)))
-    if servos:  # u: MuJoCo's controls of every actuator (servos, or motors that bounds on forces cannot express)
+    if servos:  # u: MuJoCo's controls of every actuator (servos, or motors that force bounds cannot express)
         system = dataclasses.replace(system, actuation=_servo_actuation(loaded))
     system = system.with_contact_budget(max_contacts, max_pairs, max_limits).with_options(max_correction_speed=max_correction_speed)
     system = system.with_joint_friction(np.asarray(loaded.frictionloss))
