@@ -205,9 +205,14 @@ class _Backward(NamedTuple):
 
 def map_nodes(function: Callable, inputs, batch_size: int | None):
     """``function`` over the leading (node) axis of ``inputs``: ``batch_size`` nodes at a time
-    (`lax.map`, vmapped within a batch), or all at once with `vmap` when ``batch_size`` is None."""
+    (`lax.map`, vmapped within a batch; a plain scan for one node at a time), or all at once
+    with `vmap` when ``batch_size`` is None."""
     if batch_size is None:
         return jax.vmap(function)(*inputs)
+    if batch_size == 1:
+        # unbatched: under vmap, conditionals and loops (the contact solve's) take batched
+        # predicates, both branches of a cond run, and the program is larger and slower to build
+        return lax.map(lambda args: function(*args), inputs)
     return lax.map(lambda args: function(*args), inputs, batch_size=batch_size)
 
 

@@ -2115,22 +2115,7 @@ class RigidBodySystem(eqx.Module):
                 ``equinox`` runtime error with the same message).
         """
         x, u = self._check(x, u)
-        q, v = self.split(x)
-        if isinstance(self.contact, str) and self.derivative == "implicit":
-            v_next, impulse, distance, ncp, clipped, contact = _implicit_velocity_update(self, q, v, u, warm_start)
-        else:
-            update = self._velocity_update(q, v, u, warm_start)
-            v_next, impulse, distance, ncp, clipped, contact = update.public()
-        q_next, v_next = _stages.advance(self, q, v_next)
-        x_next = jnp.concatenate([q_next, v_next])
-        diverged = ~jnp.all(jnp.isfinite(x_next)) | ~(jnp.max(jnp.abs(v_next), initial=0.0) * self.time_step <= self.max_motion_per_step)
-        frames, velocity, dropped, joint_impulse = lax.stop_gradient(contact)
-        force, mode = self._contact_diagnostics(impulse, frames, velocity)
-        info = StepInfo(
-            distance=distance, impulse=impulse, ncp=ncp, torque_clipped=clipped, diverged=diverged, force=force,
-            mode=mode, dropped_contacts=dropped, skipped_pairs=self.skipped_pairs(q), joint_impulse=joint_impulse,
-        )
-        return x_next, info
+        return _step_with_info(self, x, u, warm_start)
 
     def _contact_diagnostics(self, impulse: Array, frames: Array, velocity: Array) -> tuple[Array, Array]:
         """World-frame contact forces ``(n, 3)`` and contact modes ``(n,)`` (:class:`StepInfo`)."""
@@ -2356,6 +2341,30 @@ def _check_concrete(name, value, positive=False, allow_inf=False) -> None:
         raise ValueError(f"{name} must be {bound}{'' if allow_inf else ' and finite'}, got {array}")
 
 
+# Jitted, a nested jit inside its callers' programs, so that a program that steps a system in
+# several places (a rollout, DDP's forward pass beside its Jacobians) traces the step once:
+# JAX keeps a jitted function's trace for arguments of the same structure and shapes.
+@eqx.filter_jit
+def _step_with_info(system: RigidBodySystem, x: Array, u: Array, warm_start) -> tuple[Array, StepInfo]:
+    """:meth:`RigidBodySystem.step_with_info` after its checks."""
+    q, v = system.split(x)
+    if isinstance(system.contact, str) and system.derivative == "implicit":
+        v_next, impulse, distance, ncp, clipped, contact = _implicit_velocity_update(system, q, v, u, warm_start)
+    else:
+        update = system._velocity_update(q, v, u, warm_start)
+        v_next, impulse, distance, ncp, clipped, contact = update.public()
+    q_next, v_next = _stages.advance(system, q, v_next)
+    x_next = jnp.concatenate([q_next, v_next])
+    diverged = ~jnp.all(jnp.isfinite(x_next)) | ~(jnp.max(jnp.abs(v_next), initial=0.0) * system.time_step <= system.max_motion_per_step)
+    frames, velocity, dropped, joint_impulse = lax.stop_gradient(contact)
+    force, mode = system._contact_diagnostics(impulse, frames, velocity)
+    info = StepInfo(
+        distance=distance, impulse=impulse, ncp=ncp, torque_clipped=clipped, diverged=diverged, force=force,
+        mode=mode, dropped_contacts=dropped, skipped_pairs=system.skipped_pairs(q), joint_impulse=joint_impulse,
+    )
+    return x_next, info
+
+
 @eqx.filter_custom_jvp
 def _implicit_velocity_update(system: RigidBodySystem, q: Array, v: Array, u: Array, warm_start):
     """``(v_next, impulse, distance, ncp, clipped)`` of a hard-contact step, with the
@@ -2480,6 +2489,7 @@ def _velocity_update_tangent(
     return v_next_dot, impulse_dot
 
 
+@eqx.filter_jit  # (see _step_with_info)
 def _step_and_jacobians(system: RigidBodySystem, q: Array, v: Array, u: Array) -> tuple[Array, Array, Array]:
     """``(x_next, f_x, f_u)`` of a hard-contact step by the implicit rule, with separate
     derivatives of the step's equations with respect to ``q``, ``v`` and ``u`` (closed forms
