@@ -110,6 +110,7 @@ from rsmooth.sim._simulator import (
     Fluid as Fluid,
     GravityCompensation as GravityCompensation,
     Servos as Servos,
+    ActivationDynamics as ActivationDynamics,
     Joints as Joints,
     Options as Options,
     RigidBodySystem as RigidBodySystem,

@@ -4,7 +4,8 @@ MuJoCo compiles the file (defaults, ``fromto``, mesh inertia, angle units...) in
 ``mujoco.MjModel``; :func:`from_mujoco` converts that into rsmooth's :class:`~rsmooth.sim.Model`
 (the kinematic tree, inertias, limits, armature, gravity) plus what the tree does not hold: the
 joint damping, springs and dry friction, the time step, the actuators (motors, and position and
-velocity servos: a fixed gain and an affine bias), the fluid (MuJoCo's inertia-box model), and
+velocity servos: a fixed gain and an affine bias; their activation dynamics, integrators and
+filters, :attr:`MujocoModel.activation_dynamics`), the fluid (MuJoCo's inertia-box model), and
 the collision geometry as plain data. The conversion is checked once on the host and refuses, by name, what
 rsmooth's dynamics do not model (as MJX's ``put_model`` does), instead of simulating something
 else silently. Joint equalities (a URDF ``<mimic>``) are converted
@@ -68,7 +69,9 @@ from rsmooth._xla import device_array
 from rsmooth.sim import _spatial as spatial
 from rsmooth.sim._model import FREE_FLYER, PRISMATIC, REVOLUTE, SPHERICAL, UNIVERSE, Model
 from rsmooth.sim._geometry import HeightField
-from rsmooth.sim._simulator import Fluid, GravityCompensation, JointCoupling, PointConnection, Tendons, Weld
+from rsmooth.sim._simulator import (
+    ActivationDynamics, Fluid, GravityCompensation, JointCoupling, PointConnection, Tendons, Weld,
+)
 
 # The geom types a collision routine may meet; SDFs are accepted only when they cannot collide
 # (purely visual), so that geom indices stay MuJoCo's.
@@ -197,6 +200,8 @@ class MujocoModel(eqx.Module):
             unlimited.
         dof_actuator_force_range: ``(nv, 2)``, range of the total actuator force on each dof
             (``jnt_actfrcrange``), ``[-inf, inf]`` where unlimited.
+        activation_dynamics: the actuators with a state (``dyntype`` integrator, filter or
+            filterexact; :class:`~rsmooth.sim.ActivationDynamics`), ``None`` where none has one.
         qpos0: ``(nq,)``, MuJoCo's reference configuration on hinges and slides (zero
             elsewhere), subtracted from ``qpos`` to give ``q``.
         default_qpos: ``(nq,)``, MuJoCo's ``qpos0`` in full: the configuration the file
@@ -260,6 +265,7 @@ class MujocoModel(eqx.Module):
     free_joint_qpos: tuple[int, ...] = eqx.field(static=True)
     free_joint_qvel: tuple[int, ...] = eqx.field(static=True)
     ball_joint_qpos: tuple[int, ...] = eqx.field(static=True, default=())
+    activation_dynamics: ActivationDynamics | None = None
 
     @property
     def ngeom(self) -> int:
@@ -270,6 +276,11 @@ class MujocoModel(eqx.Module):
     def nu(self) -> int:
         """Number of actuators (controls)."""
         return len(self.actuator_names)
+
+    @property
+    def na(self) -> int:
+        """Number of actuator states (MuJoCo's ``na``)."""
+        return 0 if self.activation_dynamics is None else self.activation_dynamics.na
 
     def _check(self, name: str, value: ArrayLike, size: int) -> jax.Array:
         value = jnp.asarray(value)
@@ -427,9 +438,11 @@ class MujocoModel(eqx.Module):
             velocity = velocity.at[..., adr_v : adr_v + 3].set(linear)
         return velocity
 
-    def ctrl_to_tau(self, ctrl: ArrayLike, qpos: ArrayLike | None = None, qvel: ArrayLike | None = None) -> jax.Array:
+    def ctrl_to_tau(self, ctrl: ArrayLike, qpos: ArrayLike | None = None, qvel: ArrayLike | None = None,
+                    act: ArrayLike | None = None) -> jax.Array:
         """Generalized force of the actuators, as MuJoCo computes ``qfrc_actuator``: the control
-        clipped to its range, times the gain, plus the bias in the actuator's length and
+        clipped to its range (or the actuator's state ``act``, or its next state where
+        ``actearly``, for actuators with activation dynamics), times the gain, plus the bias in the actuator's length and
         velocity at ``(qpos, qvel)`` (servos), clipped to the force range, along the
         actuator's moment arms (its gear times its joint's dof or its tendon's moments), summed
         per dof and clipped to the dof's actuator force range.
@@ -441,18 +454,28 @@ class MujocoModel(eqx.Module):
             ctrl: shape ``(..., nu)``.
             qpos: MuJoCo's configuration ``(..., nq)``; needed where an actuator has a bias.
             qvel: MuJoCo's velocity ``(..., nv)``; likewise.
+            act: MuJoCo's actuator states ``(..., na)``; needed where an actuator has activation
+                dynamics.
 
         Returns:
             ``tau``, shape ``(..., nv)``.
 
         Raises:
-            ValueError: if an actuator has a bias and ``qpos`` or ``qvel`` is missing.
+            ValueError: if an actuator has a bias and ``qpos`` or ``qvel`` is missing, or
+                activation dynamics and ``act`` is missing.
         """
         ctrl = self._check("ctrl", ctrl, self.nu)
         def like(values, target):  # explicit broadcasting over the batch dimensions
             return jnp.broadcast_to(values, target.shape)
 
         ctrl = jnp.clip(ctrl, like(self.actuator_ctrl_range[:, 0], ctrl), like(self.actuator_ctrl_range[:, 1], ctrl))
+        if self.activation_dynamics is not None:
+            if act is None:
+                raise ValueError("ctrl_to_tau: the model's actuators have activation dynamics, whose force needs act")
+            act = self._check("act", act, self.na)
+            inputs = jax.vmap(lambda a, c: self.activation_dynamics.inputs(a, c, jnp.asarray(self.timestep, c.dtype)))
+            shape = ctrl.shape
+            ctrl = inputs(jnp.broadcast_to(act, shape[:-1] + act.shape[-1:]).reshape(-1, self.na), ctrl.reshape(-1, self.nu)).reshape(shape)
         force = like(self.actuator_gain, ctrl) * ctrl
         if self.servo_actuators:
             if qpos is None or qvel is None:
@@ -746,11 +769,39 @@ def _fluid(m: Any) -> Fluid | None:
     )
 
 
+def _dynamics_kinds(mj: Any) -> dict[int, str | None]:
+    """MuJoCo's ``dyntype`` values that rsmooth models: none, and :class:`ActivationDynamics`' kinds."""
+    return {int(getattr(mj.mjtDyn, f"mjDYN_{kind.upper()}")): kind for kind in ("integrator", "filter", "filterexact")} | {
+        int(mj.mjtDyn.mjDYN_NONE): None
+    }
+
+
+def _activation_dynamics(mj: Any, m: Any) -> ActivationDynamics | None:
+    """The actuators with a state (checked by :func:`_check_actuators`), in MuJoCo's order of ``act``."""
+    kinds = _dynamics_kinds(mj)
+    actuators = [a for a in range(m.nu) if kinds[int(m.actuator_dyntype[a])] is not None]
+    if not actuators:
+        return None
+    if [int(m.actuator_actadr[a]) for a in actuators] != list(range(len(actuators))):  # pragma: no cover - MuJoCo's layout
+        raise ValueError(f"MuJoCo model: unexpected actuator state addresses {np.asarray(m.actuator_actadr)}")
+    act_range = np.asarray(m.actuator_actrange, dtype=np.float64)[actuators].reshape(-1, 2).copy()
+    act_range[~np.asarray(m.actuator_actlimited, dtype=bool)[actuators]] = (-np.inf, np.inf)
+    return ActivationDynamics(
+        actuators=tuple(actuators),
+        kinds=tuple(kinds[int(m.actuator_dyntype[a])] for a in actuators),
+        early=tuple(bool(m.actuator_actearly[a]) for a in actuators),
+        # MuJoCo's time constant is at least mjMINVAL (an integrator's is not read)
+        time_constant=_array(np.maximum(np.asarray(m.actuator_dynprm[actuators, 0], dtype=np.float64), 1e-15)),
+        act_range=_array(act_range).reshape(-1, 2),
+    )
+
+
 def _check_actuators(mj: Any, m: Any, joint_names: tuple[str, ...]) -> None:
     names = _names(m, "actuator", m.nu)
     supported = (
         "supported: motors, position and velocity servos (<motor>, <position>, <velocity>, or <general> with gaintype "
-        "fixed, biastype none or affine, dyntype none) driving one hinge or slide joint or a fixed tendon"
+        "fixed, biastype none or affine, dyntype none, integrator, filter or filterexact) driving one hinge or slide "
+        "joint or a fixed tendon"
     )
     for a in range(m.nu):
         problem = None
@@ -765,8 +816,10 @@ def _check_actuators(mj: Any, m: Any, joint_names: tuple[str, ...]) -> None:
             problem = f"its bias type is {mj.mjtBias(m.actuator_biastype[a]).name.removeprefix('mjBIAS_').lower()}"
         elif int(m.actuator_gaintype[a]) != int(mj.mjtGain.mjGAIN_FIXED):
             problem = f"its gain type is {mj.mjtGain(m.actuator_gaintype[a]).name.removeprefix('mjGAIN_').lower()}"
-        elif int(m.actuator_dyntype[a]) != int(mj.mjtDyn.mjDYN_NONE):
-            problem = f"it has activation dynamics ({mj.mjtDyn(m.actuator_dyntype[a]).name.removeprefix('mjDYN_').lower()})"
+        elif int(m.actuator_dyntype[a]) not in _dynamics_kinds(mj):
+            problem = f"it has activation dynamics {mj.mjtDyn(m.actuator_dyntype[a]).name.removeprefix('mjDYN_').lower()}"
+        elif int(m.actuator_dyntype[a]) != int(mj.mjtDyn.mjDYN_NONE) and int(m.actuator_actnum[a]) != 1:
+            problem = f"it has {int(m.actuator_actnum[a])} activation states"
         elif m.actuator_damping[a] != 0 or m.actuator_armature[a] != 0 or np.any(m.actuator_dampingpoly[a] != 0):
             problem = "it has actuator damping or armature"
         elif m.actuator_delay[a] != 0 or m.actuator_plugin[a] >= 0:
@@ -809,8 +862,9 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
             other than joint couplings, equalities of one fixed tendon on at most two joints,
             connections and welds,
             flex, plugins, gravity compensation through actuators, the ellipsoid fluid model, colliding
-            height fields or SDFs, actuators other than direct motors on a hinge, a slide or a
-            fixed tendon, and on a free
+            height fields or SDFs, actuators other than motors and servos (a fixed gain, an
+            affine bias, activation dynamics none, integrator, filter or filterexact) on a
+            hinge, a slide or a fixed tendon, and on a free
             joint's linear axes an armature (MuJoCo applies it to the world-axes acceleration)
             or a damping that differs between the three axes (it would not be diagonal in body
             axes).
@@ -1020,6 +1074,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
         free_joint_qpos=tuple(free_qpos),
         free_joint_qvel=tuple(free_qvel),
         ball_joint_qpos=tuple(ball_qpos),
+        activation_dynamics=_activation_dynamics(mj, m),
     )
 
 

@@ -277,6 +277,7 @@ def _servo_actuation(loaded: MujocoModel) -> Actuation:
             ctrl_range=loaded.actuator_ctrl_range,
             force_range=loaded.actuator_force_range,
             dof_force_range=loaded.dof_actuator_force_range,
+            dynamics=loaded.activation_dynamics,
         ),
     )
 
@@ -330,8 +331,11 @@ def scene(
     model whose motors symmetric bounds on generalized forces cannot express (a control or force
     range not symmetric about 0, such as a gripper's ``ctrlrange="0 255"``, or a tendon motor
     moving a dof whose total actuator force is bounded), each motor a servo without a bias
-    (MuJoCo's ``qfrc_actuator`` exactly, clipped as MuJoCo clips it).
-    ``initial_state()`` is MuJoCo's ``qpos0`` (the configuration the file describes) at rest.
+    (MuJoCo's ``qfrc_actuator`` exactly, clipped as MuJoCo clips it), and a model whose
+    actuators have activation dynamics (``dyntype`` integrator, filter, filterexact: their
+    states end the state, ``x = [q, v, act]``, :class:`~rsmooth.sim.ActivationDynamics`).
+    ``initial_state()`` is MuJoCo's ``qpos0`` (the configuration the file describes) at rest
+    (and zero actuator states, as MuJoCo's reset).
 
     The limits of limited hinges and slides are enforced as MuJoCo does, as hard constraints
     here (:meth:`~rsmooth.sim.RigidBodySystem.with_joint_limits`). MuJoCo's disable flags are
@@ -514,7 +518,7 @@ def scene(
             raise ValueError(f"max_contacts must be a positive integer, None or 'auto', got {max_contacts!r}")
         moving = {loaded.geom_joints[g] for pair in kept for g in pair if loaded.geom_joints[g] != 0}
         max_contacts = automatic_contact_budget(sum(pair.size for pair in pairs), len(moving))
-    motors = None if loaded.servo_actuators else _actuation(loaded)
+    motors = None if loaded.servo_actuators or loaded.na else _actuation(loaded)
     servos = motors is None
     dofs, limits, moments = ((), np.zeros(0), None) if servos else motors
     model = loaded.model

@@ -842,6 +842,80 @@ class Geometry(eqx.Module):
         return len(self.sphere_frames) * self.plane_normals.shape[0] + sum(pair.size for pair in self.geom_pairs)
 
 
+_ACTIVATION_KINDS = ("integrator", "filter", "filterexact")
+
+
+class ActivationDynamics(eqx.Module):
+    """MuJoCo's activation dynamics: a state ``act`` for each actuator that has one, which its
+    force takes in place of its control (:class:`Servos`). With ``c`` the actuator's control
+    (clipped to its range), ``h`` the time step and ``tau`` its time constant, one step is
+
+    - ``"integrator"``: ``act+ = act + h c``;
+    - ``"filter"``: ``act+ = act + h (c - act) / tau`` (MuJoCo's explicit Euler update);
+    - ``"filterexact"``: ``act+ = act + (c - act) (1 - exp(-h / tau))`` (exact for a constant
+      control);
+
+    then clipped to ``act_range``. The force of the step takes ``act``, or ``act+`` where the
+    actuator is ``early`` (MuJoCo's ``actearly``: no step of delay between control and force).
+    The states follow the positions and velocities in the system's state, ``x = [q, v, act]``.
+
+    Attributes:
+        actuators: the actuators with a state, in increasing order (indices into the inputs;
+            static).
+        kinds: each one's dynamics, ``"integrator"``, ``"filter"`` or ``"filterexact"`` (static).
+        early: each one's force takes the next state (static).
+        time_constant: ``(na,)``, ``tau > 0`` (read by the filters).
+        act_range: ``(na, 2)``, ``[-inf, inf]`` where unlimited.
+    """
+
+    actuators: tuple[int, ...] = eqx.field(static=True)
+    kinds: tuple[str, ...] = eqx.field(static=True)
+    early: tuple[bool, ...] = eqx.field(static=True)
+    time_constant: Array
+    act_range: Array
+
+    def __check_init__(self):
+        na = len(self.actuators)
+        if list(self.actuators) != sorted(set(self.actuators)) or any(a < 0 for a in self.actuators):
+            raise ValueError(f"ActivationDynamics.actuators must be distinct non-negative indices in increasing order, got {self.actuators}")
+        if len(self.kinds) != na or any(kind not in _ACTIVATION_KINDS for kind in self.kinds):
+            raise ValueError(f"ActivationDynamics.kinds must hold one of {_ACTIVATION_KINDS} per actuator, got {self.kinds}")
+        if len(self.early) != na or not all(isinstance(e, bool) for e in self.early):
+            raise ValueError(f"ActivationDynamics.early must hold one bool per actuator, got {self.early}")
+        if jnp.shape(self.time_constant) != (na,):
+            raise ValueError(f"ActivationDynamics.time_constant must have shape ({na},), got {jnp.shape(self.time_constant)}")
+        if jnp.shape(self.act_range) != (na, 2):
+            raise ValueError(f"ActivationDynamics.act_range must have shape ({na}, 2), got {jnp.shape(self.act_range)}")
+        _check_concrete("ActivationDynamics.time_constant", self.time_constant, positive=True)
+        if not _checks.is_traced(self.act_range):
+            bounds = np.asarray(self.act_range)
+            if np.any(np.isnan(bounds)) or not np.all(bounds[:, 0] <= bounds[:, 1]):
+                raise ValueError(f"ActivationDynamics.act_range must hold lower <= upper, got {bounds}")
+
+    @property
+    def na(self) -> int:
+        """Number of states."""
+        return len(self.actuators)
+
+    def next(self, act: Array, ctrl: Array, time_step: Array) -> Array:
+        """``act+`` ``(na,)`` from the states ``act`` and every actuator's clipped control ``ctrl`` ``(nu,)``."""
+        dtype = act.dtype
+        target = ctrl[np.asarray(self.actuators, dtype=np.int64)]
+        tau = self.time_constant.astype(dtype)
+        h = time_step.astype(dtype)
+        kinds = np.asarray(self.kinds)
+        gap = target - act
+        change = jnp.where(jnp.asarray(kinds == "integrator"), h * target,
+                           jnp.where(jnp.asarray(kinds == "filterexact"), -gap * jnp.expm1(-h / tau), h * gap / tau))
+        return jnp.clip(act + change, self.act_range[:, 0].astype(dtype), self.act_range[:, 1].astype(dtype))
+
+    def inputs(self, act: Array, ctrl: Array, time_step: Array) -> Array:
+        """What every actuator's force takes ``(nu,)``: its clipped control ``ctrl``, or its
+        state (``act``, or ``act+`` where ``early``)."""
+        taken = jnp.where(jnp.asarray(self.early), self.next(act, ctrl, time_step), act)
+        return ctrl.at[np.asarray(self.actuators, dtype=np.int64)].set(taken)
+
+
 class Servos(eqx.Module):
     """MuJoCo's actuators of fixed gain and affine bias, as :class:`Actuation` kind
     ``"servos"`` drives them: input ``a`` (MuJoCo's control) along its moment arms ``m_a``
@@ -855,7 +929,8 @@ class Servos(eqx.Module):
     velocity servo ``(0, 0, -kv)`` with ``gain = kv``. The generalized force ``sum_a f_a m_a``
     is clipped per dof to ``dof_force_range`` (MuJoCo's ``actuatorfrcrange``). Explicit in the
     step, as in MuJoCo's Euler integrator (a stiff servo, ``h^2 kp / m`` or ``h kv / m`` of order
-    1, makes the step unstable, as there).
+    1, makes the step unstable, as there). Where an actuator has activation dynamics
+    (``dynamics``), its force takes its state in place of ``clip(u_a, ctrl_range_a)``.
 
     Attributes:
         gain: ``(nu,)``.
@@ -865,6 +940,7 @@ class Servos(eqx.Module):
         ctrl_range: ``(nu, 2)``, ``[-inf, inf]`` where unlimited.
         force_range: ``(nu, 2)``, likewise.
         dof_force_range: ``(nv, 2)``, likewise.
+        dynamics: the actuators' states (:class:`ActivationDynamics`), or ``None``.
     """
 
     gain: Array
@@ -874,9 +950,12 @@ class Servos(eqx.Module):
     ctrl_range: Array
     force_range: Array
     dof_force_range: Array
+    dynamics: ActivationDynamics | None = None
 
     def __check_init__(self):
         count = jnp.shape(self.gain)[0] if jnp.ndim(self.gain) == 1 else -1
+        if self.dynamics is not None and (not isinstance(self.dynamics, ActivationDynamics) or any(a >= count for a in self.dynamics.actuators)):
+            raise ValueError(f"Servos.dynamics must be an ActivationDynamics of actuators below {count}, got {self.dynamics!r}")
         for name, shape in (("bias", (count, 3)), ("offsets", (count,)), ("ctrl_range", (count, 2)), ("force_range", (count, 2))):
             if jnp.shape(getattr(self, name)) != shape:
                 raise ValueError(f"Servos.{name} must have shape {shape}, got {jnp.shape(getattr(self, name))}")
@@ -893,18 +972,23 @@ class Servos(eqx.Module):
             if not _checks.is_traced(value) and not np.all(np.asarray(value)[:, 0] <= np.asarray(value)[:, 1]):
                 raise ValueError(f"Servos.{name} must hold lower <= upper, got {np.asarray(value)}")
 
-    def forces(self, moments: Array, q: Array, v: Array, u: Array) -> tuple[Array, Array]:
+    def forces(self, moments: Array, q: Array, v: Array, u: Array, time_step: Array | None = None) -> tuple[Array, Array]:
         """``(tau (nv,), clipped)``: the generalized force of controls ``u`` at ``(q, v)``, and
-        whether a control was beyond its range."""
+        whether a control was beyond its range. With :attr:`dynamics`, ``u`` holds the controls
+        ``(nu,)`` followed by the states ``(na,)`` (and ``time_step`` is needed for ``early``
+        actuators)."""
         dtype = q.dtype
-        ctrl = jnp.clip(u, self.ctrl_range[:, 0].astype(dtype), self.ctrl_range[:, 1].astype(dtype))
+        count = self.gain.shape[0]
+        controls = u[:count]
+        ctrl = jnp.clip(controls, self.ctrl_range[:, 0].astype(dtype), self.ctrl_range[:, 1].astype(dtype))
+        taken = ctrl if self.dynamics is None else self.dynamics.inputs(u[count:], ctrl, time_step)
         moments = moments.astype(dtype)
         length = self.lengths.astype(dtype) @ q + self.offsets.astype(dtype)
         bias = self.bias.astype(dtype)
-        force = self.gain.astype(dtype) * ctrl + bias[:, 0] + bias[:, 1] * length + bias[:, 2] * (moments @ v)
+        force = self.gain.astype(dtype) * taken + bias[:, 0] + bias[:, 1] * length + bias[:, 2] * (moments @ v)
         force = jnp.clip(force, self.force_range[:, 0].astype(dtype), self.force_range[:, 1].astype(dtype))
         tau = jnp.clip(moments.T @ force, self.dof_force_range[:, 0].astype(dtype), self.dof_force_range[:, 1].astype(dtype))
-        return tau, jnp.any(ctrl != u)
+        return tau, jnp.any(ctrl != controls)
 
 
 class Actuation(eqx.Module):
@@ -1239,8 +1323,19 @@ class RigidBodySystem(eqx.Module):
 
     @property
     def nx(self) -> int:
-        """State dimension ``nq + nv`` (``x = [q, v]``)."""
-        return self.model.nq + self.model.nv
+        """State dimension ``nq + nv + na`` (``x = [q, v, act]``; ``na = 0`` but for
+        actuators with activation dynamics)."""
+        return self.model.nq + self.model.nv + self.na
+
+    @property
+    def na(self) -> int:
+        """Number of actuator states (:class:`ActivationDynamics`), which end the state."""
+        dynamics = self._activation_dynamics
+        return 0 if dynamics is None else dynamics.na
+
+    @property
+    def _activation_dynamics(self) -> ActivationDynamics | None:
+        return self.actuation.servos.dynamics if self.actuation.servos is not None else None
 
     @property
     def nu(self) -> int:
@@ -1747,12 +1842,18 @@ class RigidBodySystem(eqx.Module):
         return jnp.concatenate([contacts, limit_rows])
 
     def split(self, x: ArrayLike) -> tuple[Array, Array]:
-        """``(q, v)`` from a state ``x`` of shape ``(..., nx)``."""
+        """``(q, v)`` from a state ``x`` of shape ``(..., nx)`` (:meth:`activations` gives the rest)."""
         x = jnp.asarray(x)
-        return x[..., : self.model.nq], x[..., self.model.nq :]
+        nq, nv = self.model.nq, self.model.nv
+        return x[..., :nq], x[..., nq : nq + nv]
 
-    def state(self, q: ArrayLike, v: ArrayLike | None = None) -> Array:
-        """The state ``[q, v]`` (``v = 0`` by default).
+    def activations(self, x: ArrayLike) -> Array:
+        """The actuator states ``act`` ``(..., na)`` of a state ``x`` (:class:`ActivationDynamics`)."""
+        return jnp.asarray(x)[..., self.model.nq + self.model.nv :]
+
+    def state(self, q: ArrayLike, v: ArrayLike | None = None, act: ArrayLike | None = None) -> Array:
+        """The state ``[q, v, act]`` (``v = 0`` and ``act = 0`` by default; ``act`` is empty
+        but for actuators with activation dynamics).
 
         A free flyer's velocity in ``v`` is ``[v_lin, omega]`` in its body axes (Pinocchio's
         ``LOCAL`` twist): for a body at rotation ``R`` moving at world velocity ``u`` and
@@ -1760,7 +1861,10 @@ class RigidBodySystem(eqx.Module):
         """
         q = jnp.asarray(q)
         v = jnp.zeros(q.shape[:-1] + (self.model.nv,), q.dtype) if v is None else jnp.asarray(v)
-        return jnp.concatenate([q, v], axis=-1)
+        act = jnp.zeros(q.shape[:-1] + (self.na,), q.dtype) if act is None else jnp.asarray(act)
+        if act.shape[-1:] != (self.na,):
+            raise ValueError(f"act must have shape (..., na) = (..., {self.na}), got {act.shape}")
+        return jnp.concatenate([q, v, act], axis=-1)
 
     def initial_state(self) -> Array:
         """The state the system starts from: :attr:`initial_configuration` at zero velocity.
@@ -1815,7 +1919,8 @@ class RigidBodySystem(eqx.Module):
     def _check(self, x: ArrayLike, u: ArrayLike) -> tuple[Array, Array]:
         x, u = jnp.asarray(x), jnp.asarray(u)
         if x.shape != (self.nx,):
-            raise ValueError(f"x must have shape (nx,) = ({self.nx},) as [q (nq={self.model.nq}), v], got {x.shape}")
+            layout = f"[q (nq={self.model.nq}), v (nv={self.model.nv})" + (f", act (na={self.na})]" if self.na else "]")
+            raise ValueError(f"x must have shape (nx,) = ({self.nx},) as {layout}, got {x.shape}")
         if u.shape != (self.nu,):
             raise ValueError(f"u must have shape (nu,) = ({self.nu},), got {u.shape}")
         dtype = jnp.result_type(x, u, float)
@@ -1830,7 +1935,7 @@ class RigidBodySystem(eqx.Module):
         if self.actuation.kind == "servos":
             if v is None:
                 raise ValueError("servos' forces depend on the velocity: pass v")
-            return self.actuation.servos.forces(self.actuation.moments, q, v, u)
+            return self.actuation.servos.forces(self.actuation.moments, q, v, u, self.time_step)
         limited = jnp.clip(u, -self.actuation.input_limit, self.actuation.input_limit)
         clipped = jnp.any(limited != u)
         if self.actuation.kind == "joints":
@@ -2102,7 +2207,7 @@ class RigidBodySystem(eqx.Module):
         """One time step and its diagnostics.
 
         Args:
-            x: state ``[q, v]``, shape ``(nx,)``.
+            x: state ``[q, v, act]``, shape ``(nx,)``.
             u: input, shape ``(nu,)``.
             warm_start: contact impulses to start the NCP solver from, ``(3 n,)`` (e.g. the
                 previous step's ``info.impulse``); hard contact only.
@@ -2116,6 +2221,20 @@ class RigidBodySystem(eqx.Module):
         """
         x, u = self._check(x, u)
         return _step_with_info(self, x, u, warm_start)
+
+    def _drive(self, u: Array, x: Array) -> Array:
+        """The input of the velocity update: ``u``, followed by the actuator states where there
+        are some (:meth:`Servos.forces`), so that its derivatives in the input hold theirs."""
+        return jnp.concatenate([u, self.activations(x)]) if self.na else u
+
+    def _next_activations(self, act: Array, drive: Array) -> Array:
+        """The actuator states of the next step ``(na,)`` (:class:`ActivationDynamics`)."""
+        dynamics = self._activation_dynamics
+        if dynamics is None:
+            return act
+        servos, dtype = self.actuation.servos, act.dtype
+        ctrl = jnp.clip(drive[: self.nu], servos.ctrl_range[:, 0].astype(dtype), servos.ctrl_range[:, 1].astype(dtype))
+        return dynamics.next(act, ctrl, self.time_step)
 
     def _contact_diagnostics(self, impulse: Array, frames: Array, velocity: Array) -> tuple[Array, Array]:
         """World-frame contact forces ``(n, 3)`` and contact modes ``(n,)`` (:class:`StepInfo`)."""
@@ -2196,7 +2315,18 @@ class RigidBodySystem(eqx.Module):
             fx, fu = jax.jacfwd(self.step, argnums=(0, 1))(x, u)
             return self.step(x, u), fx, fu
         q, v = self.split(x)
-        return _step_and_jacobians(self, q, v, u)
+        x_next, fx, f_drive = _step_and_jacobians(self, q, v, self._drive(u, x))
+        if not self.na:
+            return x_next, fx, f_drive
+        # The actuator states: their columns are the velocity update's through the forces (the
+        # drive's tail), their rows their own update's.
+        act = self.activations(x)
+        next_of = lambda a, c: self._next_activations(a, jnp.concatenate([c, a]))  # noqa: E731
+        by_act, by_u = jax.jacfwd(next_of, argnums=(0, 1))(act, u)
+        nu, na = self.nu, self.na
+        fx = jnp.block([[fx, f_drive[:, nu:]], [jnp.zeros((na, fx.shape[1]), fx.dtype), by_act]])
+        fu = jnp.concatenate([f_drive[:, :nu], by_u])
+        return jnp.concatenate([x_next, next_of(act, u)]), fx, fu
 
     def rollout(self, x0: ArrayLike, us: ArrayLike, feedback=None, *, throw: bool = False) -> tuple[Array, StepInfo]:
         """States ``(T + 1, nx)`` from ``x0`` under inputs ``us`` ``(T, nu)``, warm-starting
@@ -2256,7 +2386,7 @@ def step(system: RigidBodySystem, state: _stages.State, u: ArrayLike) -> tuple[_
     warm_start = state.impulse if isinstance(system.contact, str) else None
     x_next, info = system.step_with_info(state.x, u, warm_start=warm_start)
     q_next, v_next = system.split(x_next)
-    return _stages.State(q_next, v_next, info.impulse), info
+    return _stages.State(q_next, v_next, info.impulse, system.activations(x_next) if system.na else None), info
 
 
 _compose_batch = jax.vmap(spatial.compose)
@@ -2348,13 +2478,14 @@ def _check_concrete(name, value, positive=False, allow_inf=False) -> None:
 def _step_with_info(system: RigidBodySystem, x: Array, u: Array, warm_start) -> tuple[Array, StepInfo]:
     """:meth:`RigidBodySystem.step_with_info` after its checks."""
     q, v = system.split(x)
+    act, u = system.activations(x), system._drive(u, x)
     if isinstance(system.contact, str) and system.derivative == "implicit":
         v_next, impulse, distance, ncp, clipped, contact = _implicit_velocity_update(system, q, v, u, warm_start)
     else:
         update = system._velocity_update(q, v, u, warm_start)
         v_next, impulse, distance, ncp, clipped, contact = update.public()
     q_next, v_next = _stages.advance(system, q, v_next)
-    x_next = jnp.concatenate([q_next, v_next])
+    x_next = jnp.concatenate([q_next, v_next, system._next_activations(act, u)])
     diverged = ~jnp.all(jnp.isfinite(x_next)) | ~(jnp.max(jnp.abs(v_next), initial=0.0) * system.time_step <= system.max_motion_per_step)
     frames, velocity, dropped, joint_impulse = lax.stop_gradient(contact)
     force, mode = system._contact_diagnostics(impulse, frames, velocity)

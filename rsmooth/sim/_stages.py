@@ -53,20 +53,23 @@ class State(eqx.Module):
             iterations the solve takes, and its answer only where the contact problem has
             several solutions (e.g. a rigid finger whose friction can carry part of a sliding
             box's weight).
+        act: the actuator states ``(na,)`` (:class:`~rsmooth.sim.ActivationDynamics`), ``None``
+            for a system without any.
     """
 
     q: Array
     v: Array
     impulse: Array
+    act: Array | None = None
 
     @property
     def x(self) -> Array:
-        """The flat state ``[q, v]`` that ``step(x, u)`` and the optimizers use."""
-        return jnp.concatenate([self.q, self.v])
+        """The flat state ``[q, v, act]`` that ``step(x, u)`` and the optimizers use."""
+        return jnp.concatenate([self.q, self.v] + ([] if self.act is None else [self.act]))
 
 
 def make_state(system: RigidBodySystem, x: ArrayLike | None = None) -> State:
-    """The :class:`State` of `system` at ``x = [q, v]`` (default: the system's
+    """The :class:`State` of `system` at ``x = [q, v, act]`` (default: the system's
     :meth:`~RigidBodySystem.initial_state`), with zero impulses.
 
     Raises:
@@ -76,7 +79,8 @@ def make_state(system: RigidBodySystem, x: ArrayLike | None = None) -> State:
     if x.shape != (system.nx,):
         raise ValueError(f"x must have shape (nx,) = ({system.nx},), got {x.shape}")
     q, v = system.split(x)
-    return State(q, v, jnp.zeros(3 * system.num_contacts, jnp.result_type(x, float)))
+    act = system.activations(x) if system.na else None
+    return State(q, v, jnp.zeros(3 * system.num_contacts, jnp.result_type(x, float)), act)
 
 
 class ContactGeometry(eqx.Module):
@@ -170,7 +174,8 @@ def collision(system: RigidBodySystem, q: Array, kinematics: Kinematics | None =
 
 def free_motion(system: RigidBodySystem, q: Array, v: Array, u: Array, kinematics: Kinematics | None = None) -> FreeMotion:
     """Stage 3: the step's velocity without contact, from the state ``(q, v)`` under input ``u``
-    (clipped to ``input_limit``; not checked here: :meth:`RigidBodySystem.step` checks it)."""
+    (clipped to ``input_limit``; not checked here: :meth:`RigidBodySystem.step` checks it),
+    followed by the actuator states ``act`` where the system has some (``(nu + na,)``)."""
     model, h = system.model, system.time_step
     if kinematics is None:
         kinematics = _dynamics._kinematics(model, q)
@@ -272,14 +277,15 @@ def step_stages(
     stage: ``(next state, kinematics, contacts, free motion, contact solution)``.
     :func:`~rsmooth.sim.step` gives the same next state with input checks, diagnostics and the
     whole step's implicit derivative."""
-    u = jnp.asarray(u)
+    u = system._drive(jnp.asarray(u), state.x)  # the input, then the actuator states where there are some
     warm_start = state.impulse if isinstance(system.contact, str) else None
     posed = kinematics(system, state.q)
     contacts = collision(system, state.q, posed)
     motion = free_motion(system, state.q, state.v, u, posed)
     solution = solve_contacts(system, motion, contacts, warm_start)
     q_next, v_next = advance(system, state.q, solution.velocity)
-    return State(q_next, v_next, solution.impulse), posed, contacts, motion, solution
+    act_next = None if state.act is None else system._next_activations(state.act, u)
+    return State(q_next, v_next, solution.impulse, act_next), posed, contacts, motion, solution
 
 
 def compliant_impulse(law, distance: Array, free_velocity: Array, delassus: Array, h: Array) -> Array:

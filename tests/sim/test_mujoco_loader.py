@@ -420,9 +420,9 @@ UNSUPPORTED = {
         wrap(HINGE_BODY, "<actuator><general name='a' site='s' gear='0 0 0 0 0 1'/></actuator>"),
         "actuator 'a' .*transmission is site",
     ),
-    "filter_actuator": (
-        wrap(HINGE_BODY, "<actuator><general name='a' joint='j' dyntype='filter'/></actuator>"),
-        "actuator 'a' .*activation dynamics",
+    "user_dynamics_actuator": (
+        wrap(HINGE_BODY, "<actuator><general name='a' joint='j' dyntype='user'/></actuator>"),
+        "actuator 'a' .*activation dynamics user",
     ),
     "free_motor": (
         wrap("<body><freejoint name='f'/><geom size='0.1'/></body>", "<actuator><motor name='a' joint='f' gear='1 0 0 0 0 0'/></actuator>"),

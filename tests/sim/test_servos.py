@@ -106,8 +106,9 @@ def test_a_one_sided_motor_lifts_a_slide_as_mujocos_euler_integrator(mujoco_and_
 
 
 def test_unsupported_actuators_are_refused_by_name():
-    with pytest.raises(ValueError, match="actuator 'slow' is not supported: it has activation dynamics"):
-        sim.load_mjcf(ARM.replace('<velocity name="slider"', '<position name="slow" timeconst="0.1"'))
+    with pytest.raises(ValueError, match="actuator 'slow' is not supported: its gain type is affine"):
+        sim.load_mjcf(ARM.replace('<velocity name="slider" joint="s" kv="5"/>',
+                                  '<general name="slow" joint="s" gaintype="affine" gainprm="1 0 1"/>'))
     servos = sim.scene(ARM).actuation.servos
     with pytest.raises(ValueError, match=r"actuation servos \(a Servos\) are given with kind 'servos'"):
         sim.Actuation("joints", jnp.ones(1), dofs=(0,), servos=servos)
