@@ -14,7 +14,8 @@ Connect and weld equalities (closed kinematic loops, bodies held together) are c
 (:attr:`MujocoModel.connections`, :attr:`MujocoModel.welds`).
 Fixed tendons (lengths ``sum_i c_i qpos_i`` over hinges and slides) are converted for what
 drives or constrains them: motors on a tendon (:attr:`MujocoModel.tendon_moments`, the input's
-moment arms), equalities of one tendon on at most two joints (joint couplings) and the
+moment arms), equalities of one tendon (joint couplings on one or two joints, on more a row
+that holds its length, :attr:`Tendons.equalities`) and the
 tendon's linear spring, damper, dry friction and length limits (:attr:`MujocoModel.tendons`).
 Spatial tendons through sites (a polyline; no wrapping around geoms, no pulleys) are converted
 for their springs, dampers, dry friction and limits (a string); motors and equalities on them,
@@ -683,7 +684,10 @@ def _tendons(mj: Any, m: Any) -> Tendons | None:
     has any, or they are disabled): lengths in rsmooth's coordinates (MuJoCo's ``qpos`` less
     ``qpos0`` on hinges and slides), so ``L = lengths q + offsets`` is MuJoCo's ``ten_length``
     for a fixed tendon; a spatial tendon's path goes through its sites' frames. A spatial
-    tendon's lower limit at or below 0 is left out (its length cannot go below it)."""
+    tendon's lower limit at or below 0 is left out (its length cannot go below it). An active
+    equality of one fixed tendon on three or more joints holds it at ``L0 + c_0`` (MuJoCo's
+    ``L - L0 = c_0``, ``L0`` its length at ``qpos0``); on one or two joints it is a joint
+    coupling instead (:func:`_tendon_couplings`)."""
     stiffness = np.zeros(m.ntendon) if _disabled(mj, m, "SPRING") else np.asarray(m.tendon_stiffness, dtype=np.float64)
     damping = np.zeros(m.ntendon) if _disabled(mj, m, "DAMPER") else np.asarray(m.tendon_damping, dtype=np.float64)
     friction_off = _disabled(mj, m, "FRICTIONLOSS", "CONSTRAINT")
@@ -695,7 +699,11 @@ def _tendons(mj: Any, m: Any) -> Tendons | None:
             if not (_is_spatial(mj, m, t) and lower <= 0):
                 limits.append((int(t), 1))
             limits.append((int(t), -1))
-    if not (np.any(stiffness != 0) or np.any(damping != 0) or np.any(frictionloss != 0) or limits):
+    held = {} if _disabled(mj, m, "EQUALITY", "CONSTRAINT") else {
+        int(m.eq_obj1id[e]): float(m.tendon_length0[m.eq_obj1id[e]] + m.eq_data[e, 0])
+        for e in _tendon_equalities(mj, m) if m.eq_obj2id[e] < 0 and np.count_nonzero(_tendon_moments(m)[m.eq_obj1id[e]]) > 2
+    }
+    if not (np.any(stiffness != 0) or np.any(damping != 0) or np.any(frictionloss != 0) or limits or held):
         return None
     lengths = _tendon_moments(m, positions=True)
     spatial = [t for t in range(m.ntendon) if _is_spatial(mj, m, t)]
@@ -716,6 +724,8 @@ def _tendons(mj: Any, m: Any) -> Tendons | None:
             tuple(first_site + int(m.wrap_objid[w]) for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]))
             for t in spatial
         ),
+        equalities=tuple(sorted(held)),
+        equality_length=_array([held.get(t, 0.0) for t in range(m.ntendon)]) if held else None,
     )
 
 
@@ -859,7 +869,7 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
             frictionloss on a free joint's linear axes, nonlinear damping, a spatial tendon
             that wraps around a geom or has a pulley, a tendon's nonlinear spring or damping or
             armature, equality constraints
-            other than joint couplings, equalities of one fixed tendon on at most two joints,
+            other than joint couplings, equalities of one fixed tendon,
             connections and welds,
             flex, plugins, gravity compensation through actuators, the ellipsoid fluid model, colliding
             height fields or SDFs, actuators other than motors and servos (a fixed gain, an
@@ -1239,38 +1249,41 @@ def _welds(mj: Any, m: Any) -> Weld | None:
                 _array(scales))
 
 
+def _tendon_equalities(mj: Any, m: Any) -> list[int]:
+    """The active equalities of tendons."""
+    return [e for e in range(m.neq) if int(m.eq_type[e]) == int(mj.mjtEq.mjEQ_TENDON) and m.eq_active0[e]]
+
+
 def _tendon_couplings(mj: Any, m: Any) -> list[tuple[int, int, np.ndarray]]:
-    """The active equalities of one fixed tendon as joint couplings ``(joint, other,
-    coefficients)`` (rsmooth joints). MuJoCo's equation ``L - L0 = c_0``, ``L0`` the length at
-    ``qpos0``, is ``a q_a + b q_b = c_0`` in rsmooth's coordinates (MuJoCo's less ``qpos0``):
-    ``q_a = c_0 / a - (b / a) q_b`` (``b = 0``, other 0, for a tendon on one joint); grippers
-    hold their two fingers together so (dm_control's manipulator). Equalities between two tendons, and of a tendon
-    on more than two joints, are refused by name."""
+    """The active equalities of one fixed tendon on one or two joints as joint couplings
+    ``(joint, other, coefficients)`` (rsmooth joints). MuJoCo's equation ``L - L0 = c_0``, ``L0``
+    the length at ``qpos0``, is ``a q_a + b q_b = c_0`` in rsmooth's coordinates (MuJoCo's less
+    ``qpos0``): ``q_a = c_0 / a - (b / a) q_b`` (``b = 0``, other 0, for a tendon on one joint);
+    grippers hold their two fingers together so (dm_control's manipulator). A tendon on more
+    joints is held at its length by :attr:`Tendons.equalities` (:func:`_tendons`); equalities
+    between two tendons are refused by name."""
     couplings = []
     names, tendon_names = _names(m, "equality", m.neq), _names(m, "tendon", m.ntendon)
     moments = _tendon_moments(m)
     joint_of_dof = {int(m.jnt_dofadr[j]): j for j in range(m.njnt)}
-    for e in range(m.neq):
-        if int(m.eq_type[e]) != int(mj.mjtEq.mjEQ_TENDON) or not m.eq_active0[e]:
-            continue
+    for e in _tendon_equalities(mj, m):
         tendon = int(m.eq_obj1id[e])
         where = f"MuJoCo model: equality {names[e]!r} on tendon {tendon_names[tendon]!r}"
         if _is_spatial(mj, m, tendon):
             raise ValueError(
                 f"{where}: the tendon is spatial, which rsmooth.sim does not support in an equality (supported: an "
-                "equality of one fixed tendon on at most two joints)"
+                "equality of one fixed tendon)"
             )
         if m.eq_obj2id[e] >= 0:
             raise ValueError(
                 f"{where} couples it to a second tendon, which rsmooth.sim does not support (supported: an equality of "
-                "one fixed tendon on at most two joints)"
+                "one fixed tendon)"
             )
         dofs = np.flatnonzero(moments[tendon])
-        if not 1 <= len(dofs) <= 2:
-            raise ValueError(
-                f"{where}: the tendon has nonzero coefficients on {len(dofs)} joints; rsmooth.sim supports an equality "
-                "of one fixed tendon on one or two joints"
-            )
+        if not len(dofs):
+            raise ValueError(f"{where}: the tendon has no nonzero coefficient")
+        if len(dofs) > 2:
+            continue
         a = moments[tendon, dofs[0]]
         row = np.zeros(5)
         row[0] = m.eq_data[e, 0] / a

@@ -625,7 +625,10 @@ class Tendons(eqx.Module):
     (hard contact only; MuJoCo's friction loss is soft). A length limit is a frictionless
     contact along ``M_t`` (distance ``L_t - lower`` or ``upper - L_t``), solved with the
     contacts after the joint limits (hard contact only): a string that goes taut (dm_control's
-    ball in cup).
+    ball in cup). An equality holds the tendons ``equalities`` at the lengths
+    ``equality_length``: a bilateral box row along ``M_t`` with MuJoCo's other equalities'
+    correction (:meth:`RigidBodySystem.joint_rows`; hard contact only), e.g. a leg whose
+    joints move together (dm_control's quadruped).
 
     Attributes:
         lengths: ``(T, nq)``, each length's coefficients on the coordinates (zero rows for
@@ -645,6 +648,8 @@ class Tendons(eqx.Module):
         spatial: the spatial tendons (static, distinct indices).
         paths: for each of ``spatial``, the frames (names or indices of the model's frames,
             at least two) whose origins the tendon passes through, in order (static).
+        equalities: the tendons held at a length (static, distinct indices).
+        equality_length: ``(T,)``, their lengths, finite; read for ``equalities`` only.
     """
 
     lengths: Array
@@ -659,9 +664,19 @@ class Tendons(eqx.Module):
     limits: tuple[tuple[int, int], ...] = eqx.field(static=True, default=())
     spatial: tuple[int, ...] = eqx.field(static=True, default=())
     paths: tuple[tuple[str | int, ...], ...] = eqx.field(static=True, default=())
+    equalities: tuple[int, ...] = eqx.field(static=True, default=())
+    equality_length: Array | None = None
 
     def __check_init__(self):
         count = jnp.shape(self.offsets)[0] if jnp.ndim(self.offsets) == 1 else -1
+        if len(set(self.equalities)) != len(self.equalities) or not all(0 <= t < count for t in self.equalities):
+            raise ValueError(f"Tendons.equalities must be distinct tendon indices in [0, {count}), got {self.equalities!r}")
+        if self.equalities and (self.equality_length is None or jnp.shape(self.equality_length) != (count,)):
+            shape = None if self.equality_length is None else jnp.shape(self.equality_length)
+            raise ValueError(f"Tendons.equalities needs Tendons.equality_length of shape ({count},), got {shape}")
+        if self.equalities and not _checks.is_traced(self.equality_length):
+            if not np.all(np.isfinite(np.asarray(self.equality_length)[list(self.equalities)])):
+                raise ValueError("Tendons.equality_length must be finite for the tendons held at a length")
         if len(set(self.spatial)) != len(self.spatial) or not all(0 <= t < count for t in self.spatial):
             raise ValueError(f"Tendons.spatial must be distinct tendon indices in [0, {count}), got {self.spatial!r}")
         if len(self.paths) != len(self.spatial) or any(not isinstance(p, tuple) or len(p) < 2 for p in self.paths):
@@ -1218,10 +1233,12 @@ class RigidBodySystem(eqx.Module):
         _limit_rows(model, joints.limits)  # raises on a bad entry
         tendon_friction = joints.tendons is not None and bool(joints.tendons.frictional)
         tendon_limits = joints.tendons is not None and bool(joints.tendons.limits)
+        tendon_equalities = joints.tendons is not None and bool(joints.tendons.equalities)
         for name, present in (
             ("limits", joints.limits), ("friction", joints.friction), ("couplings", joints.couplings),
             ("connections", joints.connections), ("welds", joints.welds),
             ("tendons' friction", tendon_friction), ("tendons' limits", tendon_limits),
+            ("tendons' equalities", tendon_equalities),
         ):
             if present and not hard:
                 raise ValueError(f"joints.{name} are solved by the hard-contact NCP: use contact='hard'")
@@ -1438,8 +1455,8 @@ class RigidBodySystem(eqx.Module):
 
         Raises:
             ValueError: if ``tendons`` does not fit the model (its ``(T, nq)`` lengths,
-                ``(T, nv)`` moments and the frames of its spatial paths), or has limits or
-                dry friction under a compliant contact law.
+                ``(T, nv)`` moments and the frames of its spatial paths), or has limits, dry
+                friction or equalities under a compliant contact law.
         """
         return self._with_joints(tendons=tendons)
 
@@ -1651,33 +1668,41 @@ class RigidBodySystem(eqx.Module):
         """The joints' box rows of the contact problem at ``q``: :attr:`Joints.friction`'s, then
         :attr:`Joints.couplings`', then :attr:`Joints.connections`' (three per connection, world
         x, y, z), then :attr:`Joints.welds`' (six per weld: the points' gap, then the
-        orientation), then the dry friction of :attr:`Joints.tendons`, as ``(rows (m, nv),
-        correction (m,), bounds (m,))``: the row ``k`` constrains ``rows[k] v+ + correction[k]``
-        with the impulse bound ``bounds[k]`` (``effort h`` for friction, along a tendon its
-        moments; ``inf`` for a coupling, a connection or a weld, whose correction is
-        ``baumgarte e / h``); ``m = 0`` without any."""
+        orientation), then the dry friction of :attr:`Joints.tendons`, then their equalities, as
+        ``(rows (m, nv), correction (m,), bounds (m,))``: the row ``k`` constrains ``rows[k] v+ +
+        correction[k]`` with the impulse bound ``bounds[k]`` (``effort h`` for friction, along a
+        tendon its moments; ``inf`` for a coupling, a connection, a weld or a tendon's
+        equality, whose correction is ``baumgarte e / h`` for the error ``e``); ``m = 0``
+        without any."""
         dtype = q.dtype
         dofs = () if self.joints.friction is None else self.joints.friction.dofs
         friction = np.zeros((len(dofs), self.model.nv))
         friction[np.arange(len(dofs)), list(dofs)] = 1.0
         rows, correction = [jnp.asarray(friction, dtype)], [jnp.zeros(len(dofs), dtype)]
         bounds = [jnp.zeros(0, dtype) if self.joints.friction is None else self.time_step * self.joints.friction.effort]
-        for present, terms in ((self.joints.couplings, self._coupling_terms), (self.joints.connections, self._connection_terms),
-                               (self.joints.welds, self._weld_terms)):
-            if present is None:
-                continue
-            error, row = terms(q)
+        def held(error, row):
             error = error.reshape(-1)
             rows.append(row.reshape(error.shape[0], self.model.nv))
             limit = self.options.max_correction_speed
             speed = self.baumgarte * error / self.time_step
             correction.append(speed if limit == float("inf") else jnp.clip(speed, -limit, limit))
             bounds.append(jnp.full(error.shape[0], jnp.inf, dtype))
-        if self.joints.tendons is not None and self.joints.tendons.frictional:
-            frictional = np.asarray(self.joints.tendons.frictional, dtype=np.int64)
-            rows.append(self.tendon_moments(q)[frictional])
-            correction.append(jnp.zeros(frictional.size, dtype))
-            bounds.append(self.time_step * self.joints.tendons.frictionloss[frictional].astype(dtype))
+
+        for present, terms in ((self.joints.couplings, self._coupling_terms), (self.joints.connections, self._connection_terms),
+                               (self.joints.welds, self._weld_terms)):
+            if present is not None:
+                held(*terms(q))
+        tendons = self.joints.tendons
+        if tendons is not None and (tendons.frictional or tendons.equalities):
+            lengths, moments = self._tendon_geometry(q)
+            if tendons.frictional:
+                frictional = np.asarray(tendons.frictional, dtype=np.int64)
+                rows.append(moments[frictional])
+                correction.append(jnp.zeros(frictional.size, dtype))
+                bounds.append(self.time_step * tendons.frictionloss[frictional].astype(dtype))
+            if tendons.equalities:
+                equal = np.asarray(tendons.equalities, dtype=np.int64)
+                held(lengths[equal] - tendons.equality_length[equal].astype(dtype), moments[equal])
         return jnp.concatenate(rows), jnp.concatenate(correction), jnp.concatenate(bounds).astype(dtype)
 
     def coupling_errors(self, q: Array) -> Array:
