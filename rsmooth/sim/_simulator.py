@@ -50,7 +50,10 @@ The state is ``x = [q, v]`` in Pinocchio's conventions: a free flyer's configura
 ``[x, y, z, qx, qy, qz, qw]`` (position in the world, unit quaternion) and its velocity
 ``[v_lin, omega]`` is its body twist, *both in body axes*: the velocity of the body frame's
 origin and the angular velocity, expressed in the body frame (``R v_lin`` is the world
-velocity). Joint velocities are the joints' rates.
+velocity). Joint velocities are the joints' rates. Actuators with activation dynamics (MuJoCo's filters
+and integrators, :class:`ActivationDynamics`) add their states at the end,
+``x = [q, v, act]``, advanced by the step (its forces take the current states, or with
+``actearly`` the next ones).
 
 Derivatives of ``step`` (hard contact) come from the implicit function theorem applied to the
 whole velocity update, the momentum balance together with the NCP's natural map (see
