@@ -18,8 +18,9 @@ moment arms), equalities of one tendon (joint couplings on one or two joints, on
 that holds its length, :attr:`Tendons.equalities`) and the
 tendon's linear spring, damper, dry friction and length limits (:attr:`MujocoModel.tendons`).
 Spatial tendons through sites (a polyline; no wrapping around geoms, no pulleys) are converted
-for their springs, dampers, dry friction and limits (a string); motors and equalities on them,
-a tendon's armature and equalities between two tendons are refused by name.
+for their springs, dampers, dry friction, limits (a string) and equalities (a rod: the row
+that holds the length); motors on them, a tendon's armature and equalities between two tendons
+are refused by name.
 
 Joint mapping. Every MuJoCo joint becomes one rsmooth joint, in MuJoCo's order, so rsmooth
 joint ``j + 1`` is MuJoCo joint ``j`` and ``q``/``v`` have the layout of ``qpos``/``qvel``:
@@ -634,7 +635,7 @@ def _check_tendons(mj: Any, m: Any) -> None:
     names = _names(m, "tendon", m.ntendon)
     supported = (
         "supported: fixed tendons and spatial tendons through sites, with linear springs, dampers, dry friction and "
-        "length limits; motors and equalities of one tendon on fixed ones"
+        "length limits, equalities of one tendon; motors on fixed ones"
     )
     driven = {int(m.actuator_trnid[a, 0]) for a in range(m.nu) if int(m.actuator_trntype[a]) == int(mj.mjtTrn.mjTRN_TENDON)}
     for t in range(m.ntendon):
@@ -685,9 +686,9 @@ def _tendons(mj: Any, m: Any) -> Tendons | None:
     ``qpos0`` on hinges and slides), so ``L = lengths q + offsets`` is MuJoCo's ``ten_length``
     for a fixed tendon; a spatial tendon's path goes through its sites' frames. A spatial
     tendon's lower limit at or below 0 is left out (its length cannot go below it). An active
-    equality of one fixed tendon on three or more joints holds it at ``L0 + c_0`` (MuJoCo's
-    ``L - L0 = c_0``, ``L0`` its length at ``qpos0``); on one or two joints it is a joint
-    coupling instead (:func:`_tendon_couplings`)."""
+    equality of one spatial tendon, or of one fixed tendon on three or more joints, holds it at
+    ``L0 + c_0`` (MuJoCo's ``L - L0 = c_0``, ``L0`` its length at ``qpos0``); of a fixed tendon
+    on one or two joints it is a joint coupling instead (:func:`_tendon_couplings`)."""
     stiffness = np.zeros(m.ntendon) if _disabled(mj, m, "SPRING") else np.asarray(m.tendon_stiffness, dtype=np.float64)
     damping = np.zeros(m.ntendon) if _disabled(mj, m, "DAMPER") else np.asarray(m.tendon_damping, dtype=np.float64)
     friction_off = _disabled(mj, m, "FRICTIONLOSS", "CONSTRAINT")
@@ -701,7 +702,8 @@ def _tendons(mj: Any, m: Any) -> Tendons | None:
             limits.append((int(t), -1))
     held = {} if _disabled(mj, m, "EQUALITY", "CONSTRAINT") else {
         int(m.eq_obj1id[e]): float(m.tendon_length0[m.eq_obj1id[e]] + m.eq_data[e, 0])
-        for e in _tendon_equalities(mj, m) if m.eq_obj2id[e] < 0 and np.count_nonzero(_tendon_moments(m)[m.eq_obj1id[e]]) > 2
+        for e in _tendon_equalities(mj, m)
+        if m.eq_obj2id[e] < 0 and (_is_spatial(mj, m, m.eq_obj1id[e]) or np.count_nonzero(_tendon_moments(m)[m.eq_obj1id[e]]) > 2)
     }
     if not (np.any(stiffness != 0) or np.any(damping != 0) or np.any(frictionloss != 0) or limits or held):
         return None
@@ -1259,9 +1261,9 @@ def _tendon_couplings(mj: Any, m: Any) -> list[tuple[int, int, np.ndarray]]:
     ``(joint, other, coefficients)`` (rsmooth joints). MuJoCo's equation ``L - L0 = c_0``, ``L0``
     the length at ``qpos0``, is ``a q_a + b q_b = c_0`` in rsmooth's coordinates (MuJoCo's less
     ``qpos0``): ``q_a = c_0 / a - (b / a) q_b`` (``b = 0``, other 0, for a tendon on one joint);
-    grippers hold their two fingers together so (dm_control's manipulator). A tendon on more
-    joints is held at its length by :attr:`Tendons.equalities` (:func:`_tendons`); equalities
-    between two tendons are refused by name."""
+    grippers hold their two fingers together so (dm_control's manipulator). A fixed tendon on
+    more joints, or a spatial tendon, is held at its length by :attr:`Tendons.equalities`
+    (:func:`_tendons`); equalities between two tendons are refused by name."""
     couplings = []
     names, tendon_names = _names(m, "equality", m.neq), _names(m, "tendon", m.ntendon)
     moments = _tendon_moments(m)
@@ -1269,16 +1271,13 @@ def _tendon_couplings(mj: Any, m: Any) -> list[tuple[int, int, np.ndarray]]:
     for e in _tendon_equalities(mj, m):
         tendon = int(m.eq_obj1id[e])
         where = f"MuJoCo model: equality {names[e]!r} on tendon {tendon_names[tendon]!r}"
-        if _is_spatial(mj, m, tendon):
-            raise ValueError(
-                f"{where}: the tendon is spatial, which rsmooth.sim does not support in an equality (supported: an "
-                "equality of one fixed tendon)"
-            )
         if m.eq_obj2id[e] >= 0:
             raise ValueError(
                 f"{where} couples it to a second tendon, which rsmooth.sim does not support (supported: an equality of "
                 "one fixed tendon)"
             )
+        if _is_spatial(mj, m, tendon):
+            continue
         dofs = np.flatnonzero(moments[tendon])
         if not len(dofs):
             raise ValueError(f"{where}: the tendon has no nonzero coefficient")
