@@ -477,7 +477,8 @@ class MujocoModel(eqx.Module):
             act = self._check("act", act, self.na)
             inputs = jax.vmap(lambda a, c: self.activation_dynamics.inputs(a, c, jnp.asarray(self.timestep, c.dtype)))
             shape = ctrl.shape
-            ctrl = inputs(jnp.broadcast_to(act, shape[:-1] + act.shape[-1:]).reshape(-1, self.na), ctrl.reshape(-1, self.nu)).reshape(shape)
+            act = jnp.broadcast_to(act, shape[:-1] + act.shape[-1:]).reshape(-1, self.na)
+            ctrl = inputs(act, ctrl.reshape(-1, self.nu)).reshape(shape)
         force = like(self.actuator_gain, ctrl) * ctrl
         if self.servo_actuators:
             if qpos is None or qvel is None:
@@ -703,7 +704,8 @@ def _tendons(mj: Any, m: Any) -> Tendons | None:
     held = {} if _disabled(mj, m, "EQUALITY", "CONSTRAINT") else {
         int(m.eq_obj1id[e]): float(m.tendon_length0[m.eq_obj1id[e]] + m.eq_data[e, 0])
         for e in _tendon_equalities(mj, m)
-        if m.eq_obj2id[e] < 0 and (_is_spatial(mj, m, m.eq_obj1id[e]) or np.count_nonzero(_tendon_moments(m)[m.eq_obj1id[e]]) > 2)
+        if m.eq_obj2id[e] < 0
+        and (_is_spatial(mj, m, m.eq_obj1id[e]) or np.count_nonzero(_tendon_moments(m)[m.eq_obj1id[e]]) > 2)
     }
     if not (np.any(stiffness != 0) or np.any(damping != 0) or np.any(frictionloss != 0) or limits or held):
         return None

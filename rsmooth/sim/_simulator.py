@@ -895,7 +895,9 @@ class ActivationDynamics(eqx.Module):
     def __check_init__(self):
         na = len(self.actuators)
         if list(self.actuators) != sorted(set(self.actuators)) or any(a < 0 for a in self.actuators):
-            raise ValueError(f"ActivationDynamics.actuators must be distinct non-negative indices in increasing order, got {self.actuators}")
+            raise ValueError(
+                f"ActivationDynamics.actuators must be distinct non-negative indices in increasing order, got {self.actuators}"
+            )
         if len(self.kinds) != na or any(kind not in _ACTIVATION_KINDS for kind in self.kinds):
             raise ValueError(f"ActivationDynamics.kinds must hold one of {_ACTIVATION_KINDS} per actuator, got {self.kinds}")
         if len(self.early) != na or not all(isinstance(e, bool) for e in self.early):
@@ -972,7 +974,8 @@ class Servos(eqx.Module):
 
     def __check_init__(self):
         count = jnp.shape(self.gain)[0] if jnp.ndim(self.gain) == 1 else -1
-        if self.dynamics is not None and (not isinstance(self.dynamics, ActivationDynamics) or any(a >= count for a in self.dynamics.actuators)):
+        dynamics = self.dynamics
+        if dynamics is not None and (not isinstance(dynamics, ActivationDynamics) or any(a >= count for a in dynamics.actuators)):
             raise ValueError(f"Servos.dynamics must be an ActivationDynamics of actuators below {count}, got {self.dynamics!r}")
         for name, shape in (("bias", (count, 3)), ("offsets", (count,)), ("ctrl_range", (count, 2)), ("force_range", (count, 2))):
             if jnp.shape(getattr(self, name)) != shape:
