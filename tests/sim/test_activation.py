@@ -95,6 +95,9 @@ def test_step_jacobians_hold_the_states_columns_and_rows():
     np.testing.assert_allclose(fx, jnp.stack(columns, axis=1), rtol=0, atol=1e-7)
     columns = [(step(system, x, u + eps * e) - step(system, x, u - eps * e)) / (2 * eps) for e in jnp.eye(4)]
     np.testing.assert_allclose(fu, jnp.stack(columns, axis=1), rtol=0, atol=1e-7)
+    # the stages composed by hand carry the states too
+    state, *_ = sim.step_stages(system, sim.make_state(system, x), u)
+    np.testing.assert_allclose(state.x, x_next, rtol=0, atol=1e-12)
     # the filter's own row: act+ = act + h (c - act) / tau
     h, tau = 0.01, 0.05
     np.testing.assert_allclose(fx[4, 4], 1 - h / tau, rtol=1e-12)
