@@ -993,6 +993,11 @@ class Servos(eqx.Module):
             if not _checks.is_traced(value) and not np.all(np.asarray(value)[:, 0] <= np.asarray(value)[:, 1]):
                 raise ValueError(f"Servos.{name} must hold lower <= upper, got {np.asarray(value)}")
 
+    def clipped(self, u: Array) -> Array:
+        """The controls ``(nu,)`` at the head of ``u``, clipped to their ranges."""
+        dtype = u.dtype
+        return jnp.clip(u[: self.gain.shape[0]], self.ctrl_range[:, 0].astype(dtype), self.ctrl_range[:, 1].astype(dtype))
+
     def forces(self, moments: Array, q: Array, v: Array, u: Array, time_step: Array | None = None) -> tuple[Array, Array]:
         """``(tau (nv,), clipped)``: the generalized force of controls ``u`` at ``(q, v)``, and
         whether a control was beyond its range. With :attr:`dynamics`, ``u`` holds the controls
@@ -1000,8 +1005,7 @@ class Servos(eqx.Module):
         actuators)."""
         dtype = q.dtype
         count = self.gain.shape[0]
-        controls = u[:count]
-        ctrl = jnp.clip(controls, self.ctrl_range[:, 0].astype(dtype), self.ctrl_range[:, 1].astype(dtype))
+        controls, ctrl = u[:count], self.clipped(u)
         taken = ctrl if self.dynamics is None else self.dynamics.inputs(u[count:], ctrl, time_step)
         moments = moments.astype(dtype)
         length = self.lengths.astype(dtype) @ q + self.offsets.astype(dtype)
@@ -2263,9 +2267,7 @@ class RigidBodySystem(eqx.Module):
         dynamics = self._activation_dynamics
         if dynamics is None:
             return act
-        servos, dtype = self.actuation.servos, act.dtype
-        ctrl = jnp.clip(drive[: self.nu], servos.ctrl_range[:, 0].astype(dtype), servos.ctrl_range[:, 1].astype(dtype))
-        return dynamics.next(act, ctrl, self.time_step)
+        return dynamics.next(act, self.actuation.servos.clipped(drive), self.time_step)
 
     def _contact_diagnostics(self, impulse: Array, frames: Array, velocity: Array) -> tuple[Array, Array]:
         """World-frame contact forces ``(n, 3)`` and contact modes ``(n,)`` (:class:`StepInfo`)."""
