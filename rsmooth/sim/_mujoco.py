@@ -703,9 +703,7 @@ def _tendons(mj: Any, m: Any) -> Tendons | None:
             limits.append((int(t), -1))
     held = {} if _disabled(mj, m, "EQUALITY", "CONSTRAINT") else {
         int(m.eq_obj1id[e]): float(m.tendon_length0[m.eq_obj1id[e]] + m.eq_data[e, 0])
-        for e in _tendon_equalities(mj, m)
-        if m.eq_obj2id[e] < 0
-        and (_is_spatial(mj, m, m.eq_obj1id[e]) or np.count_nonzero(_tendon_moments(m)[m.eq_obj1id[e]]) > 2)
+        for e, as_row in _tendon_equalities(mj, m) if as_row and m.eq_obj2id[e] < 0
     }
     if not (np.any(stiffness != 0) or np.any(damping != 0) or np.any(frictionloss != 0) or limits or held):
         return None
@@ -817,6 +815,7 @@ def _check_actuators(mj: Any, m: Any, joint_names: tuple[str, ...]) -> None:
         "fixed, biastype none or affine, dyntype none, integrator, filter or filterexact) driving one hinge or slide "
         "joint or a fixed tendon"
     )
+    dynamics = _dynamics_kinds(mj)
     for a in range(m.nu):
         problem = None
         trntype = int(m.actuator_trntype[a])
@@ -830,7 +829,7 @@ def _check_actuators(mj: Any, m: Any, joint_names: tuple[str, ...]) -> None:
             problem = f"its bias type is {mj.mjtBias(m.actuator_biastype[a]).name.removeprefix('mjBIAS_').lower()}"
         elif int(m.actuator_gaintype[a]) != int(mj.mjtGain.mjGAIN_FIXED):
             problem = f"its gain type is {mj.mjtGain(m.actuator_gaintype[a]).name.removeprefix('mjGAIN_').lower()}"
-        elif int(m.actuator_dyntype[a]) not in _dynamics_kinds(mj):
+        elif int(m.actuator_dyntype[a]) not in dynamics:
             problem = f"it has activation dynamics {mj.mjtDyn(m.actuator_dyntype[a]).name.removeprefix('mjDYN_').lower()}"
         elif int(m.actuator_dyntype[a]) != int(mj.mjtDyn.mjDYN_NONE) and int(m.actuator_actnum[a]) != 1:
             problem = f"it has {int(m.actuator_actnum[a])} activation states"
@@ -1253,9 +1252,15 @@ def _welds(mj: Any, m: Any) -> Weld | None:
                 _array(scales))
 
 
-def _tendon_equalities(mj: Any, m: Any) -> list[int]:
-    """The active equalities of tendons."""
-    return [e for e in range(m.neq) if int(m.eq_type[e]) == int(mj.mjtEq.mjEQ_TENDON) and m.eq_active0[e]]
+def _tendon_equalities(mj: Any, m: Any) -> list[tuple[int, bool]]:
+    """The active equalities of tendons, each with whether it is a row that holds the tendon's
+    length (a spatial tendon, or a fixed one on three or more joints: :func:`_tendons`) rather
+    than a joint coupling (:func:`_tendon_couplings`)."""
+    moments = _tendon_moments(m)
+    return [
+        (e, _is_spatial(mj, m, m.eq_obj1id[e]) or np.count_nonzero(moments[m.eq_obj1id[e]]) > 2)
+        for e in range(m.neq) if int(m.eq_type[e]) == int(mj.mjtEq.mjEQ_TENDON) and m.eq_active0[e]
+    ]
 
 
 def _tendon_couplings(mj: Any, m: Any) -> list[tuple[int, int, np.ndarray]]:
@@ -1270,21 +1275,19 @@ def _tendon_couplings(mj: Any, m: Any) -> list[tuple[int, int, np.ndarray]]:
     names, tendon_names = _names(m, "equality", m.neq), _names(m, "tendon", m.ntendon)
     moments = _tendon_moments(m)
     joint_of_dof = {int(m.jnt_dofadr[j]): j for j in range(m.njnt)}
-    for e in _tendon_equalities(mj, m):
+    for e, as_row in _tendon_equalities(mj, m):
         tendon = int(m.eq_obj1id[e])
         where = f"MuJoCo model: equality {names[e]!r} on tendon {tendon_names[tendon]!r}"
         if m.eq_obj2id[e] >= 0:
             raise ValueError(
                 f"{where} couples it to a second tendon, which rsmooth.sim does not support (supported: an equality of "
-                "one fixed tendon)"
+                "one tendon)"
             )
-        if _is_spatial(mj, m, tendon):
+        if as_row:
             continue
         dofs = np.flatnonzero(moments[tendon])
         if not len(dofs):
             raise ValueError(f"{where}: the tendon has no nonzero coefficient")
-        if len(dofs) > 2:
-            continue
         a = moments[tendon, dofs[0]]
         row = np.zeros(5)
         row[0] = m.eq_data[e, 0] / a
