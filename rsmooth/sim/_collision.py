@@ -1062,11 +1062,11 @@ def _prism(top: Array, base: Array) -> ConvexMesh:
     )
 
 
-def _heightfield_prisms(field: HeightField, center: Array, reach: Array) -> ConvexMesh:
-    """The prisms ``(2 w_r w_c,)`` of the ``window`` x ``window`` cells (fewer on a smaller grid)
-    from the cell under the height field's local point ``center`` less ``reach`` (a shape's
-    bounding radius about it), clipped to the grid: MuJoCo's triangles, ``(c, r + 1), (c, r),
-    (c + 1, r + 1)`` and ``(c, r), (c + 1, r), (c + 1, r + 1)``."""
+def _heightfield_grid(field: HeightField, center: Array, reach: Array) -> Array:
+    """The grid points ``(w_r + 1, w_c + 1, 3)`` (local ``x``, ``y``, height) of the ``window`` x
+    ``window`` cells (fewer on a smaller grid) from the cell under the height field's local point
+    ``center`` less ``reach`` (a shape's bounding radius about it), clipped to the grid; rows
+    along ``y``, columns along ``x``."""
     rows, columns = field.heights.shape
     window_r, window_c = min(field.window, rows - 1), min(field.window, columns - 1)
     cell = field.cell
@@ -1076,12 +1076,44 @@ def _heightfield_prisms(field: HeightField, center: Array, reach: Array) -> Conv
     heights = lax.dynamic_slice(field.heights, (r0, c0), (window_r + 1, window_c + 1))
     xs = -field.half_size[0] + cell[0] * (c0 + jnp.arange(window_c + 1)).astype(cell.dtype)
     ys = -field.half_size[1] + cell[1] * (r0 + jnp.arange(window_r + 1)).astype(cell.dtype)
-    grid = jnp.stack(jnp.broadcast_arrays(xs[None, :], ys[:, None], heights), axis=-1)  # (rows, columns, 3)
+    return jnp.stack(jnp.broadcast_arrays(xs[None, :], ys[:, None], heights), axis=-1)
+
+
+def _heightfield_prisms(field: HeightField, center: Array, reach: Array) -> ConvexMesh:
+    """The prisms ``(2 w_r w_c,)`` of the cells of :func:`_heightfield_grid`: MuJoCo's
+    triangles, ``(c, r + 1), (c, r), (c + 1, r + 1)`` and ``(c, r), (c + 1, r), (c + 1, r + 1)``."""
+    grid = _heightfield_grid(field, center, reach)
     low, high = grid[:-1], grid[1:]  # row r, row r + 1
     a, b, c, d = high[:, :-1], low[:, :-1], high[:, 1:], low[:, 1:]  # (c, r+1), (c, r), (c+1, r+1), (c+1, r)
     # counter-clockwise seen from above: (b, d, c) and (b, c, a)
     triangles = jnp.concatenate([jnp.stack([b, c, a], axis=-2), jnp.stack([b, d, c], axis=-2)]).reshape(-1, 3, 3)
     return jax.vmap(lambda top: _prism(top, field.base))(triangles)
+
+
+def _terrain_under(field: HeightField, points: Array) -> tuple[Array, Array, Array]:
+    """The triangle of the terrain under each of the local ``points`` ``(N, 3)`` (MuJoCo's split
+    of the cell under its ``(x, y)``): whether the point is over the grid ``(N,)``, the
+    triangle's unit up-normal ``(N, 3)`` and its corner ``(c, r)`` ``(N, 3)``. A point over a
+    cell's diagonal takes one of its two triangles; one off the grid the nearest cell's."""
+    rows, columns = field.heights.shape
+    cell = field.cell
+    scaled = (points[:, :2] + field.half_size[None, :]) / cell[None, :]  # in cells from the corner
+    limit = jnp.asarray([columns - 1, rows - 1], scaled.dtype)
+    over = jnp.all((scaled >= 0) & (scaled <= limit[None, :]), axis=-1)
+    c = jnp.clip(jnp.floor(scaled[:, 0]).astype(jnp.int32), 0, columns - 2)
+    r = jnp.clip(jnp.floor(scaled[:, 1]).astype(jnp.int32), 0, rows - 2)
+    u, w = scaled[:, 0] - c.astype(scaled.dtype), scaled[:, 1] - r.astype(scaled.dtype)
+    heights = field.heights
+    h00, h10, h01, h11 = heights[r, c], heights[r, c + 1], heights[r + 1, c], heights[r + 1, c + 1]
+    upper = w >= u  # the triangle (c, r), (c + 1, r + 1), (c, r + 1); else (c, r), (c + 1, r), (c + 1, r + 1)
+    slope_x = jnp.where(upper, h11 - h01, h10 - h00) / cell[0]
+    slope_y = jnp.where(upper, h01 - h00, h11 - h10) / cell[1]
+    up = jnp.stack([-slope_x, -slope_y, jnp.ones_like(slope_x)], axis=-1)
+    normal = up / jnp.sqrt(1.0 + slope_x**2 + slope_y**2)[:, None]
+    corner = jnp.stack([
+        -field.half_size[0] + cell[0] * c.astype(cell.dtype), -field.half_size[1] + cell[1] * r.astype(cell.dtype), h00,
+    ], axis=-1)
+    return over, normal, corner
 
 
 def _heightfield_pair(field: HeightField, field_pose, shape, pose, margin, count: int) -> Contacts:
@@ -1106,8 +1138,98 @@ def _heightfield_pair(field: HeightField, field_pose, shape, pose, margin, count
     return eqx.tree_at(lambda c: c.active, result, result.active & jnp.stack(distinct))
 
 
+def _support_points(shape, pose, directions: Array) -> Array:
+    """The exact shape's core points farthest along each of ``directions`` ``(D, 3)``, for the
+    curved shapes (a cylinder: the rim points of both caps, so that one lying on its side gets
+    both ends); none for a polytope, whose vertices hold its supports."""
+    rotation, translation = pose
+    if isinstance(shape, Ellipsoid):
+        local = shape.support_core(directions @ rotation)
+    elif isinstance(shape, Cylinder):
+        local = shape.support_core(directions @ rotation)
+        local = jnp.concatenate([local, local.at[:, 2].multiply(-1.0)])
+    else:
+        return jnp.zeros((0, 3), directions.dtype)
+    return _transform(pose, local)
+
+
+def _heightfield_polytope(field: HeightField, field_pose, shape, pose, margin, count: int) -> Contacts:
+    """The ``count`` contacts of a polytope core (box, cylinder, convex mesh, ellipsoid) with
+    the terrain's surface, normals from the terrain where the shape rests on it.
+
+    A polytope that overlaps one of the cell prisms of :func:`_heightfield_pair` often has its
+    smallest way out of that prism through the prism's side, which is inside the terrain: a
+    depth and normal that are not the terrain's. The candidates here are instead the two kinds
+    of feature pairs of a polyhedral terrain and a convex shape that are not edge against edge:
+
+    - the shape's points against the triangle under them (:func:`_terrain_under`): the core's
+      vertices, and for a curved shape (cylinder, ellipsoid) its exact supports along minus the
+      normals of the triangles under it (:func:`_support_points`), the deepest point against each
+      triangle's plane: distance ``n . (v - a) - radius`` along the triangle's unit up-normal
+      ``n``, the terrain's witness ``v - (n . (v - a)) n`` on the triangle's plane;
+    - the terrain's grid points under the shape (a peak) against the core: distance
+      ``max_f (n_f . g - o_f) - radius`` over the core's faces, normal minus that face's.
+
+    The distance of a point below the terrain is its depth along the triangle's normal, the
+    terrain's penetration where the deepest point is over the triangle's interior (a resting
+    shape); above it, the distance along that normal, the Euclidean distance where the point's
+    nearest feature of the terrain is the triangle under it. A grid point inside the core has its
+    exact depth; outside, the face gap is at most its distance (equal where its nearest feature is
+    a face). An edge of the shape crossing a ridge of the terrain with no vertex of either inside
+    the other is missed (the terrain is then found at the next vertex to sink in). Points off the
+    grid give no contact. The candidates are reduced by :func:`_reduce` (the deepest first, then
+    the largest area), which gives a box resting on a flat terrain its four corners. Every
+    candidate is a point against a plane, so the distances are smooth in the poses but where a
+    point crosses a cell's edge or diagonal, a face's choice changes, or the reduction's."""
+    field_rotation, field_translation = field_pose
+    rotation, translation = pose
+    local_pose = (field_rotation.T @ rotation, field_rotation.T @ (translation - field_translation))
+    core = _polytope(shape, local_pose)
+    radius = core.radius
+    grid = _heightfield_grid(field, local_pose[1], shape.bounding_radius).reshape(-1, 3)
+    if isinstance(shape, (Cylinder, Ellipsoid)):
+        # minus the normals of the window's triangles (_terrain_under at their centroids)
+        _, window_normals, _ = _terrain_under(field, _window_centroids(field, local_pose[1], shape.bounding_radius))
+        supports = _support_points(shape, local_pose, -window_normals)
+    else:
+        supports = jnp.zeros((0, 3), grid.dtype)
+    points = core.vertices if not isinstance(shape, Ellipsoid) else jnp.zeros((0, 3), grid.dtype)
+    points = jnp.concatenate([points, supports])
+    over, normal, corner = _terrain_under(field, points)
+    height = jnp.sum(normal * (points - corner), axis=-1)
+    vertex_contacts = (height - radius, normal, points - height[:, None] * normal, points - radius * normal, over)
+    offsets = jnp.sum(core.face_normals * core.face_polygons[:, 0], axis=-1)
+    gaps = grid @ core.face_normals.T - offsets[None, :]
+    face = jnp.argmax(gaps, axis=-1)
+    gap = jnp.take_along_axis(gaps, face[:, None], axis=-1)[:, 0] - radius
+    peak_normal = -core.face_normals[face]
+    peak_contacts = (gap, peak_normal, grid, grid + gap[:, None] * peak_normal, jnp.ones(gap.shape, bool))
+    distance, normal, point1, point2, candidate = (jnp.concatenate(parts) for parts in zip(vertex_contacts, peak_contacts))
+    contacts = _reduce(point1, point2, distance, normal, candidate, margin, count)
+    return Contacts(
+        contacts.distance,
+        contacts.normal @ field_rotation.T,
+        _transform(field_pose, contacts.point1),
+        _transform(field_pose, contacts.point2),
+        contacts.active,
+    )
+
+
+def _window_centroids(field: HeightField, center: Array, reach: Array) -> Array:
+    """The centroids ``(2 w_r w_c, 3)`` of the triangles of :func:`_heightfield_grid`'s cells
+    (their ``x``, ``y`` pick the triangle in :func:`_terrain_under`)."""
+    grid = _heightfield_grid(field, center, reach)
+    low, high = grid[:-1], grid[1:]
+    a, b, c, d = high[:, :-1], low[:, :-1], high[:, 1:], low[:, 1:]
+    return jnp.concatenate([(a + b + c) / 3.0, (b + c + d) / 3.0]).reshape(-1, 3)
+
+
 def _heightfield_pair_of(count):
     return lambda s1, p1, s2, p2, margin: _heightfield_pair(s1, p1, s2, p2, margin, count)
+
+
+def _heightfield_polytope_of(count):
+    return lambda s1, p1, s2, p2, margin: _heightfield_polytope(s1, p1, s2, p2, margin, count)
 
 
 # an inactive entry's distance in the choice of a height field's deepest contacts
@@ -1160,12 +1282,16 @@ _PAIR_FUNCTIONS = {
     (Cylinder, Ellipsoid): (_polytope_pair_of(4), 4),
     (Ellipsoid, Ellipsoid): (_polytope_pair_of(4), 4),
     (Ellipsoid, ConvexMesh): (_polytope_pair_of(4), 4),
-    # Height fields against spheres and capsules only: while their cores are above the terrain
-    # the nearest prism's distance is the terrain's; a polytope's overlap with one prism has
-    # its smallest way out through the prism's side, inside the terrain (MuJoCo's prisms give
-    # other depths there too).
+    # Height fields: spheres and capsules against the prisms of the cells under them (while
+    # their cores are above the terrain the nearest prism's distance is the terrain's); polytope
+    # cores against the terrain's surface (_heightfield_polytope: a polytope's overlap with one
+    # prism has its smallest way out through the prism's side, inside the terrain).
     (HeightField, Sphere): (_heightfield_pair_of(2), 2),
     (HeightField, Capsule): (_heightfield_pair_of(2), 2),
+    (HeightField, Box): (_heightfield_polytope_of(4), 4),
+    (HeightField, Cylinder): (_heightfield_polytope_of(4), 4),
+    (HeightField, ConvexMesh): (_heightfield_polytope_of(4), 4),
+    (HeightField, Ellipsoid): (_heightfield_polytope_of(4), 4),
 }
 
 
