@@ -1144,9 +1144,9 @@ def _support_points(shape, pose, directions: Array) -> Array:
     both ends); none for a polytope, whose vertices hold its supports."""
     rotation, translation = pose
     if isinstance(shape, Ellipsoid):
-        local = shape.support_core(directions @ rotation)
+        local = jax.vmap(shape.support_core)(directions @ rotation)
     elif isinstance(shape, Cylinder):
-        local = shape.support_core(directions @ rotation)
+        local = jax.vmap(shape.support_core)(directions @ rotation)
         local = jnp.concatenate([local, local.at[:, 2].multiply(-1.0)])
     else:
         return jnp.zeros((0, 3), directions.dtype)
@@ -1168,14 +1168,15 @@ def _heightfield_polytope(field: HeightField, field_pose, shape, pose, margin, c
       triangle's plane: distance ``n . (v - a) - radius`` along the triangle's unit up-normal
       ``n``, the terrain's witness ``v - (n . (v - a)) n`` on the triangle's plane;
     - the terrain's grid points under the shape (a peak) against the core: distance
-      ``max_f (n_f . g - o_f) - radius`` over the core's faces, normal minus that face's.
+      ``max_f (n_f . g - o_f) - radius`` over the core's faces, normal minus that face's, where
+      the grid point is inside the core or over that face (its projection inside the face's
+      polygon).
 
     The distance of a point below the terrain is its depth along the triangle's normal, the
     terrain's penetration where the deepest point is over the triangle's interior (a resting
     shape); above it, the distance along that normal, the Euclidean distance where the point's
     nearest feature of the terrain is the triangle under it. A grid point inside the core has its
-    exact depth; outside, the face gap is at most its distance (equal where its nearest feature is
-    a face). An edge of the shape crossing a ridge of the terrain with no vertex of either inside
+    exact depth, one over a face its exact distance. An edge of the shape crossing a ridge of the terrain with no vertex of either inside
     the other is missed (the terrain is then found at the next vertex to sink in). Points off the
     grid give no contact. The candidates are reduced by :func:`_reduce` (the deepest first, then
     the largest area), which gives a box resting on a flat terrain its four corners. Every
@@ -1201,9 +1202,19 @@ def _heightfield_polytope(field: HeightField, field_pose, shape, pose, margin, c
     offsets = jnp.sum(core.face_normals * core.face_polygons[:, 0], axis=-1)
     gaps = grid @ core.face_normals.T - offsets[None, :]
     face = jnp.argmax(gaps, axis=-1)
-    gap = jnp.take_along_axis(gaps, face[:, None], axis=-1)[:, 0] - radius
-    peak_normal = -core.face_normals[face]
-    peak_contacts = (gap, peak_normal, grid, grid + gap[:, None] * peak_normal, jnp.ones(gap.shape, bool))
+    face_gap = jnp.take_along_axis(gaps, face[:, None], axis=-1)[:, 0]
+    # outside the core the face gap is the distance only where the point's projection on the
+    # face is inside the face's polygon (otherwise it is less: the nearest feature is an edge
+    # or a vertex, a pair left out)
+    polygon, face_normal = core.face_polygons[face], core.face_normals[face]
+    projected = grid - face_gap[:, None] * face_normal
+    sides = jnp.cross(jnp.roll(polygon, -1, axis=1) - polygon, face_normal[:, None, :])
+    offsets_in = jnp.einsum("gpk,gpk->gp", sides, projected[:, None, :] - polygon)
+    tolerance = 1e3 * _eps(grid.dtype) * (1.0 + shape.bounding_radius)
+    on_face = jnp.all(offsets_in <= tolerance * (_safe_norm(sides) + 1.0), axis=-1)
+    gap = face_gap - radius
+    peak_normal = -face_normal
+    peak_contacts = (gap, peak_normal, grid, grid + gap[:, None] * peak_normal, (face_gap <= 0) | on_face)
     distance, normal, point1, point2, candidate = (jnp.concatenate(parts) for parts in zip(vertex_contacts, peak_contacts))
     contacts = _reduce(point1, point2, distance, normal, candidate, margin, count)
     return Contacts(
