@@ -1170,15 +1170,16 @@ def _heightfield_polytope(field: HeightField, field_pose, shape, pose, margin, c
     - the terrain's grid points under the shape (a peak) against the core: distance
       ``max_f (n_f . g - o_f) - radius`` over the core's faces, normal minus that face's, where
       the grid point is inside the core or over that face (its projection inside the face's
-      polygon).
+      polygon) (:func:`_points_in_core`);
+    - where an edge of the core crosses an edge of the terrain seen from above (a crease, a cell's
+      side or diagonal), both points of the crossing, as above (:func:`_edge_crossings`).
 
     The distance of a point below the terrain is its depth along the triangle's normal, the
     terrain's penetration where the deepest point is over the triangle's interior (a resting
     shape); above it, the distance along that normal, the Euclidean distance where the point's
     nearest feature of the terrain is the triangle under it. A grid point inside the core has its
-    exact depth, one over a face its exact distance. An edge of the shape crossing a ridge of the terrain with no vertex of either inside
-    the other is missed (the terrain is then found at the next vertex to sink in). Points off the
-    grid give no contact. The candidates are reduced by :func:`_reduce` (the deepest first, then
+    exact depth, one over a face its exact distance. Points off the grid give no contact. The
+    candidates are reduced by :func:`_reduce` (the deepest first, then
     the largest area), which gives a box resting on a flat terrain its four corners. Every
     candidate is a point against a plane, so the distances are smooth in the poses but where a
     point crosses a cell's edge or diagonal, a face's choice changes, or the reduction's."""
@@ -1187,10 +1188,11 @@ def _heightfield_polytope(field: HeightField, field_pose, shape, pose, margin, c
     local_pose = (field_rotation.T @ rotation, field_rotation.T @ (translation - field_translation))
     core = _polytope(shape, local_pose)
     radius = core.radius
-    grid = _heightfield_grid(field, local_pose[1], shape.bounding_radius).reshape(-1, 3)
+    window = _heightfield_grid(field, local_pose[1], shape.bounding_radius)
+    grid = window.reshape(-1, 3)
     if isinstance(shape, (Cylinder, Ellipsoid)):
         # minus the normals of the window's triangles (_terrain_under at their centroids)
-        _, window_normals, _ = _terrain_under(field, _window_centroids(field, local_pose[1], shape.bounding_radius))
+        _, window_normals, _ = _terrain_under(field, _window_centroids(window))
         supports = _support_points(shape, local_pose, -window_normals)
     else:
         supports = jnp.zeros((0, 3), grid.dtype)
@@ -1198,24 +1200,11 @@ def _heightfield_polytope(field: HeightField, field_pose, shape, pose, margin, c
     points = jnp.concatenate([points, supports])
     over, normal, corner = _terrain_under(field, points)
     height = jnp.sum(normal * (points - corner), axis=-1)
-    vertex_contacts = (height - radius, normal, points - height[:, None] * normal, points - radius * normal, over)
-    offsets = jnp.sum(core.face_normals * core.face_polygons[:, 0], axis=-1)
-    gaps = grid @ core.face_normals.T - offsets[None, :]
-    face = jnp.argmax(gaps, axis=-1)
-    face_gap = jnp.take_along_axis(gaps, face[:, None], axis=-1)[:, 0]
-    # outside the core the face gap is the distance only where the point's projection on the
-    # face is inside the face's polygon (otherwise it is less: the nearest feature is an edge
-    # or a vertex, a pair left out)
-    polygon, face_normal = core.face_polygons[face], core.face_normals[face]
-    projected = grid - face_gap[:, None] * face_normal
-    sides = jnp.cross(jnp.roll(polygon, -1, axis=1) - polygon, face_normal[:, None, :])
-    offsets_in = jnp.einsum("gpk,gpk->gp", sides, projected[:, None, :] - polygon)
-    tolerance = 1e3 * _eps(grid.dtype) * (1.0 + shape.bounding_radius)
-    on_face = jnp.all(offsets_in <= tolerance * (_safe_norm(sides) + 1.0), axis=-1)
-    gap = face_gap - radius
-    peak_normal = -face_normal
-    peak_contacts = (gap, peak_normal, grid, grid + gap[:, None] * peak_normal, (face_gap <= 0) | on_face)
-    distance, normal, point1, point2, candidate = (jnp.concatenate(parts) for parts in zip(vertex_contacts, peak_contacts))
+    parts = [(height - radius, normal, points - height[:, None] * normal, points - radius * normal, over)]
+    parts.append(_points_in_core(core, grid, shape.bounding_radius))
+    if core.edges is not None:
+        parts += _edge_crossings(field, window, core, shape.bounding_radius)
+    distance, normal, point1, point2, candidate = (jnp.concatenate(part) for part in zip(*parts))
     contacts = _reduce(point1, point2, distance, normal, candidate, margin, count)
     return Contacts(
         contacts.distance,
@@ -1226,13 +1215,80 @@ def _heightfield_polytope(field: HeightField, field_pose, shape, pose, margin, c
     )
 
 
-def _window_centroids(field: HeightField, center: Array, reach: Array) -> Array:
-    """The centroids ``(2 w_r w_c, 3)`` of the triangles of :func:`_heightfield_grid`'s cells
+def _window_centroids(window: Array) -> Array:
+    """The centroids ``(2 w_r w_c, 3)`` of the triangles of a window of :func:`_heightfield_grid`
     (their ``x``, ``y`` pick the triangle in :func:`_terrain_under`)."""
-    grid = _heightfield_grid(field, center, reach)
-    low, high = grid[:-1], grid[1:]
+    low, high = window[:-1], window[1:]
     a, b, c, d = high[:, :-1], low[:, :-1], high[:, 1:], low[:, 1:]
     return jnp.concatenate([(a + b + c) / 3.0, (b + c + d) / 3.0]).reshape(-1, 3)
+
+
+def _points_in_core(core: _Polytope, points: Array, size) -> tuple:
+    """Terrain ``points`` ``(G, 3)`` against the core: the largest face gap ``max_f (n_f . g -
+    o_f)`` less the core's radius, normal minus that face's, and whether it is the distance: the
+    point is inside the core (its exact depth) or over that face (its projection inside the face's
+    polygon; elsewhere the gap is less than the distance, whose nearest feature is an edge or a
+    vertex)."""
+    offsets = jnp.sum(core.face_normals * core.face_polygons[:, 0], axis=-1)
+    gaps = points @ core.face_normals.T - offsets[None, :]
+    face = jnp.argmax(gaps, axis=-1)
+    face_gap = jnp.take_along_axis(gaps, face[:, None], axis=-1)[:, 0]
+    polygon, face_normal = core.face_polygons[face], core.face_normals[face]
+    projected = points - face_gap[:, None] * face_normal
+    sides = jnp.cross(jnp.roll(polygon, -1, axis=1) - polygon, face_normal[:, None, :])
+    inward = jnp.einsum("gpk,gpk->gp", sides, projected[:, None, :] - polygon)
+    tolerance = 1e3 * _eps(points.dtype) * (1.0 + size)
+    on_face = jnp.all(inward <= tolerance * (_safe_norm(sides) + 1.0), axis=-1)
+    gap = face_gap - core.radius
+    normal = -face_normal
+    return gap, normal, points, points + gap[:, None] * normal, (face_gap <= 0) | on_face
+
+
+def _edge_crossings(field: HeightField, window: Array, core: _Polytope, size) -> list:
+    """The crossings, seen from above, of the core's edges with the terrain's edges in the window
+    (the cells' sides and diagonals): an edge of the shape over a crease of the terrain, whose
+    deepest point need not be a vertex of either. At a crossing, ``p`` on the shape's edge over
+    ``q`` on the terrain's: ``p`` against the terrain (the two triangles at the crease: in a
+    valley, where the solid is their half-spaces' union, the deeper; on a ridge, their
+    intersection, the shallower) and ``q`` against the core (:func:`_points_in_core`)."""
+    low, high = window[:-1], window[1:]
+    terrain = jnp.concatenate([
+        jnp.stack([window[:, :-1], window[:, 1:]], axis=-2).reshape(-1, 2, 3),  # along x
+        jnp.stack([low, high], axis=-2).reshape(-1, 2, 3),  # along y
+        jnp.stack([low[:, :-1], high[:, 1:]], axis=-2).reshape(-1, 2, 3),  # the diagonals
+    ])
+    start, end = core.edges[:, None, 0], core.edges[:, None, 1]  # (E, 1, 3)
+    t0, t1 = terrain[None, :, 0], terrain[None, :, 1]  # (1, T, 3)
+    cross2 = lambda u, v: u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]  # noqa: E731
+    along, across = end - start, t1 - t0
+    denominator = cross2(along, across)
+    scale = _safe_norm(along[..., :2]) * _safe_norm(across[..., :2])
+    ok = jnp.abs(denominator) > 1e-9 * (scale + _eps(scale.dtype))
+    safe = jnp.where(ok, denominator, 1.0)
+    s = cross2(t0 - start, across) / safe
+    t = cross2(t0 - start, along) / safe
+    crossing = ok & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1)
+    p = (start + s[..., None] * along).reshape(-1, 3)
+    q = (t0 + t[..., None] * across).reshape(-1, 3)
+    crossing = crossing.reshape(-1)
+    # the two triangles at the crease: looked up a little to either side of it
+    side = jnp.stack([-across[..., 1], across[..., 0], jnp.zeros_like(across[..., 0])], axis=-1)
+    side = jnp.broadcast_to(side / (_safe_norm(side)[..., None] + _eps(side.dtype)), s.shape + (3,)).reshape(-1, 3)
+    nudge = 1e-6 * jnp.min(field.cell)
+    over1, normal1, corner1 = _terrain_under(field, q - nudge * side)
+    over2, normal2, corner2 = _terrain_under(field, q + nudge * side)
+    height1 = jnp.sum(normal1 * (p - corner1), axis=-1)
+    height2 = jnp.sum(normal2 * (p - corner2), axis=-1)
+    # a valley where the terrain's slope toward side 2 grows across the crease
+    slope1 = -jnp.sum(normal1 * side, axis=-1) / normal1[:, 2]
+    slope2 = -jnp.sum(normal2 * side, axis=-1) / normal2[:, 2]
+    valley = slope2 > slope1
+    first = jnp.where(over1 & over2, jnp.where(valley, height1 <= height2, height1 >= height2), over1)
+    height = jnp.where(first, height1, height2)
+    normal = jnp.where(first[:, None], normal1, normal2)
+    shape_points = (height - core.radius, normal, p - height[:, None] * normal, p - core.radius * normal, crossing & (over1 | over2))
+    gap, peak_normal, point1, point2, valid = _points_in_core(core, q, size)
+    return [shape_points, (gap, peak_normal, point1, point2, valid & crossing)]
 
 
 def _heightfield_pair_of(count):

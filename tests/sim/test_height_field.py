@@ -115,9 +115,10 @@ def test_polytope_depths_in_a_terrain_are_mujocos(name):
     d = mujoco.MjData(m)
     pair = sim.scene(text).geometry.geom_pairs[0]
     assert isinstance(pair.shape1, sim.HeightField)
-    contacts = jax.jit(jax.vmap(lambda r, t: jax.tree.map(lambda a: a[0], collide(pair.shape1, pair.placement1, pair.shape2, (r, t)))))
+    manifolds = jax.jit(jax.vmap(lambda r, t: collide(pair.shape1, pair.placement1, pair.shape2, (r, t))))
+    contacts = lambda r, t: jax.tree.map(lambda a: a[:, 0], manifolds(r, t))  # noqa: E731
     rng = np.random.default_rng(2)
-    count = 64
+    count = 96
     qpos = np.concatenate([rng.uniform([-0.45, -0.35, 0.5], [0.45, 0.35, 0.5], size=(count, 3)),
                            np.ones((count, 1)), rng.uniform(-0.15, 0.15, size=(count, 3))], axis=1)
     qpos[:, 3:] /= np.linalg.norm(qpos[:, 3:], axis=1, keepdims=True)
@@ -139,16 +140,23 @@ def test_polytope_depths_in_a_terrain_are_mujocos(name):
         above = contacts(*geom_poses()[:2])
         qpos[:, 2] -= (np.asarray(above.distance) + depth) / np.asarray(above.normal[:, 2])
     rotations, translations, deepest = geom_poses()
-    ours = contacts(rotations, translations)
+    manifold = manifolds(rotations, translations)
+    ours = jax.tree.map(lambda a: a[:, 0], manifold)
     expected = np.array([dist for dist, _ in deepest])
     expected_normal = np.array([normal for _, normal in deepest])
-    # where our deepest point is in the grid's cells: away from the cells' edges and diagonal
+    # where our deepest point (on the shape) is over a triangle's interior: away from the cells' edges and diagonal
     cell = np.asarray(pair.shape1.cell)
-    scaled = (np.asarray(ours.point1[:, :2]) - np.asarray(pair.placement1[1])[None, :2] + np.array([HALF_X, HALF_Y])) / cell
+    scaled = (np.asarray(ours.point2[:, :2]) - np.asarray(pair.placement1[1])[None, :2] + np.array([HALF_X, HALF_Y])) / cell
     u, w = scaled[:, 0] - np.floor(scaled[:, 0]), scaled[:, 1] - np.floor(scaled[:, 1])
     interior = np.minimum(np.minimum(np.minimum(u, 1 - u), np.minimum(w, 1 - w)), np.abs(u - w)) > 1e-3
     through_top = np.isfinite(expected) & (np.sum(expected_normal * np.asarray(ours.normal), axis=1) > 1 - 1e-6)
-    compared = interior & through_top & (expected < 0)
-    np.save("/tmp/dbg.npy", dict(ours=np.asarray(ours.distance), on=np.asarray(ours.normal), exp=expected, en=expected_normal, inter=interior), allow_pickle=True)
-    assert compared.sum() >= count // 2, (compared.sum(), interior.sum(), through_top.sum())
-    np.testing.assert_allclose(np.asarray(ours.distance)[compared], expected[compared], atol=1e-5)
+    # and a single deepest point: no other contact on that triangle within 0.1 mm of it (an edge or
+    # a face nearly parallel to the triangle: MuJoCo's iterative penetration then returns a point
+    # between its ends, up to 3e-5 m short of the deepest end, which a sampled reference confirms)
+    same_plane = np.sum(np.asarray(manifold.normal) * np.asarray(ours.normal)[:, None, :], axis=-1) > 1 - 1e-9
+    close = np.asarray(manifold.distance[:, 1:]) < np.asarray(ours.distance)[:, None] + 1e-4
+    single = ~np.any(same_plane[:, 1:] & np.asarray(manifold.active[:, 1:]) & close, axis=1)
+    compared = interior & through_top & single & (expected < 0)
+    assert compared.sum() >= count // 3, (compared.sum(), interior.sum(), through_top.sum(), single.sum())
+    # (measured: within 5e-13 m)
+    np.testing.assert_allclose(np.asarray(ours.distance)[compared], expected[compared], atol=1e-8)
