@@ -1062,11 +1062,12 @@ def _prism(top: Array, base: Array) -> ConvexMesh:
     )
 
 
-def _heightfield_grid(field: HeightField, center: Array, reach: Array) -> Array:
+def _heightfield_grid(field: HeightField, center: Array, reach: Array, peaks: bool = False):
     """The grid points ``(w_r + 1, w_c + 1, 3)`` (local ``x``, ``y``, height) of the ``window`` x
     ``window`` cells (fewer on a smaller grid) from the cell under the height field's local point
     ``center`` less ``reach`` (a shape's bounding radius about it), clipped to the grid; rows
-    along ``y``, columns along ``x``."""
+    along ``y``, columns along ``x``. With ``peaks``, also which of them are above the mean
+    height of their four neighbours ``(w_r + 1, w_c + 1)``."""
     rows, columns = field.heights.shape
     window_r, window_c = min(field.window, rows - 1), min(field.window, columns - 1)
     cell = field.cell
@@ -1076,7 +1077,13 @@ def _heightfield_grid(field: HeightField, center: Array, reach: Array) -> Array:
     heights = lax.dynamic_slice(field.heights, (r0, c0), (window_r + 1, window_c + 1))
     xs = -field.half_size[0] + cell[0] * (c0 + jnp.arange(window_c + 1)).astype(cell.dtype)
     ys = -field.half_size[1] + cell[1] * (r0 + jnp.arange(window_r + 1)).astype(cell.dtype)
-    return jnp.stack(jnp.broadcast_arrays(xs[None, :], ys[:, None], heights), axis=-1)
+    grid = jnp.stack(jnp.broadcast_arrays(xs[None, :], ys[:, None], heights), axis=-1)
+    if not peaks:
+        return grid
+    # a grid point above the mean of its four neighbours (the grid's border repeated)
+    block = lax.dynamic_slice(jnp.pad(field.heights, 1, mode="edge"), (r0, c0), (window_r + 3, window_c + 3))
+    around = (block[:-2, 1:-1] + block[2:, 1:-1] + block[1:-1, :-2] + block[1:-1, 2:]) / 4.0
+    return grid, heights > around + 1e3 * _eps(heights.dtype) * (1.0 + jnp.abs(heights))
 
 
 def _heightfield_prisms(field: HeightField, center: Array, reach: Array) -> ConvexMesh:
@@ -1167,7 +1174,9 @@ def _heightfield_polytope(field: HeightField, field_pose, shape, pose, margin, c
       normals of the triangles under it (:func:`_support_points`), the deepest point against each
       triangle's plane: distance ``n . (v - a) - radius`` along the triangle's unit up-normal
       ``n``, the terrain's witness ``v - (n . (v - a)) n`` on the triangle's plane;
-    - the terrain's grid points under the shape (a peak) against the core: distance
+    - the terrain's grid points under the shape that are above the mean of their four neighbours
+      (a peak, a ridge, a terrace's edge; elsewhere the terrain reaches no deeper into the shape
+      than at the shape's points against it) against the core: distance
       ``max_f (n_f . g - o_f) - radius`` over the core's faces, normal minus that face's, where
       the grid point is inside the core or over that face (its projection inside the face's
       polygon) (:func:`_points_in_core`);
@@ -1188,7 +1197,7 @@ def _heightfield_polytope(field: HeightField, field_pose, shape, pose, margin, c
     local_pose = (field_rotation.T @ rotation, field_rotation.T @ (translation - field_translation))
     core = _polytope(shape, local_pose)
     radius = core.radius
-    window = _heightfield_grid(field, local_pose[1], shape.bounding_radius)
+    window, peak = _heightfield_grid(field, local_pose[1], shape.bounding_radius, peaks=True)
     grid = window.reshape(-1, 3)
     if isinstance(shape, (Cylinder, Ellipsoid)):
         # minus the normals of the window's triangles (_terrain_under at their centroids)
@@ -1201,7 +1210,8 @@ def _heightfield_polytope(field: HeightField, field_pose, shape, pose, margin, c
     over, normal, corner = _terrain_under(field, points)
     height = jnp.sum(normal * (points - corner), axis=-1)
     parts = [(height - radius, normal, points - height[:, None] * normal, points - radius * normal, over)]
-    parts.append(_points_in_core(core, grid, shape.bounding_radius))
+    gap, peak_normal, point1, point2, valid = _points_in_core(core, grid, shape.bounding_radius)
+    parts.append((gap, peak_normal, point1, point2, valid & peak.reshape(-1)))
     if core.edges is not None:
         parts += _edge_crossings(field, window, core, shape.bounding_radius)
     distance, normal, point1, point2, candidate = (jnp.concatenate(part) for part in zip(*parts))
@@ -1250,7 +1260,9 @@ def _edge_crossings(field: HeightField, window: Array, core: _Polytope, size) ->
     deepest point need not be a vertex of either. At a crossing, ``p`` on the shape's edge over
     ``q`` on the terrain's: ``p`` against the terrain (the two triangles at the crease: in a
     valley, where the solid is their half-spaces' union, the deeper; on a ridge, their
-    intersection, the shallower) and ``q`` against the core (:func:`_points_in_core`)."""
+    intersection, the shallower) and, on a ridge, ``q`` against the core
+    (:func:`_points_in_core`); elsewhere the terrain reaches no deeper into the shape at ``q``
+    than at the shape's points against it."""
     low, high = window[:-1], window[1:]
     terrain = jnp.concatenate([
         jnp.stack([window[:, :-1], window[:, 1:]], axis=-2).reshape(-1, 2, 3),  # along x
@@ -1287,8 +1299,9 @@ def _edge_crossings(field: HeightField, window: Array, core: _Polytope, size) ->
     height = jnp.where(first, height1, height2)
     normal = jnp.where(first[:, None], normal1, normal2)
     shape_points = (height - core.radius, normal, p - height[:, None] * normal, p - core.radius * normal, crossing & (over1 | over2))
+    ridge = slope2 < slope1 - 1e3 * _eps(slope1.dtype) * (1.0 + jnp.abs(slope1))
     gap, peak_normal, point1, point2, valid = _points_in_core(core, q, size)
-    return [shape_points, (gap, peak_normal, point1, point2, valid & crossing)]
+    return [shape_points, (gap, peak_normal, point1, point2, valid & crossing & ridge & over1 & over2)]
 
 
 def _heightfield_pair_of(count):

@@ -78,8 +78,13 @@ def test_a_ball_rests_on_a_terrace_of_a_terrain():
 def test_bad_height_fields_are_refused_by_name():
     with pytest.raises(ValueError, match=r"heights must have shape \(R, C\) with R, C >= 2"):
         sim.HeightField(np.zeros((1, 3)), [1.0, 1.0], 0.1)
-    with pytest.raises(ValueError, match=r"geom 'terrain' \(hfield\) collides with geom 'body' \(box\)"):
-        sim.scene(_terrain('type="box" size="0.1 0.1 0.1"'))
+    floor = _terrain('type="box" size="0.1 0.1 0.1"').replace(
+        "</worldbody>", '<geom name="floor" type="plane" size="1 1 1"/></worldbody><contact><pair geom1="terrain" geom2="floor"/></contact>'
+    )
+    with pytest.raises(ValueError, match=r"geom 'terrain' \(hfield\) collides with geom 'floor' \(plane\), a pair of shapes"):
+        sim.scene(floor)
+    with pytest.raises(NotImplementedError, match="no collision function for HeightField against HalfSpace"):
+        collide(sim.HeightField(np.zeros((3, 3)), [1.0, 1.0], 0.1), (jnp.eye(3), jnp.zeros(3)), sim.HalfSpace(), (jnp.eye(3), jnp.zeros(3)))
     with pytest.raises(ValueError, match="window must be an int >= 1"):
         sim.HeightField(np.zeros((3, 3)), [1.0, 1.0], 0.1, window=0)
     moving = _terrain('type="sphere" size="0.08"').replace(
@@ -160,3 +165,111 @@ def test_polytope_depths_in_a_terrain_are_mujocos(name):
     assert compared.sum() >= count // 3, (compared.sum(), interior.sum(), through_top.sum(), single.sum())
     # (measured: within 5e-13 m)
     np.testing.assert_allclose(np.asarray(ours.distance)[compared], expected[compared], atol=1e-8)
+
+
+def _rotation_x(angle):
+    c, s = np.cos(angle), np.sin(angle)
+    return jnp.asarray([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def _flat_terrain(window=2, peak=0.0):
+    heights = np.full((ROWS, COLUMNS), 0.1)
+    heights[3, 3] += peak  # the grid point (x, y) = (0, 0.1)
+    return sim.HeightField(heights, [HALF_X, HALF_Y], BASE, window=window)
+
+
+def test_a_box_on_a_flat_terrain_has_the_closed_form_contacts():
+    # A box over the interior of a cell of a flat terrain at 0.1 m (the cell's diagonal under it):
+    # level, its bottom face's 4 corners at its height h above the terrain; tilted by an angle
+    # about x, its low edge's 2 corners at z - 0.1 - (b sin + c cos), normals +z.
+    field, half = _flat_terrain(), np.array([0.05, 0.04, 0.03])
+    box = sim.Box(half)
+    manifold = jax.jit(jax.vmap(lambda r, t: collide(field, (jnp.eye(3), jnp.zeros(3)), box, (r, t))))
+    gaps = np.array([-2e-3, -1e-4, 0.0])
+    level = manifold(jnp.broadcast_to(jnp.eye(3), (3, 3, 3)), jnp.asarray([[0.1, 0.0, 0.1 + half[2] + h] for h in gaps]))
+    np.testing.assert_allclose(level.distance, np.repeat(gaps[:, None], 4, axis=1), atol=1e-12)
+    np.testing.assert_allclose(level.normal, np.broadcast_to([0.0, 0.0, 1.0], (3, 4, 3)), atol=1e-12)
+    assert bool(jnp.all(level.active))
+    corners = np.array([[0.1 + sx * half[0], sy * half[1], 0.1 + gaps[0]] for sx in (-1, 1) for sy in (-1, 1)])
+    np.testing.assert_allclose(np.sort(np.asarray(level.point2[0]), axis=0), np.sort(corners, axis=0), atol=1e-12)
+    angles = np.array([0.1, 0.3, -0.5])
+    sunk = 1e-3
+    lowest = half[1] * np.abs(np.sin(angles)) + half[2] * np.cos(angles)
+    tilted = manifold(jnp.stack([_rotation_x(a) for a in angles]), jnp.asarray([[0.1, 0.0, 0.1 + h - sunk] for h in lowest]))
+    np.testing.assert_allclose(tilted.distance[:, 0], -sunk, atol=1e-12)
+    assert np.all(np.asarray(tilted.active).sum(axis=1) == 2)
+    np.testing.assert_allclose(np.where(tilted.active, tilted.distance, -sunk), -sunk, atol=1e-12)
+    np.testing.assert_allclose(tilted.normal[tilted.active], np.broadcast_to([0.0, 0.0, 1.0], (6, 3)), atol=1e-12)
+
+
+def test_a_peak_under_a_box_face_has_the_closed_form_contact():
+    # One grid point raised 3 cm under the bottom face of a box tilted by 0.05 rad about x (its
+    # slopes, 0.15, are steeper than the face's): the only contact is the peak's, at depth
+    # cos(angle) (z - peak) - c below the face, normal minus the face's normal (0, -sin, cos).
+    field = _flat_terrain(window=4, peak=0.03)
+    half, angle, peak = np.array([0.15, 0.15, 0.05]), 0.05, np.array([0.0, 0.1, 0.13])
+    depths = np.array([1e-3, 1e-2])
+    z = peak[2] + (half[2] - depths) / np.cos(angle)
+    contacts = jax.jit(jax.vmap(lambda t: collide(field, (jnp.eye(3), jnp.zeros(3)), sim.Box(half), (_rotation_x(angle), t))))(
+        jnp.asarray([[0.0, 0.1, h] for h in z])
+    )
+    np.testing.assert_allclose(contacts.distance[:, 0], np.cos(angle) * (z - peak[2]) - half[2], atol=1e-12)
+    np.testing.assert_allclose(contacts.distance[:, 0], -depths, atol=1e-12)
+    np.testing.assert_allclose(contacts.normal[:, 0], np.broadcast_to([0.0, -np.sin(angle), np.cos(angle)], (2, 3)), atol=1e-12)
+    np.testing.assert_allclose(contacts.point1[:, 0], np.broadcast_to(peak, (2, 3)), atol=1e-12)
+    np.testing.assert_allclose(contacts.point2[:, 0] - contacts.point1[:, 0], contacts.distance[:, :1] * contacts.normal[:, 0], atol=1e-12)
+    assert np.asarray(contacts.active).sum(axis=1).tolist() == [1, 1]
+
+
+def _posed(rotation0):
+    """The pose ``(rotation0 expm([w]x), t)`` of the parameters ``(t, w)`` ``(6,)``."""
+    def pose(x):
+        w = x[3:]
+        skew = jnp.asarray([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+        return rotation0 @ jax.scipy.linalg.expm(skew), x[:3]
+    return pose
+
+
+def test_distances_to_a_terrain_have_finite_derivatives_equal_to_finite_differences():
+    # At a flat terrain with the box's centre on a grid point and two of its bottom corners over
+    # the cells' diagonals (an upright cylinder: its supports along -z have no radial part), the
+    # Jacobian of the distances in the pose is finite; at a generic pose on a random terrain it
+    # equals central finite differences.
+    field = _flat_terrain()
+    eye = jnp.eye(3)
+    for shape, gap in [(sim.Box([0.05, 0.05, 0.03]), 0.03), (sim.Cylinder(0.05, 0.03), 0.03), (sim.Ellipsoid([0.05, 0.04, 0.03]), 0.03)]:
+        distances = lambda x, shape=shape: collide(field, (eye, jnp.zeros(3)), shape, _posed(eye)(x)).distance  # noqa: E731
+        x = jnp.asarray([0.0, 0.1, 0.1 + gap - 1e-3, 0.0, 0.0, 0.0])
+        jacobian = jax.jit(jax.jacobian(distances))(x)
+        assert bool(jnp.all(jnp.isfinite(jacobian))), type(shape).__name__
+        np.testing.assert_allclose(jacobian[0, :3], [0.0, 0.0, 1.0], atol=1e-12)
+    rng = np.random.default_rng(3)
+    field = sim.HeightField(rng.uniform(0, TOP, size=(ROWS, COLUMNS)), [HALF_X, HALF_Y], BASE, window=2)
+    rotation0 = _rotation_x(0.2) @ jnp.asarray(np.linalg.qr(rng.normal(size=(3, 3)))[0])
+    box = sim.Box([0.05, 0.04, 0.03])
+    distances = jax.jit(lambda x: collide(field, (eye, jnp.zeros(3)), box, _posed(rotation0)(x)).distance)
+    x = jnp.asarray([0.13, -0.07, 0.0, 0.0, 0.0, 0.0])
+    x = x.at[2].set(0.3 - distances(x.at[2].set(0.3))[0] - 2e-3)  # about 2 mm deep
+    assert -5e-3 < float(distances(x)[0]) < 0.0
+    jacobian = jax.jit(jax.jacobian(distances))(x)
+    step = 1e-6
+    central = np.stack([(distances(x.at[i].add(step)) - distances(x.at[i].add(-step))) / (2 * step) for i in range(6)], axis=1)
+    np.testing.assert_allclose(jacobian, central, atol=1e-6)
+
+
+def test_a_box_rests_on_a_terrace_of_a_terrain():
+    # The terrace of test_a_ball_rests_on_a_terrace_of_a_terrain: a box of 6 cm height set down
+    # 2 mm above it, across a cell's side and diagonal, settles flat on it.
+    heights = np.full((ROWS, COLUMNS), 1.0)
+    heights[:, 0] = heights[:, -1] = 0.0
+    elevation = " ".join(map(str, heights.reshape(-1)))
+    text = f"""<mujoco><option timestep="0.01"/>
+      <asset><hfield name="terrain" nrow="{ROWS}" ncol="{COLUMNS}" size="{HALF_X} {HALF_Y} 0.1 {BASE}" elevation="{elevation}"/></asset>
+      <worldbody><geom name="terrain" type="hfield" hfield="terrain"/>
+        <body name="box" pos="0.05 0.02 0.132"><freejoint/><geom type="box" size="0.05 0.04 0.03" mass="1"/></body></worldbody>
+    </mujoco>"""
+    system = sim.scene(text)
+    xs, infos = eqx.filter_jit(lambda s, x: s.rollout(x, jnp.zeros((100, 0))))(system, system.initial_state())
+    sim.check_steps(infos, what="a box on a terrace")
+    np.testing.assert_allclose(float(xs[-1, 2]), 0.1 + 0.03, atol=1e-3)
+    assert float(jnp.max(jnp.abs(xs[-10:, 7:]))) < 1e-3
