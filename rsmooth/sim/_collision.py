@@ -16,15 +16,21 @@ Algorithms, by pair:
   segments (Ericson, *Real-Time Collision Detection*, 2005, sections 5.1.2, 5.1.9).
 - Polytope cores (a sphere is a point dilated, a capsule a segment dilated, boxes and convex
   meshes are polytopes, a cylinder its inscribed prism of ``_CYLINDER_SIDES`` sides, an
-  ellipsoid its inscribed icosphere, :data:`_ELLIPSOID_SUBDIVISIONS`, a height field's cell a
-  pair of triangular prisms): the separating axis test over face normals and edge cross products
-  (Gottschalk, Lin, Manocha, "OBBTree", SIGGRAPH 1996) gives the penetration depth of the
+  ellipsoid its inscribed icosphere, :data:`_ELLIPSOID_SUBDIVISIONS`, a height field's cell,
+  against a sphere or a capsule, a pair of triangular prisms): the separating axis test over
+  face normals and edge cross products (Gottschalk, Lin, Manocha, "OBBTree", SIGGRAPH 1996) gives the penetration depth of the
   cores; when the cores are apart, GJK (Gilbert, Johnson, Keerthi, IEEE J. Robotics and
   Automation 4(2), 1988, with the closest point of each simplex found by enumerating its
   faces) gives their distance. A face axis gives a manifold by clipping the most
   anti-parallel face (or the capsule's segment) of the other shape against the reference
   face's side planes, reduced to 4 points (2 for a capsule); an edge axis gives one contact
   at the edges' closest points.
+- A height field against a box, a cylinder, a convex mesh or an ellipsoid: point against plane,
+  normals from the terrain (:func:`_heightfield_polytope`): the shape's vertices and curved
+  supports against the triangle under them, the terrain's peaks and ridges against the shape's
+  faces, and the crossings of the shape's edges with the terrain's creases; reduced to 4 as a
+  half-space's contacts are. (One prism against a polytope would often give its way out
+  through the prism's side, inside the terrain.)
 
 GJK runs in a ``lax.while_loop`` without derivatives; its final simplex is then evaluated
 again from the poses, which gives derivatives of the closest points that are exact for the
@@ -1024,7 +1030,8 @@ def _polytope_pair(shape1, pose1, shape2, pose2, margin, count: int) -> Contacts
 
 
 # --------------------------------------------------------------------------------------
-# Height fields: the prisms under the shape, each a convex polytope.
+# Height fields: the prisms under a sphere or a capsule, each a convex polytope; the terrain's
+# surface under a polytope core.
 # --------------------------------------------------------------------------------------
 
 

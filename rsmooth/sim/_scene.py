@@ -8,7 +8,7 @@ system that steps with hard frictional contact, as MuJoCo would pair its geoms:
   a plane is a :class:`~rsmooth.sim.HalfSpace`, infinite, ``z <= 0`` of its frame; a sphere
   its radius; a capsule and a cylinder their radius and half length along their ``z`` axis; a
   box its half extents; an ellipsoid its three radii; a height field (fixed in the world,
-  against spheres and capsules) its :class:`~rsmooth.sim.HeightField`; a mesh the :class:`~rsmooth.sim.ConvexMesh` of its vertices' convex
+  against any shape but a plane or another height field) its :class:`~rsmooth.sim.HeightField`; a mesh the :class:`~rsmooth.sim.ConvexMesh` of its vertices' convex
   hull, the shape MuJoCo collides);
 - every pair of :attr:`MujocoModel.collision_pairs` (MuJoCo's filters: welded bodies, parent
   and child, ``<exclude>``, ``contype``/``conaffinity``, explicit ``<pair>``) becomes one
