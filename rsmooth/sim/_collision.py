@@ -18,10 +18,10 @@ Algorithms, by pair:
   meshes are polytopes, a cylinder its inscribed prism of ``_CYLINDER_SIDES`` sides, an
   ellipsoid its inscribed icosphere, :data:`_ELLIPSOID_SUBDIVISIONS`, a height field's cell,
   against a sphere or a capsule, a pair of triangular prisms): the separating axis test over
-  face normals and edge cross products (Gottschalk, Lin, Manocha, "OBBTree", SIGGRAPH 1996) gives the penetration depth of the
-  cores; when the cores are apart, GJK (Gilbert, Johnson, Keerthi, IEEE J. Robotics and
-  Automation 4(2), 1988, with the closest point of each simplex found by enumerating its
-  faces) gives their distance. A face axis gives a manifold by clipping the most
+  face normals and edge cross products (Gottschalk, Lin, Manocha, "OBBTree", SIGGRAPH 1996)
+  gives the penetration depth of the cores; when the cores are apart, GJK (Gilbert, Johnson,
+  Keerthi, IEEE J. Robotics and Automation 4(2), 1988, with the closest point of each simplex
+  found by enumerating its faces) gives their distance. A face axis gives a manifold by clipping the most
   anti-parallel face (or the capsule's segment) of the other shape against the reference
   face's side planes, reduced to 4 points (2 for a capsule); an edge axis gives one contact
   at the edges' closest points.
