@@ -248,8 +248,9 @@ class HeightField(eqx.Module):
     ``(R, C)`` (m) on a grid of ``x`` from ``-half_size[0]`` to ``half_size[0]`` (columns) and
     ``y`` from ``-half_size[1]`` to ``half_size[1]`` (rows), down to ``z = -base``. Each grid
     cell is two triangles (MuJoCo's: split along the diagonal from ``(row, column)`` to ``(row +
-    1, column + 1)``), each the top of a vertical prism, which a shape collides with as a convex
-    polytope.
+    1, column + 1)``), each the top of a vertical prism, which a sphere or a capsule collides with
+    as a convex polytope; a box, a cylinder, a convex mesh or an ellipsoid collides with the
+    triangles' surface.
 
     Attributes:
         heights: ``(R, C)``, ``R, C >= 2``.
