@@ -1173,8 +1173,9 @@ def _heightfield_polytope(field: HeightField, field_pose, shape, pose, margin, c
 
     A polytope that overlaps one of the cell prisms of :func:`_heightfield_pair` often has its
     smallest way out of that prism through the prism's side, which is inside the terrain: a
-    depth and normal that are not the terrain's. The candidates here are instead the two kinds
-    of feature pairs of a polyhedral terrain and a convex shape that are not edge against edge:
+    depth and normal that are not the terrain's. The candidates here are instead the feature
+    pairs of a polyhedral terrain and a convex shape, each a point against a plane, with the
+    terrain's normal where the shape's point is against it (as a half-space's contacts):
 
     - the shape's points against the triangle under them (:func:`_terrain_under`): the core's
       vertices, and for a curved shape (cylinder, ellipsoid) its exact supports along minus the
@@ -1195,10 +1196,10 @@ def _heightfield_polytope(field: HeightField, field_pose, shape, pose, margin, c
     shape); above it, the distance along that normal, the Euclidean distance where the point's
     nearest feature of the terrain is the triangle under it. A grid point inside the core has its
     exact depth, one over a face its exact distance. Points off the grid give no contact. The
-    candidates are reduced by :func:`_reduce` (the deepest first, then
-    the largest area), which gives a box resting on a flat terrain its four corners. Every
-    candidate is a point against a plane, so the distances are smooth in the poses but where a
-    point crosses a cell's edge or diagonal, a face's choice changes, or the reduction's."""
+    candidates are reduced by :func:`_reduce` (the deepest first, then the largest area), which
+    gives a box resting on a flat terrain its four corners. The distances are smooth in the poses
+    but where a point crosses a cell's edge or diagonal, a face's choice changes, or the
+    reduction's; their derivatives are finite everywhere."""
     field_rotation, field_translation = field_pose
     rotation, translation = pose
     local_pose = (field_rotation.T @ rotation, field_rotation.T @ (translation - field_translation))
