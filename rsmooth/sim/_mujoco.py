@@ -872,10 +872,10 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
             frictionloss on a free joint's linear axes, nonlinear damping, a spatial tendon
             that wraps around a geom or has a pulley, a tendon's nonlinear spring or damping or
             armature, equality constraints
-            other than joint couplings, equalities of one fixed tendon,
+            other than joint couplings, equalities of one tendon,
             connections and welds,
-            flex, plugins, gravity compensation through actuators, the ellipsoid fluid model, colliding
-            height fields or SDFs, actuators other than motors and servos (a fixed gain, an
+            flex, plugins, gravity compensation through actuators, the ellipsoid fluid model, a height
+            field colliding with a plane or another height field, SDFs, actuators other than motors and servos (a fixed gain, an
             affine bias, activation dynamics none, integrator, filter or filterexact) on a
             hinge, a slide or a fixed tendon, and on a free
             joint's linear axes an armature (MuJoCo applies it to the world-axes acceleration)
