@@ -202,11 +202,12 @@ def _ncp_result(converged: Array, impulse: Array, primal: Array, dual: Array, co
 
 
 class NCPState(eqx.Module):
-    """ADMM iterate: ``x`` (unconstrained impulse), ``z`` (impulse in the cone), ``y``
-    (scaled multiplier, ``-c~`` at convergence), penalty ``rho``, the eigendecomposition of
-    ``G`` used for every ``(G + rho I)^{-1}``, the residuals of ``z``, and the best impulse so
-    far (the start included: the smallest largest residual) with its residuals, which the
-    solve returns."""
+    """ADMM iterate, in the coordinates of the scaled problem (:attr:`NCPSolver.scaling`):
+    ``x`` (unconstrained impulse), ``z`` (impulse in the cone), ``y`` (scaled multiplier,
+    ``-c~`` at convergence), penalty ``rho``, the eigendecomposition of the scaled ``G`` used
+    for every ``(G + rho I)^{-1}``, the rows' scales ``d`` (``lambda = d z``); then, in the
+    problem's own units, the residuals of ``d z`` and the best impulse so far (the start
+    included: the smallest largest residual) with its residuals, which the solve returns."""
 
     x: Array
     z: Array
@@ -214,6 +215,7 @@ class NCPState(eqx.Module):
     rho: Array
     eigenvalues: Array
     eigenvectors: Array
+    scale: Array
     iteration: Array
     primal_feasibility: Array
     dual_feasibility: Array
@@ -232,6 +234,19 @@ def fixed_point_step_sizes(G: Array, n: int) -> Array:
         scale = jnp.concatenate([scale, diagonal[3 * n :]])
     floor = jnp.maximum(jnp.max(scale), 1.0) * 1e-12
     return lax.stop_gradient(1.0 / jnp.maximum(scale, floor))
+
+
+def _row_scales(G: Array, n: int) -> Array:
+    """The rows' scales ``d`` ``(3 n + m,)`` of :attr:`NCPSolver.scaling`: ``1 / sqrt(trace(G_ii)
+    / 3)`` on each contact's three rows (one number per contact, so that ``lambda_i = d_i z_i``
+    keeps the friction cone), ``1 / sqrt(G_kk)`` on each box row; a row whose diagonal is
+    below ``1e-6`` of the largest (a candidate with no Jacobian) takes the largest's scale
+    instead of a huge one, which would amplify the rounding of its free velocity."""
+    diagonal = jnp.diagonal(G)
+    block = jnp.repeat(sum_last(diagonal[: 3 * n].reshape(n, 3)) / 3.0, 3)
+    diagonal = jnp.concatenate([block, diagonal[3 * n :]])
+    largest = jnp.maximum(jnp.max(diagonal), jnp.finfo(G.dtype).tiny ** 0.5)
+    return lax.stop_gradient(1.0 / jnp.sqrt(jnp.where(diagonal > 1e-6 * largest, diagonal, largest)))
 
 
 def _natural_map(impulse: Array, G: Array, g: Array, mu: Array, step_sizes: Array, bounds: Array | None = None) -> Array:
@@ -590,9 +605,10 @@ class NCPSolver(eqx.Module):
         z^+ &= P_K(\\alpha x^+ + (1 - \\alpha) z + y / \\rho), \\\\
         y^+ &= y + \\rho(\\alpha x^+ + (1 - \\alpha) z - z^+),
 
-    and updates ``s`` from ``-y``, whose tangential part converges to ``c_T``. ``rho`` starts at
-    ``sqrt(lambda_min lambda_max)`` of ``G`` and is adapted by residual balancing; the linear
-    solves reuse one eigendecomposition of ``G``. Before ADMM a solve tries a starting impulse
+    and updates ``s`` from ``-y``, whose tangential part converges to ``c_T``, on the problem
+    scaled to a unit diagonal (``scaling``). ``rho`` starts at ``sqrt(lambda_min lambda_max)``
+    of the scaled ``G`` and is adapted by residual balancing; the linear solves reuse one
+    eigendecomposition of it. Before ADMM a solve tries a starting impulse
     (the warm start or zero, or ``sticking_guess``) and ``polish``; ADMM runs only where they
     do not solve the problem (and ``polish`` once more where ADMM reaches its cap).
 
@@ -662,6 +678,14 @@ class NCPSolver(eqx.Module):
             box then stays at rest to rounding. Where the guess fails (a sliding box), ADMM
             starts from the warm start or zero: from the guess it is slower and reaches other
             solutions.
+        scaling: ADMM iterates on the diagonally scaled problem ``G' = D G D``, ``g' = D g``,
+            ``lambda = D z``, with one scale per contact (``D_ii = 1 / sqrt(trace(G_ii) / 3)``,
+            so that each friction cone, the De Saxcé correction and ``lambdaᵀ c`` are
+            unchanged) and per box row (``1 / sqrt(G_kk)``): an equivalent NCP whose diagonal
+            is 1. One penalty ``rho`` cannot suit rows whose effective masses differ by orders
+            of magnitude (the joint limits of a humanoid's light wrists beside its feet on the
+            floor: ADMM then stalls far from the solution); on the scaled problem it can. The
+            residuals, the tolerance and the best iterate stay in the problem's own units.
 
     References:
         J. Carpentier, Q. Le Lidec, L. Montaut, "From compliant to rigid contact simulation:
@@ -690,6 +714,7 @@ class NCPSolver(eqx.Module):
     polish_steps: int = eqx.field(static=True, default=4)
     chunk_size: int | Literal["auto"] = eqx.field(static=True, default="auto")
     rank_deficient: bool = eqx.field(static=True, default=False)
+    scaling: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         for name in ("polish_rounds", "polish_steps"):
@@ -810,8 +835,10 @@ class NCPSolver(eqx.Module):
     def init(self, G: Array, g: Array, mu: Array, warm_start: Array | None, bounds: Array | None = None) -> NCPState:
         """Initial iterate: ``z = P_K(warm_start)`` (or 0) and the matching ``y = -c~(z)``,
         so an exact warm start is a fixed point of :meth:`step` (:func:`solve_ncp` passes
-        :meth:`start`'s impulse)."""
-        eigenvalues, eigenvectors = jnp.linalg.eigh(G)
+        :meth:`start`'s impulse); with ``scaling``, of the scaled problem."""
+        scale = _row_scales(G, mu.shape[0]) if self.scaling else jnp.ones_like(g)
+        G_scaled, g_scaled = scale[:, None] * G * scale[None, :], scale * g
+        eigenvalues, eigenvectors = jnp.linalg.eigh(G_scaled)
         largest = jnp.maximum(eigenvalues[-1], jnp.finfo(G.dtype).tiny ** 0.5)
         if self.rho is None:
             # Spectral choice sqrt(m L) (Carpentier et al. 2024), m floored so a singular G
@@ -823,15 +850,16 @@ class NCPSolver(eqx.Module):
             z = jnp.zeros_like(g)
         else:
             z = _project(warm_start, mu, bounds)
-        y = -_corrected_velocity(G @ z + g, mu)
+        y = -_corrected_velocity(G_scaled @ (z / scale) + g_scaled, mu)
         primal, dual, complementarity = ncp_residuals(G, g, mu, z, bounds)
         return NCPState(
-            x=z,
-            z=z,
+            x=z / scale,
+            z=z / scale,
             y=y,
             rho=rho,
             eigenvalues=eigenvalues,
             eigenvectors=eigenvectors,
+            scale=scale,
             iteration=jnp.array(0, dtype=jnp.int32),
             primal_feasibility=primal,
             dual_feasibility=dual,
@@ -843,7 +871,7 @@ class NCPSolver(eqx.Module):
     def step(self, G: Array, g: Array, mu: Array, state: NCPState, bounds: Array | None = None) -> NCPState:
         """One ADMM iteration (see the class docstring)."""
         n = mu.shape[0]
-        x, z, y, rho = state.x, state.z, state.y, state.rho
+        x, z, y, rho, scale = state.x, state.z, state.y, state.rho, state.scale
         del x
         dual_by_contact = (-y[: 3 * n]).reshape(n, 3)
         correction = jnp.zeros_like(dual_by_contact).at[:, 2].set(
@@ -851,7 +879,7 @@ class NCPSolver(eqx.Module):
         ).reshape(-1)
         if bounds is not None:  # box rows are not corrected
             correction = jnp.concatenate([correction, jnp.zeros_like(bounds)])
-        rhs = rho * z - y - g - correction
+        rhs = rho * z - y - scale * g - correction
         Q, eigenvalues = state.eigenvectors, state.eigenvalues
         x_next = Q @ ((Q.T @ rhs) / (eigenvalues + rho))
         # Over-relaxation speeds up most problems, but with the De Saxce correction (not a
@@ -860,7 +888,7 @@ class NCPSolver(eqx.Module):
         # plain ADMM, which converges there.
         relaxation = jnp.where(state.iteration < self.max_iterations // 2, self.relaxation, 1.0).astype(z.dtype)
         x_relaxed = relaxation * x_next + (1.0 - relaxation) * z
-        z_next = _project(x_relaxed + y / rho, mu, bounds)
+        z_next = _project(x_relaxed + y / rho, mu, None if bounds is None else bounds / scale[3 * n :])
         y_next = y + rho * (x_relaxed - z_next)
 
         if self.adaptive_rho:
@@ -884,7 +912,8 @@ class NCPSolver(eqx.Module):
         else:
             rho_next = rho
 
-        primal, dual, complementarity = ncp_residuals(G, g, mu, z_next, bounds)
+        impulse = scale * z_next
+        primal, dual, complementarity = ncp_residuals(G, g, mu, impulse, bounds)
         residuals = jnp.stack([primal, dual, complementarity])
         better = jnp.max(residuals) < jnp.max(state.best_residuals)  # False for NaN
         return NCPState(
@@ -894,11 +923,12 @@ class NCPSolver(eqx.Module):
             rho=rho_next,
             eigenvalues=eigenvalues,
             eigenvectors=Q,
+            scale=scale,
             iteration=state.iteration + 1,
             primal_feasibility=primal,
             dual_feasibility=dual,
             complementarity=complementarity,
-            best=jnp.where(better, z_next, state.best),
+            best=jnp.where(better, impulse, state.best),
             best_residuals=jnp.where(better, residuals, state.best_residuals),
         )
 
