@@ -237,16 +237,21 @@ def fixed_point_step_sizes(G: Array, n: int) -> Array:
 
 
 def _row_scales(G: Array, n: int) -> Array:
-    """The rows' scales ``d`` ``(3 n + m,)`` of :attr:`NCPSolver.scaling`: ``1 / sqrt(trace(G_ii)
-    / 3)`` on each contact's three rows (one number per contact, so that ``lambda_i = d_i z_i``
-    keeps the friction cone), ``1 / sqrt(G_kk)`` on each box row; a row whose diagonal is
-    below ``1e-6`` of the largest (a candidate with no Jacobian) takes the largest's scale
-    instead of a huge one, which would amplify the rounding of its free velocity."""
+    """The rows' scales ``d`` ``(3 n + m,)`` of :attr:`NCPSolver.scaling`: ``sqrt(r / G_kk)``,
+    with ``G_kk`` the mean diagonal of each contact's three rows (one number per contact, so that
+    ``lambda_i = d_i z_i`` keeps the friction cone) or a box row's diagonal, and ``r`` their
+    geometric mean: the rows are equilibrated among themselves and the problem keeps its overall
+    scale (rows of equal diagonals are left as they are, and ADMM's residual balancing, which
+    compares impulses with velocities, sees the units it would see unscaled). A row whose
+    diagonal is below ``1e-6`` of the largest (a candidate with no Jacobian) keeps scale 1."""
     diagonal = jnp.diagonal(G)
     block = jnp.repeat(sum_last(diagonal[: 3 * n].reshape(n, 3)) / 3.0, 3)
     diagonal = jnp.concatenate([block, diagonal[3 * n :]])
     largest = jnp.maximum(jnp.max(diagonal), jnp.finfo(G.dtype).tiny ** 0.5)
-    return lax.stop_gradient(1.0 / jnp.sqrt(jnp.where(diagonal > 1e-6 * largest, diagonal, largest)))
+    meaningful = diagonal > 1e-6 * largest
+    logs = jnp.log(jnp.where(meaningful, diagonal, largest))
+    reference = jnp.sum(jnp.where(meaningful, logs, 0.0)) / jnp.maximum(jnp.sum(meaningful), 1)
+    return lax.stop_gradient(jnp.where(meaningful, jnp.exp(0.5 * (reference - logs)), 1.0))
 
 
 def _natural_map(impulse: Array, G: Array, g: Array, mu: Array, step_sizes: Array, bounds: Array | None = None) -> Array:
@@ -606,7 +611,7 @@ class NCPSolver(eqx.Module):
         y^+ &= y + \\rho(\\alpha x^+ + (1 - \\alpha) z - z^+),
 
     and updates ``s`` from ``-y``, whose tangential part converges to ``c_T``, on the problem
-    scaled to a unit diagonal (``scaling``). ``rho`` starts at ``sqrt(lambda_min lambda_max)``
+    scaled to an equal diagonal (``scaling``). ``rho`` starts at ``sqrt(lambda_min lambda_max)``
     of the scaled ``G`` and is adapted by residual balancing; the linear solves reuse one
     eigendecomposition of it. Before ADMM a solve tries a starting impulse
     (the warm start or zero, or ``sticking_guess``) and ``polish``; ADMM runs only where they
@@ -679,10 +684,10 @@ class NCPSolver(eqx.Module):
             starts from the warm start or zero: from the guess it is slower and reaches other
             solutions.
         scaling: ADMM iterates on the diagonally scaled problem ``G' = D G D``, ``g' = D g``,
-            ``lambda = D z``, with one scale per contact (``D_ii = 1 / sqrt(trace(G_ii) / 3)``,
-            so that each friction cone, the De Saxcé correction and ``lambdaᵀ c`` are
-            unchanged) and per box row (``1 / sqrt(G_kk)``): an equivalent NCP whose diagonal
-            is 1. One penalty ``rho`` cannot suit rows whose effective masses differ by orders
+            ``lambda = D z``, with one scale per contact (``D_ii`` proportional to ``1 /
+            sqrt(trace(G_ii) / 3)``, so that each friction cone, the De Saxcé correction and
+            ``lambdaᵀ c`` are unchanged) and per box row (``1 / sqrt(G_kk)``): an equivalent NCP
+            whose diagonal entries are equal (their geometric mean, :func:`_row_scales`). One penalty ``rho`` cannot suit rows whose effective masses differ by orders
             of magnitude (the joint limits of a humanoid's light wrists beside its feet on the
             floor: ADMM then stalls far from the solution); on the scaled problem it can. The
             residuals, the tolerance and the best iterate stay in the problem's own units.

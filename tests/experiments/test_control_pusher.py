@@ -2,6 +2,7 @@
 the target pose."""
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -15,9 +16,10 @@ from rsmooth.experiments import control_pusher
 @pytest.mark.slow
 def test_ddp_leaves_the_box_and_rddp_pushes_it_to_the_target(tmp_path, getkey):
     config = control_pusher.Config(seeds=1, geometric_decays=(), num_samples=8, max_iterations=8)
-    # The R-DDP trajectory, simulated again, leaves a few contact solves just short of the
-    # solver's tolerance (ADMM's iteration cap on sliding contact): reported, as counted below.
-    with pytest.warns(sim.SimulationWarning, match="the rddp solution's trajectory"):
+    # The trajectories are simulated again with the contact diagnostics: a solve left short of the
+    # solver's tolerance (ADMM's iteration cap on sliding contact) is counted and warned about.
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", sim.SimulationWarning)
         metrics = control_pusher.run(config, tmp_path, getkey(), progress=False)
     assert metrics["methods"] == ["ddp", "rddp"]
     ddp, rddp = metrics["ddp"], metrics["rddp"]
@@ -26,9 +28,13 @@ def test_ddp_leaves_the_box_and_rddp_pushes_it_to_the_target(tmp_path, getkey):
     assert ddp["iterations"] == 1 and ddp["converged"] and ddp["max_force"] == 0.0
     assert ddp["box_displacement"] < 1e-6 and not ddp["success"]
     assert ddp["unconverged_steps"] == ddp["diverged_steps"] == rddp["diverged_steps"] == 0
-    # a few of the R-DDP trajectory's solves, a count that moves with the rounding of the step's
-    # Jacobians (R-DDP's iterates through sliding contact amplify it): reported, and a minority
-    assert 0 < rddp["unconverged_steps"] <= config.horizon // 4
+    # at most a few of the R-DDP trajectory's solves, a count that moves with the rounding of the
+    # step's Jacobians (R-DDP's iterates through sliding contact amplify it): a minority, and
+    # warned about where there are any
+    assert 0 <= rddp["unconverged_steps"] <= config.horizon // 4
+    warned = [w for w in caught if issubclass(w.category, sim.SimulationWarning)]
+    assert bool(warned) == (rddp["unconverged_steps"] > 0)
+    assert all("the rddp solution's trajectory" in str(w.message) for w in warned)
     np.testing.assert_allclose(ddp["position_error"], np.hypot(config.target_x, config.target_y), atol=1e-6)
     # R-DDP: the box pushed and turned onto the target, at rest.
     assert rddp["position_error"] < config.position_tolerance < ddp["position_error"]

@@ -832,7 +832,7 @@ def test_admm_on_the_scaled_problem_solves_contacts_of_very_different_masses_in_
     # contact's impulse has a closed form: the normal one stops the approach, lambda_N = -m g_N;
     # the tangential one stops the slip, -m g_T, where that is inside the cone, else mu lambda_N
     # against the slip. One penalty for rows whose diagonals span 1 / 30 to 1000 makes ADMM
-    # crawl; on the problem scaled to a unit diagonal (NCPSolver.scaling) it does not.
+    # crawl; on the problem scaled to an equal diagonal (NCPSolver.scaling) it does not.
     masses = np.array([1.0, 1e-3, 30.0])
     G = jnp.asarray(np.diag(np.repeat(1.0 / masses, 3)))
     g = np.array([0.5, 0.0, -1.0, 0.2, 0.1, -0.3, -0.05, 0.02, -0.4])

@@ -455,8 +455,12 @@ def test_pusher_gradients_match_finite_differences_while_pushing():
     step = jax.jit(lambda a, b: pusher.step(a, b))
     jac = jax.jit(jax.jacfwd(lambda b: pusher.step(x, b)))(u)
     fd = _central_differences(lambda b: step(x, jnp.asarray(b)), u)
-    # Box on 4 coplanar corners: impulses are not unique (see the sliding cube test).
-    np.testing.assert_allclose(jac, fd, atol=5e-5)
+    # Box on 4 coplanar corners: impulses are not unique (see the sliding cube test), and with
+    # the finger's contact beside them the split of the box's weight among its corners, which the
+    # solver's path selects, moves the finger's velocity by up to 1e-4 of a unit of force in the
+    # finite differences (measured 1.0e-4; 2.7e-5 with NCPSolver(scaling=False), which selects
+    # another split): the implicit derivative is the least-squares one.
+    np.testing.assert_allclose(jac, fd, atol=1.5e-4)
     assert float(jnp.abs(jac[9, 0])) > 1e-3  # the finger force moves the box
 
 
