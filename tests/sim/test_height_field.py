@@ -57,21 +57,24 @@ def test_distances_to_a_terrain_are_mujocos(geom):
     assert np.all(ours[~touching] > -1e-9)
 
 
-def test_a_ball_rests_on_a_terrace_of_a_terrain():
+@pytest.mark.parametrize("body, half_height", [('type="sphere" size="0.05"', 0.05), ('type="box" size="0.05 0.04 0.03"', 0.03)],
+                         ids=["ball", "box"])
+def test_a_shape_rests_on_a_terrace_of_a_terrain(body, half_height):
     # Heights: a flat terrace at 0.1 m over the middle columns, lower around: a ball of radius
-    # 5 cm set down 2 mm above it settles on it, where two prisms meet.
+    # 5 cm (against the cells' prisms) or a box 6 cm high (against the terrain's surface) set
+    # down 2 mm above it, across a cell's side and diagonal, settles on it at rest.
     heights = np.full((ROWS, COLUMNS), 1.0)  # MuJoCo scales the elevation to [0, 1], times size[2]
     heights[:, 0] = heights[:, -1] = 0.0
     elevation = " ".join(map(str, heights.reshape(-1)))
     text = f"""<mujoco><option timestep="0.01"/>
       <asset><hfield name="terrain" nrow="{ROWS}" ncol="{COLUMNS}" size="{HALF_X} {HALF_Y} 0.1 {BASE}" elevation="{elevation}"/></asset>
       <worldbody><geom name="terrain" type="hfield" hfield="terrain"/>
-        <body name="ball" pos="0.05 0.02 0.152"><freejoint/><geom type="sphere" size="0.05" mass="1"/></body></worldbody>
+        <body name="body" pos="0.05 0.02 {0.102 + half_height}"><freejoint/><geom {body} mass="1"/></body></worldbody>
     </mujoco>"""
     system = sim.scene(text)
     xs, infos = eqx.filter_jit(lambda s, x: s.rollout(x, jnp.zeros((100, 0))))(system, system.initial_state())
-    sim.check_steps(infos, what="a ball on a terrace")
-    np.testing.assert_allclose(float(xs[-1, 2]), 0.1 + 0.05, atol=1e-3)
+    sim.check_steps(infos, what="a shape on a terrace")
+    np.testing.assert_allclose(float(xs[-1, 2]), 0.1 + half_height, atol=1e-3)
     assert float(jnp.max(jnp.abs(xs[-10:, 7:]))) < 1e-3
 
 
@@ -260,20 +263,3 @@ def test_distances_to_a_terrain_have_finite_derivatives_equal_to_finite_differen
     derivative = jacobian(field, box, rotation0, x)
     np.testing.assert_allclose(derivative, central, atol=1e-8)  # (measured: 7e-12)
 
-
-def test_a_box_rests_on_a_terrace_of_a_terrain():
-    # The terrace of test_a_ball_rests_on_a_terrace_of_a_terrain: a box of 6 cm height set down
-    # 2 mm above it, across a cell's side and diagonal, settles flat on it.
-    heights = np.full((ROWS, COLUMNS), 1.0)
-    heights[:, 0] = heights[:, -1] = 0.0
-    elevation = " ".join(map(str, heights.reshape(-1)))
-    text = f"""<mujoco><option timestep="0.01"/>
-      <asset><hfield name="terrain" nrow="{ROWS}" ncol="{COLUMNS}" size="{HALF_X} {HALF_Y} 0.1 {BASE}" elevation="{elevation}"/></asset>
-      <worldbody><geom name="terrain" type="hfield" hfield="terrain"/>
-        <body name="box" pos="0.05 0.02 0.132"><freejoint/><geom type="box" size="0.05 0.04 0.03" mass="1"/></body></worldbody>
-    </mujoco>"""
-    system = sim.scene(text)
-    xs, infos = eqx.filter_jit(lambda s, x: s.rollout(x, jnp.zeros((100, 0))))(system, system.initial_state())
-    sim.check_steps(infos, what="a box on a terrace")
-    np.testing.assert_allclose(float(xs[-1, 2]), 0.1 + 0.03, atol=1e-3)
-    assert float(jnp.max(jnp.abs(xs[-10:, 7:]))) < 1e-3
