@@ -17,7 +17,8 @@ drives or constrains them: motors on a tendon (:attr:`MujocoModel.tendon_moments
 moment arms), equalities of one tendon (joint couplings on one or two joints, on more a row
 that holds its length, :attr:`Tendons.equalities`) and the
 tendon's linear spring, damper, dry friction and length limits (:attr:`MujocoModel.tendons`).
-Spatial tendons through sites (a polyline; no wrapping around geoms, no pulleys) are converted
+Spatial tendons through sites, wrapping around spheres and cylinders between two sites (with or
+without a side site, which must lie outside its geom at ``qpos0``; no pulleys), are converted
 for their springs, dampers, dry friction, limits (a string) and equalities (a rod: the row
 that holds the length); motors on them, a tendon's armature and equalities between two tendons
 are refused by name.
@@ -635,17 +636,22 @@ def _check_tendons(mj: Any, m: Any) -> None:
     spatial tendons here."""
     names = _names(m, "tendon", m.ntendon)
     supported = (
-        "supported: fixed tendons and spatial tendons through sites, with linear springs, dampers, dry friction and "
-        "length limits, equalities of one tendon; motors on fixed ones"
+        "supported: fixed tendons and spatial tendons through sites, wrapping around spheres and cylinders, with "
+        "linear springs, dampers, dry friction and length limits, equalities of one tendon; motors on fixed ones"
     )
     driven = {int(m.actuator_trnid[a, 0]) for a in range(m.nu) if int(m.actuator_trntype[a]) == int(mj.mjtTrn.mjTRN_TENDON)}
     for t in range(m.ntendon):
         types = [int(m.wrap_type[w]) for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t])]
         problem = None
+        inside = [w for w in _wraps(mj, m, t) if _side_inside(mj, m, w)]
         if int(mj.mjtWrap.mjWRAP_PULLEY) in types:
             problem = "it is a spatial tendon with a pulley"
-        elif int(mj.mjtWrap.mjWRAP_SPHERE) in types or int(mj.mjtWrap.mjWRAP_CYLINDER) in types:
-            problem = "it is a spatial tendon that wraps around a geom"
+        elif inside:
+            w = inside[0]
+            problem = (
+                f"the side site {_names(m, 'site', m.nsite)[int(m.wrap_prm[w])]!r} of its wrap around geom "
+                f"{_names(m, 'geom', m.ngeom)[int(m.wrap_objid[w])]!r} is inside the geom (MuJoCo's wrapping through it)"
+            )
         elif _is_spatial(mj, m, t) and t in driven:
             problem = "it is a spatial tendon driven by a motor (its moment arms vary with the configuration)"
         elif np.any(m.tendon_stiffnesspoly[t] != 0):
@@ -658,6 +664,23 @@ def _check_tendons(mj: Any, m: Any) -> None:
             problem = f"it bounds its actuators' total force (actuatorfrcrange {m.tendon_actfrcrange[t].tolist()})"
         if problem is not None:
             raise ValueError(f"MuJoCo model: tendon {names[t]!r} is not supported: {problem} ({supported})")
+
+
+def _wraps(mj: Any, m: Any, t: int) -> list[int]:
+    """The wraps (indices into MuJoCo's ``wrap_*``) of tendon ``t`` around a sphere or a cylinder."""
+    shapes = (int(mj.mjtWrap.mjWRAP_SPHERE), int(mj.mjtWrap.mjWRAP_CYLINDER))
+    return [w for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]) if int(m.wrap_type[w]) in shapes]
+
+
+def _side_inside(mj: Any, m: Any, w: int) -> bool:
+    """Whether wrap ``w``'s side site is inside its geom at ``qpos0`` (MuJoCo's test: its
+    distance to the geom's centre below the radius, for a cylinder too)."""
+    if m.wrap_prm[w] < 0:
+        return False
+    d = mj.MjData(m)
+    mj.mj_kinematics(m, d)
+    g, site = int(m.wrap_objid[w]), int(m.wrap_prm[w])
+    return bool(np.linalg.norm(d.site_xpos[site] - d.geom_xpos[g]) < m.geom_size[g, 0])
 
 
 def _is_spatial(mj: Any, m: Any, t: int) -> bool:
@@ -681,11 +704,23 @@ def _tendon_moments(m: Any, positions: bool = False) -> np.ndarray:
     return moments
 
 
+def _sites(mj: Any, m: Any, t: int) -> list[int]:
+    """The wraps (indices into MuJoCo's ``wrap_*``) of spatial tendon ``t`` that are sites."""
+    site = int(mj.mjtWrap.mjWRAP_SITE)
+    return [w for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]) if int(m.wrap_type[w]) == site]
+
+
+def _wrap_shapes() -> dict[int, str]:
+    mj = _mujoco()
+    return {int(mj.mjtWrap.mjWRAP_SPHERE): "sphere", int(mj.mjtWrap.mjWRAP_CYLINDER): "cylinder"}
+
+
 def _tendons(mj: Any, m: Any) -> Tendons | None:
     """The springs, dampers, dry friction and length limits of the tendons (``None`` where none
     has any, or they are disabled): lengths in rsmooth's coordinates (MuJoCo's ``qpos`` less
     ``qpos0`` on hinges and slides), so ``L = lengths q + offsets`` is MuJoCo's ``ten_length``
-    for a fixed tendon; a spatial tendon's path goes through its sites' frames. A spatial
+    for a fixed tendon; a spatial tendon's path goes through its sites' frames and wraps around
+    its spheres and cylinders (fixed in their bodies' frames, :attr:`Tendons.wraps`). A spatial
     tendon's lower limit at or below 0 is left out (its length cannot go below it). An active
     equality of one spatial tendon, or of one fixed tendon on three or more joints, holds it at
     ``L0 + c_0`` (MuJoCo's ``L - L0 = c_0``, ``L0`` its length at ``qpos0``); of a fixed tendon
@@ -709,7 +744,8 @@ def _tendons(mj: Any, m: Any) -> Tendons | None:
         return None
     lengths = _tendon_moments(m, positions=True)
     spatial = [t for t in range(m.ntendon) if _is_spatial(mj, m, t)]
-    first_site = m.nbody + m.njnt  # frames: bodies, joints, then sites (from_mujoco)
+    first_site = m.nbody + m.njnt  # frames: bodies, joints, then sites (from_mujoco); body b is frame b
+    geoms = [int(m.wrap_objid[w]) for t in spatial for w in _wraps(mj, m, t)]
     return Tendons(
         lengths=_array(lengths),
         moments=_array(_tendon_moments(m)).reshape(m.ntendon, m.nv),
@@ -722,10 +758,15 @@ def _tendons(mj: Any, m: Any) -> Tendons | None:
         range=_array(m.tendon_range).reshape(m.ntendon, 2) if limits else None,
         limits=tuple(limits),
         spatial=tuple(spatial),
-        paths=tuple(
-            tuple(first_site + int(m.wrap_objid[w]) for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]))
-            for t in spatial
+        paths=tuple(tuple(first_site + int(m.wrap_objid[w]) for w in _sites(mj, m, t)) for t in spatial),
+        wraps=tuple(
+            (k, _sites(mj, m, t).index(w - 1), int(m.geom_bodyid[m.wrap_objid[w]]), _wrap_shapes()[int(m.wrap_type[w])],
+             None if m.wrap_prm[w] < 0 else first_site + int(m.wrap_prm[w]))
+            for k, t in enumerate(spatial) for w in _wraps(mj, m, t)
         ),
+        wrap_rotations=_array([_quaternion_to_matrix(m.geom_quat[g]) for g in geoms]).reshape(-1, 3, 3) if geoms else None,
+        wrap_offsets=_array(np.asarray(m.geom_pos, dtype=np.float64)[geoms]).reshape(-1, 3) if geoms else None,
+        wrap_radii=_array(np.asarray(m.geom_size, dtype=np.float64)[geoms, 0]) if geoms else None,
         equalities=tuple(sorted(held)),
         equality_length=_array([held.get(t, 0.0) for t in range(m.ntendon)]) if held else None,
     )
@@ -870,7 +911,8 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
             names the element and what is supported): a ball joint's range beyond pi, a free joint's
             spring, nonlinear springs (``stiffnesspoly``),
             frictionloss on a free joint's linear axes, nonlinear damping, a spatial tendon
-            that wraps around a geom or has a pulley, a tendon's nonlinear spring or damping or
+            with a pulley or whose wrap's side site is inside its geom (at ``qpos0``; MuJoCo then
+            wraps through the geom), a tendon's nonlinear spring or damping or
             armature, equality constraints
             other than joint couplings, equalities of one tendon,
             connections and welds,

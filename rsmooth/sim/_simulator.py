@@ -88,6 +88,7 @@ from rsmooth._xla import device_array
 from rsmooth._results import RESULTS
 from rsmooth.sim import _derivatives, _dynamics, _stages
 from rsmooth.sim import _spatial as spatial
+from rsmooth.sim import _wrapping
 from rsmooth.sim._contact import _safe_norm, contact_frame, corrected_free_velocity
 from rsmooth.sim._collision import Contacts, collide, manifold_size
 from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, Ellipsoid, HalfSpace, HeightField, Sphere
@@ -610,8 +611,12 @@ class Tendons(eqx.Module):
     length limits. Tendon ``t`` has the length
 
     ``L_t(q) = lengths[t] . q + offsets[t]`` (fixed: linear in the coordinates of its hinges
-    and slides), plus, for a spatial tendon (``spatial[k] = t``), the length of the polyline
-    through the origins of the frames ``paths[k]`` (MuJoCo's sites; no wrapping),
+    and slides), plus, for a spatial tendon (``spatial[k] = t``), the length of its path through
+    the origins of the frames ``paths[k]`` (MuJoCo's sites): straight between consecutive
+    frames, except where ``wraps`` puts a sphere or a cylinder between them, where it is the
+    path that wraps around it as MuJoCo's does (``rsmooth.sim._wrapping``: the straight segment
+    where that misses the shape, else two tangent segments and an arc on it, a great circle or
+    a helix; a side frame picks the way round),
 
     and pulls its joints with the force ``f_t`` along its moments ``M_t(q) = dL_t/dq``
     (the generalized force ``M(q)^T f``; :meth:`RigidBodySystem.tendon_moments`):
@@ -651,6 +656,16 @@ class Tendons(eqx.Module):
         spatial: the spatial tendons (static, distinct indices).
         paths: for each of ``spatial``, the frames (names or indices of the model's frames,
             at least two) whose origins the tendon passes through, in order (static).
+        wraps: the shapes the spatial tendons wrap around, ``((k, segment, frame, shape,
+            side), ...)`` (static): between ``paths[k][segment]`` and ``paths[k][segment + 1]``
+            (one shape per segment), a ``"sphere"`` or an infinite ``"cylinder"`` fixed in
+            ``frame``, and the frame whose origin picks the way round (``None``: the short
+            way). The side frame's origin must stay outside the shape (MuJoCo's other wrapping,
+            through the shape, is not modelled).
+        wrap_rotations: ``(W, 3, 3)``, each shape's orientation in its frame (a cylinder's axis
+            is the third column).
+        wrap_offsets: ``(W, 3)``, each shape's centre in its frame.
+        wrap_radii: ``(W,)``, each shape's radius, ``> 0``.
         equalities: the tendons held at a length (static, distinct indices).
         equality_length: ``(T,)``, their lengths, finite; read for ``equalities`` only.
     """
@@ -667,6 +682,10 @@ class Tendons(eqx.Module):
     limits: tuple[tuple[int, int], ...] = eqx.field(static=True, default=())
     spatial: tuple[int, ...] = eqx.field(static=True, default=())
     paths: tuple[tuple[str | int, ...], ...] = eqx.field(static=True, default=())
+    wraps: tuple[tuple[int, int, str | int, str, str | int | None], ...] = eqx.field(static=True, default=())
+    wrap_rotations: Array | None = None
+    wrap_offsets: Array | None = None
+    wrap_radii: Array | None = None
     equalities: tuple[int, ...] = eqx.field(static=True, default=())
     equality_length: Array | None = None
 
@@ -687,6 +706,27 @@ class Tendons(eqx.Module):
                 f"Tendons.paths must hold one tuple of at least two frames per spatial tendon ({len(self.spatial)}), "
                 f"got {self.paths!r}"
             )
+        segments = set()
+        for entry in self.wraps:
+            valid = isinstance(entry, tuple) and len(entry) == 5 and isinstance(entry[0], int) and isinstance(entry[1], int)
+            if not (valid and 0 <= entry[0] < len(self.paths) and 0 <= entry[1] < len(self.paths[entry[0]]) - 1):
+                raise ValueError(
+                    f"Tendons.wraps entries must be (k, segment, frame, shape, side) with k a spatial tendon's position "
+                    f"in Tendons.spatial and segment one of its path's segments, got {entry!r}"
+                )
+            if entry[3] not in ("sphere", "cylinder"):
+                raise ValueError(f"Tendons.wraps: shape must be 'sphere' or 'cylinder', got {entry[3]!r}")
+            if entry[:2] in segments:
+                raise ValueError(f"Tendons.wraps: one shape per segment, got two on {entry[:2]!r}")
+            segments.add(entry[:2])
+        if self.wraps:
+            count_wraps = len(self.wraps)
+            for name, shape in (("wrap_rotations", (count_wraps, 3, 3)), ("wrap_offsets", (count_wraps, 3)), ("wrap_radii", (count_wraps,))):
+                value = getattr(self, name)
+                if value is None or jnp.shape(value) != shape:
+                    raise ValueError(f"Tendons.{name} must have shape {shape}, got {None if value is None else jnp.shape(value)}")
+            if not _checks.is_traced(self.wrap_radii) and not np.all(np.asarray(self.wrap_radii) > 0):
+                raise ValueError(f"Tendons.wrap_radii must be > 0, got {np.asarray(self.wrap_radii)}")
         if self.limits and self.range is None:
             raise ValueError("Tendons.limits needs Tendons.range")
         for entry in self.limits:
@@ -1293,6 +1333,12 @@ class RigidBodySystem(eqx.Module):
                         model.frame_id(frame)
                     except ValueError as error:
                         raise ValueError(f"joints.tendons.paths (tendon {tendon}): {error}") from None
+            for entry in joints.tendons.wraps:
+                for frame in entry[2:3] + (() if entry[4] is None else entry[4:5]):
+                    try:
+                        model.frame_id(frame)
+                    except ValueError as error:
+                        raise ValueError(f"joints.tendons.wraps {entry!r}: {error}") from None
         for name, part in (("fluid", joints.fluid), ("gravcomp", joints.gravcomp)):
             for frame in () if part is None else part.frames:
                 try:
@@ -1643,14 +1689,46 @@ class RigidBodySystem(eqx.Module):
             return length, moments
         if kinematics is None:
             kinematics = _dynamics._kinematics(model, q)
-        for tendon, path in zip(tendons.spatial, tendons.paths):
+        wraps = {entry[:2]: (w, entry) for w, entry in enumerate(tendons.wraps)}
+        parents = np.asarray(model.frame_parents)
+
+        def origin(frame):
+            return _dynamics._frame_placement(model, kinematics.rotation, kinematics.translation, model.frame_id(frame))
+
+        for k, (tendon, path) in enumerate(zip(tendons.spatial, tendons.paths)):
             ids = [model.frame_id(frame) for frame in path]
-            points = jnp.stack([_dynamics._frame_placement(model, kinematics.rotation, kinematics.translation, i)[1] for i in ids])
-            columns = _dynamics._point_velocity_columns(model, kinematics, np.asarray(model.frame_parents)[ids], points)
+            sites = [origin(frame)[1] for frame in path]
+            # the path as a polyline (a wrap adds its two tangent points, fixed on the shape's
+            # body; their chord has no rate, and the arc replaces it in the length)
+            points, joints, arcs = [sites[0]], [parents[ids[0]]], []
+            for segment in range(len(path) - 1):
+                if (k, segment) in wraps:
+                    w, (_, _, frame, shape, side) = wraps[(k, segment)]
+                    rotation, translation = origin(frame)
+                    centre = translation + rotation @ tendons.wrap_offsets[w].astype(q.dtype)
+                    radius = tendons.wrap_radii[w].astype(q.dtype)
+                    side_point = None if side is None else origin(side)[1]
+                    if shape == "sphere":
+                        first, second, arc = _wrapping.wrap_sphere(sites[segment], sites[segment + 1], side_point, centre, radius)
+                    else:
+                        axes = rotation @ tendons.wrap_rotations[w].astype(q.dtype)
+                        first, second, arc = _wrapping.wrap_cylinder(
+                            sites[segment], sites[segment + 1], side_point, axes, centre, radius
+                        )
+                    points += [first, second]
+                    joints += [parents[model.frame_id(frame)]] * 2
+                    arcs.append((len(points) - 2, arc))
+                points.append(sites[segment + 1])
+                joints.append(parents[ids[segment + 1]])
+            points = jnp.stack(points)
+            columns = _dynamics._point_velocity_columns(model, kinematics, np.asarray(joints), points)
             segments = points[1:] - points[:-1]
-            lengths = _safe_norm(segments)
+            norms = _safe_norm(segments)
+            lengths = norms
+            for chord, arc in arcs:
+                lengths = lengths.at[chord].set(arc)
             # the unit direction of each segment (none where its ends meet: no pull there)
-            directions = segments / jnp.where(lengths > 0, lengths, 1.0)[:, None]
+            directions = segments / jnp.where(norms > 0, norms, 1.0)[:, None]
             rate = columns[1:] - columns[:-1]  # (segments, nv, 3): the segments' rates per dof
             length = length.at[tendon].add(jnp.sum(lengths).astype(q.dtype))
             moments = moments.at[tendon].add(jnp.einsum("snk,sk->n", rate, directions).astype(q.dtype))

@@ -171,8 +171,8 @@ FIXED = '<fixed name="t" {}><joint joint="j0" coef="1"/><joint joint="j1" coef="
     "text, message",
     [
         (
-            _tendon_model('<spatial name="t"><site site="s0"/><geom geom="g"/><site site="s1"/></spatial>'),
-            "tendon 't'.*wraps around a geom",
+            _tendon_model('<spatial name="t"><site site="s1"/><geom geom="g" sidesite="s0"/><site site="s1"/></spatial>'),
+            "tendon 't'.*side site 's0' of its wrap around geom 'g' is inside the geom",
         ),
         (
             _tendon_model('<spatial name="t"><site site="s0"/><site site="s1"/><pulley divisor="2"/><site site="s0"/><site site="s1"/></spatial>'),
@@ -584,3 +584,151 @@ def test_bad_tendon_limits_and_paths_are_refused_by_name():
     system = sim.scene(TWO_CARTS, floor=False)
     with pytest.raises(ValueError, match=r"joints.tendons.paths \(tendon 0\): .*no_such_frame"):
         system.with_tendons(sim.Tendons(**base, spatial=(0,), paths=(("a", "no_such_frame"),)))
+
+
+# Four spatial tendons from a world site to a site on a two-link arm, around a sphere and
+# around a cylinder with a tilted axis that turn with the arm's first link, each without and
+# with a side site (which picks the way round, and sends it the long way where the straight
+# segment passes behind the shape).
+WRAPPED = """
+<mujoco>
+  <option timestep="0.005" gravity="0 0 -9.81"/>
+  <worldbody>
+    <site name="anchor" pos="-0.35 0.04 0.12"/>
+    <body name="upper"><joint name="h0" type="hinge" axis="0 1 0"/><joint name="h1" type="hinge" axis="1 0 0"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.02" contype="0" conaffinity="0"/>
+      <geom name="ball" type="sphere" size="0.08" pos="0.02 0.01 0.03" contype="0" conaffinity="0"/>
+      <geom name="drum" type="cylinder" size="0.06 0.05" pos="0 -0.01 0" euler="1.3 0.3 0" contype="0" conaffinity="0"/>
+      <site name="ball_side" pos="0.05 0.02 0.3"/><site name="drum_side" pos="0.02 -0.2 -0.25"/>
+      <body name="lower" pos="0.3 0 0"><joint name="h2" type="hinge" axis="0 1 0"/><joint name="s" type="slide" axis="1 0 0"/>
+        <geom type="capsule" fromto="0 0 0 0.2 0 0" size="0.02" contype="0" conaffinity="0"/>
+        <site name="tip" pos="0.2 0.01 0.02"/>
+      </body>
+    </body>
+  </worldbody>
+  <tendon>
+    <spatial name="ball" stiffness="1"><site site="anchor"/><geom geom="ball"/><site site="tip"/></spatial>
+    <spatial name="ball_side" stiffness="1"><site site="anchor"/><geom geom="ball" sidesite="ball_side"/><site site="tip"/></spatial>
+    <spatial name="drum" stiffness="1"><site site="anchor"/><geom geom="drum"/><site site="tip"/></spatial>
+    <spatial name="drum_side" stiffness="1"><site site="anchor"/><geom geom="drum" sidesite="drum_side"/><site site="tip"/></spatial>
+  </tendon>
+</mujoco>
+"""
+
+
+def test_tendons_wrapped_around_spheres_and_cylinders_have_mujocos_lengths_and_moments():
+    # At random configurations (the arm's q is MuJoCo's qpos), where each tendon wraps and
+    # where it does not: the lengths are MuJoCo's ten_length, the moments its ten_J.
+    loaded = sim.load_mjcf(WRAPPED)
+    tendons = loaded.tendons
+    assert [(k, segment, shape, side is not None) for k, segment, _, shape, side in tendons.wraps] == [
+        (0, 0, "sphere", False), (1, 0, "sphere", True), (2, 0, "cylinder", False), (3, 0, "cylinder", True)
+    ]
+    system = sim.scene(loaded, floor=False)
+    m = mujoco.MjModel.from_xml_string(WRAPPED)
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(0)
+    qs = np.column_stack([rng.uniform(-np.pi, np.pi, (400, 3)), rng.uniform(-0.25, 0.1, 400)])
+    lengths, moments = jax.jit(jax.vmap(lambda q: (system.tendon_lengths(q), system.tendon_moments(q))))(jnp.asarray(qs))
+    expected_lengths, expected_moments, wrapped = [], [], []
+    for q in qs:
+        d.qpos[:] = q
+        mujoco.mj_forward(m, d)
+        expected_lengths.append(d.ten_length.copy())
+        expected_moments.append(_dense_ten_J(m, d))
+        wrapped.append(d.ten_wrapnum == 4)
+    wrapped = np.array(wrapped)
+    assert np.all(wrapped.mean(axis=0) > 0.1) and np.all(wrapped.mean(axis=0) < 0.9)  # both occur, each tendon
+    # the side sites send the path another way round than the short one in some configurations
+    assert np.any(np.abs(np.array(expected_lengths)[:, 1] - np.array(expected_lengths)[:, 0]) > 1e-3)
+    assert np.any(np.abs(np.array(expected_lengths)[:, 3] - np.array(expected_lengths)[:, 2]) > 1e-3)
+    np.testing.assert_allclose(lengths, np.array(expected_lengths), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(moments, np.array(expected_moments), rtol=0, atol=1e-12)
+    # the moments are the lengths' derivatives
+    np.testing.assert_allclose(jax.jit(jax.vmap(jax.jacfwd(system.tendon_lengths)))(jnp.asarray(qs[:50])), moments[:50], rtol=0, atol=1e-12)
+
+
+def _over_a_shape(shape: str, rise: float) -> str:
+    """A string of two sites on slides along x (at x = -0.1 and 0.1 at q = 0, heights 0 and
+    ``rise`` along y), over a fixed sphere or a cylinder (axis y) of radius 0.1 at the origin."""
+    size = "0.1" if shape == "sphere" else "0.1 0.3"
+    return f"""
+<mujoco>
+  <worldbody>
+    <geom name="shape" type="{shape}" size="{size}" euler="90 0 0" contype="0" conaffinity="0"/>
+    <body name="left" pos="-0.1 0 0"><joint name="x0" type="slide" axis="1 0 0"/><geom size="0.01" contype="0" conaffinity="0"/>
+      <site name="left"/></body>
+    <body name="right" pos="0.1 {rise} 0"><joint name="x1" type="slide" axis="1 0 0"/><geom size="0.01" contype="0" conaffinity="0"/>
+      <site name="right"/></body>
+  </worldbody>
+  <tendon><spatial name="string" stiffness="1"><site site="left"/><geom geom="shape"/><site site="right"/></spatial></tendon>
+</mujoco>"""
+
+
+@pytest.mark.parametrize("shape, rise", [("sphere", 0.0), ("cylinder", 0.0), ("cylinder", 0.25)])
+def test_a_string_over_a_sphere_or_a_cylinder_has_the_closed_form_length(shape, rise):
+    # Sites at x = -d and d, the shape of radius r at the origin between them (on the line
+    # through its centre: any plane through them holds the great circle): two tangent
+    # segments of sqrt(d^2 - r^2) and an arc of pi - 2 acos(r / d); along a cylinder whose
+    # axis the sites are apart by ``rise``, a helix: the unrolled path's hypotenuse. Moving a
+    # site along x stretches the string by sqrt(d^2 - r^2) / d (times the planar share).
+    r = 0.1
+    system = sim.scene(sim.load_mjcf(_over_a_shape(shape, rise)), floor=False)
+    d = np.array([0.1, 0.1 + 1e-9, 0.15, 0.4])  # 0.1: the sites on the surface (no straight part)
+    qs = jnp.asarray(np.column_stack([r - d, d - r]))
+    lengths, moments, curvature = jax.jit(jax.vmap(lambda q: (
+        system.tendon_lengths(q), system.tendon_moments(q), jax.jacfwd(system.tendon_moments)(q))))(qs)
+    reach = np.sqrt((d - r) * (d + r))  # the tangent segments
+    planar = 2 * reach + r * (np.pi - 2 * np.arctan2(reach, r))  # arctan2(reach, r) = acos(r / d)
+    length = np.hypot(planar, rise)
+    np.testing.assert_allclose(lengths[:, 0], length, rtol=0, atol=1e-14)
+    slope = reach / d * planar / length
+    # (1e-12: 1e-9 off the surface, the tangent segments' directions are ill-conditioned)
+    np.testing.assert_allclose(moments[:, 0], np.column_stack([-slope, slope]), rtol=0, atol=1e-12)
+    assert np.all(np.isfinite(curvature))  # finite second derivatives, also with the sites on the surface
+
+
+def test_a_spring_wrapped_over_a_cylinder_pulls_a_hinge_and_a_slide_as_mujocos_euler_integrator(
+        mujoco_and_rsmooth_trajectories, state_jacobian_is_central_differences):
+    # A spring from a world site over a drum on a swinging arm to a slider on it (with side
+    # sites), and over a sphere: 200 steps as MuJoCo's Euler steps, wrapping and unwrapping.
+    text = """
+<mujoco>
+  <option timestep="0.002" gravity="0 0 -9.81"/>
+  <worldbody>
+    <site name="anchor" pos="-0.3 0 0.25"/>
+    <body name="arm"><joint name="h" type="hinge" axis="0 1 0" damping="0.01"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.02" contype="0" conaffinity="0"/>
+      <geom name="drum" type="cylinder" size="0.06 0.03" euler="90 0 0" contype="0" conaffinity="0"/>
+      <geom name="ball" type="sphere" size="0.05" pos="0.12 0 0.06" contype="0" conaffinity="0" mass="0"/>
+      <site name="above" pos="0 0 0.3"/>
+      <body name="slider" pos="0.25 0 0"><joint name="s" type="slide" axis="1 0 0"/>
+        <geom type="box" size="0.03 0.03 0.03" contype="0" conaffinity="0"/><site name="hook" pos="0 0 0.03"/>
+      </body>
+    </body>
+  </worldbody>
+  <tendon>
+    <spatial name="spring" stiffness="40" damping="0.3" springlength="0.3">
+      <site site="anchor"/><geom geom="drum" sidesite="above"/><site site="hook"/>
+    </spatial>
+    <spatial name="ball" stiffness="10" springlength="0.2">
+      <site site="anchor"/><geom geom="ball"/><site site="hook"/>
+    </spatial>
+  </tendon>
+</mujoco>"""
+    qpos, qvel = np.array([-0.6, 0.02]), np.array([4.0, -0.5])
+    system, loaded, xs, expected = mujoco_and_rsmooth_trajectories(text, qpos, qvel, 200)
+    np.testing.assert_allclose(np.asarray(xs)[1:, :2], expected, rtol=0, atol=1e-12)
+    m = mujoco.MjModel.from_xml_string(text)
+    d = mujoco.MjData(m)
+    wrapped = []
+    for qpos in expected:
+        d.qpos[:] = qpos
+        mujoco.mj_forward(m, d)
+        wrapped.append(d.ten_wrapnum == 4)
+    assert np.any(wrapped, axis=0).all() and not np.all(wrapped, axis=0).any()
+    # the step's state Jacobian (through the wrapped moments) against central differences,
+    # whose own error (eps^2 times the third derivative, large on the drum) is 1.5e-7 here
+    for tendon in range(2):
+        steps = np.flatnonzero(np.asarray(wrapped)[:, tendon])
+        state_jacobian_is_central_differences(system, jnp.asarray(np.asarray(xs)[steps[len(steps) // 2] + 1]), atol=1e-6)
