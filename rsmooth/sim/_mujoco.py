@@ -18,8 +18,8 @@ moment arms), equalities of one tendon (joint couplings on one or two joints, on
 that holds its length, :attr:`Tendons.equalities`) and the
 tendon's linear spring, damper, dry friction and length limits (:attr:`MujocoModel.tendons`).
 Spatial tendons through sites, wrapping around spheres and cylinders between two sites (with or
-without a side site, which must lie outside its geom at ``qpos0``; no pulleys), are converted
-for their springs, dampers, dry friction, limits (a string) and equalities (a rod: the row
+without a side site, which must lie outside its geom at ``qpos0``) and split into branches by
+pulleys, are converted for their springs, dampers, dry friction, limits (a string) and equalities (a rod: the row
 that holds the length); motors on them, a tendon's armature and equalities between two tendons
 are refused by name.
 
@@ -636,17 +636,14 @@ def _check_tendons(mj: Any, m: Any) -> None:
     spatial tendons here."""
     names = _names(m, "tendon", m.ntendon)
     supported = (
-        "supported: fixed tendons and spatial tendons through sites, wrapping around spheres and cylinders, with "
-        "linear springs, dampers, dry friction and length limits, equalities of one tendon; motors on fixed ones"
+        "supported: fixed tendons and spatial tendons through sites (wrapping around spheres and cylinders, with "
+        "pulleys), with linear springs, dampers, dry friction and length limits, equalities of one tendon; motors on fixed ones"
     )
     driven = {int(m.actuator_trnid[a, 0]) for a in range(m.nu) if int(m.actuator_trntype[a]) == int(mj.mjtTrn.mjTRN_TENDON)}
     for t in range(m.ntendon):
-        types = [int(m.wrap_type[w]) for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t])]
         problem = None
         inside = [w for w in _wraps(mj, m, t) if _side_inside(mj, m, w)]
-        if int(mj.mjtWrap.mjWRAP_PULLEY) in types:
-            problem = "it is a spatial tendon with a pulley"
-        elif inside:
+        if inside:
             w = inside[0]
             problem = (
                 f"the side site {_names(m, 'site', m.nsite)[int(m.wrap_prm[w])]!r} of its wrap around geom "
@@ -710,6 +707,12 @@ def _sites(mj: Any, m: Any, t: int) -> list[int]:
     return [w for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]) if int(m.wrap_type[w]) == site]
 
 
+def _pulleys(mj: Any, m: Any, t: int) -> list[int]:
+    """The wraps (indices into MuJoCo's ``wrap_*``) of spatial tendon ``t`` that are pulleys."""
+    pulley = int(mj.mjtWrap.mjWRAP_PULLEY)
+    return [w for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]) if int(m.wrap_type[w]) == pulley]
+
+
 def _wrap_shapes() -> dict[int, str]:
     mj = _mujoco()
     return {int(mj.mjtWrap.mjWRAP_SPHERE): "sphere", int(mj.mjtWrap.mjWRAP_CYLINDER): "cylinder"}
@@ -720,7 +723,8 @@ def _tendons(mj: Any, m: Any) -> Tendons | None:
     has any, or they are disabled): lengths in rsmooth's coordinates (MuJoCo's ``qpos`` less
     ``qpos0`` on hinges and slides), so ``L = lengths q + offsets`` is MuJoCo's ``ten_length``
     for a fixed tendon; a spatial tendon's path goes through its sites' frames and wraps around
-    its spheres and cylinders (fixed in their bodies' frames, :attr:`Tendons.wraps`). A spatial
+    its spheres and cylinders (fixed in their bodies' frames, :attr:`Tendons.wraps`); its pulleys
+    divide the branches after them (:attr:`Tendons.pulleys`). A spatial
     tendon's lower limit at or below 0 is left out (its length cannot go below it). An active
     equality of one spatial tendon, or of one fixed tendon on three or more joints, holds it at
     ``L0 + c_0`` (MuJoCo's ``L - L0 = c_0``, ``L0`` its length at ``qpos0``); of a fixed tendon
@@ -746,6 +750,7 @@ def _tendons(mj: Any, m: Any) -> Tendons | None:
     spatial = [t for t in range(m.ntendon) if _is_spatial(mj, m, t)]
     first_site = m.nbody + m.njnt  # frames: bodies, joints, then sites (from_mujoco); body b is frame b
     geoms = [int(m.wrap_objid[w]) for t in spatial for w in _wraps(mj, m, t)]
+    pulleys = [w for t in spatial for w in _pulleys(mj, m, t)]
     return Tendons(
         lengths=_array(lengths),
         moments=_array(_tendon_moments(m)).reshape(m.ntendon, m.nv),
@@ -767,6 +772,8 @@ def _tendons(mj: Any, m: Any) -> Tendons | None:
         wrap_rotations=_array([_quaternion_to_matrix(m.geom_quat[g]) for g in geoms]).reshape(-1, 3, 3) if geoms else None,
         wrap_offsets=_array(np.asarray(m.geom_pos, dtype=np.float64)[geoms]).reshape(-1, 3) if geoms else None,
         wrap_radii=_array(np.asarray(m.geom_size, dtype=np.float64)[geoms, 0]) if geoms else None,
+        pulleys=tuple((k, _sites(mj, m, t).index(w - 1)) for k, t in enumerate(spatial) for w in _pulleys(mj, m, t)),
+        pulley_divisors=_array([m.wrap_prm[w] for t in spatial for w in _pulleys(mj, m, t)]) if pulleys else None,
         equalities=tuple(sorted(held)),
         equality_length=_array([held.get(t, 0.0) for t in range(m.ntendon)]) if held else None,
     )
@@ -911,8 +918,8 @@ def from_mujoco(mj_model: Any) -> MujocoModel:
             names the element and what is supported): a ball joint's range beyond pi, a free joint's
             spring, nonlinear springs (``stiffnesspoly``),
             frictionloss on a free joint's linear axes, nonlinear damping, a spatial tendon
-            with a pulley or whose wrap's side site is inside its geom (at ``qpos0``; MuJoCo then
-            wraps through the geom), a tendon's nonlinear spring or damping or
+            whose wrap's side site is inside its geom (at ``qpos0``; MuJoCo then wraps through
+            the geom), a tendon's nonlinear spring or damping or
             armature, equality constraints
             other than joint couplings, equalities of one tendon,
             connections and welds,

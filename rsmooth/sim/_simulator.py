@@ -616,7 +616,10 @@ class Tendons(eqx.Module):
     frames, except where ``wraps`` puts a sphere or a cylinder between them, where it is the
     path that wraps around it as MuJoCo's does (``rsmooth.sim._wrapping``: the straight segment
     where that misses the shape, else two tangent segments and an arc on it, a great circle or
-    a helix; a side frame picks the way round),
+    a helix; a side frame picks the way round), where ``pulleys`` splits the path into branches
+    (a pulley at segment ``s`` leaves out the segment between frames ``s`` and ``s + 1`` and
+    divides the lengths of the segments after it, up to the next pulley, by its divisor, as
+    MuJoCo's ``pulley``),
 
     and pulls its joints with the force ``f_t`` along its moments ``M_t(q) = dL_t/dq``
     (the generalized force ``M(q)^T f``; :meth:`RigidBodySystem.tendon_moments`):
@@ -666,6 +669,9 @@ class Tendons(eqx.Module):
             is the third column).
         wrap_offsets: ``(W, 3)``, each shape's centre in its frame.
         wrap_radii: ``(W,)``, each shape's radius, ``> 0``.
+        pulleys: the spatial tendons' pulleys, ``((k, segment), ...)`` (static): the segment of
+            ``paths[k]`` that the pulley replaces (between two branches; no shape on it).
+        pulley_divisors: ``(P,)``, each pulley's divisor, ``> 0``.
         equalities: the tendons held at a length (static, distinct indices).
         equality_length: ``(T,)``, their lengths, finite; read for ``equalities`` only.
     """
@@ -686,6 +692,8 @@ class Tendons(eqx.Module):
     wrap_rotations: Array | None = None
     wrap_offsets: Array | None = None
     wrap_radii: Array | None = None
+    pulleys: tuple[tuple[int, int], ...] = eqx.field(static=True, default=())
+    pulley_divisors: Array | None = None
     equalities: tuple[int, ...] = eqx.field(static=True, default=())
     equality_length: Array | None = None
 
@@ -727,6 +735,23 @@ class Tendons(eqx.Module):
                     raise ValueError(f"Tendons.{name} must have shape {shape}, got {None if value is None else jnp.shape(value)}")
             if not _checks.is_traced(self.wrap_radii) and not np.all(np.asarray(self.wrap_radii) > 0):
                 raise ValueError(f"Tendons.wrap_radii must be > 0, got {np.asarray(self.wrap_radii)}")
+        for entry in self.pulleys:
+            valid = isinstance(entry, tuple) and len(entry) == 2 and all(isinstance(i, int) for i in entry)
+            if not (valid and 0 <= entry[0] < len(self.paths) and 0 <= entry[1] < len(self.paths[entry[0]]) - 1):
+                raise ValueError(
+                    f"Tendons.pulleys entries must be (k, segment) with k a spatial tendon's position in Tendons.spatial "
+                    f"and segment one of its path's segments, got {entry!r}"
+                )
+            if entry in segments:
+                raise ValueError(f"Tendons.pulleys: segment {entry!r} has a shape of Tendons.wraps, or two pulleys")
+            segments.add(entry)
+        if self.pulleys:
+            shape = (len(self.pulleys),)
+            if self.pulley_divisors is None or jnp.shape(self.pulley_divisors) != shape:
+                got = None if self.pulley_divisors is None else jnp.shape(self.pulley_divisors)
+                raise ValueError(f"Tendons.pulley_divisors must have shape {shape}, got {got}")
+            if not _checks.is_traced(self.pulley_divisors) and not np.all(np.asarray(self.pulley_divisors) > 0):
+                raise ValueError(f"Tendons.pulley_divisors must be > 0, got {np.asarray(self.pulley_divisors)}")
         if self.limits and self.range is None:
             raise ValueError("Tendons.limits needs Tendons.range")
         for entry in self.limits:
@@ -1690,6 +1715,7 @@ class RigidBodySystem(eqx.Module):
         if kinematics is None:
             kinematics = _dynamics._kinematics(model, q)
         wraps = {entry[:2]: (w, entry) for w, entry in enumerate(tendons.wraps)}
+        pulleys = {entry: p for p, entry in enumerate(tendons.pulleys)}
         parents = np.asarray(model.frame_parents)
 
         def origin(frame):
@@ -1701,7 +1727,15 @@ class RigidBodySystem(eqx.Module):
             # the path as a polyline (a wrap adds its two tangent points, fixed on the shape's
             # body; their chord has no rate, and the arc replaces it in the length)
             points, joints, arcs = [sites[0]], [parents[ids[0]]], []
+            # each polyline segment's share of the length: 0 across a pulley, 1 / the divisor of
+            # the last pulley before it
+            share, shares = jnp.ones((), q.dtype), []
             for segment in range(len(path) - 1):
+                if (k, segment) in pulleys:
+                    share = 1.0 / tendons.pulley_divisors[pulleys[(k, segment)]].astype(q.dtype)
+                    shares.append(jnp.zeros((), q.dtype))
+                else:
+                    shares += [share] * (3 if (k, segment) in wraps else 1)
                 if (k, segment) in wraps:
                     w, (_, _, frame, shape, side) = wraps[(k, segment)]
                     rotation, translation = origin(frame)
@@ -1730,8 +1764,9 @@ class RigidBodySystem(eqx.Module):
             # the unit direction of each segment (none where its ends meet: no pull there)
             directions = segments / jnp.where(norms > 0, norms, 1.0)[:, None]
             rate = columns[1:] - columns[:-1]  # (segments, nv, 3): the segments' rates per dof
-            length = length.at[tendon].add(jnp.sum(lengths).astype(q.dtype))
-            moments = moments.at[tendon].add(jnp.einsum("snk,sk->n", rate, directions).astype(q.dtype))
+            shares = jnp.stack(shares)
+            length = length.at[tendon].add(jnp.sum(shares * lengths).astype(q.dtype))
+            moments = moments.at[tendon].add(jnp.einsum("snk,sk,s->n", rate, directions, shares).astype(q.dtype))
         return length, moments
 
     def _tendon_stretch(self, length: Array) -> Array:

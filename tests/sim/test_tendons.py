@@ -175,10 +175,6 @@ FIXED = '<fixed name="t" {}><joint joint="j0" coef="1"/><joint joint="j1" coef="
             "tendon 't'.*side site 's0' of its wrap around geom 'g' is inside the geom",
         ),
         (
-            _tendon_model('<spatial name="t"><site site="s0"/><site site="s1"/><pulley divisor="2"/><site site="s0"/><site site="s1"/></spatial>'),
-            "tendon 't'.*pulley",
-        ),
-        (
             _tendon_model('<spatial name="t"><site site="s0"/><site site="s1"/></spatial>', actuator='<motor name="m" tendon="t"/>'),
             "tendon 't'.*spatial tendon driven by a motor",
         ),
@@ -584,6 +580,20 @@ def test_bad_tendon_limits_and_paths_are_refused_by_name():
     system = sim.scene(TWO_CARTS, floor=False)
     with pytest.raises(ValueError, match=r"joints.tendons.paths \(tendon 0\): .*no_such_frame"):
         system.with_tendons(sim.Tendons(**base, spatial=(0,), paths=(("a", "no_such_frame"),)))
+    path = dict(spatial=(0,), paths=(("a", "a", "a"),))
+    shape = dict(wrap_rotations=jnp.eye(3)[None], wrap_offsets=jnp.zeros((1, 3)), wrap_radii=jnp.ones(1))
+    with pytest.raises(ValueError, match=r"Tendons.wraps entries must be \(k, segment, frame, shape, side\)"):
+        sim.Tendons(**base, **path, **shape, wraps=((0, 2, "a", "sphere", None),))
+    with pytest.raises(ValueError, match="shape must be 'sphere' or 'cylinder', got 'box'"):
+        sim.Tendons(**base, **path, **shape, wraps=((0, 0, "a", "box", None),))
+    with pytest.raises(ValueError, match="Tendons.wrap_radii must be > 0"):
+        sim.Tendons(**base, **path, **dict(shape, wrap_radii=jnp.zeros(1)), wraps=((0, 0, "a", "sphere", None),))
+    with pytest.raises(ValueError, match="Tendons.pulleys: segment .* has a shape of Tendons.wraps"):
+        sim.Tendons(**base, **path, **shape, wraps=((0, 0, "a", "sphere", None),), pulleys=((0, 0),), pulley_divisors=jnp.ones(1))
+    with pytest.raises(ValueError, match="Tendons.pulley_divisors must be > 0"):
+        sim.Tendons(**base, **path, pulleys=((0, 1),), pulley_divisors=jnp.zeros(1))
+    with pytest.raises(ValueError, match=r"joints.tendons.wraps .*no_such_frame"):
+        system.with_tendons(sim.Tendons(**base, **path, **shape, wraps=((0, 0, "no_such_frame", "sphere", None),)))
 
 
 # Four spatial tendons from a world site to a site on a two-link arm, around a sphere and
@@ -732,3 +742,35 @@ def test_a_spring_wrapped_over_a_cylinder_pulls_a_hinge_and_a_slide_as_mujocos_e
     for tendon in range(2):
         steps = np.flatnonzero(np.asarray(wrapped)[:, tendon])
         state_jacobian_is_central_differences(system, jnp.asarray(np.asarray(xs)[steps[len(steps) // 2] + 1]), atol=1e-6)
+
+
+def test_pulleys_divide_their_branches_as_mujocos(mujoco_and_rsmooth_trajectories):
+    # A tendon of three branches (the second, over the sphere, halved; the third, over the
+    # drum with its side site, quartered) on the arm of WRAPPED: MuJoCo's lengths and moments
+    # at random configurations, and its Euler steps under the tendon's spring and damper.
+    tendon = (
+        '<spatial name="pulleys" stiffness="30" damping="0.2" springlength="0.2"><site site="anchor"/><site site="tip"/>'
+        '<pulley divisor="2"/><site site="anchor"/><geom geom="ball"/><site site="tip"/>'
+        '<pulley divisor="4"/><site site="tip"/><geom geom="drum" sidesite="drum_side"/><site site="anchor"/></spatial>'
+    )
+    text = WRAPPED.replace("<tendon>", "<tendon>" + tendon)
+    loaded = sim.load_mjcf(text)
+    assert loaded.tendons.pulleys == ((0, 1), (0, 3)) and loaded.tendons.paths[0][2] == loaded.tendons.paths[0][0]
+    system = sim.scene(loaded, floor=False)
+    m = mujoco.MjModel.from_xml_string(text)
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(1)
+    qs = np.column_stack([rng.uniform(-np.pi, np.pi, (200, 3)), rng.uniform(-0.25, 0.1, 200)])
+    lengths, moments = jax.jit(jax.vmap(lambda q: (system.tendon_lengths(q), system.tendon_moments(q))))(jnp.asarray(qs))
+    expected_lengths, expected_moments, wrapped = [], [], []
+    for q in qs:
+        d.qpos[:] = q
+        mujoco.mj_forward(m, d)
+        expected_lengths.append(d.ten_length.copy())
+        expected_moments.append(_dense_ten_J(m, d))
+        wrapped.append(d.ten_wrapnum[0] > 8)  # six sites and two pulleys, and two points per wrap
+    assert 0 < np.mean(wrapped) < 1  # around a shape in some configurations only
+    np.testing.assert_allclose(lengths, np.array(expected_lengths), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(moments, np.array(expected_moments), rtol=0, atol=1e-12)
+    _, _, xs, expected = mujoco_and_rsmooth_trajectories(text, np.array([0.4, -0.3, 1.0, 0.0]), np.array([1.0, 0.5, -1.5, 0.2]), 150)
+    np.testing.assert_allclose(np.asarray(xs)[1:, :4], expected, rtol=0, atol=1e-11)
