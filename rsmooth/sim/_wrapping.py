@@ -110,8 +110,8 @@ def wrap_sphere(a: Array, b: Array, side: Array | None, centre: Array, radius: A
     second = jnp.cross(normal / jnp.where(length_n > 0, length_n, 1.0), first)
     plane = jnp.stack([first, second])  # (2, 3)
     wraps, t_a, t_b, angle = wrap_circle(plane @ p, plane @ q, None if side is None else plane @ (side - centre), radius)
-    del wraps
-    return centre + t_a @ plane, centre + t_b @ plane, radius * angle
+    halfway = 0.5 * (a + b)  # (in 3D: with a at the centre, the plane is not defined)
+    return jnp.where(wraps, centre + t_a @ plane, halfway), jnp.where(wraps, centre + t_b @ plane, halfway), radius * angle
 
 
 def wrap_cylinder(

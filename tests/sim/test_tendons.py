@@ -681,18 +681,21 @@ def test_a_string_over_a_sphere_or_a_cylinder_has_the_closed_form_length(shape, 
     # through its centre: any plane through them holds the great circle): two tangent
     # segments of sqrt(d^2 - r^2) and an arc of pi - 2 acos(r / d); along a cylinder whose
     # axis the sites are apart by ``rise``, a helix: the unrolled path's hypotenuse. Moving a
-    # site along x stretches the string by sqrt(d^2 - r^2) / d (times the planar share).
+    # site along x stretches the string by sqrt(d^2 - r^2) / d (times the planar share). With
+    # a site inside the shape, the string is straight.
     r = 0.1
     system = sim.scene(sim.load_mjcf(_over_a_shape(shape, rise)), floor=False)
     d = np.array([0.1, 0.1 + 1e-9, 0.15, 0.4])  # 0.1: the sites on the surface (no straight part)
     qs = jnp.asarray(np.column_stack([r - d, d - r]))
-    lengths, moments, curvature = jax.jit(jax.vmap(lambda q: (
-        system.tendon_lengths(q), system.tendon_moments(q), jax.jacfwd(system.tendon_moments)(q))))(qs)
+    geometry = jax.jit(jax.vmap(lambda q: (
+        system.tendon_lengths(q), system.tendon_moments(q), jax.jacfwd(system.tendon_moments)(q))))
+    # the last: a site inside the shape (at its centre), where the segment stays straight
+    lengths, moments, curvature = geometry(jnp.concatenate([qs, jnp.array([[r, 0.05]])]))
     reach = np.sqrt((d - r) * (d + r))  # the tangent segments
     planar = 2 * reach + r * (np.pi - 2 * np.arctan2(reach, r))  # arctan2(reach, r) = acos(r / d)
     length = np.hypot(planar, rise)
-    np.testing.assert_allclose(lengths[:, 0], length, rtol=0, atol=1e-14)
-    slope = reach / d * planar / length
+    np.testing.assert_allclose(lengths[:, 0], np.r_[length, np.hypot(0.15, rise)], rtol=0, atol=1e-14)
+    slope = np.r_[reach / d * planar / length, 0.15 / np.hypot(0.15, rise)]
     # (1e-12: 1e-9 off the surface, the tangent segments' directions are ill-conditioned)
     np.testing.assert_allclose(moments[:, 0], np.column_stack([-slope, slope]), rtol=0, atol=1e-12)
     assert np.all(np.isfinite(curvature))  # finite second derivatives, also with the sites on the surface
