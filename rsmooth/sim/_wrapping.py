@@ -27,7 +27,6 @@ from jax import Array
 from rsmooth.sim._contact import _safe_norm
 
 
-
 def _safe_sqrt(x: Array) -> Array:
     """``sqrt(max(x, 0))`` whose derivative is 0 at and below 0 (not infinite or NaN)."""
     positive = x > 0
