@@ -626,6 +626,24 @@ WRAPPED = """
 """
 
 
+def _ours_and_mujocos(system, text: str, count: int, seed: int):
+    """At ``count`` random configurations of the wrapping arm (its q is MuJoCo's qpos): ``(qs,
+    our lengths, our moments, MuJoCo's ten_length, its ten_J, its ten_wrapnum)``."""
+    m = mujoco.MjModel.from_xml_string(text)
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(seed)
+    qs = np.column_stack([rng.uniform(-np.pi, np.pi, (count, 3)), rng.uniform(-0.25, 0.1, count)])
+    lengths, moments = jax.jit(jax.vmap(lambda q: (system.tendon_lengths(q), system.tendon_moments(q))))(jnp.asarray(qs))
+    expected_lengths, expected_moments, wrap_points = [], [], []
+    for q in qs:
+        d.qpos[:] = q
+        mujoco.mj_forward(m, d)
+        expected_lengths.append(d.ten_length.copy())
+        expected_moments.append(_dense_ten_J(m, d))
+        wrap_points.append(d.ten_wrapnum.copy())
+    return qs, lengths, moments, np.array(expected_lengths), np.array(expected_moments), np.array(wrap_points)
+
+
 def test_tendons_wrapped_around_spheres_and_cylinders_have_mujocos_lengths_and_moments():
     # At random configurations (the arm's q is MuJoCo's qpos), where each tendon wraps and
     # where it does not: the lengths are MuJoCo's ten_length, the moments its ten_J.
@@ -635,19 +653,8 @@ def test_tendons_wrapped_around_spheres_and_cylinders_have_mujocos_lengths_and_m
         (0, 0, "sphere", False), (1, 0, "sphere", True), (2, 0, "cylinder", False), (3, 0, "cylinder", True)
     ]
     system = sim.scene(loaded, floor=False)
-    m = mujoco.MjModel.from_xml_string(WRAPPED)
-    d = mujoco.MjData(m)
-    rng = np.random.default_rng(0)
-    qs = np.column_stack([rng.uniform(-np.pi, np.pi, (400, 3)), rng.uniform(-0.25, 0.1, 400)])
-    lengths, moments = jax.jit(jax.vmap(lambda q: (system.tendon_lengths(q), system.tendon_moments(q))))(jnp.asarray(qs))
-    expected_lengths, expected_moments, wrapped = [], [], []
-    for q in qs:
-        d.qpos[:] = q
-        mujoco.mj_forward(m, d)
-        expected_lengths.append(d.ten_length.copy())
-        expected_moments.append(_dense_ten_J(m, d))
-        wrapped.append(d.ten_wrapnum == 4)
-    wrapped = np.array(wrapped)
+    qs, lengths, moments, expected_lengths, expected_moments, wrap_points = _ours_and_mujocos(system, WRAPPED, 400, seed=0)
+    wrapped = wrap_points == 4
     assert np.all(wrapped.mean(axis=0) > 0.1) and np.all(wrapped.mean(axis=0) < 0.9)  # both occur, each tendon
     # the side sites send the path another way round than the short one in some configurations
     assert np.any(np.abs(np.array(expected_lengths)[:, 1] - np.array(expected_lengths)[:, 0]) > 1e-3)
@@ -760,18 +767,8 @@ def test_pulleys_divide_their_branches_as_mujocos(mujoco_and_rsmooth_trajectorie
     loaded = sim.load_mjcf(text)
     assert loaded.tendons.pulleys == ((0, 1), (0, 3)) and loaded.tendons.paths[0][2] == loaded.tendons.paths[0][0]
     system = sim.scene(loaded, floor=False)
-    m = mujoco.MjModel.from_xml_string(text)
-    d = mujoco.MjData(m)
-    rng = np.random.default_rng(1)
-    qs = np.column_stack([rng.uniform(-np.pi, np.pi, (200, 3)), rng.uniform(-0.25, 0.1, 200)])
-    lengths, moments = jax.jit(jax.vmap(lambda q: (system.tendon_lengths(q), system.tendon_moments(q))))(jnp.asarray(qs))
-    expected_lengths, expected_moments, wrapped = [], [], []
-    for q in qs:
-        d.qpos[:] = q
-        mujoco.mj_forward(m, d)
-        expected_lengths.append(d.ten_length.copy())
-        expected_moments.append(_dense_ten_J(m, d))
-        wrapped.append(d.ten_wrapnum[0] > 8)  # six sites and two pulleys, and two points per wrap
+    _, lengths, moments, expected_lengths, expected_moments, wrap_points = _ours_and_mujocos(system, text, 200, seed=1)
+    wrapped = wrap_points[:, 0] > 8  # six sites and two pulleys, and two points per wrap
     assert 0 < np.mean(wrapped) < 1  # around a shape in some configurations only
     np.testing.assert_allclose(lengths, np.array(expected_lengths), rtol=0, atol=1e-12)
     np.testing.assert_allclose(moments, np.array(expected_moments), rtol=0, atol=1e-12)
