@@ -224,14 +224,18 @@ class NCPState(eqx.Module):
     best_residuals: Array  # (3,): primal, dual, complementarity of best
 
 
+def _diagonal_means(G: Array, n: int) -> Array:
+    """``(n + m,)``: the mean of ``G``'s diagonal over each contact's three rows, then each box
+    row's diagonal entry (the scale of a row's effective inverse mass)."""
+    diagonal = jnp.diagonal(G)
+    return jnp.concatenate([sum_last(diagonal[: 3 * n].reshape(n, 3)) / 3.0, diagonal[3 * n :]])
+
+
 def fixed_point_step_sizes(G: Array, n: int) -> Array:
     """Per-contact step ``r_i = 3 / trace(G_ii)`` of the natural map (a scalar per contact
     keeps the cone geometry: ``-r c~`` is in the polar cone iff ``c~`` is in the dual), then
     ``r_k = 1 / G_kk`` per box row: ``(n + m,)``."""
-    diagonal = jnp.diagonal(G)
-    scale = sum_last(diagonal[: 3 * n].reshape(n, 3)) / 3.0
-    if diagonal.shape[0] > 3 * n:
-        scale = jnp.concatenate([scale, diagonal[3 * n :]])
+    scale = _diagonal_means(G, n)
     floor = jnp.maximum(jnp.max(scale), 1.0) * 1e-12
     return lax.stop_gradient(1.0 / jnp.maximum(scale, floor))
 
@@ -244,9 +248,8 @@ def _row_scales(G: Array, n: int) -> Array:
     scale (rows of equal diagonals are left as they are, and ADMM's residual balancing, which
     compares impulses with velocities, sees the units it would see unscaled). A row whose
     diagonal is below ``1e-6`` of the largest (a candidate with no Jacobian) keeps scale 1."""
-    diagonal = jnp.diagonal(G)
-    block = jnp.repeat(sum_last(diagonal[: 3 * n].reshape(n, 3)) / 3.0, 3)
-    diagonal = jnp.concatenate([block, diagonal[3 * n :]])
+    means = _diagonal_means(G, n)
+    diagonal = jnp.concatenate([jnp.repeat(means[:n], 3), means[n:]])
     largest = jnp.maximum(jnp.max(diagonal), jnp.finfo(G.dtype).tiny ** 0.5)
     meaningful = diagonal > 1e-6 * largest
     logs = jnp.log(jnp.where(meaningful, diagonal, largest))
@@ -687,10 +690,11 @@ class NCPSolver(eqx.Module):
             ``lambda = D z``, with one scale per contact (``D_ii`` proportional to ``1 /
             sqrt(trace(G_ii) / 3)``, so that each friction cone, the De Saxcé correction and
             ``lambdaᵀ c`` are unchanged) and per box row (``1 / sqrt(G_kk)``): an equivalent NCP
-            whose diagonal entries are equal (their geometric mean, :func:`_row_scales`). One penalty ``rho`` cannot suit rows whose effective masses differ by orders
-            of magnitude (the joint limits of a humanoid's light wrists beside its feet on the
-            floor: ADMM then stalls far from the solution); on the scaled problem it can. The
-            residuals, the tolerance and the best iterate stay in the problem's own units.
+            whose diagonal entries are equal (their geometric mean, :func:`_row_scales`). One
+            penalty ``rho`` cannot suit rows whose effective masses differ by orders of magnitude
+            (the joint limits of a humanoid's light wrists beside its feet on the floor: ADMM
+            then stalls far from the solution); on the scaled problem it can. The residuals, the
+            tolerance and the best iterate stay in the problem's own units.
 
     References:
         J. Carpentier, Q. Le Lidec, L. Montaut, "From compliant to rigid contact simulation:
