@@ -663,10 +663,15 @@ def _check_tendons(mj: Any, m: Any) -> None:
             raise ValueError(f"MuJoCo model: tendon {names[t]!r} is not supported: {problem} ({supported})")
 
 
+def _wraps_of(m: Any, t: int, types) -> list[int]:
+    """The wraps (indices into MuJoCo's ``wrap_*``) of tendon ``t`` whose type is one of ``types``."""
+    types = {int(kind) for kind in types}
+    return [w for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]) if int(m.wrap_type[w]) in types]
+
+
 def _wraps(mj: Any, m: Any, t: int) -> list[int]:
-    """The wraps (indices into MuJoCo's ``wrap_*``) of tendon ``t`` around a sphere or a cylinder."""
-    shapes = (int(mj.mjtWrap.mjWRAP_SPHERE), int(mj.mjtWrap.mjWRAP_CYLINDER))
-    return [w for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]) if int(m.wrap_type[w]) in shapes]
+    """The wraps of tendon ``t`` around a sphere or a cylinder."""
+    return _wraps_of(m, t, (mj.mjtWrap.mjWRAP_SPHERE, mj.mjtWrap.mjWRAP_CYLINDER))
 
 
 def _side_inside(mj: Any, m: Any, w: int) -> bool:
@@ -702,15 +707,13 @@ def _tendon_moments(m: Any, positions: bool = False) -> np.ndarray:
 
 
 def _sites(mj: Any, m: Any, t: int) -> list[int]:
-    """The wraps (indices into MuJoCo's ``wrap_*``) of spatial tendon ``t`` that are sites."""
-    site = int(mj.mjtWrap.mjWRAP_SITE)
-    return [w for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]) if int(m.wrap_type[w]) == site]
+    """The wraps of spatial tendon ``t`` that are sites."""
+    return _wraps_of(m, t, (mj.mjtWrap.mjWRAP_SITE,))
 
 
 def _pulleys(mj: Any, m: Any, t: int) -> list[int]:
-    """The wraps (indices into MuJoCo's ``wrap_*``) of spatial tendon ``t`` that are pulleys."""
-    pulley = int(mj.mjtWrap.mjWRAP_PULLEY)
-    return [w for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]) if int(m.wrap_type[w]) == pulley]
+    """The wraps of spatial tendon ``t`` that are pulleys."""
+    return _wraps_of(m, t, (mj.mjtWrap.mjWRAP_PULLEY,))
 
 
 def _wrap_shapes() -> dict[int, str]:
