@@ -26,10 +26,10 @@ URDF has no floor, and MuJoCo pairs every two links but a parent and its child):
 - ``self_collision=False`` drops the pairs of two geoms of one kinematic tree (bodies under the
   same child of the world), keeping the pairs between different objects and with the world.
 
-The collision detection has no broad phase: :class:`~rsmooth.sim.RigidBodySystem` computes the
-manifold of every pair at every step, so the cost of a step grows with the number of pairs
-(prune pairs that cannot touch with ``contype``/``conaffinity`` or ``<exclude>``, as in
-MuJoCo).
+By default the collision detection computes the manifold of every pair at every step, so the
+cost of a step grows with the number of pairs: prune pairs that cannot touch with
+``contype``/``conaffinity`` or ``<exclude>`` (as in MuJoCo), and bound the narrow phase with
+``max_pairs`` (a broad phase on bounding spheres, per group of pairs of the same shapes).
 """
 
 from __future__ import annotations
