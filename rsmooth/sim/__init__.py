@@ -88,6 +88,8 @@ from rsmooth.sim._ncp import (
     solve_ncp as solve_ncp,
 )
 from rsmooth.sim._panda import (
+    PANDA_HAND_LINKS as PANDA_HAND_LINKS,
+    PANDA_LINKS as PANDA_LINKS,
     PANDA_TORQUE_LIMITS as PANDA_TORQUE_LIMITS,
     panda_push as panda_push,
     panda_push_model as panda_push_model,
