@@ -5,7 +5,10 @@ between its fingertips, a 10 cm, 0.5 kg box on the table in front of it (box-tab
 0.4, tool-box 0.5), hard contact, 10 ms steps. The inputs are the seven joint torques beyond
 gravity compensation (Franka's torque interface), bounded by Franka's limits; zero torque
 holds the arm still, the tool ``tool_gap`` behind the box. The target: the box's centre
-``push`` farther along ``+x``, at rest.
+``push`` farther along ``+x``, at rest. The arm's links pass through the box and the table
+unless ``colliding_links`` names them (``--colliding-links``, repeatable; the hand and its
+fingers are the links that reach them, the hand's mesh nearer the box's top edge than the
+tool).
 
 The costs are residuals (``0.5 ||r||^2``, Gauss-Newton Hessians): running ``1e-2 u / s`` (``s``
 10 N m for the four large joints, 2 N m for the wrist's three); terminal ``10 (p - p_target)``
@@ -36,7 +39,7 @@ from rsmooth import control, sim, viz
 from rsmooth.experiments import _control, _protocol, _scene_render
 
 METRICS_DOC = """metrics.json keys: task, methods, seeds, push (m), target (x, y of the box centre, m;
-it starts at box_start), box_start, tool_gap (m), position_tolerance (m), speed_tolerance (m/s),
+it starts at box_start), box_start, tool_gap (m), colliding_links, position_tolerance (m), speed_tolerance (m/s),
 and per method (ddp, rddp, ...): success (first seed), final_cost, iterations, converged, result,
 wall_time_s (the solve, compilation included), time_per_iteration_s (median, compiled),
 unconverged_steps and diverged_steps (the returned trajectory simulated again),
@@ -59,6 +62,9 @@ class Config:
     method: str = _control.method_option()
     push: float = _protocol.option(0.1, "How far the box's centre must move along +x, m.", above=0.0, below=0.3)
     tool_gap: float = _protocol.option(0.03, "Gap between the tool and the box's -x face at the start, m.", min=0.0)
+    colliding_links: tuple[str, ...] = _protocol.option(
+        (), "Links of the arm that collide with the box and the table beside the tool (panda_hand, panda_leftfinger "
+        "and panda_rightfinger: the hand).", choices=sim.PANDA_LINKS)
     horizon: int = _control.horizon_option(40)
     seeds: int = _control.seeds_option(5)
     num_samples: int = _control.samples_option(16)
@@ -105,7 +111,7 @@ def build_problem(config: Config):
         >>> [round(v, 4) for v in target]
         [0.65, 0.0]
     """
-    system = sim.panda_push(tool_gap=config.tool_gap)
+    system = sim.panda_push(tool_gap=config.tool_gap, colliding_links=config.colliding_links)
     x0 = system.initial_state()
     target = (float(x0[ARM]) + config.push, float(x0[ARM + 1]))
     # The target is a traced cost parameter: other pushes share the compiled solver steps.
@@ -174,6 +180,7 @@ def run(config: Config, out: Path, key, progress: bool = True) -> dict:
         "target": list(target),
         "box_start": [float(x0[ARM]), float(x0[ARM + 1])],
         "tool_gap": config.tool_gap,
+        "colliding_links": list(config.colliding_links),
         "position_tolerance": config.position_tolerance,
         "speed_tolerance": config.speed_tolerance,
         **per_method,

@@ -58,3 +58,11 @@ def test_ddp_leaves_the_box_and_rddp_pushes_it(tmp_path, getkey):
     frames = imageio.mimread(tmp_path / "panda_push.gif")  # DDP and R-DDP side by side
     assert len(frames) >= config.frames and frames[0].shape[1] > frames[0].shape[0]
     assert np.ptp(frames[0]) > 100  # drawn: the arm, the box and the table on white
+
+
+def test_the_colliding_links_option_reaches_the_scene():
+    system, problem, _ = control_panda_push.build_problem(control_panda_push.Config.quick(colliding_links=sim.PANDA_HAND_LINKS))
+    assert len(system.geometry.geom_pairs) == 3 + 2 * 9  # each of the hand's 9 geoms with the box and the table
+    assert len(control_panda_push.build_problem(control_panda_push.Config.quick())[0].geometry.geom_pairs) == 3
+    with pytest.raises(ValueError, match="colliding_links"):
+        control_panda_push.Config(colliding_links=("panda_link0",))
