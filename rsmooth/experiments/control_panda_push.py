@@ -6,9 +6,8 @@ between its fingertips, a 10 cm, 0.5 kg box on the table in front of it (box-tab
 gravity compensation (Franka's torque interface), bounded by Franka's limits; zero torque
 holds the arm still, the tool ``tool_gap`` behind the box. The target: the box's centre
 ``push`` farther along ``+x``, at rest. The arm's links pass through the box and the table
-unless ``colliding_links`` names them (``--colliding-links``, repeatable; the hand and its
-fingers are the links that reach them, the hand's mesh nearer the box's top edge than the
-tool).
+unless ``colliding_links`` names them (``--colliding-links``, repeatable; ``panda_hand``,
+``panda_leftfinger`` and ``panda_rightfinger`` are the links that reach them).
 
 The costs are residuals (``0.5 ||r||^2``, Gauss-Newton Hessians): running ``1e-2 u / s`` (``s``
 10 N m for the four large joints, 2 N m for the wrist's three); terminal ``10 (p - p_target)``

@@ -6,19 +6,20 @@ converted by :func:`~rsmooth.sim.scene`:
 - the Panda's seven arm joints; its two finger joints are removed (the fingers welded
   closed, their ``<mimic>`` coupling with them);
 - a sphere ``tool_radius`` at the tool centre point between the fingertips
-  (``panda_hand_tcp``) collides with the box and the table, so that a push is one sphere-box
-  contact; the links named in ``colliding_links`` (none by default; :data:`PANDA_HAND_LINKS`:
-  the hand and the fingers, the links that reach the table and the box when the hand points
-  down) collide with the box and the table too, with their collision geometry (the hand's
-  mesh, as its convex hull; four boxes per finger), not with the robot. Each link geom adds a
-  pair with the box and one with the table (a mesh-box or box-box test and a half-space test,
-  4 candidate contacts each), and ``max_contacts`` bounds the contacts a step solves. The
-  hand reaches below the box's top face at the start: with it colliding, a push from the
-  start meets the box's top edge with the hand's mesh before the tool touches the box. The
-  links' collision meshes, colliding or not, also draw the arm (its visual meshes hold about
-  60 times as many triangles, which the renderer would pay for in every frame);
-- the table top is the half-space ``z <= 0`` under the robot's base, in contact with the tool
-  and the box; the box is a free body at rest on it;
+  (``panda_hand_tcp``) collides with the box and the table: by default the only robot
+  geometry in contact, so that a push is one sphere-box contact. The links named in
+  ``colliding_links`` (:data:`PANDA_HAND_LINKS`: the hand and the fingers, the links that
+  reach the table and the box when the hand points down) collide with the box and the table
+  too, with their collision geometry (the hand's mesh, as its convex hull; four boxes per
+  finger), not with the robot. Each link geom adds a pair with the box and one with the table
+  (a mesh-box or box-box test and a half-space test, 4 candidate contacts each), and
+  ``max_contacts`` bounds the contacts a step solves. The hand reaches below the box's top
+  face, and at the start its mesh is nearer the box (its top edge) than the tool: with the
+  hand colliding, a push may meet the box with the hand as well as with the tool. The links'
+  collision meshes, colliding or not, also draw the arm (its visual meshes hold about 60
+  times as many triangles, which the renderer would pay for in every frame);
+- the table top is the half-space ``z <= 0`` under the robot's base, in contact with the tool,
+  the colliding links and the box; the box is a free body at rest on it;
 - seven motors, one per arm joint, bounded by Franka's torque limits; with
   ``gravity_compensation`` (default) the inputs are the torques beyond those that hold the
   arm against gravity, as Franka's torque interface takes them
@@ -144,7 +145,9 @@ def panda_push(
             candidates (:attr:`~rsmooth.sim.Options.max_contacts`; a step that leaves out one
             it closes is reported by :func:`~rsmooth.sim.check_steps`); ``None``: every
             candidate. It binds only with ``colliding_links``: the tool, the box and the
-            table give 6 candidates, the hand links 72 more, of which a push touches a few.
+            table give 6 candidates, the hand links 72 more, of which a push or a press on
+            the table touches a few (the box's 4 on the table, a face of a link's 4 on the
+            box or the table); the NCP's cost grows with the cube of the contacts it holds.
         solver: the contact solver.
 
     Raises:
