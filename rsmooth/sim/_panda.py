@@ -99,7 +99,7 @@ def _panda_spec(mj, box_side: float, box_mass: float, box_position, tool_radius:
         for geom in [g for g in spec.geoms if g.meshname == mesh.name]:
             spec.delete(geom)
         spec.delete(mesh)
-    for link in colliding_links:  # their collision geoms, as the tool meets the box
+    for link in colliding_links:  # their collision geoms, with the tool's friction
         for geom in spec.body(link).geoms:
             geom.contype, geom.friction = _LINK_BIT, [tool_friction, 0, 0]
     return spec
@@ -118,7 +118,7 @@ def panda_push(
     time_step: float = 0.01,
     gravity_compensation: bool = True,
     colliding_links: tuple[str, ...] = (),
-    max_contacts: int | None = 16,
+    max_contacts: int | None = 32,
     solver: NCPSolver = NCPSolver(sticking_guess=True, rank_deficient=True, polish=True, max_iterations=1000),
 ) -> RigidBodySystem:
     """The Panda, a spherical tool at its fingertips, a box on the table (see the module).
@@ -145,15 +145,17 @@ def panda_push(
             candidates (:attr:`~rsmooth.sim.Options.max_contacts`; a step that leaves out one
             it closes is reported by :func:`~rsmooth.sim.check_steps`); ``None``: every
             candidate. It binds only with ``colliding_links``: the tool, the box and the
-            table give 6 candidates, the hand links 72 more, of which a push or a press on
-            the table touches a few (the box's 4 on the table, a face of a link's 4 on the
-            box or the table); the NCP's cost grows with the cube of the contacts it holds.
+            table give 6 candidates, the hand links 72 more, of which a push touches up to
+            about twenty (the box's 4 on the table, 4 for each link geom lying on a face of
+            the box or on the table); the NCP's cost grows with the cube of the contacts it
+            holds.
         solver: the contact solver.
 
     Raises:
         ValueError: a size, mass or time step that is not positive and finite, a negative
-            friction coefficient or tool gap, a start out of the arm's reach, or a
-            ``colliding_links`` that is not a tuple of names from :data:`PANDA_LINKS`.
+            friction coefficient or tool gap, a start out of the arm's reach, a
+            ``colliding_links`` that is not a tuple of names from :data:`PANDA_LINKS`, or a
+            ``max_contacts`` that is not a positive integer or ``None``.
     """
     _number("tool_gap", tool_gap, zero=True)
     mj = _mujoco()
@@ -177,10 +179,16 @@ def panda_push_model(**arguments) -> MujocoModel:
         TypeError: an argument :func:`panda_push` does not take.
         ValueError: as :func:`panda_push`, for the arguments that shape the model.
     """
+    return load_mjcf(_compiled_scene(**arguments))
+
+
+def _compiled_scene(**arguments):
+    """The compiled ``mujoco.MjModel`` that ``panda_push(**arguments)`` is built from (see
+    :func:`panda_push_model`)."""
     given = inspect.signature(panda_push).bind(**arguments)
     given.apply_defaults()
     shaping = inspect.signature(_panda_compiled).parameters
-    return load_mjcf(_panda_compiled(_mujoco(), **{name: given.arguments[name] for name in list(shaping)[1:]}))
+    return _panda_compiled(_mujoco(), **{name: given.arguments[name] for name in list(shaping)[1:]})
 
 
 def _panda_compiled(mj, box_side: float, box_mass: float, box_position, tool_radius: float, table_friction: float,

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from rsmooth import sim
-from rsmooth.sim._panda import _panda_compiled
+from rsmooth.sim._panda import _compiled_scene
 
 # The tool's sphere shrunk to 2 mm and set 8 cm beside the box's centre line: the fingers reach
 # below it (by about 7 mm) and the tool passes beside the box (5 cm half side), so that only the
@@ -37,6 +37,8 @@ def test_links_collide_with_the_box_and_the_table_only():
         sim.panda_push(colliding_links=("panda_link0",))
     with pytest.raises(ValueError, match="colliding_links must be a tuple of link names"):
         sim.panda_push_model(colliding_links="panda_hand")
+    with pytest.raises(ValueError, match="max_contacts must be a positive integer"):
+        sim.panda_push(max_contacts=0)
 
 
 def _owner(loaded, geom: int) -> str:
@@ -48,7 +50,7 @@ def _owner(loaded, geom: int) -> str:
 def _mujoco_scene():
     """MuJoCo's compiled scene with the hand links colliding, its conversion, and the geom ids
     of the pairs ``(link geom, table)``, ``(link geom, box)`` and ``(tool, box)``."""
-    m = _panda_compiled(mujoco, 0.1, 0.5, (0.55, 0.0), SCENE["tool_radius"], 0.4, 0.5, 0.01, sim.PANDA_HAND_LINKS)
+    m = _compiled_scene(colliding_links=sim.PANDA_HAND_LINKS, **SCENE)
     geom = lambda name: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, name)  # noqa: E731
     links = {mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, name) for name in sim.PANDA_HAND_LINKS}
     link_geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] in links]
