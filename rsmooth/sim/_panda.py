@@ -118,7 +118,7 @@ def panda_push(
     time_step: float = 0.01,
     gravity_compensation: bool = True,
     colliding_links: tuple[str, ...] = (),
-    max_contacts: int | None = 32,
+    max_contacts: int | None = 24,
     solver: NCPSolver = NCPSolver(sticking_guess=True, rank_deficient=True, polish=True, max_iterations=1000),
 ) -> RigidBodySystem:
     """The Panda, a spherical tool at its fingertips, a box on the table (see the module).
@@ -134,7 +134,7 @@ def panda_push(
         tool_gap: at the start, the distance from the tool to the box's ``-x`` face (m).
         tool_y: at the start, the tool's offset from the box's centre line (m).
         table_friction: Coulomb coefficient of the box on the table (and of the tool on it).
-        tool_friction: Coulomb coefficient of the tool on the box.
+        tool_friction: Coulomb coefficient of the tool (and of the colliding links) on the box.
         time_step: ``h`` (s).
         gravity_compensation: inputs beyond the torques that hold the arm against gravity.
         colliding_links: links whose collision geometry (a mesh's convex hull, a finger's
