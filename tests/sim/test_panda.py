@@ -106,9 +106,9 @@ def test_hand_links_stop_at_the_table_and_push_the_box():
     assert xs[-1, 7] - xs[0, 7] > 0.03
     assert np.min(_distances(m, loaded, [tool_box], xs)) > 0.02
     assert -1e-3 < np.min(_distances(m, loaded, box_pairs, xs)) < 1e-3
-    # Along both, the links' signed distances the steps saw are MuJoCo's wherever they were
-    # candidates (within the margin): those of the pair's manifold are the same there.
-    system = sim.panda_push(colliding_links=sim.PANDA_HAND_LINKS, **SCENE)
+    # Along both, the steps saw the links' signed distances MuJoCo gives wherever they were
+    # candidates (within the margin): the smallest entry of each pair's manifold. (`system`:
+    # the one with the hand links, whose pairs are in the order of `loaded.collision_pairs`.)
     starts = np.cumsum([0] + [pair.size for pair in system.geometry.geom_pairs])
     index = {frozenset(pair): k for k, pair in enumerate(loaded.collision_pairs)}
     compared = 0
