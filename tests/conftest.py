@@ -41,8 +41,9 @@ os.environ.setdefault("RSMOOTH_COMPILATION_CACHE", "0")
 
 def pytest_collection_modifyitems(config, items):
     """Tests marked ``slow`` (30 s to 2 min each, mostly compilation) run first: pytest-xdist
-    hands tests out in this order, so a slow one started last cannot keep one worker busy
-    while the other has nothing left to do. The order of the others is unchanged."""
+    (``--dist worksteal``, pyproject.toml) starts the first worker on them and lets the other
+    take tests from the end of its queue, so a slow one started last cannot keep one worker
+    busy while the other has nothing left to do. The order of the others is unchanged."""
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)
 
 
