@@ -516,15 +516,15 @@ def check_cross_fit(cross_fit, num_samples: int, antithetic: bool = False, name:
 
 def _shared_sample_estimate(
     index, z, values, jacobians, reference, sigma, noise, gamma, lipschitz, delta, baseline=True, rule="suh",
-    cross_fit=False,
 ):
-    """The first- (``index`` 0), zeroth- (1) or alpha-order (2) estimate from one set of
+    """The first- (``index`` 0), zeroth- (1), alpha-order (2) or cross-fitted alpha-order (3,
+    where the samples split into four folds: :func:`check_cross_fit`) estimate from one set of
     samples: the noise ``z`` (M, d) (independent draws, no antithetic pairs), the values
     ``f(x + sigma z)`` (M, m), their Jacobians (M, m, d) and ``f(x)`` ``reference`` (m,), the
     baseline unless ``baseline`` is False or ``"leave-one-out"`` (:func:`baseline_values`).
 
-    ``index`` may be traced: the three estimators then share one evaluation of ``f`` and its
-    Jacobian at the points, and one compiled program serves all three (a comparison of the
+    ``index`` may be traced: the estimators then share one evaluation of ``f`` and its
+    Jacobian at the points, and one compiled program serves them all (a comparison of the
     estimators compiles the costly part once). First and zeroth order use all M samples;
     alpha order the first half for its zeroth-order estimate and the second half for its
     first-order one (independent halves, as :func:`alpha_order`), blended by ``rule``. Returns
@@ -549,19 +549,24 @@ def _shared_sample_estimate(
     def first_terms(start, stop):
         return _first_order_terms(z[start:stop], values[start:stop], jacobians[start:stop], False)
 
+    options = (False, gamma, lipschitz, delta, rule)
+
     def alpha():
-        options = (False, gamma, lipschitz, delta, rule)
-        if cross_fit:
-            quarter, rest = half // 2, half + (num_samples - half) // 2
-            estimate, extra = _cross_fitted_blend(
-                (zeroth_terms(0, quarter), zeroth_terms(quarter, half)),
-                (first_terms(half, rest), first_terms(rest, num_samples)), half, num_samples - half, *options)
-        else:
-            estimate, extra = _alpha_blend(zeroth_terms(0, half), first_terms(half, num_samples), half,
-                                           num_samples - half, *options)
+        estimate, extra = _alpha_blend(zeroth_terms(0, half), first_terms(half, num_samples), half,
+                                       num_samples - half, *options)
         return estimate, extra["alpha"].astype(z.dtype)
 
-    return jax.lax.switch(index, (first, zeroth, alpha))
+    def cross_fitted_alpha():
+        quarter, rest = half // 2, half + (num_samples - half) // 2
+        estimate, extra = _cross_fitted_blend(
+            (zeroth_terms(0, quarter), zeroth_terms(quarter, half)),
+            (first_terms(half, rest), first_terms(rest, num_samples)), half, num_samples - half, *options)
+        return estimate, extra["alpha"].astype(z.dtype)
+
+    # The cross-fitted branch exists where the samples make four folds (index 3 is refused
+    # before any solve otherwise).
+    folds = num_samples >= 8 and num_samples % 4 == 0
+    return jax.lax.switch(index, (first, zeroth, alpha, cross_fitted_alpha) if folds else (first, zeroth, alpha))
 
 
 def _package(flat: _Flat, estimate: _FlatEstimate, extra_stats=None) -> Estimate:

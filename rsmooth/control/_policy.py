@@ -382,9 +382,9 @@ class PolicyGradient(eqx.Module):
             ``num_samples`` a multiple of 4, >= 8).
         shared_samples: evaluate :math:`V` and its gradient at the same ``num_samples``
             points whatever the estimator, which is then chosen at run time: solvers that
-            differ only in ``estimator`` share one compiled step (a comparison of the three
-            compiles the costly rollout gradient once instead of three times, at the price of
-            a gradient per sample for ``"zeroth"`` too). First and zeroth order use all the
+            differ only in ``estimator`` and ``alpha_cross_fit`` share one compiled step (a
+            comparison of the estimators compiles the costly rollout gradient once, at the
+            price of a gradient per sample for ``"zeroth"`` too). First and zeroth order use all the
             samples; alpha order gives the first half to its zeroth-order estimate and the
             second half to its first-order one. Needs an even ``num_samples >= 4``, a noise
             law with a score, and no ``antithetic``.
@@ -505,7 +505,8 @@ def _jitted_step(solver: PolicyGradient, problem, policy, theta, opt_state, sche
 
 
 def _shared_sample_estimate(problem, policy, key, theta, sigma, solver: PolicyGradient, index):
-    """The estimate of ``ESTIMATORS[index]`` (traced) from shared samples, and the true cost."""
+    """The estimate of the estimator ``index`` (traced; 3: alpha order cross-fitted) from shared samples, and the
+    true cost."""
     flat_theta, unravel = ravel_pytree(theta)
     sigma = sigma.astype(flat_theta.dtype)
     z, points = _estimators.perturbed_points(solver.noise, key, flat_theta, sigma, solver.num_samples, False)
@@ -522,7 +523,7 @@ def _shared_sample_estimate(problem, policy, key, theta, sigma, solver: PolicyGr
     grads = _checks.check_finite(grads, _estimators._NONFINITE_GRAD)
     flat_estimate, alpha = _estimators._shared_sample_estimate(
         index, z, values[1:, None], grads[1:, None, :], values[:1], sigma, solver.noise, solver.gamma, None, solver.delta,
-        solver.baseline, solver.alpha_rule, solver.alpha_cross_fit,
+        solver.baseline, solver.alpha_rule,
     )
     flat = _estimators._Flat(flat_theta, None, unravel, ())
     return _estimators._package(flat, flat_estimate, {"alpha": alpha}), values[0]
@@ -616,10 +617,14 @@ def optimize_policy(
 
         bar = tqdm(total=solver.iterations, desc="policy gradient", leave=False)
     thetas, records, times = [theta], [], []
-    estimator_index = jnp.asarray(ESTIMATORS.index(solver.estimator), jnp.int32)
-    # What the shared step's program does not depend on (the estimator, a traced index; the
-    # number of iterations) is set to one value, so that such solvers share the compiled step.
-    shared_solver = functools.partial(dataclasses.replace, estimator=ESTIMATORS[0], iterations=0)
+    # The estimator is a traced index of _estimators._shared_sample_estimate: 3 is alpha order
+    # cross-fitted.
+    cross_fitted = solver.estimator == "alpha" and solver.alpha_cross_fit
+    estimator_index = jnp.asarray(3 if cross_fitted else ESTIMATORS.index(solver.estimator), jnp.int32)
+    # What the shared step's program does not depend on (the estimator and its cross-fitting, a
+    # traced index; the number of iterations) is set to one value, so that such solvers share
+    # the compiled step.
+    shared_solver = functools.partial(dataclasses.replace, estimator=ESTIMATORS[0], alpha_cross_fit=False, iterations=0)
     try:
         for k in range(solver.iterations):
             start = time.perf_counter()

@@ -225,7 +225,7 @@ class CountingOpenLoop(control.OpenLoop):
         return theta[t]
 
 
-def test_shared_samples_serve_the_three_estimators_with_one_compiled_step(getkey):
+def test_shared_samples_serve_the_estimators_with_one_compiled_step(getkey):
     key = getkey()
     policy = CountingOpenLoop(horizon=HORIZON, nu=1)
     solvers = {
@@ -238,7 +238,10 @@ def test_shared_samples_serve_the_three_estimators_with_one_compiled_step(getkey
     for name in ("zeroth", "alpha"):
         shared[name] = control.optimize_policy(LINEAR, policy, key, THETA_LINEAR, solver=solvers[name])
     control.optimize_policy(LINEAR, policy, key, THETA_LINEAR, solver=dataclasses.replace(solvers["alpha"], iterations=2))
-    assert len(TRACES) == traced  # the other estimators, and another length, ran the same program
+    crossed = control.optimize_policy(LINEAR, policy, key, THETA_LINEAR,
+                                      solver=dataclasses.replace(solvers["alpha"], alpha_cross_fit=True))
+    # the other estimators, cross-fitted alpha order and another length ran the same program
+    assert len(TRACES) == traced
     # First and zeroth order on shared samples are the separate estimators on the same samples
     # (iteration k draws them from fold_in(key, k) in both).
     for name in ("first", "zeroth"):
@@ -253,6 +256,10 @@ def test_shared_samples_serve_the_three_estimators_with_one_compiled_step(getkey
     alpha = shared["alpha"].stats["alpha"]
     assert np.all((alpha >= 0.0) & (alpha <= 1.0)) and np.median(alpha) > 0.9
     assert shared["alpha"].stats["cost"][-1] < shared["alpha"].stats["cost"][0]
+    # Cross-fitted, on the same samples: weights from the other folds, another blend.
+    crossed_alpha = crossed.stats["alpha"]
+    assert np.all((crossed_alpha >= 0.0) & (crossed_alpha <= 1.0)) and not np.allclose(crossed_alpha, alpha)
+    assert crossed.stats["cost"][-1] < crossed.stats["cost"][0]
     # The leave-one-out baseline: the same on shared samples as in the separate estimator.
     loo = dataclasses.replace(solvers["zeroth"], baseline="leave-one-out")
     shared_loo = control.optimize_policy(LINEAR, policy, key, THETA_LINEAR, solver=loo)
