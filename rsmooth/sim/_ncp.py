@@ -1105,6 +1105,23 @@ def solve_ncp(
         and highly-efficient differentiable simulation for robotics", 2024.
     """
     G, g, mu, warm_start, bounds = _checked_problem(G, g, mu, warm_start, bounds)
+    if delassus_factor is not None:
+        delassus_factor = jnp.asarray(delassus_factor)
+        if delassus_factor.ndim != 2 or delassus_factor.shape[1] != G.shape[0]:
+            raise ValueError(
+                f"delassus_factor must have shape (d, {G.shape[0]}) (G = Xᵀ X), got {delassus_factor.shape}"
+            )
+    arguments = (G, g, mu, warm_start, delassus_factor, bounds)
+    # Called outside any trace (a script's loop over problems) the solve is one compiled
+    # program per solver and shapes, reused by later calls: run eagerly, each of its loops
+    # would be compiled anew at every call (their bodies are new closures). Inside a trace
+    # (a step, jit, grad, vmap) it is part of the caller's program.
+    eager = all(_is_concrete(a) for a in arguments if a is not None)
+    return (_solve_compiled if eager else _solve)(*arguments, solver)
+
+
+def _solve(G, g, mu, warm_start, delassus_factor, bounds, solver: NCPSolver) -> tuple[Array, NCPInfo]:
+    """:func:`solve_ncp` on a checked problem."""
     G_solve, g_solve, mu_solve = (lax.stop_gradient(a) for a in (G, g, mu))
     bounds_solve = None if bounds is None else lax.stop_gradient(bounds)
     if warm_start is not None:
@@ -1115,11 +1132,7 @@ def solve_ncp(
     # a cond with a batched predicate computes both branches, while this loop's body runs
     # only if some member of the batch needs it.
     if delassus_factor is not None:
-        delassus_factor = lax.stop_gradient(jnp.asarray(delassus_factor))
-        if delassus_factor.ndim != 2 or delassus_factor.shape[1] != G_solve.shape[0]:
-            raise ValueError(
-                f"delassus_factor must have shape (d, {G_solve.shape[0]}) (G = Xᵀ X), got {delassus_factor.shape}"
-            )
+        delassus_factor = lax.stop_gradient(delassus_factor)
     start, start_info = solver.start(G_solve, g_solve, mu_solve, warm_start, factor=delassus_factor, bounds=bounds_solve)
 
     # Each loop's body first passes the problem through an optimization barrier with the
@@ -1199,3 +1212,6 @@ def solve_ncp(
         )
     impulse = _with_implicit_derivative(solver.implicit_regularization, impulse, G, g, mu, bounds)
     return impulse, info
+
+
+_solve_compiled = eqx.filter_jit(_solve)

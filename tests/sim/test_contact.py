@@ -650,6 +650,34 @@ def test_polish_after_capped_admm_solves_rank_deficient_box_problems():
 # ----------------------------------------------------------------------------- jit, vmap, warm start
 
 
+def test_eager_solves_of_one_shape_compile_once(getkey):
+    """Outside any trace, solve_ncp is one compiled program per solver and shapes: a script's
+    loop over problems compiles it at its first call only, and gets the solve it would get
+    inside jit."""
+    generator = numpy_generator(getkey())
+    problems = [random_problem(generator, 5, extra_dofs=2) for _ in range(3)]  # shapes no other test solves
+    solver = NCPSolver(max_iterations=3000)
+    compiled = []
+
+    def listener(event, seconds, **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiled.append(seconds)
+
+    solve_ncp(*problems[0], solver=solver)
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        solves = [solve_ncp(*problem, solver=solver) for problem in problems[1:]]
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    assert compiled == []
+    jitted = jax.jit(lambda G, g, mu: solve_ncp(G, g, mu, solver=solver))
+    for problem, (impulse, info) in zip(problems[1:], solves):
+        assert bool(info.converged)
+        check_ncp_numpy(*problem, impulse, atol=1e-9)
+        np.testing.assert_allclose(impulse, jitted(*problem)[0], rtol=0, atol=1e-12)
+
+
+
 def test_jit_vmap_and_warm_start(getkey):
     G, g, mu = problem_batch(getkey, 3, 8)
     solver = NCPSolver(tolerance=1e-10, max_iterations=5000)
