@@ -1833,14 +1833,14 @@ class RigidBodySystem(eqx.Module):
         (rad or m), ``(k,)``; empty without couplings."""
         if self.joints.couplings is None:
             return jnp.zeros(0, q.dtype)
-        return self._coupling_terms(q)[0]
+        return _first_term(self, "_coupling_terms", q)
 
     def connection_errors(self, q: Array) -> Array:
         """How far each of :attr:`Joints.connections` is from holding at ``q``: ``p_a - p_b``
         (world, m), ``(k, 3)``; empty without connections."""
         if self.joints.connections is None:
             return jnp.zeros((0, 3), q.dtype)
-        return self._connection_terms(q)[0]
+        return _first_term(self, "_connection_terms", q)
 
     def weld_errors(self, q: Array) -> Array:
         """How far each of :attr:`Joints.welds` is from holding at ``q``: the points' gap
@@ -1848,7 +1848,7 @@ class RigidBodySystem(eqx.Module):
         welds."""
         if self.joints.welds is None:
             return jnp.zeros((0, 6), q.dtype)
-        return self._weld_terms(q)[0]
+        return _first_term(self, "_weld_terms", q)
 
     def _held_points(self, held, q: Array, kinematics) -> tuple[Array, Array, Array]:
         """The gaps ``p_a - p_b`` ``(k, 3)`` of a connection's or a weld's points, their
@@ -2615,6 +2615,14 @@ def _check_concrete(name, value, positive=False, allow_inf=False) -> None:
     if np.any(bad):
         bound = "positive" if positive else "non-negative"
         raise ValueError(f"{name} must be {bound}{'' if allow_inf else ' and finite'}, got {array}")
+
+
+@eqx.filter_jit
+def _first_term(system: RigidBodySystem, terms: str, q: Array) -> Array:
+    """``getattr(system, terms)(q)[0]``, jitted: the constraints' errors are called eagerly (a
+    script checking a rollout, a test at random configurations), where their few hundred small
+    operations would each be compiled and dispatched; inside a caller's jit it is inlined."""
+    return getattr(system, terms)(q)[0]
 
 
 # Jitted, a nested jit inside its callers' programs, so that a program that steps a system in
