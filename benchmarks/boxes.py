@@ -16,7 +16,11 @@ Ratios: ours per env / ``mj_step`` (the issue's goal: <= 2 in a batch of 64), an
 of each with N, the log-log slope of time per step from the smallest to the largest N (the
 goal: ours no steeper than MuJoCo's). Sanity: after ``SETTLE`` steps both towers stand, each
 box's height within a millimetre of ``(i + 1/2) 10 cm`` (MuJoCo's soft contacts sink by a
-fraction of that). MJX has no release for this MuJoCo version here: not measured.
+fraction of that). MJX (``mujoco-mjx``, whose version must match MuJoCo's: the ``bench`` extra)
+on the same MJCF: ``jit(vmap(mjx.step))`` over the same batch, per env, its compile time, and
+its height error after ``SETTLE`` steps of one env; without MJX its entries are null and the
+record says why. MJX is the JAX program MuJoCo's developers write for the same physics: what a
+JAX step on this CPU costs, beside the C one.
 """
 
 from __future__ import annotations
@@ -59,7 +63,29 @@ def _heights_error(heights: np.ndarray) -> float:
     return float(np.max(np.abs(heights - HALF * (2 * np.arange(len(heights)) + 1))))
 
 
-def measure(n: int, repeats: int) -> dict:
+def measure_mjx(xml: str, n: int, repeats: int) -> dict:
+    """MJX's batched step on the tower (see the module docstring); raises where MJX is missing."""
+    import mujoco
+    from mujoco import mjx
+
+    model = mujoco.MjModel.from_xml_string(xml)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    mx, dx = mjx.put_model(model), mjx.put_data(model, data)
+    batch = jax.tree.map(lambda leaf: jnp.broadcast_to(leaf, (BATCH,) + leaf.shape), dx)
+    step_batch = jax.jit(jax.vmap(mjx.step, in_axes=(None, 0)))
+    start = time.perf_counter()
+    compiled = step_batch.lower(mx, batch).compile()
+    compile_s = time.perf_counter() - start
+    per_env = median_time(compiled, mx, batch, repeats=repeats) / BATCH
+    step = jax.jit(mjx.step)
+    for _ in range(SETTLE):
+        dx = step(mx, dx)
+    return {"mjx_step_batch": per_env, "mjx_compile_s": compile_s,
+            "mjx_height_error": _heights_error(np.asarray(dx.qpos).reshape(n, 7)[:, 2])}
+
+
+def measure(n: int, repeats: int, with_mjx: bool = True) -> dict:
     import mujoco
 
     xml = tower(n)
@@ -92,6 +118,12 @@ def measure(n: int, repeats: int) -> dict:
     for _ in range(SETTLE):
         mujoco.mj_step(model, data)
     mujoco_error = _heights_error(np.asarray(data.qpos).reshape(n, 7)[:, 2])
+    reference_mjx, mjx_error = {}, None
+    if with_mjx:
+        try:
+            reference_mjx = measure_mjx(xml, n, repeats)
+        except ImportError as error:  # MJX missing, or not matching MuJoCo: null entries, rsmooth's measured
+            mjx_error = f"MJX unavailable: {error!r}"[:300]
     return {
         "candidates": system.num_contacts,
         "pairs": len(system.geometry.geom_pairs),
@@ -106,6 +138,11 @@ def measure(n: int, repeats: int) -> dict:
         "ours_unconverged_steps": counts["unconverged_steps"],
         "ours_dropped_contact_steps": counts["dropped_contact_steps"],
         "ours_skipped_pair_steps": counts["skipped_pair_steps"],
+        "mjx_step_batch": reference_mjx.get("mjx_step_batch"),
+        "mjx_compile_s": reference_mjx.get("mjx_compile_s"),
+        "mjx_height_error": reference_mjx.get("mjx_height_error"),
+        "mjx_ratio": reference_mjx["mjx_step_batch"] / reference if reference_mjx else None,
+        "mjx_error": mjx_error,
     }
 
 
@@ -123,23 +160,34 @@ def main(repeats: int = 30, quick: bool = False) -> dict:
         f"median of {repeats} calls\n"
     )
     cases = {}
-    header = f"{'N':>3} {'pairs':>6} {'cand.':>6} {'ours/env':>10} {'mj_step':>10} {'ratio':>8} {'compile':>9} {'height err ours / mj':>22}"
+    header = (f"{'N':>3} {'pairs':>6} {'cand.':>6} {'ours/env':>10} {'mj_step':>10} {'ratio':>8} {'compile':>9} "
+              f"{'MJX/env':>10} {'MJX ratio':>9} {'height err ours / mj / MJX':>28}")
     print(header)
+    mjx_error = None
     for n in sizes:
-        case = measure(n, repeats)
+        case = measure(n, repeats, with_mjx=mjx_error is None)
+        error = case.pop("mjx_error")
+        mjx_error = mjx_error or error
         cases[str(n)] = case
+        mjx = case["mjx_step_batch"] is not None
         print(
             f"{n:>3} {case['pairs']:>6} {case['candidates']:>6} {fmt(case['ours_step_batch']):>10} {fmt(case['mj_step']):>10} "
             f"{case['ratio']:>8.1f} {case['ours_compile_s']:>8.1f}s "
-            f"{case['ours_height_error'] * 1e3:>10.3f} / {case['mujoco_height_error'] * 1e3:.3f} mm",
+            f"{fmt(case['mjx_step_batch']) if mjx else '-':>10} {case['mjx_ratio'] if mjx else float('nan'):>9.1f} "
+            f"{case['ours_height_error'] * 1e3:>10.3f} / {case['mujoco_height_error'] * 1e3:.3f} / "
+            f"{case['mjx_height_error'] * 1e3 if mjx else float('nan'):.3f} mm",
             flush=True,
         )
     ours = [cases[str(n)]["ours_step_batch"] for n in sizes]
     reference = [cases[str(n)]["mj_step"] for n in sizes]
     growth = {"ours": _slope(sizes, ours), "mj_step": _slope(sizes, reference)}
+    if mjx_error is None:
+        growth["mjx"] = _slope(sizes, [cases[str(n)]["mjx_step_batch"] for n in sizes])
     print(
         f"\ngrowth with N (log-log slope, N = {sizes[0]} to {sizes[-1]}): ours {growth['ours']:.2f}, "
-        f"mj_step {growth['mj_step']:.2f} (goal: ours <= mj_step's)"
+        f"mj_step {growth['mj_step']:.2f}" + (f", MJX {growth['mjx']:.2f}" if "mjx" in growth else "") + " (goal: ours <= mj_step's)"
     )
     print("goal: ours per env / mj_step <= 2 in a batch of 64 (ratio column)")
-    return {"batch": BATCH, "sizes": list(sizes), "cases": cases, "growth": growth}
+    if mjx_error:
+        print(f"note: {mjx_error}")
+    return {"batch": BATCH, "sizes": list(sizes), "cases": cases, "growth": growth, "notes": [mjx_error] if mjx_error else []}

@@ -261,9 +261,9 @@ def sim_section(record: dict) -> list[str]:
     results = record.get("results") or {}
     lines = provenance(record) + [""]
     lines.append(
-        f"Solo-12 (example-robot-data URDF, free flyer, four sphere feet on a floor, dt = 0.01 s, friction 0.7, float64) "
-        f"from the standing posture under gravity-compensating torques; 'perturbed': a batch after 5 steps under noisy "
-        f"torques, where feet slide or lift. MuJoCo runs the same model built from the same URDF."
+        "Solo-12 (example-robot-data URDF, free flyer, four sphere feet on a floor, dt = 0.01 s, friction 0.7, float64) "
+        "from the standing posture under gravity-compensating torques; 'perturbed': a batch after 5 steps under noisy "
+        "torques, where feet slide or lift. MuJoCo runs the same model built from the same URDF."
     )
     lines.append("")
     rows = []
@@ -306,31 +306,45 @@ def millimetres(metres: Any) -> str:
 
 def boxes_section(record: dict) -> list[str]:
     results = record.get("results") or {}
+    cases = results.get("cases") or {}
+    with_mjx = any(number(get(case, "mjx_step_batch")) is not None for case in cases.values())
     lines = provenance(record) + [""]
     lines.append(
-        f"A tower of N cubes (10 cm, 1 kg, friction 0.5) resting on a floor, one MJCF for both, dt = 0.01 s. rsmooth: "
-        f"hard contact, float64, every pair of boxes a candidate, contact budget `max_contacts = 8 N`"
-        + (", broad phase `max_pairs = N`" if any(get(case, "max_pairs") for case in (results.get("cases") or {}).values()) else "")
+        "A tower of N cubes (10 cm, 1 kg, friction 0.5) resting on a floor, one MJCF for both, dt = 0.01 s. rsmooth: "
+        "hard contact, float64, every pair of boxes a candidate, contact budget `max_contacts = 8 N`"
+        + (", broad phase `max_pairs = N`" if any(get(case, "max_pairs") for case in cases.values()) else "")
         + f", `jit(vmap(step))` "
-        f"over a batch of {results.get('batch', '?')}, per env; MuJoCo: `mj_step`, one thread, default soft contacts. "
-        "Height error: the largest distance of a box from its resting height after 50 steps."
+        f"over a batch of {results.get('batch', '?')}, per env; MuJoCo: `mj_step`, one thread, default soft contacts"
+        + ("; MJX: `jit(vmap(mjx.step))` over the same batch, per env, MuJoCo's soft contacts" if with_mjx else "")
+        + ". Height error: the largest distance of a box from its resting height after 50 steps."
     )
     lines.append("")
     rows = []
     for n in results.get("sizes") or []:
         case = get(results, "cases", str(n)) or {}
         value = number(case.get("ratio"))
-        rows.append([
+        errors = [millimetres(case.get("ours_height_error")), millimetres(case.get("mujoco_height_error"))]
+        row = [
             str(n), str(case.get("pairs", "?")), str(case.get("candidates", "?")), seconds(case.get("ours_step_batch")),
             seconds(case.get("mj_step")), fixed(value), goal_text(BOXES_GOAL, value), seconds(case.get("ours_compile_s")),
-            f"{millimetres(case.get('ours_height_error'))} / {millimetres(case.get('mujoco_height_error'))} mm",
-        ])
-    lines += table(["N", "pairs", "candidates", "rsmooth per env", "mj_step", "rsmooth / mj_step", "goal",
-                    "rsmooth compile", "height error rsmooth / MuJoCo"], rows)
+        ]
+        if with_mjx:
+            row += [seconds(case.get("mjx_step_batch")), fixed(number(case.get("mjx_ratio")))]
+            errors.append(millimetres(case.get("mjx_height_error")))
+        rows.append(row + [" / ".join(errors) + " mm"])
+    header = ["N", "pairs", "candidates", "rsmooth per env", "mj_step", "rsmooth / mj_step", "goal", "rsmooth compile"]
+    if with_mjx:
+        header += ["MJX per env", "MJX / mj_step"]
+    lines += table(header + ["height error rsmooth / MuJoCo" + (" / MJX" if with_mjx else "")], rows)
     growth = results.get("growth") or {}
     if growth:
         lines += ["", f"Growth of the time per step with N (log-log slope): rsmooth {fixed(growth.get('ours'))}, "
-                  f"`mj_step` {fixed(growth.get('mj_step'))} (goal: rsmooth's no steeper)."]
+                  f"`mj_step` {fixed(growth.get('mj_step'))}"
+                  + (f", MJX {fixed(growth.get('mjx'))}" if growth.get("mjx") is not None else "")
+                  + " (goal: rsmooth's no steeper than `mj_step`'s)."]
+    notes = results.get("notes") or []
+    if notes:
+        lines += [""] + [f"- {note}" for note in notes]
     return lines
 
 
