@@ -44,7 +44,9 @@ max_limit_violation (the deepest over the run, the start included), limits_activ
 max_limits (the contact budgets in effect; null: none), dropped_contact_steps (steps where a budget
 left out a closing contact or limit), max_pairs (the
 broad phase's pairs per group; null: all), skipped_pair_steps (steps where it left out a pair
-within its margin), max_correction_speed (the bound on the Baumgarte correction's speed;
+within its margin), inside_side_site_steps (steps that started with a spatial tendon's side site
+inside its wrapping shape, where MuJoCo wraps through the shape, which is not modelled),
+max_correction_speed (the bound on the Baumgarte correction's speed;
 null: none), joint_friction_dofs (dofs with dry joint friction), joint_friction_held_mean
 (those held still by it, per step: end-of-step speed below the contact solver's slip
 threshold), joint_friction_impulse_max (largest ratio of a friction impulse to its bound,
@@ -228,6 +230,7 @@ def run(config: Config, out: Path | str, key, progress: bool = True) -> dict:
         "max_pairs": config.max_pairs,
         "max_correction_speed": config.max_correction_speed,
         "skipped_pair_steps": counts["skipped_pair_steps"],
+        "inside_side_site_steps": counts["inside_side_site_steps"],
         "joint_friction_dofs": len(friction_dofs),
         "joint_friction_held_mean": float(np.mean(held)) if friction_dofs else 0.0,
         "joint_friction_impulse_max": float(friction_share.max()) if friction_dofs else 0.0,

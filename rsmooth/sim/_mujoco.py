@@ -18,7 +18,8 @@ moment arms), equalities of one tendon (joint couplings on one or two joints, on
 that holds its length, :attr:`Tendons.equalities`) and the
 tendon's linear spring, damper, dry friction and length limits (:attr:`MujocoModel.tendons`).
 Spatial tendons through sites, wrapping around spheres and cylinders between two sites (with or
-without a side site, which must lie outside its geom at ``qpos0``) and split into branches by
+without a side site, which must lie outside its geom at ``qpos0``; one that moves inside it later
+is counted by the step, :attr:`StepInfo.inside_side_sites`) and split into branches by
 pulleys, are converted for their springs, dampers, dry friction, limits (a string) and equalities (a rod: the row
 that holds the length); motors on them, a tendon's armature and equalities between two tendons
 are refused by name.

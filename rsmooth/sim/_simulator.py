@@ -144,6 +144,10 @@ class StepInfo(eqx.Module):
             :meth:`RigidBodySystem.joint_rows` (dry friction's dofs, then the couplings, the
             connections' and the welds' rows, then the tendons' dry friction; N m s or N s, the
             welds' orientation rows in their own units); empty without any.
+        inside_side_sites: how many of the spatial tendons' side sites are inside their
+            wrapping shape at the start of the step (int, ``()``;
+            :meth:`RigidBodySystem.inside_side_sites`): there MuJoCo wraps through the shape,
+            which is not modelled, and the tendon's length and moments are not MuJoCo's.
     """
 
     distance: Array
@@ -156,6 +160,7 @@ class StepInfo(eqx.Module):
     dropped_contacts: Array
     skipped_pairs: Array
     joint_impulse: Array
+    inside_side_sites: Array
 
 
 class _VelocityUpdate(NamedTuple):
@@ -1769,6 +1774,34 @@ class RigidBodySystem(eqx.Module):
             moments = moments.at[tendon].add(jnp.einsum("snk,sk,s->n", rate, directions, shares).astype(q.dtype))
         return length, moments
 
+    def inside_side_sites(self, q: ArrayLike) -> Array:
+        """How many of the spatial tendons' side sites are inside their wrapping shape at
+        configuration ``q`` (int, ``()``): closer to a sphere's centre, or to a cylinder's (the
+        distance to its centre point, not to its axis: MuJoCo's test), than its radius.
+
+        Loading refuses a side site inside its shape at ``qpos0``; one on another body than its
+        shape can move inside it later, where MuJoCo wraps through the shape and this simulator
+        keeps its outside path (:mod:`rsmooth.sim._wrapping`). The step reports the count
+        (:attr:`StepInfo.inside_side_sites`) and :func:`check_steps` warns about it."""
+        count = jnp.zeros((), jnp.int32)
+        tendons = self.joints.tendons
+        sides = [] if tendons is None or not tendons.spatial else [(w, entry) for w, entry in enumerate(tendons.wraps) if entry[4] is not None]
+        if not sides:
+            return count
+        q = jnp.asarray(q)
+        model = self.model
+        kinematics = _dynamics._kinematics(model, q)
+
+        def placement(frame):
+            return _dynamics._frame_placement(model, kinematics.rotation, kinematics.translation, model.frame_id(frame))
+
+        for w, (_, _, frame, _, side) in sides:
+            rotation, translation = placement(frame)
+            centre = translation + rotation @ tendons.wrap_offsets[w].astype(q.dtype)
+            offset = lax.stop_gradient(placement(side)[1] - centre)
+            count = count + (offset @ offset < tendons.wrap_radii[w].astype(q.dtype) ** 2).astype(jnp.int32)
+        return count
+
     def _tendon_stretch(self, length: Array) -> Array:
         """How far each tendon's length ``(T,)`` is beyond its spring's rest band ``(T,)``
         (negative below it, 0 within it)."""
@@ -2646,6 +2679,7 @@ def _step_with_info(system: RigidBodySystem, x: Array, u: Array, warm_start) -> 
     info = StepInfo(
         distance=distance, impulse=impulse, ncp=ncp, torque_clipped=clipped, diverged=diverged, force=force,
         mode=mode, dropped_contacts=dropped, skipped_pairs=system.skipped_pairs(q), joint_impulse=joint_impulse,
+        inside_side_sites=system.inside_side_sites(q),
     )
     return x_next, info
 
@@ -2863,12 +2897,14 @@ def check_steps(infos: StepInfo, *, what: str = "the simulation") -> dict[str, i
 
     Returns:
         ``{"steps", "unconverged_steps", "diverged_steps", "dropped_contact_steps",
-        "skipped_pair_steps"}``: ``unconverged_steps`` counts the contact solves whose result
+        "skipped_pair_steps", "inside_side_site_steps"}``: ``unconverged_steps`` counts the contact solves whose result
         is not ``RESULTS.successful``, ``dropped_contact_steps`` the steps with
         ``infos.dropped_contacts > 0`` (:attr:`Options.max_contacts` or
         :attr:`Options.max_limits` too small),
         ``skipped_pair_steps`` those with ``infos.skipped_pairs > 0``
-        (:attr:`Options.max_pairs` too small).
+        (:attr:`Options.max_pairs` too small), ``inside_side_site_steps`` those that started
+        with a tendon's side site inside its wrapping shape (``infos.inside_side_sites > 0``,
+        where the tendon's path is not MuJoCo's).
     """
     result = infos.ncp.result
     diverged = np.asarray(infos.diverged)
@@ -2883,7 +2919,16 @@ def check_steps(infos: StepInfo, *, what: str = "the simulation") -> dict[str, i
         "diverged_steps": int(np.sum(diverged)),
         "dropped_contact_steps": int(np.sum(np.asarray(infos.dropped_contacts) > 0)),
         "skipped_pair_steps": int(np.sum(np.asarray(infos.skipped_pairs) > 0)),
+        "inside_side_site_steps": int(np.sum(np.asarray(infos.inside_side_sites) > 0)),
     }
+    if counts["inside_side_site_steps"]:
+        warnings.warn(
+            f"{what}: in {counts['inside_side_site_steps']} of {counts['steps']} steps a spatial tendon's side site "
+            f"was inside its wrapping shape (StepInfo.inside_side_sites), where MuJoCo wraps through the shape: "
+            f"that wrapping is not modelled, and those steps' tendon lengths and forces are not MuJoCo's",
+            SimulationWarning,
+            stacklevel=2,
+        )
     if counts["skipped_pair_steps"]:
         warnings.warn(
             f"{what}: in {counts['skipped_pair_steps']} of {counts['steps']} steps the broad phase (max_pairs) "

@@ -12,7 +12,8 @@ it: seen from the centre, the path turns from ``a`` to ``b`` the short way unles
 passes the direction opposite the side point, in which case it goes the long way round, even
 where the straight segment misses the geom (MuJoCo 4.0.1's rule, checked against its
 ``ten_length`` in the tests). Only the side point's direction counts; MuJoCo's other wrapping,
-for a side point inside the geom, is not modelled here.
+for a side point inside the geom, is not modelled here (loading refuses it at ``qpos0``, and a
+step that starts so reports it: ``StepInfo.inside_side_sites``).
 
 Branch-free: the wrapped path is computed everywhere (from stand-in points where it does not
 apply) and selected with ``where``; derivatives stay finite where a point lies on the surface or

@@ -119,7 +119,8 @@ def test_a_tower_written_in_mjcf_rests_without_solver_iterations():
                        "</worldbody></mujoco>", max_contacts=8 * n)
     assert len(system.geometry.geom_pairs) == n + n * (n - 1) // 2
     xs, infos = _rollout(system, system.initial_state(), 200)
-    assert sim.check_steps(infos) == {"steps": 200, "unconverged_steps": 0, "diverged_steps": 0, "dropped_contact_steps": 0, "skipped_pair_steps": 0}
+    assert sim.check_steps(infos) == {"steps": 200, "unconverged_steps": 0, "diverged_steps": 0, "dropped_contact_steps": 0, "skipped_pair_steps": 0,
+                                       "inside_side_site_steps": 0}
     assert np.max(np.asarray(infos.ncp.iterations)) == 0
     heights = xs[:, : 7 * n].reshape(-1, n, 7)[:, :, 2]
     np.testing.assert_allclose(heights, np.broadcast_to(half * (2 * np.arange(n) + 1), heights.shape), rtol=0, atol=1e-9)

@@ -56,7 +56,8 @@ def test_scene_comes_to_rest_at_the_analytic_heights():
     steps = 100  # 2 s
     xs, infos = eqx.filter_jit(lambda s, x: s.rollout(x, jnp.zeros((steps, 0))))(system, system.initial_state())
     counts = sim.check_steps(infos, what="a MuJoCo scene settling")  # a warning is an error here
-    assert counts == {"steps": steps, "unconverged_steps": 0, "diverged_steps": 0, "dropped_contact_steps": 0, "skipped_pair_steps": 0}
+    assert counts == {"steps": steps, "unconverged_steps": 0, "diverged_steps": 0, "dropped_contact_steps": 0, "skipped_pair_steps": 0,
+                                       "inside_side_site_steps": 0}
     xs = np.asarray(xs)
     poses = xs[:, : system.model.nq].reshape(steps + 1, len(BODIES), 7)
     # qpos0: every body 2 mm above what it falls on, as the file places it
@@ -309,7 +310,8 @@ def test_a_scene_without_contacts_falls_freely():
     assert system.num_contacts == 0 and system.nu == 0
     steps, h, g = 10, 0.01, 9.81
     xs, infos = eqx.filter_jit(lambda s, x, u: s.rollout(x, u))(system, system.initial_state(), jnp.zeros((steps, 0)))
-    assert sim.check_steps(infos) == {"steps": steps, "unconverged_steps": 0, "diverged_steps": 0, "dropped_contact_steps": 0, "skipped_pair_steps": 0}
+    assert sim.check_steps(infos) == {"steps": steps, "unconverged_steps": 0, "diverged_steps": 0, "dropped_contact_steps": 0, "skipped_pair_steps": 0,
+                                       "inside_side_site_steps": 0}
     k = np.arange(steps + 1)
     np.testing.assert_allclose(xs[:, 2], 1.0 - g * h**2 * k * (k + 1) / 2, rtol=0, atol=1e-12)
     np.testing.assert_allclose(xs[:, 9], -g * h * k, rtol=0, atol=1e-12)  # v_z (body axes = world here)

@@ -644,6 +644,46 @@ def _ours_and_mujocos(system, text: str, count: int, seed: int):
     return qs, lengths, moments, np.array(expected_lengths), np.array(expected_moments), np.array(wrap_points)
 
 
+# A tendon around a world-fixed ball whose side site rides on a slider that falls through it:
+# outside the ball at qpos0 (loadable), inside it after a few steps.
+FALLING_SIDE = """
+<mujoco>
+  <option timestep="0.01"/>
+  <worldbody>
+    <site name="a" pos="-0.3 0 0"/><site name="b" pos="0.3 0 0.02"/>
+    <geom name="ball" type="sphere" size="0.1" contype="0" conaffinity="0"/>
+    <body name="slider" pos="0 0 0.15"><joint name="z" type="slide" axis="0 0 1"/>
+      <geom type="box" size="0.01 0.01 0.01" contype="0" conaffinity="0"/><site name="side" pos="0.02 0 0"/>
+    </body>
+  </worldbody>
+  <tendon><spatial name="t" stiffness="1"><site site="a"/><geom geom="ball" sidesite="side"/><site site="b"/></spatial></tendon>
+</mujoco>
+"""
+
+
+def test_a_side_site_that_moves_into_its_shape_is_counted_and_warned_about():
+    # MuJoCo then wraps through the shape, which rsmooth does not model: each step that starts
+    # so is counted in its info (MuJoCo's own test on the same configurations: the site's
+    # distance to the geom's centre below its radius) and check_steps warns.
+    system = sim.scene(sim.load_mjcf(FALLING_SIDE), floor=False)
+    xs, infos = eqx.filter_jit(system.rollout)(system.initial_state(), jnp.zeros((20, system.nu)))
+    m = mujoco.MjModel.from_xml_string(FALLING_SIDE)
+    d = mujoco.MjData(m)
+    inside = []
+    for x in np.asarray(xs)[:-1]:
+        d.qpos[:] = x[: m.nq]
+        mujoco.mj_kinematics(m, d)
+        inside.append(np.linalg.norm(d.site_xpos[2] - d.geom_xpos[0]) < m.geom_size[0, 0])
+    inside = np.array(inside)
+    assert 0 < inside.sum() < len(inside)  # outside first, then inside
+    np.testing.assert_array_equal(np.asarray(infos.inside_side_sites), inside.astype(int))
+    with pytest.warns(sim.SimulationWarning, match=r"side site was inside its wrapping shape"):
+        counts = sim.check_steps(infos, what="falling side site")
+    assert counts["inside_side_site_steps"] == inside.sum()
+    # a side site that stays outside: nothing counted
+    assert int(system.inside_side_sites(system.initial_state()[: system.model.nq])) == 0
+
+
 def test_tendons_wrapped_around_spheres_and_cylinders_have_mujocos_lengths_and_moments():
     # At random configurations (the arm's q is MuJoCo's qpos), where each tendon wraps and
     # where it does not: the lengths are MuJoCo's ten_length, the moments its ten_J.
