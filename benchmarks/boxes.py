@@ -11,6 +11,10 @@ phase of ``max_pairs = N`` (the N box pairs and the N box-floor pairs of smalles
 bounding-sphere gap are collided: N - 1 box pairs and one floor pair touch), timed as
 ``jit(vmap(step))`` over a batch of ``BATCH`` copies of the resting tower, per env; also the
 compile time of that program (lower and compile). Medians of ``repeats`` calls after warm-up.
+Where rsmooth's step goes: its stages (:mod:`rsmooth.sim`'s ``collision``, ``free_motion``,
+``solve_contacts``; the contact solve holds the Delassus matrix and the NCP) timed the same
+way, each a program of its own (their sum exceeds the step, whose program shares the
+kinematics between them).
 
 Ratios: ours per env / ``mj_step`` (the issue's goal: <= 2 in a batch of 64), and the growth
 of each with N, the log-log slope of time per step from the smallest to the largest N (the
@@ -63,6 +67,22 @@ def _heights_error(heights: np.ndarray) -> float:
     return float(np.max(np.abs(heights - HALF * (2 * np.arange(len(heights)) + 1))))
 
 
+def _stage_times(system, xs, us, repeats: int) -> dict:
+    """Seconds per env of each stage of the batched step (see the module docstring)."""
+    qs, vs = system.split(xs)
+    collision = jax.jit(jax.vmap(lambda q: sim.collision(system, q)))
+    free_motion = jax.jit(jax.vmap(lambda q, v, u: sim.free_motion(system, q, v, u)))
+    solve = jax.jit(jax.vmap(lambda motion, contacts: sim.solve_contacts(system, motion, contacts)))
+    contacts, motion = collision(qs), free_motion(qs, vs, us)
+    return {
+        "collision": median_time(collision, qs, repeats=repeats) / BATCH,
+        "free_motion": median_time(free_motion, qs, vs, us, repeats=repeats) / BATCH,
+        "solve_contacts": median_time(solve, motion, contacts, repeats=repeats) / BATCH,
+        "jacobian_rows": int(contacts.jacobian.shape[1]),
+        "solved_rows": 3 * min(system.options.max_contacts or system.num_contacts, system.num_contacts),
+    }
+
+
 def measure_mjx(xml: str, n: int, repeats: int) -> dict:
     """MJX's batched step on the tower (see the module docstring); raises where MJX is missing."""
     import mujoco
@@ -98,6 +118,7 @@ def measure(n: int, repeats: int, with_mjx: bool = True) -> dict:
     compiled = step_batch.lower(xs, us).compile()
     compile_s = time.perf_counter() - start
     ours = median_time(compiled, xs, us, repeats=repeats) / BATCH
+    stages = _stage_times(system, xs, us, repeats)
     rollout = jax.jit(lambda x: system.rollout(x, jnp.zeros((SETTLE, system.nu))))
     states, infos = rollout(x0)
     counts = sim.check_steps(infos, what=f"the tower of {n} boxes")
@@ -131,6 +152,7 @@ def measure(n: int, repeats: int, with_mjx: bool = True) -> dict:
         "max_pairs": system.options.max_pairs,
         "ours_step_batch": ours,
         "ours_compile_s": compile_s,
+        "ours_stages": stages,
         "mj_step": reference,
         "ratio": ours / reference,
         "ours_height_error": ours_error,
@@ -178,6 +200,12 @@ def main(repeats: int = 30, quick: bool = False) -> dict:
             f"{case['mjx_height_error'] * 1e3 if mjx else float('nan'):.3f} mm",
             flush=True,
         )
+    print(f"\nours by stage, per env (each stage its own program): {'collision':>10} {'free motion':>12} {'contact solve':>14}"
+          f"  (contact Jacobian rows / solved rows)")
+    for n in sizes:
+        stage = cases[str(n)]["ours_stages"]
+        print(f"{n:>3}{'':>49} {fmt(stage['collision']):>10} {fmt(stage['free_motion']):>12} {fmt(stage['solve_contacts']):>14}"
+              f"  ({stage['jacobian_rows']} / {stage['solved_rows']})")
     ours = [cases[str(n)]["ours_step_batch"] for n in sizes]
     reference = [cases[str(n)]["mj_step"] for n in sizes]
     growth = {"ours": _slope(sizes, ours), "mj_step": _slope(sizes, reference)}

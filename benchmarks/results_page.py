@@ -342,6 +342,17 @@ def boxes_section(record: dict) -> list[str]:
                   f"`mj_step` {fixed(growth.get('mj_step'))}"
                   + (f", MJX {fixed(growth.get('mjx'))}" if growth.get("mjx") is not None else "")
                   + " (goal: rsmooth's no steeper than `mj_step`'s)."]
+    staged = [n for n in results.get("sizes") or [] if get(results, "cases", str(n), "ours_stages")]
+    if staged:
+        lines += ["", "Where rsmooth's step goes, per env: its stages, each timed as a program of its own (`jit(vmap(...))` over "
+                  "the same batch; their sum exceeds the step, which shares the kinematics between them). The contact solve "
+                  "builds the Delassus matrix of the solved rows and solves the NCP.", ""]
+        stage_rows = []
+        for n in staged:
+            stage = get(results, "cases", str(n), "ours_stages")
+            stage_rows.append([str(n), seconds(stage.get("collision")), seconds(stage.get("free_motion")),
+                               seconds(stage.get("solve_contacts")), f"{stage.get('jacobian_rows', '?')} / {stage.get('solved_rows', '?')}"])
+        lines += table(["N", "collision", "free motion", "contact solve", "contact Jacobian rows / solved rows"], stage_rows)
     notes = results.get("notes") or []
     if notes:
         lines += [""] + [f"- {note}" for note in notes]
