@@ -855,6 +855,52 @@ def test_the_factored_sticking_guess_equals_the_pseudo_inverse_of_g():
         solve_ncp(jnp.asarray(G), g, mu, solver=solver, delassus_factor=jnp.asarray(X[:, :6]))
 
 
+def test_the_sticking_guess_solves_a_well_conditioned_gram_by_cholesky_and_a_singular_one_by_eigh(monkeypatch):
+    # (A^+)² b against the eigendecomposition's pseudo-inverse (eigenvalues below 1e-9 of the
+    # largest dropped): a well-conditioned A (its eigendecomposition never runs), a singular
+    # one (b in its range), one with zero rows and columns (dofs no active contact touches),
+    # and a batch mixing them (the eigendecomposition runs for the batch, each member keeps
+    # its own answer).
+    calls = []
+    eigh = jnp.linalg.eigh
+
+    def counted(a, *args, **kwargs):
+        jax.debug.callback(lambda: calls.append(1))
+        return eigh(a, *args, **kwargs)
+
+    monkeypatch.setattr(jnp.linalg, "eigh", counted)
+    rng = np.random.default_rng(0)
+
+    def reference(A, b):
+        w, V = np.linalg.eigh(A)
+        inverse = np.where(w > 1e-9 * w[-1], 1.0 / np.where(w > 1e-9 * w[-1], w, 1.0), 0.0)
+        return V @ (inverse**2 * (V.T @ b))
+
+    X = rng.normal(size=(12, 40))
+    well = X @ X.T  # rank 12
+    Y = rng.normal(size=(12, 7))
+    singular = Y @ Y.T  # rank 7
+    Z = np.vstack([rng.normal(size=(6, 40)), np.zeros((6, 40))])
+    zero_rows = Z @ Z.T  # a body without active contacts: rows 6-11 exactly zero
+    cases = [(well, X @ rng.normal(size=40)), (singular, Y @ rng.normal(size=7)), (zero_rows, Z @ rng.normal(size=40))]
+    solve = jax.jit(_ncp._squared_pseudo_inverse_times)
+    for k, (A, b) in enumerate(cases):
+        calls.clear()
+        got = np.asarray(solve(jnp.asarray(A), jnp.asarray(b)))
+        expected = reference(A, b)
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-10 * np.max(np.abs(expected)))
+        assert len(calls) == (k == 1)  # only the singular one needs the eigendecomposition
+    calls.clear()
+    batch = jax.jit(jax.vmap(_ncp._squared_pseudo_inverse_times))(
+        jnp.asarray(np.stack([A for A, _ in cases])), jnp.asarray(np.stack([b for _, b in cases])))
+    for (A, b), got in zip(cases, np.asarray(batch)):
+        np.testing.assert_allclose(got, reference(A, b), rtol=0, atol=1e-10 * np.max(np.abs(reference(A, b))))
+    calls.clear()
+    jax.block_until_ready(jax.jit(jax.vmap(_ncp._squared_pseudo_inverse_times))(
+        jnp.asarray(np.stack([well, zero_rows])), jnp.asarray(np.stack([cases[0][1], cases[2][1]]))))
+    assert not calls  # a batch of well-conditioned members never runs it
+
+
 def test_admm_on_the_scaled_problem_solves_contacts_of_very_different_masses_in_few_iterations():
     # Three point masses (1 kg, 1 g, 30 kg) each on one contact: G = diag(1 / m), and each
     # contact's impulse has a closed form: the normal one stops the approach, lambda_N = -m g_N;
