@@ -682,9 +682,9 @@ class NCPSolver(eqx.Module):
         rank_deficient: the sticking guess solves its active set by the pseudo-inverse of
             ``G_AA`` (eigenvalues below 1e-9 of the largest dropped: an eigendecomposition,
             or a Cholesky factorization of the smaller ``X_A X_Aᵀ`` where it is well
-            conditioned and a Delassus factor is given),
-            the minimum-norm sticking impulse, instead of a Cholesky factorization, whose
-            diagonal shift amplifies rounding in the null space of a singular ``G``. A resting
+            conditioned and a Delassus factor is given), the minimum-norm sticking impulse,
+            instead of a shifted Cholesky factorization of ``G_AA``, whose diagonal shift
+            amplifies rounding in the null space of a singular ``G``. A resting
             box then stays at rest to rounding. Where the guess fails (a sliding box), ADMM
             starts from the warm start or zero: from the guess it is slower and reaches other
             solutions.
@@ -993,21 +993,29 @@ class NCPSolver(eqx.Module):
         return solve_ncp(G, g, mu, solver=self, warm_start=warm_start, bounds=bounds)
 
 
+# The size of X_A X_Aᵀ from which the sticking guess tries a Cholesky factorization first. Below
+# it the eigendecomposition costs little, and the factorization's fallback loop (a while loop,
+# run or not) cost a cube's and a pusher's batched step more than it saved.
+_CHOLESKY_MIN_SIZE = 24
+
+
 def _squared_pseudo_inverse_times(gram: Array, b: Array) -> Array:
     """``(A^+)² b`` for the symmetric positive semidefinite ``A = gram`` ``(d, d)``, with ``b``
     in its range: eigenvalues below 1e-9 of the largest count as zero (the sticking guess's
     pseudo-inverse, :meth:`NCPSolver._sticking_guess`).
 
-    By a Cholesky factorization where ``A`` is well conditioned, the common case (every body of
-    a resting stack held by its contacts), else by an eigendecomposition, about ten times the
-    factorization's cost for ``d`` of about 100 (under ``vmap``, computed only while some
-    member needs it). The factorization is used where three steps of inverse iteration
+    From ``d`` = :data:`_CHOLESKY_MIN_SIZE` on, by a Cholesky factorization where ``A`` is well
+    conditioned, the common case (every body of a resting stack held by its contacts), else by
+    an eigendecomposition, seven to nine times the factorization's cost at ``d`` = 96 (under
+    ``vmap``, computed only while some member needs it); below, by the eigendecomposition. The factorization is used where three steps of inverse iteration
     (from a fixed start with no special direction) find no eigenvalue below 1e-7 of the trace,
     a hundred times above the eigendecomposition's cut: the two give the same result to
     rounding there. Rows and columns that are exactly zero (degrees of freedom no active
     contact touches, e.g. a free body in flight) get a unit diagonal: ``b`` is zero there, and
     so is the result, as the pseudo-inverse gives."""
     d = gram.shape[0]
+    if d < _CHOLESKY_MIN_SIZE:
+        return _squared_pseudo_inverse_by_eigh(gram, b)
     diagonal = jnp.diagonal(gram)
     trace = jnp.maximum(jnp.sum(diagonal), jnp.finfo(gram.dtype).tiny ** 0.5)
     filled = gram + jnp.diag(jnp.where(diagonal == 0, trace, 0.0))
@@ -1024,14 +1032,16 @@ def _squared_pseudo_inverse_times(gram: Array, b: Array) -> Array:
     result = solve(solve(b))
     conditioned = jnp.all(jnp.isfinite(result)) & jnp.isfinite(smallest) & (smallest > 1e-7 * trace)
 
-    def by_eigendecomposition(operand, _):
-        gram_, b_ = operand
-        eigenvalues, eigenvectors = jnp.linalg.eigh(gram_)
-        keep = eigenvalues > 1e-9 * jnp.maximum(eigenvalues[-1], jnp.finfo(gram_.dtype).tiny ** 0.5)
-        inverse = jnp.where(keep, 1.0 / jnp.where(keep, eigenvalues, 1.0), 0.0)
-        return eigenvectors @ (inverse**2 * (eigenvectors.T @ b_))
+    return once_if(lambda operand, _: _squared_pseudo_inverse_by_eigh(*operand), ~conditioned, (gram, b),
+                   jnp.where(conditioned, result, 0.0))
 
-    return once_if(by_eigendecomposition, ~conditioned, (gram, b), jnp.where(conditioned, result, 0.0))
+
+def _squared_pseudo_inverse_by_eigh(gram: Array, b: Array) -> Array:
+    """:func:`_squared_pseudo_inverse_times` by an eigendecomposition."""
+    eigenvalues, eigenvectors = jnp.linalg.eigh(gram)
+    keep = eigenvalues > 1e-9 * jnp.maximum(eigenvalues[-1], jnp.finfo(gram.dtype).tiny ** 0.5)
+    inverse = jnp.where(keep, 1.0 / jnp.where(keep, eigenvalues, 1.0), 0.0)
+    return eigenvectors @ (inverse**2 * (eigenvectors.T @ b))
 
 
 def _checked_problem(G, g, mu, warm_start, bounds=None):

@@ -860,7 +860,7 @@ def test_the_sticking_guess_solves_a_well_conditioned_gram_by_cholesky_and_a_sin
     # largest dropped): a well-conditioned A (its eigendecomposition never runs), a singular
     # one (b in its range), one with zero rows and columns (dofs no active contact touches),
     # and a batch mixing them (the eigendecomposition runs for the batch, each member keeps
-    # its own answer).
+    # its own answer); from the size where the factorization is tried first.
     calls = []
     eigh = jnp.linalg.eigh
 
@@ -876,13 +876,14 @@ def test_the_sticking_guess_solves_a_well_conditioned_gram_by_cholesky_and_a_sin
         inverse = np.where(w > 1e-9 * w[-1], 1.0 / np.where(w > 1e-9 * w[-1], w, 1.0), 0.0)
         return V @ (inverse**2 * (V.T @ b))
 
-    X = rng.normal(size=(12, 40))
-    well = X @ X.T  # rank 12
-    Y = rng.normal(size=(12, 7))
-    singular = Y @ Y.T  # rank 7
-    Z = np.vstack([rng.normal(size=(6, 40)), np.zeros((6, 40))])
-    zero_rows = Z @ Z.T  # a body without active contacts: rows 6-11 exactly zero
-    cases = [(well, X @ rng.normal(size=40)), (singular, Y @ rng.normal(size=7)), (zero_rows, Z @ rng.normal(size=40))]
+    d = _ncp._CHOLESKY_MIN_SIZE
+    X = rng.normal(size=(d, 4 * d))
+    well = X @ X.T  # rank d
+    Y = rng.normal(size=(d, d // 2))
+    singular = Y @ Y.T  # rank d / 2
+    Z = np.vstack([rng.normal(size=(d // 2, 4 * d)), np.zeros((d - d // 2, 4 * d))])
+    zero_rows = Z @ Z.T  # a body without active contacts: rows d / 2 to d exactly zero
+    cases = [(well, X @ rng.normal(size=4 * d)), (singular, Y @ rng.normal(size=d // 2)), (zero_rows, Z @ rng.normal(size=4 * d))]
     solve = jax.jit(_ncp._squared_pseudo_inverse_times)
     for k, (A, b) in enumerate(cases):
         calls.clear()
