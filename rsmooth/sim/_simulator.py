@@ -1742,11 +1742,8 @@ class RigidBodySystem(eqx.Module):
                 else:
                     shares += [share] * (3 if (k, segment) in wraps else 1)
                 if (k, segment) in wraps:
-                    w, (_, _, frame, shape, side) = wraps[(k, segment)]
-                    rotation, translation = origin(frame)
-                    centre = translation + rotation @ tendons.wrap_offsets[w].astype(q.dtype)
-                    radius = tendons.wrap_radii[w].astype(q.dtype)
-                    side_point = None if side is None else origin(side)[1]
+                    w, (_, _, frame, shape, _) = wraps[(k, segment)]
+                    rotation, centre, radius, side_point = self._wrap_geometry(kinematics, w, q.dtype)
                     if shape == "sphere":
                         first, second, arc = _wrapping.wrap_sphere(sites[segment], sites[segment + 1], side_point, centre, radius)
                     else:
@@ -1789,18 +1786,25 @@ class RigidBodySystem(eqx.Module):
         if not sides:
             return count
         q = jnp.asarray(q)
-        model = self.model
-        kinematics = _dynamics._kinematics(model, q)
-
-        def placement(frame):
-            return _dynamics._frame_placement(model, kinematics.rotation, kinematics.translation, model.frame_id(frame))
-
-        for w, (_, _, frame, _, side) in sides:
-            rotation, translation = placement(frame)
-            centre = translation + rotation @ tendons.wrap_offsets[w].astype(q.dtype)
-            offset = lax.stop_gradient(placement(side)[1] - centre)
-            count = count + (offset @ offset < tendons.wrap_radii[w].astype(q.dtype) ** 2).astype(jnp.int32)
+        kinematics = _dynamics._kinematics(self.model, q)
+        for w, _ in sides:
+            _, centre, radius, side_point = self._wrap_geometry(kinematics, w, q.dtype)
+            offset = lax.stop_gradient(side_point - centre)
+            count = count + (offset @ offset < radius**2).astype(jnp.int32)
         return count
+
+    def _wrap_geometry(self, kinematics, w: int, dtype) -> tuple[Array, Array, Array, Array | None]:
+        """Wrap ``w``'s shape in the world: ``(rotation (3, 3), centre (3,), radius, side site's
+        position (3,) or None)``."""
+        model, tendons = self.model, self.joints.tendons
+        _, _, frame, _, side = tendons.wraps[w]
+
+        def origin(name):
+            return _dynamics._frame_placement(model, kinematics.rotation, kinematics.translation, model.frame_id(name))
+
+        rotation, translation = origin(frame)
+        centre = translation + rotation @ tendons.wrap_offsets[w].astype(dtype)
+        return rotation, centre, tendons.wrap_radii[w].astype(dtype), None if side is None else origin(side)[1]
 
     def _tendon_stretch(self, length: Array) -> Array:
         """How far each tendon's length ``(T,)`` is beyond its spring's rest band ``(T,)``
