@@ -154,6 +154,24 @@ def test_throughput_ratios_come_from_the_times(records):
     assert "- MJX unavailable: x" in page
 
 
+def test_boxes_ratios_come_from_the_times(records):
+    case = {"pairs": 3, "candidates": 16, "max_pairs": 2, "ours_step_batch": 30e-6, "mj_step": 10e-6, "ratio": 999.0,
+            "ours_compile_s": 5.0, "ours_height_error": 0.0, "mujoco_height_error": 2e-3, "mjx_step_batch": None,
+            "mjx_ratio": None, "ours_stages": {"collision": 5e-6, "free_motion": 1e-6, "solve_contacts": 20e-6,
+                                               "jacobian_rows": 48, "solved_rows": 48}}
+    records["cpu"]["boxes"] = _record_of("boxes", {"batch": 64, "cold_start": True, "sizes": [2], "cases": {"2": case},
+                                                   "growth": {}, "notes": ["MJX unavailable: x"]}, "python -m benchmarks boxes")
+    page = results_page.render(records)
+    assert "Every timed step starts its contact solve cold" in page
+    assert "MJX per env" not in page  # no MJX time: no MJX columns
+    step, stages = _lines_with(page, "| 2 |")
+    assert "| 30.0 us | 10.0 us | 3.00 |" in step and "0.000 / 2.000 mm" in step  # not the recorded 999
+    assert "| 20.0 us |" in stages and "48 / 48" in stages
+    (summary,) = _lines_with(page, "| sim: box tower step per env")
+    assert "3.00" in summary and "999" not in summary
+    assert "- MJX unavailable: x" in page
+
+
 def test_schedules_table(records):
     runs = {"decrease-only": {"command": "rsmooth control solo-lift --method rddp", "success_pct": 60.0, "wall_s": 1.0},
             "reheating": {"command": "rsmooth control solo-lift --method rddp-reheating", "success_pct": None, "wall_s": 1.0,
