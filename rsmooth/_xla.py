@@ -20,9 +20,10 @@ and the program stops, its threads idle (the deadlock :mod:`rsmooth.parallel` de
 several CPU devices). ``jit(vmap(step_and_jacobians))`` of 64 Solo-12 states, called
 repeatedly on two cores, stopped so in every run tried and in none with
 ``--xla_cpu_enable_concurrency_optimized_scheduler=false`` (:data:`SCHEDULER_FLAG`), which
-lowers the risk without removing it: ``jit(vmap(rollout))`` of 64 towers of 16 boxes (each
-step warm-started, 96 x 96 factors) stops with it on two cores in every run tried, while 8 boxes,
-or one tower, run; single-threaded Eigen and synchronous dispatch did not help.
+lowers the risk without removing it: ``jit(vmap(rollout))`` of 64 or 32 towers of 16 boxes
+(each step warm-started, 96 x 96 factors) stops with it on two cores in every run tried, while
+16 towers, or 64 of 8 boxes, run (a large scene batched in chunks of 16 avoids it there);
+single-threaded Eigen and synchronous dispatch did not help.
 
 XLA aborts the process on a flag it does not know, so a flag is added only for the jaxlib
 versions known to have it (:data:`KNOWN_JAXLIB`), only when the user has not set it, and never
