@@ -1723,12 +1723,9 @@ class RigidBodySystem(eqx.Module):
         pulleys = {entry: p for p, entry in enumerate(tendons.pulleys)}
         parents = np.asarray(model.frame_parents)
 
-        def origin(frame):
-            return _dynamics._frame_placement(model, kinematics.rotation, kinematics.translation, model.frame_id(frame))
-
         for k, (tendon, path) in enumerate(zip(tendons.spatial, tendons.paths)):
             ids = [model.frame_id(frame) for frame in path]
-            sites = [origin(frame)[1] for frame in path]
+            sites = [self._frame_origin(kinematics, frame)[1] for frame in path]
             # the path as a polyline (a wrap adds its two tangent points, fixed on the shape's
             # body; their chord has no rate, and the arc replaces it in the length)
             points, joints, arcs = [sites[0]], [parents[ids[0]]], []
@@ -1796,15 +1793,16 @@ class RigidBodySystem(eqx.Module):
     def _wrap_geometry(self, kinematics, w: int, dtype) -> tuple[Array, Array, Array, Array | None]:
         """Wrap ``w``'s shape in the world: ``(rotation (3, 3), centre (3,), radius, side site's
         position (3,) or None)``."""
-        model, tendons = self.model, self.joints.tendons
+        tendons = self.joints.tendons
         _, _, frame, _, side = tendons.wraps[w]
-
-        def origin(name):
-            return _dynamics._frame_placement(model, kinematics.rotation, kinematics.translation, model.frame_id(name))
-
-        rotation, translation = origin(frame)
+        rotation, translation = self._frame_origin(kinematics, frame)
         centre = translation + rotation @ tendons.wrap_offsets[w].astype(dtype)
-        return rotation, centre, tendons.wrap_radii[w].astype(dtype), None if side is None else origin(side)[1]
+        side_point = None if side is None else self._frame_origin(kinematics, side)[1]
+        return rotation, centre, tendons.wrap_radii[w].astype(dtype), side_point
+
+    def _frame_origin(self, kinematics, name: str) -> tuple[Array, Array]:
+        """The world placement ``(rotation (3, 3), translation (3,))`` of the frame ``name``."""
+        return _dynamics._frame_placement(self.model, kinematics.rotation, kinematics.translation, self.model.frame_id(name))
 
     def _tendon_stretch(self, length: Array) -> Array:
         """How far each tendon's length ``(T,)`` is beyond its spring's rest band ``(T,)``
