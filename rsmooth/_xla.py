@@ -13,17 +13,15 @@ programs that run as fast either way (``python -m benchmarks startup``):
 command waits for.
 
 Its concurrency-optimized scheduler (on by default) runs more of a program's operations at
-once on the intra-op thread pool (one thread per core). jaxlib's batched LAPACK kernels (the
-triangular solves and factorizations of a vmapped contact step) split their batch into tasks on
-that pool and wait for them: when every thread is such a waiting kernel, nothing runs the tasks
-and the program stops, its threads idle (the deadlock :mod:`rsmooth.parallel` describes for
-several CPU devices). ``jit(vmap(step_and_jacobians))`` of 64 Solo-12 states, called
-repeatedly on two cores, stopped so in every run tried and in none with
-``--xla_cpu_enable_concurrency_optimized_scheduler=false`` (:data:`SCHEDULER_FLAG`), which
-lowers the risk without removing it: ``jit(vmap(rollout))`` of 64 or 32 towers of 16 boxes
-(each step warm-started, 96 x 96 factors) stops with it on two cores in every run tried, while
-16 towers, or 64 of 8 boxes, run (a large scene batched in chunks of 16 avoids it there);
-single-threaded Eigen and synchronous dispatch did not help.
+once on the intra-op thread pool (one thread per core). jaxlib 0.10's batched LAPACK kernels
+split a large batch into tasks on that pool and wait for them: when every thread is such a
+waiting kernel, nothing runs the tasks and the program stops, its threads idle.
+``jit(vmap(step_and_jacobians))`` of 64 Solo-12 states, called repeatedly on two cores,
+stopped so in every run tried and in none with
+``--xla_cpu_enable_concurrency_optimized_scheduler=false`` (:data:`SCHEDULER_FLAG`). The plain
+scheduler lowers the risk without removing it (a batched rollout of 64 towers of 16 boxes
+stopped with it); what removes it is :mod:`rsmooth._linalg`, through which rsmooth's solvers do
+their linear algebra: it hands LAPACK only batches small enough to run inline.
 
 XLA aborts the process on a flag it does not know, so a flag is added only for the jaxlib
 versions known to have it (:data:`KNOWN_JAXLIB`), only when the user has not set it, and never

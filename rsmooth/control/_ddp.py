@@ -77,6 +77,7 @@ import numpy as np
 from jax import Array, lax
 
 from rsmooth import _checks, _xla
+from rsmooth import _linalg as linalg
 from rsmooth._results import RESULTS
 from rsmooth.control._problem import ShootingProblem
 
@@ -259,9 +260,9 @@ def _residual_derivatives(problem: ShootingProblem, xs: Array, us: Array):
 
 def _cholesky_solve(matrix: Array, rhs: Array) -> tuple[Array, Array]:
     """``matrix^{-1} rhs`` and whether ``matrix`` failed to be positive definite."""
-    factor = jnp.linalg.cholesky(matrix)
+    factor = linalg.cholesky(matrix)
     failed = ~jnp.all(jnp.isfinite(factor))
-    return jax.scipy.linalg.cho_solve((factor, True), rhs), failed
+    return linalg.cho_solve((factor, True), rhs), failed
 
 
 def box_qp(H: Array, q: Array, lower: Array, upper: Array, x_init: Array, max_iterations: int):

@@ -27,7 +27,7 @@ from typing import Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import jax.scipy.linalg
+from rsmooth import _linalg as linalg
 import numpy as np
 from jax.typing import ArrayLike
 
@@ -564,11 +564,11 @@ def _solve_positive_definite(matrix: jax.Array, rhs: jax.Array) -> jax.Array:
     reusing the factorization, instead of differentiating through the Cholesky factorization
     (whose JVP solves a matrix equation per tangent and was ~50x slower here).
     """
-    factor = jax.scipy.linalg.cho_factor(matrix, lower=True)
+    factor = linalg.cho_factor(matrix)
     return jax.lax.custom_linear_solve(
         lambda x: jnp.sum(matrix * x[None, :], axis=1),
         rhs,
-        solve=lambda _, b: jax.scipy.linalg.cho_solve(factor, b),
+        solve=lambda _, b: linalg.cho_solve(factor, b),
         symmetric=True,
     )
 
@@ -774,7 +774,7 @@ def _free_body_rotation(model: Model, v: jax.Array, dt: jax.Array) -> tuple[jax.
             momentum = inertia @ middle
             residual = inertia @ (rotated - omega) + dt * jnp.cross(middle, momentum)
             jacobian = inertia + 0.5 * dt * (spatial.skew(middle) @ inertia - spatial.skew(momentum))
-            rotated = rotated - jnp.linalg.solve(jacobian, residual)
+            rotated = rotated - linalg.solve(jacobian, residual)
         return rotated
 
     gyroscopic = jnp.cross(omega, jnp.einsum("kij,kj->ki", inertia, omega))

@@ -30,6 +30,7 @@ import numpy as np
 from jax import lax
 from jax.typing import ArrayLike
 
+from rsmooth import _linalg as linalg
 from rsmooth import _xla
 from rsmooth._batching import once_if, run_where_needed
 from rsmooth._results import RESULTS
@@ -352,7 +353,7 @@ def implicit_impulse_tangent(
     # the O(eps / sigma_min(J)^2) bias; where it is singular (mode switches, sticking
     # contacts on a rank-deficient G whose impulses are not unique) eps = 1e-12 bounds the
     # gain by about 3 / (2 sqrt(eps)) instead of returning inf or NaN.
-    factor = jax.scipy.linalg.cho_factor(jacobian.T @ jacobian + regularization * identity)
+    factor = linalg.cho_factor(jacobian.T @ jacobian + regularization * identity)
     if rhs.ndim == 2 and rhs.shape[1] > impulse.shape[0]:
         # Many columns (the Jacobian columns of a step): the three refined solves are linear in
         # rhs, dlambda = -T rhs with T = (I + E + E^2) B, B = (JᵀJ + eps I)^{-1} Jᵀ and E = I - B J
@@ -363,7 +364,7 @@ def implicit_impulse_tangent(
     impulse_dot = jnp.zeros_like(rhs)
     for _ in range(3):
         residual = -rhs - jacobian @ impulse_dot
-        impulse_dot = impulse_dot + jax.scipy.linalg.cho_solve(factor, jacobian.T @ residual)
+        impulse_dot = impulse_dot + linalg.cho_solve(factor, jacobian.T @ residual)
     return impulse_dot
 
 
@@ -376,16 +377,16 @@ def many_column_solver(factor, rhs: Array):
     if rhs.ndim == 2 and rhs.shape[1] > n:
         inverse = cholesky_inverse(factor)
         return lambda b: inverse @ b
-    return lambda b: jax.scipy.linalg.cho_solve(factor, b)
+    return lambda b: linalg.cho_solve(factor, b)
 
 
 def cholesky_inverse(factor) -> Array:
-    """``A^-1`` from a Cholesky ``factor`` of ``A`` (``jax.scipy.linalg.cho_factor``): one
+    """``A^-1`` from a Cholesky ``factor`` of ``A`` (:func:`rsmooth._linalg.cho_factor`): one
     triangular solve for ``L^-1`` and the product ``L^-T L^-1``, where ``cho_solve`` with the
     identity takes two solves (on the CPU a batched triangular solve costs several times the
     product)."""
     c, lower = factor
-    inverse = jax.scipy.linalg.solve_triangular(c, jnp.eye(c.shape[0], dtype=c.dtype), lower=lower)
+    inverse = linalg.solve_triangular(c, jnp.eye(c.shape[0], dtype=c.dtype), lower=lower)
     return inverse.T @ inverse if lower else inverse @ inverse.T
 
 
@@ -579,7 +580,7 @@ def _polish(
         normal = normal + damping * jnp.eye(residual.shape[0], dtype=G.dtype)
         matrix = jnp.where(least_squares, normal, jacobian)
         rhs = jnp.where(least_squares, jacobian.T @ residual, residual)
-        step = _solve_unpivoted(matrix, rhs) if rhs.shape[0] <= _UNROLLED_COLUMNS else jnp.linalg.solve(matrix, rhs)
+        step = _solve_unpivoted(matrix, rhs) if rhs.shape[0] <= _UNROLLED_COLUMNS else linalg.solve(matrix, rhs)
         cone_step = step[: 3 * n].reshape(n, 3)
         # Turn the direction by the angle step (a retraction onto the unit circle).
         turned = direction - cone_step[:, 1:2] * jnp.stack([-direction[:, 1], direction[:, 0]], axis=-1)
@@ -823,7 +824,7 @@ class NCPSolver(eqx.Module):
         elif self.rank_deficient:
             # The minimum-norm sticking impulse, by the pseudo-inverse of G_AA (eigenvalues
             # below 1e-9 of the largest dropped); see the attribute's documentation.
-            eigenvalues, eigenvectors = jnp.linalg.eigh(jnp.where(active[:, None] & active[None, :], G, 0.0))
+            eigenvalues, eigenvectors = linalg.eigh(jnp.where(active[:, None] & active[None, :], G, 0.0))
             keep = eigenvalues > 1e-9 * jnp.maximum(eigenvalues[-1], jnp.finfo(G.dtype).tiny ** 0.5)
             inverse = jnp.where(keep, 1.0 / jnp.where(keep, eigenvalues, 1.0), 0.0)
             # exactly zero off A: the eigenvectors mix A's null space with the inactive
@@ -837,9 +838,9 @@ class NCPSolver(eqx.Module):
             identity = jnp.eye(G.shape[0], dtype=G.dtype)
             reduced = jnp.where(active[:, None] & active[None, :], G, identity)
             scale = jnp.maximum(jnp.max(jnp.diagonal(reduced)), jnp.finfo(G.dtype).tiny ** 0.5)
-            factor = jax.scipy.linalg.cho_factor(reduced + 1e-12 * scale * identity, lower=True)
-            sticking = -jax.scipy.linalg.cho_solve(factor, rhs)
-            sticking = sticking - jax.scipy.linalg.cho_solve(factor, reduced @ sticking + rhs)
+            factor = linalg.cho_factor(reduced + 1e-12 * scale * identity)
+            sticking = -linalg.cho_solve(factor, rhs)
+            sticking = sticking - linalg.cho_solve(factor, reduced @ sticking + rhs)
         return _project(sticking, mu, bounds)
 
     def init(self, G: Array, g: Array, mu: Array, warm_start: Array | None, bounds: Array | None = None) -> NCPState:
@@ -848,7 +849,7 @@ class NCPSolver(eqx.Module):
         :meth:`start`'s impulse); with ``scaling``, of the scaled problem."""
         scale = _row_scales(G, mu.shape[0]) if self.scaling else jnp.ones_like(g)
         G_scaled, g_scaled = scale[:, None] * G * scale[None, :], scale * g
-        eigenvalues, eigenvectors = jnp.linalg.eigh(G_scaled)
+        eigenvalues, eigenvectors = linalg.eigh(G_scaled)
         largest = jnp.maximum(eigenvalues[-1], jnp.finfo(G.dtype).tiny ** 0.5)
         if self.rho is None:
             # Spectral choice sqrt(m L) (Carpentier et al. 2024), m floored so a singular G
@@ -1019,10 +1020,10 @@ def _squared_pseudo_inverse_times(gram: Array, b: Array) -> Array:
     diagonal = jnp.diagonal(gram)
     trace = jnp.maximum(jnp.sum(diagonal), jnp.finfo(gram.dtype).tiny ** 0.5)
     filled = gram + jnp.diag(jnp.where(diagonal == 0, trace, 0.0))
-    cholesky = jax.scipy.linalg.cholesky(filled, lower=True)
+    cholesky = linalg.cholesky(filled)
 
     def solve(x):
-        return jax.scipy.linalg.cho_solve((cholesky, True), x)
+        return linalg.cho_solve((cholesky, True), x)
 
     x = jnp.sin(1.0 + 2.3 * jnp.arange(d, dtype=gram.dtype))
     for _ in range(3):
@@ -1038,7 +1039,7 @@ def _squared_pseudo_inverse_times(gram: Array, b: Array) -> Array:
 
 def _squared_pseudo_inverse_by_eigh(gram: Array, b: Array) -> Array:
     """:func:`_squared_pseudo_inverse_times` by an eigendecomposition."""
-    eigenvalues, eigenvectors = jnp.linalg.eigh(gram)
+    eigenvalues, eigenvectors = linalg.eigh(gram)
     keep = eigenvalues > 1e-9 * jnp.maximum(eigenvalues[-1], jnp.finfo(gram.dtype).tiny ** 0.5)
     inverse = jnp.where(keep, 1.0 / jnp.where(keep, eigenvalues, 1.0), 0.0)
     return eigenvectors @ (inverse**2 * (eigenvectors.T @ b))

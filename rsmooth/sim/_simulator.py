@@ -78,7 +78,6 @@ from typing import Literal, NamedTuple, Union
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import jax.scipy.linalg
 from jax import lax
 import numpy as np
 from jax.typing import ArrayLike
@@ -171,7 +170,7 @@ class _VelocityUpdate(NamedTuple):
     distance: Array  # (n,)
     ncp: NCPInfo
     clipped: Array
-    mass_factor: tuple[Array, bool]  # Cholesky factor of M (jax.scipy.linalg.cho_factor)
+    mass_factor: tuple[Array, bool]  # Cholesky factor of M (rsmooth._linalg.cho_factor)
     jacobian: Array  # contact Jacobian J, (3 n, nv)
     delassus: Array  # G = J_s M^-1 J_sᵀ of the solved rows s (the contacts: all, or the selection; the joints' box rows)
     free_velocity: Array  # g: the NCP's free velocity (hard contact), solved rows
