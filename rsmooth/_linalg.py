@@ -21,8 +21,8 @@ jaxlib has no setting to keep them off it.
 Derivatives: :func:`solve_triangular` and :func:`solve` are differentiable in both arguments,
 forward and reverse (their tangents are again solves); :func:`cholesky` by its JVP
 ``dL = L Phi(L^-1 dA L^-T)`` (lower triangle, halved diagonal); :func:`eigh` is not
-differentiable (rsmooth uses it inside solvers that are differentiated implicitly) and raises
-if differentiated.
+and :func:`svd` are not differentiable (rsmooth uses them inside solvers that are differentiated
+implicitly) and raise if differentiated.
 """
 
 from __future__ import annotations
@@ -318,3 +318,35 @@ def eigh(a):
     ascending: ``jnp.linalg.eigh``. Not differentiable."""
     eigenvalues, eigenvectors = _eigh_p.bind(jnp.asarray(a))
     return eigenvalues, eigenvectors
+
+
+# --- singular value decomposition ---------------------------------------------------------
+
+def _gesdd(a):
+    u, s, vt = jnp.linalg.svd(a, full_matrices=False)
+    return [u, s, vt]
+
+
+def _svd_cost(a):
+    rows, columns = _matrix_shape(a)
+    return 10 * rows * columns * min(rows, columns)
+
+
+_svd_p = _define("svd", _gesdd, _svd_cost, multiple_results=True)
+
+
+def svd(a):
+    """``(u, s, vt)`` with ``a = u diag(s) vt`` for ``a`` (..., m, n), singular values
+    descending, ``u`` and ``vt`` reduced (``jnp.linalg.svd(a, full_matrices=False)``). Not
+    differentiable."""
+    u, s, vt = _svd_p.bind(jnp.asarray(a))
+    return u, s, vt
+
+
+def min_norm_solve(a, b, rcond: float):
+    """The minimum-norm least-squares solution of ``a x = b`` for ``a`` (m, n) and ``b`` (m,),
+    singular values below ``rcond`` times the largest taken as zero: ``np.linalg.lstsq(a, b,
+    rcond)``. Not differentiable."""
+    u, s, vt = svd(a)
+    keep = s > rcond * s[0]
+    return vt.T @ jnp.where(keep, (u.T @ b) / jnp.where(keep, s, 1.0), 0.0)

@@ -5,6 +5,7 @@ that prevents the deadlock, read from the lowered programs of a batched contact 
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 
@@ -45,6 +46,16 @@ def test_values_are_jax_s():
     _close(eigenvalues, jnp.linalg.eigh(a)[0])
     _close(eigenvectors @ jnp.diag(eigenvalues) @ eigenvectors.T, a)
     assert bool(jnp.all(jnp.isnan(linalg.cholesky(-a)[jnp.tril_indices(6)])))  # not positive definite: NaN, as JAX
+    u, s, vt = linalg.svd(b)
+    _close(u @ jnp.diag(s) @ vt, b)
+    _close(s, jnp.linalg.svd(b, compute_uv=False))
+    # rank 3 of 6, one singular value 3e-7 of the largest (kept by the cut of 1e-13)
+    left, right = np.linalg.qr(np.random.default_rng(0).normal(size=(6, 6)))[0], np.linalg.qr(np.random.default_rng(1).normal(size=(6, 6)))[0]
+    matrix = left @ np.diag([3.0, 1.0, 1e-6, 0, 0, 0]) @ right.T
+    rhs = np.random.default_rng(2).normal(size=6)
+    solution = np.asarray(linalg.min_norm_solve(matrix, rhs, rcond=1e-13))
+    np.testing.assert_allclose(solution, np.linalg.lstsq(matrix, rhs, rcond=1e-13)[0], rtol=1e-8, atol=1e-8 * np.abs(solution).max())
+    assert np.linalg.norm(solution @ right[:, 3:]) < 1e-8 * np.linalg.norm(solution)  # minimum norm: no null-space part
 
 
 def _ours(a, b):
@@ -65,23 +76,25 @@ def _jax_s(a, b):
     return jnp.sum(jnp.sin(z)) + jnp.sum(factor**2 * jnp.arange(a.shape[0])[None, :])
 
 
+def _derivatives(f, a, b, direction, batch_a, batch_b):
+    """Reverse and forward derivatives of ``f`` in both arguments, reverse over forward, and
+    batched: one program (compile time)."""
+
+    def curvature(a, b):  # gradient of the derivative of f along `direction`
+        return jax.grad(lambda a, b: jax.jvp(lambda a: f(a, b), (a,), (direction,))[1], argnums=(0, 1))(a, b)
+
+    return (jax.grad(f, (0, 1))(a, b), jax.jacfwd(f, (0, 1))(a, b), curvature(a, b),
+            jax.vmap(jax.grad(f))(batch_a, batch_b),
+            jax.grad(lambda a, bs: jax.vmap(f, (None, 0))(a, bs).sum())(a, batch_b))
+
+
 def test_derivatives_are_jax_s_forward_reverse_second_order_and_batched():
-    a = _spd(jax.random.key(2), 5)
-    b = jax.random.normal(jax.random.key(3), (5, 2))
-    direction = jax.random.normal(jax.random.key(4), (5, 5))
-    for argnum in (0, 1):
-        _close(jax.jit(jax.grad(_ours, argnum))(a, b), jax.grad(_jax_s, argnum)(a, b), 1e-10)
-        _close(jax.jit(jax.jacfwd(_ours, argnum))(a, b), jax.jacfwd(_jax_s, argnum)(a, b), 1e-10)
-
-    def curvature(f):  # reverse over forward: d/db of the derivative of f along `direction`
-        return jax.grad(lambda a, b: jax.jvp(lambda a: f(a, b), (a,), (direction,))[1], argnums=(0, 1))
-
-    for ours, theirs in zip(jax.jit(curvature(_ours))(a, b), curvature(_jax_s)(a, b)):
-        _close(ours, theirs, 1e-9)
-    batch_a, batch_b = _spd(jax.random.key(5), 5, (4,)), jax.random.normal(jax.random.key(6), (4, 5, 2))
-    _close(jax.jit(jax.vmap(jax.grad(_ours)))(batch_a, batch_b), jax.vmap(jax.grad(_jax_s))(batch_a, batch_b), 1e-10)
-    _close(jax.jit(jax.grad(lambda a, bs: jax.vmap(_ours, (None, 0))(a, bs).sum()))(a, batch_b),
-           jax.grad(lambda a, bs: jax.vmap(_jax_s, (None, 0))(a, bs).sum())(a, batch_b), 1e-10)
+    args = (_spd(jax.random.key(2), 5), jax.random.normal(jax.random.key(3), (5, 2)), jax.random.normal(jax.random.key(4), (5, 5)),
+            _spd(jax.random.key(5), 5, (4,)), jax.random.normal(jax.random.key(6), (4, 5, 2)))
+    ours = jax.jit(functools.partial(_derivatives, _ours))(*args)
+    theirs = jax.jit(functools.partial(_derivatives, _jax_s))(*args)
+    for mine, reference in zip(jax.tree.leaves(ours), jax.tree.leaves(theirs)):
+        _close(mine, reference, 1e-9)
 
 
 def test_eigh_is_not_differentiable():
@@ -105,6 +118,7 @@ _ESTIMATES = {
     "potrf": lambda shapes: shapes[0][-1] ** 3 // 3,
     "getrf": lambda shapes: shapes[0][-2] * shapes[0][-1] * min(shapes[0][-2:]),
     "syevd": lambda shapes: 5 * shapes[0][-1] ** 3,
+    "gesdd": lambda shapes: 10 * shapes[0][-2] * shapes[0][-1] * min(shapes[0][-2:]),
 }
 
 
@@ -124,12 +138,13 @@ def _lapack_calls(text: str):
 @pytest.mark.skipif(jax.default_backend() != "cpu" or not linalg.POOLED_BATCHES,
                     reason="the chunking applies to the CPU under a jaxlib that pools LAPACK batches")
 def test_a_batched_contact_step_hands_lapack_only_batches_it_runs_inline():
-    # 64 cubes: the Delassus matrix (24 x 24) and its solves, batched whole, would be over the
-    # threshold, so they must arrive in chunks (inside a loop); a call site that used jnp.linalg
-    # or jax.scipy.linalg directly would show up here with the whole batch.
+    # 64 cubes: the Delassus matrix (24 x 24), the step Jacobians' solves (many columns),
+    # batched whole, would be over the threshold, so they must arrive in chunks (inside a
+    # loop); a call site that used jnp.linalg or jax.scipy.linalg directly would show up here
+    # with the whole batch. (A batched Solo-12 step with Jacobians, called repeatedly on two
+    # cores, stopped for good when its solves were batched whole.)
     cube = sim.cube()
-    xs = jnp.tile(cube.initial_state(), (64, 1))
-    us = jnp.zeros((64, cube.nu))
+    xs, us = jnp.tile(cube.initial_state(), (64, 1)), jnp.zeros((64, cube.nu))
     for program in (jax.vmap(cube.step), jax.vmap(cube.step_and_jacobians)):
         text = jax.jit(program).lower(xs, us).as_text()
         calls = _lapack_calls(text)

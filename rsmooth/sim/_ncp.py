@@ -533,6 +533,17 @@ def _solve_unpivoted(A: Array, b: Array) -> Array:
     return lax.fori_loop(0, n, eliminate, jnp.concatenate([A, b[:, None]], axis=1))[:, n]
 
 
+# The least-squares polish's cut on singular values, relative to the largest: well above the
+# rounding of the Jacobian's (a few 1e-16), below the ill-conditioned ones of a landing foot.
+_MIN_NORM_RCOND = 1e-13
+
+
+def _newton_step(jacobian: Array, residual: Array) -> Array:
+    if residual.shape[0] <= _UNROLLED_COLUMNS:
+        return _solve_unpivoted(jacobian, residual)
+    return linalg.solve(jacobian, residual)
+
+
 def _polish(
     G: Array, g: Array, mu: Array, impulse: Array, steps: int, least_squares: ArrayLike = False, bounds: Array | None = None
 ) -> Array:
@@ -543,10 +554,13 @@ def _polish(
     (possibly not finite, or the solution of wrong modes) must be checked by
     :func:`ncp_residuals`.
 
-    ``least_squares`` (a bool, possibly traced): Gauss-Newton steps with a Levenberg-Marquardt
-    damping of ``1e-12`` of the largest diagonal entry of ``JᵀJ``, for modes whose equations
-    are singular (more sticking rows than the degrees of freedom they hold: a stack of boxes,
-    where Newton's own step is not finite); they reach a solution of consistent equations."""
+    ``least_squares`` (a bool, possibly traced): minimum-norm least-squares steps (singular
+    values below ``1e-13`` of the largest dropped), for modes whose equations are singular (more
+    sticking rows than the degrees of freedom they hold: a stack of boxes, where Newton's own
+    step is not finite; a tilted foot landing on the ends of two capsules). They reach a
+    solution of consistent equations; damped normal equations do not where the equations are
+    also ill-conditioned (a singular value 1e-7 of the largest, squared below the rounding of
+    ``JᵀJ``), and their damping all but stops the steps along it."""
     n = mu.shape[0]
     z = impulse[: 3 * n].reshape(n, 3)
     c = (G @ impulse + g)[: 3 * n].reshape(n, 3)
@@ -575,12 +589,12 @@ def _polish(
     def newton(_, carry):
         x, box_x, direction = carry
         _, residual, jacobian = equations(x, box_x, direction)
-        normal = jacobian.T @ jacobian
-        damping = 1e-12 * jnp.max(jnp.diagonal(normal)) + jnp.finfo(G.dtype).tiny ** 0.5
-        normal = normal + damping * jnp.eye(residual.shape[0], dtype=G.dtype)
-        matrix = jnp.where(least_squares, normal, jacobian)
-        rhs = jnp.where(least_squares, jacobian.T @ residual, residual)
-        step = _solve_unpivoted(matrix, rhs) if rhs.shape[0] <= _UNROLLED_COLUMNS else linalg.solve(matrix, rhs)
+        if least_squares is False:
+            step = _newton_step(jacobian, residual)
+        else:
+            # the decomposition only where a member asks for least squares (under vmap)
+            step = once_if(lambda operand, _: linalg.min_norm_solve(*operand, rcond=_MIN_NORM_RCOND),
+                           jnp.asarray(least_squares), (jacobian, residual), _newton_step(jacobian, residual))
         cone_step = step[: 3 * n].reshape(n, 3)
         # Turn the direction by the angle step (a retraction onto the unit circle).
         turned = direction - cone_step[:, 1:2] * jnp.stack([-direction[:, 1], direction[:, 0]], axis=-1)

@@ -3,6 +3,7 @@ compliant models. References: closed forms on a point mass, Pinocchio's ADMM sol
 same Delassus problems, and central finite differences."""
 
 import functools
+import pathlib
 
 import equinox as eqx
 import jax
@@ -567,6 +568,23 @@ def test_polish_solves_without_admm(getkey):
         NCPSolver(polish_rounds=0)
     with pytest.raises(ValueError, match="polish_steps"):
         NCPSolver(polish_steps=1.5)
+
+
+def test_the_least_squares_polish_solves_a_landing_foot_whose_equations_are_ill_conditioned():
+    """dm_control's humanoid at rest, step 42 at zero torque: its two tilted feet land on the
+    ends of their capsules, 8 contacts at gaps of 3 to 5 mm (the problem restricted to them;
+    tests/sim/data). No all-sticking solution exists, ADMM stops at its cap in modes that are
+    wrong, and the modes' equations there have a singular value about 1e-7 of the largest:
+    the least-squares polish must take it (minimum-norm steps), where damped normal equations
+    stalled at a dual residual of 6e-6."""
+    data = np.load(pathlib.Path(__file__).parent / "data" / "humanoid_landing_feet.npz")
+    G, g, mu = (jnp.asarray(data[name]) for name in ("G", "g", "mu"))
+    solver = NCPSolver(sticking_guess=True, rank_deficient=True, polish=True, max_iterations=1000)
+    impulse, info = solve_ncp(G, g, mu, solver=solver)
+    assert bool(info.converged) and int(info.iterations) == solver.max_iterations  # after ADMM's cap
+    check_ncp_numpy(G, g, mu, impulse, atol=1e-10)
+    normal = np.asarray(impulse).reshape(8, 3)[:, 2]
+    assert np.all(normal >= 0) and np.sum(normal) > 0.1  # the feet carry the landing
 
 
 def test_batched_solves_do_not_depend_on_the_chunks(getkey):
