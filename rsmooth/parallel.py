@@ -37,10 +37,9 @@ way, no thread is left to run the tasks and the program stops, with no CPU use (
 estimate through :func:`rsmooth.sim.cube` on two devices of a two-core machine, split by
 :func:`map_samples` or by :func:`vmap_samples`, with JAX's own ``jnp.linalg`` in the contact
 solver). A batch of one matrix runs inline, and :mod:`rsmooth._linalg` hands LAPACK nothing
-larger than what runs inline. A chunk larger than
-one is safe on several CPU devices for functions whose linear algebra is rsmooth's (the
-simulator, the control solvers) or that have none; on accelerators the whole share is vmapped by
-default.
+larger than what runs inline. A chunk larger than one is safe on several CPU devices for
+functions whose linear algebra is rsmooth's (the simulator, the control solvers) or that have
+none; on accelerators the whole share is vmapped by default.
 
 Devices (the ``devices`` argument of :func:`map_samples` and of the estimators): ``None``, the
 default, splits nothing (the batch is vmapped on the default device); ``"all"`` takes

@@ -27,10 +27,10 @@ from typing import Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
-from rsmooth import _linalg as linalg
 import numpy as np
 from jax.typing import ArrayLike
 
+from rsmooth import _linalg as linalg
 from rsmooth.sim import _spatial as spatial
 from rsmooth.sim._model import FREE_FLYER, JOINT_NV, PRISMATIC, REVOLUTE, SPHERICAL, Model
 

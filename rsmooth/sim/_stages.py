@@ -19,10 +19,10 @@ from typing import TYPE_CHECKING
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from rsmooth import _linalg as linalg
 from jax import lax
 from jax.typing import ArrayLike
 
+from rsmooth import _linalg as linalg
 from rsmooth._results import RESULTS
 from rsmooth.sim import _dynamics
 from rsmooth.sim import _spatial as spatial
