@@ -183,27 +183,28 @@ def _triangular_solve_transpose(cotangent, a, b, *, lower, transpose):
 ad.primitive_transposes[_triangular_solve_p] = _triangular_solve_transpose
 
 
-def _as_matrix(a, b):
-    """``b`` as (..., n, k) beside ``a`` (..., n, n), and how to give the result b's shape."""
+def _matrix_operands(a, b):
+    """``a`` (..., n, n) and ``b`` as (..., n, k), in one dtype and with one batch shape, and
+    how to give a result ``b``'s own shape (``b`` may be (..., n))."""
+    a, b = jnp.asarray(a), jnp.asarray(b)
+    dtype = jnp.promote_types(a.dtype, b.dtype)
+    a, b = a.astype(dtype), b.astype(dtype)
     if b.ndim == a.ndim - 1:
-        return b[..., None], lambda x: x[..., 0]
-    if b.ndim != a.ndim:
+        matrix, restore = b[..., None], lambda x: x[..., 0]
+    elif b.ndim == a.ndim:
+        matrix, restore = b, lambda x: x
+    else:
         raise ValueError(f"b must have shape {a.shape[:-1]} or {a.shape[:-1]} + (k,) beside a of shape "
                          f"{a.shape}, got {b.shape}")
-    return b, lambda x: x
+    batch_shape = jnp.broadcast_shapes(a.shape[:-2], matrix.shape[:-2])
+    return jnp.broadcast_to(a, batch_shape + a.shape[-2:]), jnp.broadcast_to(matrix, batch_shape + matrix.shape[-2:]), restore
 
 
 def solve_triangular(a, b, *, lower: bool = True, trans: bool = False):
     """``a^-1 b`` (or ``a^-T b`` with ``trans``) for a triangular ``a`` (..., n, n) and ``b``
     (..., n) or (..., n, k): ``jax.scipy.linalg.solve_triangular(a, b, lower=lower,
     trans="T" if trans else 0)``."""
-    a, b = jnp.asarray(a), jnp.asarray(b)
-    dtype = jnp.promote_types(a.dtype, b.dtype)
-    a, b = a.astype(dtype), b.astype(dtype)
-    matrix, restore = _as_matrix(a, b)
-    batch_shape = jnp.broadcast_shapes(a.shape[:-2], matrix.shape[:-2])
-    a = jnp.broadcast_to(a, batch_shape + a.shape[-2:])
-    matrix = jnp.broadcast_to(matrix, batch_shape + matrix.shape[-2:])
+    a, matrix, restore = _matrix_operands(a, b)
     return restore(_triangular_solve_p.bind(a, matrix, lower=bool(lower), transpose=bool(trans)))
 
 
@@ -293,13 +294,7 @@ ad.primitive_transposes[_solve_p] = _solve_transpose
 def solve(a, b):
     """``a^-1 b`` for a square ``a`` (..., n, n) and ``b`` (..., n) or (..., n, k):
     ``jnp.linalg.solve`` (LU with partial pivoting)."""
-    a, b = jnp.asarray(a), jnp.asarray(b)
-    dtype = jnp.promote_types(a.dtype, b.dtype)
-    a, b = a.astype(dtype), b.astype(dtype)
-    matrix, restore = _as_matrix(a, b)
-    batch_shape = jnp.broadcast_shapes(a.shape[:-2], matrix.shape[:-2])
-    a = jnp.broadcast_to(a, batch_shape + a.shape[-2:])
-    matrix = jnp.broadcast_to(matrix, batch_shape + matrix.shape[-2:])
+    a, matrix, restore = _matrix_operands(a, b)
     return restore(_solve_p.bind(a, matrix))
 
 
