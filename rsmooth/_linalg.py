@@ -1,14 +1,14 @@
 """Dense linear algebra for rsmooth's batched programs: JAX's own, without jaxlib's CPU deadlock.
 
 jaxlib 0.10.0 to 0.11.0 split a batch of matrices that a CPU LAPACK kernel receives (a
-vmapped Cholesky factorization, triangular solve, LU or symmetric eigendecomposition) into
-tasks on XLA's intra-op thread pool and block the calling pool thread until they finish.
+vmapped Cholesky factorization, triangular solve, LU, symmetric eigendecomposition or singular
+value decomposition) into tasks on XLA's intra-op thread pool and block the calling pool thread until they finish.
 XLA runs independent operations of a program side by side on that same pool, so when every
 pool thread is such a waiting kernel, nothing is left to run the tasks: the program stops,
 with no CPU use and no error (a batched rollout of 64 towers of 16 boxes, on two cores, every
 time). A kernel runs its batch inline, without the pool, where the batch times the kernel's
 flop estimate is under 200,000 (``jaxlib/cpu/lapack_kernels.cc``, ``GetLapackBatchChunkSize``);
-later jaxlib releases never use the pool.
+open-source builds after 0.11.0 never use the pool.
 
 The functions here are JAX's (``jnp.linalg``, ``jax.scipy.linalg``) with the same results,
 each its own primitive so that it keeps its batch dimensions through ``vmap``: compiled for a
@@ -20,9 +20,9 @@ jaxlib has no setting to keep them off it.
 
 Derivatives: :func:`solve_triangular` and :func:`solve` are differentiable in both arguments,
 forward and reverse (their tangents are again solves); :func:`cholesky` by its JVP
-``dL = L Phi(L^-1 dA L^-T)`` (lower triangle, halved diagonal); :func:`eigh` is not
-and :func:`svd` are not differentiable (rsmooth uses them inside solvers that are differentiated
-implicitly) and raise if differentiated.
+``dL = L Phi(L^-1 dA L^-T)`` (lower triangle, halved diagonal). :func:`eigh` and :func:`svd`
+are not differentiable (rsmooth uses them inside solvers that are differentiated implicitly)
+and raise if differentiated.
 """
 
 from __future__ import annotations
