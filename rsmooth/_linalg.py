@@ -67,37 +67,35 @@ def chunk_size(cost: int) -> int:
     return max(1, (INLINE_WORK - 1) // max(int(cost), 1))
 
 
-def _chunked(function, cost: int, *operands):
-    """``function`` (a JAX function of unbatched matrices, vmapped over the leading batch
-    dimensions that all ``operands`` share) in chunks of :func:`chunk_size` matrices."""
+def _over_batch(function, ndim: int):
+    """``function`` vmapped over ``ndim`` leading dimensions."""
+    for _ in range(ndim):
+        function = jax.vmap(function)
+    return function
+
+
+def _batched(function, cost_of, *operands, **params):
+    """Eager and default-platform evaluation: one call over the whole batch."""
+    del cost_of
+    return _over_batch(functools.partial(function, **params), operands[0].ndim - 2)(*operands)
+
+
+def _cpu(function, cost_of, *operands, **params):
+    """CPU evaluation: ``function`` (of unbatched matrices) over the leading batch dimensions
+    that all ``operands`` share, in chunks of :func:`chunk_size` matrices, which jaxlib runs
+    inline."""
+    function = functools.partial(function, **params)
     batch_shape = operands[0].shape[:-2]
     size = int(np.prod(batch_shape, dtype=np.int64))
-    chunk = chunk_size(cost)
-    mapped = function
-    for _ in batch_shape:
-        mapped = jax.vmap(mapped)
+    chunk = chunk_size(cost_of(*operands))
     if not POOLED_BATCHES or size <= chunk:
-        return mapped(*operands)
+        return _over_batch(function, len(batch_shape))(*operands)
     flat = tuple(x.reshape((size,) + x.shape[len(batch_shape):]) for x in operands)
     if chunk == 1:
         out = lax.map(lambda xs: function(*xs), flat)
     else:
         out = lax.map(lambda xs: function(*xs), flat, batch_size=chunk)
     return jax.tree.map(lambda y: y.reshape(batch_shape + y.shape[1:]), out)
-
-
-def _batched(function, cost_of, *operands, **params):
-    """Eager and default-platform evaluation: one call over the whole batch."""
-    del cost_of
-    mapped = functools.partial(function, **params)
-    for _ in operands[0].shape[:-2]:
-        mapped = jax.vmap(mapped)
-    return mapped(*operands)
-
-
-def _cpu(function, cost_of, *operands, **params):
-    """CPU evaluation: in chunks jaxlib runs inline."""
-    return _chunked(functools.partial(function, **params), cost_of(*operands, **params), *operands)
 
 
 def _define(name: str, function, cost_of, *, multiple_results: bool = False) -> Primitive:
@@ -147,7 +145,7 @@ def _triangular_solve(a, b, *, lower, transpose):
     return lax.linalg.triangular_solve(a, b, left_side=True, lower=lower, transpose_a=transpose)
 
 
-def _triangular_solve_cost(a, b, **_):
+def _triangular_solve_cost(a, b):
     n, k = _matrix_shape(b)
     return n * n * k
 
