@@ -167,7 +167,8 @@ class NCPInfo(eqx.Module):
 
     Attributes:
         iterations: ADMM iterations used (0 if the warm start, the sticking guess or the
-            polish already satisfied the tolerance).
+            polish already satisfied the tolerance; both runs' where ADMM ran again on the
+            acting contacts alone, see :attr:`NCPSolver.polish`).
         primal_feasibility, dual_feasibility, complementarity: the residuals of
             :func:`ncp_residuals` at the returned impulse.
         result: a :class:`~rsmooth.RESULTS` item: ``successful`` (all three residuals
@@ -256,6 +257,33 @@ def _row_scales(G: Array, n: int) -> Array:
     logs = jnp.log(jnp.where(meaningful, diagonal, largest))
     reference = jnp.sum(jnp.where(meaningful, logs, 0.0)) / jnp.maximum(jnp.sum(meaningful), 1)
     return lax.stop_gradient(jnp.where(meaningful, jnp.exp(0.5 * (reference - logs)), 1.0))
+
+
+def _restricted_rows(G: Array, g: Array, mu: Array, impulse: Array) -> Array:
+    """``(3 n + m,)`` bool: the rows of the contacts that act at ``impulse`` (a positive normal
+    impulse, or a normal velocity that closes, ``c_N < 0``) and every box row."""
+    n = mu.shape[0]
+    contacts = impulse[: 3 * n].reshape(n, 3)
+    closing = (G @ impulse + g)[: 3 * n].reshape(n, 3)[:, 2] < 0
+    acting = (contacts[:, 2] > 0) | closing
+    return jnp.concatenate([jnp.repeat(acting, 3), jnp.ones(g.shape[0] - 3 * n, bool)])
+
+
+def _restricted_problem(G: Array, g: Array, rows: Array) -> tuple[Array, Array]:
+    """``(G', g')``: the problem on ``rows`` alone, at its full size: the other contacts are
+    decoupled from them and separated (``G'`` the identity times the kept rows' geometric-mean
+    diagonal there, ``g' = (0, 0, 1)``), so that their impulses are zero and ADMM's scaling
+    and penalty (:func:`_row_scales`, the spectral ``rho``) are those of the kept rows' problem.
+    With every row kept it is ``(G, g)`` exactly."""
+    diagonal = jnp.diagonal(G)
+    largest = jnp.maximum(jnp.max(diagonal), jnp.finfo(G.dtype).tiny ** 0.5)
+    counted = rows & (diagonal > 1e-6 * largest)
+    logs = jnp.log(jnp.where(counted, diagonal, largest))
+    fill = jnp.exp(jnp.sum(jnp.where(counted, logs, 0.0)) / jnp.maximum(jnp.sum(counted), 1))
+    kept = rows[:, None] & rows[None, :]
+    G_kept = jnp.where(kept, G, 0.0) + jnp.diag(jnp.where(rows, 0.0, fill))
+    separated = (jnp.arange(g.shape[0]) % 3 == 2).astype(g.dtype)
+    return G_kept, jnp.where(rows, g, separated)
 
 
 def _natural_map(impulse: Array, G: Array, g: Array, mu: Array, step_sizes: Array, bounds: Array | None = None) -> Array:
@@ -685,7 +713,13 @@ class NCPSolver(eqx.Module):
             Where ADMM then reaches ``max_iterations``, the polish runs again from its best
             iterate with least-squares (Gauss-Newton) steps: ADMM's slow tail is usually near
             enough for the modes to be right, and where many contacts stick on few degrees
-            of freedom (a stack of boxes) the modes' equations are singular.
+            of freedom (a stack of boxes) the modes' equations are singular. Where that fails
+            too, the contacts acting at its result (a positive normal impulse, or a closing
+            normal velocity) are solved alone, ADMM and both polishes again with the other
+            contacts separated, and that result is kept where it is better on the whole
+            problem: on a singular ``G`` ADMM's iterate can lie elsewhere in the null space than
+            any solution (a dog's paws, contacts in pairs whose solution has one of each pair
+            sliding), and the polish returns there.
         polish_rounds: rounds of each polish (``polish`` only).
         polish_steps: Newton iterations per round.
         chunk_size: under ``vmap``, the problems that the start did not solve go through the
@@ -1248,17 +1282,42 @@ def _solve(G, g, mu, warm_start, delassus_factor, bounds, solver: NCPSolver) -> 
             impulse, info = admm(problem, impulse, info, jnp.ones((), bool))
             return round_, info.converged, (impulse, info), last
 
-        def phase(state):
-            # phase 0: polish, then ADMM; phase 1: the least-squares polish of ADMM's iterate.
-            # One loop, so that the program holds one copy of each (compile time).
-            index, carry = state
-            carry = polish(problem, carry, least_squares=index > 0)
-            round_, _, (impulse, info), last = carry
-            impulse, info = admm(problem, impulse, info, index == 0)
-            return index + 1, (jnp.zeros_like(round_), info.converged, (impulse, info), impulse)
+        G, g, mu, bounds = problem
 
-        _, carry = lax.while_loop(lambda state: (state[0] < 2) & ~state[1][1], phase, (jnp.zeros((), jnp.int32), carry))
-        return carry
+        def phase(state):
+            # phase 0: polish, then ADMM; phase 1: the least-squares polish of ADMM's iterate;
+            # phases 2 and 3: the same on the problem restricted to the contacts that act at
+            # phase 1's result (its other contacts separated). One loop, so that the program
+            # holds one copy of each (compile time).
+            index, rows, fallback, carry = state
+            local = (*_restricted_problem(G, g, rows), mu, bounds)
+            carry = polish(local, carry, least_squares=index % 2 == 1)
+            round_, _, (impulse, info), last = carry
+            impulse, info = admm(local, impulse, info, index % 2 == 0)
+            # after phase 1 (unsolved): its result kept, its acting contacts' problem next
+            # (see NCPSolver.polish: ADMM's iterate in the wrong part of a singular G's null space)
+            restrict = index == 1
+            rows = jnp.where(restrict, _restricted_rows(G, g, mu, impulse), rows)
+            fallback = jax.tree.map(lambda a, b: jnp.where(restrict, a, b), (impulse, info), fallback)
+            impulse = jnp.where(restrict, jnp.where(rows, impulse, 0.0), impulse)
+            return index + 1, rows, fallback, (jnp.zeros_like(round_), info.converged, (impulse, info), impulse)
+
+        index, _, (fallback, fallback_info), carry = lax.while_loop(
+            lambda state: (state[0] < 4) & ~state[3][1], phase, (jnp.zeros((), jnp.int32), jnp.ones(g.shape, bool), carry[2], carry)
+        )
+        # The restricted problem's result, where it ran, judged on the whole problem: kept where
+        # it is better than phase 1's (a solution, or a smaller largest residual).
+        round_, _, (impulse, info), last = carry
+        primal, dual, complementarity = ncp_residuals(G, g, mu, impulse, bounds)
+        converged = solver._within_tolerance(primal, dual, complementarity)
+        whole = NCPInfo(fallback_info.iterations + info.iterations, primal, dual, complementarity,
+                        _ncp_result(converged, impulse, primal, dual, complementarity), info.rho)
+        restricted = index > 2
+        phase_one = jax.tree.map(lambda a, b: jnp.where(restricted, a, b), (fallback, fallback_info), carry[2])
+        largest = lambda i: jnp.maximum(jnp.maximum(i.primal_feasibility, i.dual_feasibility), i.complementarity)  # noqa: E731
+        better = restricted & (converged | (largest(whole) < largest(fallback_info)))
+        impulse, info = jax.tree.map(lambda a, b: jnp.where(better, a, b), (impulse, whole), phase_one)
+        return round_, info.converged, (impulse, info), last
 
     # Everything after the start only where it did not solve the problem: under vmap, those
     # members are gathered in chunks (rsmooth._batching), so that the one member in a batch

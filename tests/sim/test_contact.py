@@ -587,6 +587,26 @@ def test_the_least_squares_polish_solves_a_landing_foot_whose_equations_are_ill_
     assert np.all(normal >= 0) and np.sum(normal) > 0.1  # the feet carry the landing
 
 
+def test_the_contacts_acting_after_the_least_squares_polish_are_solved_alone():
+    """dm_control's dog at rest, step 2 at zero torque, its 44 candidates closest to touching
+    (tests/sim/data): four paws' contacts in pairs on a singular G. ADMM reaches its cap near
+    impulses that no solution has (the pairs' normal impulses about equal, where in the solution
+    one contact of each pair slides and carries less), and the least-squares polish returns
+    there (dual residual 9e-7). The contacts acting there, solved alone (ADMM and the polish
+    again, the others separated), give a solution of the whole problem."""
+    data = np.load(pathlib.Path(__file__).parent / "data" / "dog_paws.npz")
+    G, g, mu = (jnp.asarray(data[name]) for name in ("G", "g", "mu"))
+    solver = NCPSolver(sticking_guess=True, rank_deficient=True, polish=True, max_iterations=1000)
+    impulse, info = solve_ncp(G, g, mu, solver=solver)
+    assert bool(info.converged) and int(info.iterations) > solver.max_iterations  # both ADMM runs
+    check_ncp_numpy(G, g, mu, impulse, atol=1e-10)
+    normal = np.asarray(impulse).reshape(-1, 3)[:, 2]
+    acting = np.nonzero(normal > 0)[0]
+    assert len(acting) >= 4 and np.sum(normal) > 0.05  # the paws carry the dog
+    # not the equal split that ADMM reached: the pairs' normal impulses differ
+    assert np.ptp(normal[acting]) > 1e-3
+
+
 def test_batched_solves_do_not_depend_on_the_chunks(getkey):
     """Under vmap the problems that the start did not solve are solved in chunks
     (NCPSolver.chunk_size): each member's impulse, ADMM iteration count and convergence flag
