@@ -351,6 +351,43 @@ class ConvexMesh(eqx.Module):
         return jnp.sqrt(jnp.max(jnp.sum(self.vertices**2, axis=-1)))
 
 
+# The axes of a ConvexMesh's arrays that count entries (the others are coordinates, or an
+# edge's two ends): the axes padded_meshes pads.
+_MESH_COUNT_AXES = {"vertices": (0,), "face_normals": (0,), "face_offsets": (0,), "face_polygons": (0, 1),
+                    "edge_segments": (0,), "edge_directions": (0,), "edge_normals": (0,)}
+
+
+def padded_meshes(meshes, minimum: int = 0) -> list[ConvexMesh]:
+    """The meshes with their arrays padded to common shapes: along each axis that counts
+    entries (vertices, faces, a face's polygon, edges with their faces' normals, edge
+    directions), entries repeated from the last one up to the largest count among ``meshes``,
+    and at least ``minimum``. To the collision code each is the same polytope as before, since
+    its supports, separating axes, clipping and manifold reduction take maxima and minima over
+    these entries, where a first occurrence wins a tie (a repeated polygon vertex is a
+    zero-length side, already how polygons of fewer vertices are stored); stacked, they go
+    through one ``vmap``-ed collision."""
+    meshes = list(meshes)
+    if not meshes or not all(isinstance(mesh, ConvexMesh) for mesh in meshes):
+        raise TypeError("padded_meshes takes a non-empty sequence of ConvexMesh.")
+
+    def pad(array, axis, count):
+        have = array.shape[axis]
+        if count <= have:
+            return array
+        return jnp.concatenate([array, jnp.take(array, jnp.full(count - have, have - 1), axis=axis)], axis=axis)
+
+    padded = []
+    for mesh in meshes:
+        fields = {}
+        for name, axes in _MESH_COUNT_AXES.items():
+            array = getattr(mesh, name)
+            for axis in axes:
+                array = pad(array, axis, max([minimum] + [getattr(other, name).shape[axis] for other in meshes]))
+            fields[name] = array
+        padded.append(ConvexMesh(**fields))
+    return padded
+
+
 class NonConvexMeshWarning(UserWarning):
     """The mesh given to :func:`convex_mesh` was not convex; its convex hull is used."""
 

@@ -45,7 +45,7 @@ import numpy as np
 from rsmooth._xla import device_array
 from rsmooth.sim._collision import manifold_size
 from rsmooth.sim._dynamics import forward_kinematics
-from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, Ellipsoid, HalfSpace, HeightField, Sphere, convex_mesh
+from rsmooth.sim._geometry import Box, Capsule, Cylinder, Ellipsoid, HalfSpace, HeightField, Sphere, convex_mesh
 from rsmooth.sim._mujoco import MujocoModel, load_mjcf, source_label
 from rsmooth.sim._ncp import NCPSolver
 from rsmooth.sim._simulator import Actuation, GeomPair, RigidBodySystem, Servos
@@ -74,39 +74,9 @@ def _shape(loaded: MujocoModel, geom: int, meshes: dict[int, Any]):
         return Box(size)
     if kind == "mesh":
         if geom not in meshes:
-            meshes[geom] = padded_mesh(convex_mesh(np.asarray(loaded.geom_hull[geom], dtype=np.float64)))
+            meshes[geom] = convex_mesh(np.asarray(loaded.geom_hull[geom], dtype=np.float64))
         return meshes[geom]
     return None
-
-
-# Mesh arrays are padded up to a multiple of this, so that meshes of nearly equal sizes share
-# array shapes: the pairs of one shape type then share one vmapped collision (the simulator's
-# pair groups), which bounds the program's size, at the cost of at most this many repeated
-# entries per array.
-MESH_PADDING = 8
-
-
-def padded_mesh(mesh: ConvexMesh, multiple: int = MESH_PADDING) -> ConvexMesh:
-    """``mesh`` with each array's entries (vertices, faces, a face's polygon, edges with their
-    faces' normals, edge directions) padded to a multiple of ``multiple`` by repeating its last entry: the same
-    polytope to the collision code, whose supports, separating axes and clipping take maxima
-    and minima over these entries (a repeated polygon vertex is a zero-length side, already
-    how polygons of fewer vertices are stored)."""
-
-    def pad(array, axis=0):
-        extra = -array.shape[axis] % multiple
-        repeat = jnp.take(array, jnp.full(extra, array.shape[axis] - 1), axis=axis)
-        return jnp.concatenate([array, repeat], axis=axis)
-
-    return ConvexMesh(
-        vertices=pad(mesh.vertices),
-        face_normals=pad(mesh.face_normals),
-        face_offsets=pad(mesh.face_offsets),
-        face_polygons=pad(pad(mesh.face_polygons), axis=1),
-        edge_segments=pad(mesh.edge_segments),
-        edge_directions=pad(mesh.edge_directions),
-        edge_normals=pad(mesh.edge_normals),
-    )
 
 
 def _describe(loaded: MujocoModel, geom: int) -> str:

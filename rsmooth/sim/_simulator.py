@@ -90,7 +90,7 @@ from rsmooth.sim import _spatial as spatial
 from rsmooth.sim import _wrapping
 from rsmooth.sim._contact import _safe_norm, contact_frame, corrected_free_velocity
 from rsmooth.sim._collision import Contacts, collide, manifold_size
-from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, Ellipsoid, HalfSpace, HeightField, Sphere
+from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, Ellipsoid, HalfSpace, HeightField, Sphere, padded_meshes
 from rsmooth.sim._laws import LogBarrier, SpringDamper
 from rsmooth.sim._model import JOINT_NV, PRISMATIC, REVOLUTE, SPHERICAL, UNIVERSE, Model
 from rsmooth.sim._ncp import (
@@ -2268,8 +2268,9 @@ class RigidBodySystem(eqx.Module):
     def _geom_pairs_contacts(self, kinematics) -> tuple[Array, Array, Array]:
         """:meth:`_geom_pair_contacts` of every geometry pair, concatenated in pair order.
 
-        Pairs that differ only in their arrays (shape sizes, placements, frames: see
-        :func:`_pair_groups`) are evaluated by one ``vmap``-ed collision: the traced program
+        Pairs that differ only in their arrays (shape sizes, placements, frames; convex meshes
+        of vertex counts within a power of 2, padded alike: see :func:`_pair_groups`) are
+        evaluated by one ``vmap``-ed collision: the traced program
         holds one copy of each pair type's collision code rather than one per pair, which keeps
         the compile time of a scene of many bodies from growing with the number of pairs (a
         box-box pair is about 3,000 lines of HLO). Under :attr:`Options.max_pairs` the collision runs
@@ -2311,10 +2312,11 @@ class RigidBodySystem(eqx.Module):
 
     def _group_shapes(self, kinematics, pairs: list[GeomPair]) -> tuple:
         """``(shape1, pose1, shape2, pose2)`` of a group of pairs (:func:`_pair_groups`), the
-        shapes' arrays and world poses stacked along a leading pair axis."""
+        shapes' arrays (convex meshes padded to common shapes, :func:`~rsmooth.sim._geometry.padded_meshes`)
+        and world poses stacked along a leading pair axis."""
         model = self.model
         shape1, shape2, placement1, placement2 = (
-            jax.tree.map(lambda *leaves: jnp.stack(leaves), *items)
+            jax.tree.map(lambda *leaves: jnp.stack(leaves), *(padded_meshes(items) if isinstance(items[0], ConvexMesh) else items))
             for items in zip(*[(p.shape1, p.shape2, p.placement1, p.placement2) for p in pairs])
         )
 
@@ -2588,17 +2590,24 @@ def _bounding_gaps(shape1, pose1, shape2, pose2) -> Array:
     return jnp.sqrt(jnp.sum(centre**2, axis=-1)) - radius1 - radius2
 
 
+def _group_key(shape) -> tuple:
+    """What pairs of one group share of a shape (:func:`_pair_groups`): its class, static
+    fields and array shapes; for a convex mesh, the power of 2 at or above its vertex count
+    (:meth:`RigidBodySystem._group_shapes` pads the meshes of a group to common array shapes, at
+    most about twice their entries)."""
+    if isinstance(shape, ConvexMesh):
+        return (ConvexMesh, int(np.ceil(np.log2(shape.vertices.shape[0]))))
+    return (jax.tree.structure(shape), tuple(np.shape(leaf) for leaf in jax.tree.leaves(shape)))
+
+
 def _pair_groups(pairs: tuple[GeomPair, ...]) -> list[list[int]]:
     """The indices of the geometry pairs, grouped so that one ``vmap``-ed collision evaluates
-    each group: the same shape classes with the same static fields and array shapes (a convex
-    mesh's vertex and face counts included), each shape in a moving frame or fixed alike, and
-    the same margin. Groups in order of their first pair."""
+    each group: the same shape classes with the same static fields and array shapes (convex
+    meshes: vertex counts within the same power of 2, :func:`_group_key`), each shape in a
+    moving frame or fixed alike, and the same margin. Groups in order of their first pair."""
     groups: dict = {}
     for index, pair in enumerate(pairs):
-        key = tuple(
-            (jax.tree.structure(shape), tuple(np.shape(leaf) for leaf in jax.tree.leaves(shape)))
-            for shape in (pair.shape1, pair.shape2)
-        ) + (pair.frame1 is None, pair.frame2 is None, pair.margin)
+        key = tuple(_group_key(shape) for shape in (pair.shape1, pair.shape2)) + (pair.frame1 is None, pair.frame2 is None, pair.margin)
         groups.setdefault(key, []).append(index)
     return list(groups.values())
 

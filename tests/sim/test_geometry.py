@@ -580,13 +580,13 @@ def test_gauss_map_pruning_keeps_the_deepest_axis_against_a_mesh(kind):
     random poses the best axis (faces and edge pairs) is every edge pair's (all vertices
     projected on all direction pairs), and its gap is the vertices' along it. A face's gap is
     taken from its own plane: the same as projecting both shapes' vertices."""
-    from rsmooth.sim._scene import padded_mesh
+    from rsmooth.sim._geometry import padded_meshes
     from rsmooth.sim._spatial import exp3
 
     rng = np.random.default_rng(7)
 
     def random_mesh():  # padded to one shape (the same polytopes): one compiled program per kind
-        return padded_mesh(convex_mesh(rng.normal(size=(12, 3)) * rng.uniform(0.05, 0.3, size=3)), 64)
+        return padded_meshes([convex_mesh(rng.normal(size=(12, 3)) * rng.uniform(0.05, 0.3, size=3))], minimum=64)[0]
 
     pruned_edge_wins = 0
     for _ in range(60):

@@ -400,20 +400,22 @@ def test_bounded_mesh_hulls_are_what_mujoco_collides():
 
 
 def test_padded_meshes_collide_as_the_originals_and_share_groups():
-    """Meshes padded to shared array sizes (scene() does it) give the same manifolds as the
-    originals, separated or penetrating, and meshes of nearly equal sizes then share one
-    vmapped collision group."""
+    """Meshes padded to common array sizes (the simulator pads those of a pair group) give the
+    same manifolds as the originals, separated or penetrating; meshes whose vertex counts lie
+    within one power of 2 share a group."""
     import trimesh
     from scipy.spatial.transform import Rotation
 
-    from rsmooth.sim._scene import padded_mesh
+    from rsmooth.sim._geometry import padded_meshes
     from rsmooth.sim._simulator import _pair_groups
 
     rng = np.random.default_rng(5)
     pebble = sim.convex_mesh(trimesh.creation.icosphere(subdivisions=1, radius=0.1).vertices * [1.0, 0.6, 0.4])
     rock = sim.convex_mesh(rng.normal(size=(30, 3)) * 0.08)
-    padded = [padded_mesh(mesh) for mesh in (pebble, rock)]
-    assert all(leaf.shape[0] % 8 == 0 for mesh in padded for leaf in jax.tree.leaves(mesh))
+    padded = padded_meshes([pebble, rock], minimum=48)
+    assert [leaf.shape for leaf in jax.tree.leaves(padded[0])] == [leaf.shape for leaf in jax.tree.leaves(padded[1])]
+    for before, after in zip((pebble, rock), padded):  # each has entries repeated (42 and 15 vertices)
+        assert any(a.shape != b.shape for a, b in zip(jax.tree.leaves(after), jax.tree.leaves(before)))
     rotations = jnp.asarray(Rotation.from_quat(rng.normal(size=(16, 4))).as_matrix())
     translations = jnp.asarray(rng.uniform(-0.2, 0.2, size=(16, 3)))
     identity = (jnp.eye(3), jnp.zeros(3))
@@ -429,11 +431,18 @@ def test_padded_meshes_collide_as_the_originals_and_share_groups():
     for field in ("distance", "normal", "point1", "point2"):  # of the manifolds' contacts
         expected, actual = np.asarray(getattr(original, field))[active], np.asarray(getattr(ours, field))[active]
         np.testing.assert_allclose(actual, expected, rtol=0, atol=1e-12, err_msg=field)
-    # two hulls whose sizes differ by a few: two groups as they are, one once padded
-    other = sim.convex_mesh(np.asarray(rock.vertices)[:-1])
-    pair = lambda mesh: sim.GeomPair(pebble, None, mesh, 1, friction=0.5)
-    assert len(_pair_groups((pair(rock), pair(other)))) == 2
-    assert len(_pair_groups((pair(padded_mesh(rock, 64)), pair(padded_mesh(other, 64))))) == 1
+    # hulls of 20, 40 and 60 vertices (points spread on a sphere): 40 and 60 share a group
+
+    def on_sphere(n):
+        height = 1.0 - (2.0 * np.arange(n) + 1.0) / n
+        angle = np.pi * (3.0 - np.sqrt(5.0)) * np.arange(n)
+        ring = np.sqrt(1.0 - height**2)
+        return sim.convex_mesh(0.1 * np.stack([ring * np.cos(angle), ring * np.sin(angle), height], axis=1))
+
+    hulls = [on_sphere(n) for n in (20, 40, 60)]
+    assert [hull.vertices.shape[0] for hull in hulls] == [20, 40, 60]
+    pair = lambda mesh: sim.GeomPair(pebble, None, mesh, 1, friction=0.5)  # noqa: E731
+    assert _pair_groups(tuple(pair(hull) for hull in hulls)) == [[0], [1, 2]]
 
 
 def test_a_start_beyond_the_joint_limits_is_warned_of_by_joint():
