@@ -45,7 +45,7 @@ import numpy as np
 from rsmooth._xla import device_array
 from rsmooth.sim._collision import manifold_size
 from rsmooth.sim._dynamics import forward_kinematics
-from rsmooth.sim._geometry import Box, Capsule, Cylinder, Ellipsoid, HalfSpace, HeightField, Sphere, convex_mesh
+from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, Ellipsoid, HalfSpace, HeightField, Sphere, convex_mesh
 from rsmooth.sim._mujoco import MujocoModel, load_mjcf, source_label
 from rsmooth.sim._ncp import NCPSolver
 from rsmooth.sim._simulator import Actuation, GeomPair, RigidBodySystem, Servos
@@ -389,6 +389,11 @@ def scene(
             ``time_step``, ``friction`` or ``margin`` is out of range, or if ``floating_base``,
             ``floor`` or ``self_collision`` is not a bool.
 
+    Warns:
+        UserWarning: where the start is beyond joint limits (the joints by name), and where
+            mesh geoms collide with each other through hulls of many vertices (more than
+            :data:`LARGE_HULL` as a geometric mean: bound them with ``max_hull_vertices``).
+
     Example:
         >>> import rsmooth.sim as sim
         >>> system = sim.scene('''<mujoco><option timestep="0.005"/><worldbody>
@@ -483,6 +488,7 @@ def scene(
                 )
             )
             kept.append((geom,))
+    _warn_if_large_hulls(loaded, pairs, kept, source_label(source))
     if isinstance(max_contacts, str):
         if max_contacts != "auto":
             raise ValueError(f"max_contacts must be a positive integer, None or 'auto', got {max_contacts!r}")
@@ -534,6 +540,35 @@ def automatic_contact_budget(candidates: int, moving_bodies: int) -> int | None:
     """
     budget = max(64, 4 * moving_bodies)
     return None if candidates <= budget else budget
+
+
+# scene() warns of pairs of convex meshes whose hulls' vertex counts multiply to more than
+# this squared: their separating-axis test takes about nine times that many edge pairs a step.
+LARGE_HULL = 256
+
+
+def _warn_if_large_hulls(loaded: MujocoModel, pairs: list, kept: list, where: str) -> None:
+    """Warns where two collided mesh geoms have hulls of more than :data:`LARGE_HULL` vertices
+    (as a geometric mean; a URDF's meshes give hulls of thousands): their collision costs time
+    and memory in proportion to the product of their edge counts, so that a step with them
+    takes minutes to compile and can exhaust memory. A mesh against a plane costs only its
+    vertices. Names the option that bounds the hulls."""
+    large = {}
+    for pair, geoms in zip(pairs, kept):
+        if isinstance(pair.shape1, ConvexMesh) and isinstance(pair.shape2, ConvexMesh):
+            counts = (int(pair.shape1.vertices.shape[0]), int(pair.shape2.vertices.shape[0]))
+            if counts[0] * counts[1] > LARGE_HULL**2:
+                large.update(zip(geoms, counts))
+    if large:
+        listed = ", ".join(f"{loaded.geom_names[geom]!r} ({count})" for geom, count in sorted(large.items(), key=lambda item: -item[1])[:3])
+        warnings.warn(
+            f"{where}: {len(large)} mesh geom(s) collide with each other through convex hulls of many vertices "
+            f"({listed}{', ...' if len(large) > 3 else ''}): collision costs time and memory in proportion to the "
+            "product of two hulls' edge counts, so a step with them is slow to compile and to run. Bound the hulls "
+            "with max_hull_vertices (MuJoCo's maxhullvert: 16 to 32 make a robot's meshes tractable), or pass "
+            "self_collision=False.",
+            UserWarning, stacklevel=3,
+        )
 
 
 def _warn_if_beyond_limits(model, q: np.ndarray, where: str) -> None:

@@ -2287,14 +2287,13 @@ class RigidBodySystem(eqx.Module):
                 continue
             first = pairs[0]
             shape1, pose1, shape2, pose2 = self._group_shapes(kinematics, pairs)
-            collide_all = jax.vmap(lambda a, pa, b, pb: collide(a, pa, b, pb, margin=first.margin))
             if self.options.max_pairs is None or len(pairs) <= self.options.max_pairs:
-                manifold = collide_all(shape1, pose1, shape2, pose2)
+                manifold = _collide_group(shape1, pose1, shape2, pose2, first.margin)
             else:
                 gaps = lax.stop_gradient(_bounding_gaps(shape1, pose1, shape2, pose2))
                 _, chosen = lax.top_k(-gaps, self.options.max_pairs)
                 take = lambda tree: jax.tree.map(lambda leaf: leaf[chosen], tree)  # noqa: E731
-                evaluated = collide_all(take(shape1), take(pose1), take(shape2), take(pose2))
+                evaluated = _collide_group(take(shape1), take(pose1), take(shape2), take(pose2), first.margin)
                 # the pairs not evaluated: inactive entries with finite values (normal +z)
                 empty = Contacts(
                     distance=jnp.full(evaluated.distance.shape[1:], _INACTIVE_DISTANCE, evaluated.distance.dtype),
@@ -2588,6 +2587,27 @@ def _bounding_gaps(shape1, pose1, shape2, pose2) -> Array:
         return jnp.sum(centre * pose1[0][:, :, 2], axis=-1) - radius2
     radius1 = radius(shape1)
     return jnp.sqrt(jnp.sum(centre**2, axis=-1)) - radius1 - radius2
+
+
+# Bytes that one evaluation of a pair group's collision may take for its largest intermediate
+# arrays (_collide_group): above it, the group's pairs go through in batches.
+_GROUP_BYTES = 2**30
+
+
+def _collide_group(shape1, pose1, shape2, pose2, margin, budget: int = _GROUP_BYTES) -> Contacts:
+    """:func:`~rsmooth.sim._collision.collide` over a group's pairs (shapes and poses stacked
+    along a leading axis): ``vmap``-ed, or in batches (``lax.map``, one copy of the code
+    still) where the whole group would take more than ``budget`` bytes. The largest
+    intermediates are those of the separating-axis test over edge pairs, about 16 arrays of
+    ``edges1 x edges2`` entries per pair: a convex mesh's edges, a dozen for other shapes."""
+    count = jax.tree.leaves(pose1)[0].shape[0]
+    edges = [shape.edge_segments.shape[1] if isinstance(shape, ConvexMesh) else 12 for shape in (shape1, shape2)]
+    per_pair = 16 * jax.tree.leaves(pose1)[0].dtype.itemsize * edges[0] * edges[1]
+    batch = max(1, budget // per_pair)
+    one = lambda a, pa, b, pb: collide(a, pa, b, pb, margin=margin)  # noqa: E731
+    if batch >= count:
+        return jax.vmap(one)(shape1, pose1, shape2, pose2)
+    return lax.map(lambda args: one(*args), (shape1, pose1, shape2, pose2), batch_size=batch)
 
 
 def _group_key(shape) -> tuple:

@@ -3,6 +3,7 @@
 hand-written sphere-box contact, and derivatives against finite differences."""
 
 import dataclasses
+import functools
 
 import equinox as eqx
 import jax
@@ -151,6 +152,28 @@ def test_pairs_of_one_type_are_evaluated_together_with_the_same_contacts(getkey)
     for together, alone in zip(grouped, separate):
         np.testing.assert_allclose(together, alone, rtol=1e-12, atol=1e-12)
     assert np.sum(np.asarray(grouped[0]) < 0.01) > 0  # some pairs touch at these poses
+
+
+def test_a_group_over_its_memory_budget_is_collided_in_batches_with_the_same_contacts():
+    """A pair group whose vmapped collision would take more than its byte budget is collided in
+    batches (lax.map): the same contacts, in pair order, with a last batch of fewer pairs."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(2)
+    count = 5
+    boxes = [sim.Box(rng.uniform(0.05, 0.15, size=3)) for _ in range(2 * count)]
+    stack = lambda shapes: jax.tree.map(lambda *leaves: jnp.stack(leaves), *shapes)  # noqa: E731
+    shape1, shape2 = stack(boxes[:count]), stack(boxes[count:])
+    pose1 = (jnp.asarray(Rotation.random(count, random_state=1).as_matrix()), jnp.zeros((count, 3)))
+    pose2 = (jnp.asarray(Rotation.random(count, random_state=2).as_matrix()), jnp.asarray(rng.uniform(-0.35, 0.35, size=(count, 3))))
+    per_pair = 16 * 8 * 12 * 12  # bytes: a box's 12 edges against the other's, float64
+    whole, batched = (
+        jax.jit(functools.partial(sim._simulator._collide_group, margin=0.05, budget=budget))(shape1, pose1, shape2, pose2)
+        for budget in (count * per_pair, 2 * per_pair)
+    )
+    assert 0 < np.sum(np.asarray(whole.distance[:, 0]) < 0) < count  # some pairs overlap, some do not
+    for field in ("distance", "normal", "point1", "point2", "active"):
+        np.testing.assert_array_equal(np.asarray(getattr(batched, field)), np.asarray(getattr(whole, field)), err_msg=field)
 
 
 def _slider(mu, height=0.1, **options):

@@ -399,6 +399,23 @@ def test_bounded_mesh_hulls_are_what_mujoco_collides():
         sim.load_mjcf(xml, max_hull_vertices=3)
 
 
+def test_meshes_colliding_through_large_hulls_are_warned_of():
+    """Two meshes whose hulls have hundreds of vertices each collide at a cost in proportion to
+    the product of their edge counts: scene() warns, naming max_hull_vertices; bounded, it
+    does not (warnings are errors here)."""
+    import trimesh
+
+    vertices = trimesh.creation.icosphere(subdivisions=3, radius=0.1).vertices  # 642, all on the hull
+    xml = (
+        '<mujoco><asset><mesh name="ball" vertex="{}"/></asset><worldbody>'
+        '<body name="a"><freejoint/><geom name="left" type="mesh" mesh="ball"/></body>'
+        '<body name="b" pos="0.3 0 0"><freejoint/><geom name="right" type="mesh" mesh="ball"/></body></worldbody></mujoco>'
+    ).format(" ".join(f"{c:.6f}" for c in vertices.ravel()))
+    with pytest.warns(UserWarning, match=r"2 mesh geom\(s\) collide with each other .*'left' \(642\).*max_hull_vertices"):
+        sim.scene(xml)
+    assert len(sim.scene(xml, max_hull_vertices=64).geometry.geom_pairs) == 1
+
+
 def test_padded_meshes_collide_as_the_originals_and_share_groups():
     """Meshes padded to common array sizes (the simulator pads those of a pair group) give the
     same manifolds as the originals, separated or penetrating; meshes whose vertex counts lie
