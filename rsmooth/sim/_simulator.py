@@ -89,7 +89,7 @@ from rsmooth.sim import _derivatives, _dynamics, _stages
 from rsmooth.sim import _spatial as spatial
 from rsmooth.sim import _wrapping
 from rsmooth.sim._contact import _safe_norm, contact_frame, corrected_free_velocity
-from rsmooth.sim._collision import Contacts, collide, manifold_size
+from rsmooth.sim._collision import Contacts, _lookup, collide, manifold_size
 from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, Ellipsoid, HalfSpace, HeightField, Sphere, padded_meshes
 from rsmooth.sim._laws import LogBarrier, SpringDamper
 from rsmooth.sim._model import JOINT_NV, PRISMATIC, REVOLUTE, SPHERICAL, UNIVERSE, Model
@@ -2304,19 +2304,23 @@ class RigidBodySystem(eqx.Module):
                 manifold = jax.tree.map(
                     lambda full, part: jnp.broadcast_to(full, (len(pairs),) + full.shape).at[chosen].set(part), empty, evaluated
                 )
+            manifold = _unreversed(manifold, np.array([_reversed(p) for p in pairs]))
             parts.append(self._manifold_contacts(kinematics, manifold, [p.frame1 for p in pairs], [p.frame2 for p in pairs], first.size))
         order = np.argsort(np.concatenate(positions))  # group-major -> pair order
         distance, rotations, jacobians = (jnp.concatenate(part)[order] for part in zip(*parts))
         return distance, rotations, jacobians
 
     def _group_shapes(self, kinematics, pairs: list[GeomPair]) -> tuple:
-        """``(shape1, pose1, shape2, pose2)`` of a group of pairs (:func:`_pair_groups`), the
-        shapes' arrays (convex meshes padded to common shapes, :func:`~rsmooth.sim._geometry.padded_meshes`)
-        and world poses stacked along a leading pair axis."""
+        """``(shape1, pose1, shape2, pose2)`` of a group of pairs (:func:`_pair_groups`), each
+        pair in its collision function's order (:func:`_reversed`), the shapes' arrays (convex
+        meshes padded to common shapes, :func:`~rsmooth.sim._geometry.padded_meshes`) and world
+        poses stacked along a leading pair axis."""
         model = self.model
+        sides = [(p.shape2, p.shape1, p.placement2, p.placement1) if _reversed(p) else (p.shape1, p.shape2, p.placement1, p.placement2)
+                 for p in pairs]
         shape1, shape2, placement1, placement2 = (
             jax.tree.map(lambda *leaves: jnp.stack(leaves), *(padded_meshes(items) if isinstance(items[0], ConvexMesh) else items))
-            for items in zip(*[(p.shape1, p.shape2, p.placement1, p.placement2) for p in pairs])
+            for items in zip(*sides)
         )
 
         def poses(frames, placements):
@@ -2330,8 +2334,9 @@ class RigidBodySystem(eqx.Module):
             )
             return _compose_batch(*frame_pose, *placements)
 
-        pose1 = poses([pair.frame1 for pair in pairs], placement1)
-        pose2 = poses([pair.frame2 for pair in pairs], placement2)
+        frames = [(p.frame2, p.frame1) if _reversed(p) else (p.frame1, p.frame2) for p in pairs]
+        pose1 = poses([frame for frame, _ in frames], placement1)
+        pose2 = poses([frame for _, frame in frames], placement2)
         return shape1, pose1, shape2, pose2
 
     def skipped_pairs(self, q: ArrayLike) -> Array:
@@ -2620,15 +2625,41 @@ def _group_key(shape) -> tuple:
     return (jax.tree.structure(shape), tuple(np.shape(leaf) for leaf in jax.tree.leaves(shape)))
 
 
+def _reversed(pair: GeomPair) -> bool:
+    """Whether a pair group evaluates the pair in the reverse of its order: where its shape
+    types are in the reverse of their collision function's order (a mesh against a sphere;
+    :func:`~rsmooth.sim._collision.collide` then swaps them and its result) and both shapes
+    move (or neither), so that pairs of both orders share a group: evaluated in the function's
+    order (:meth:`RigidBodySystem._group_shapes`) and swapped back (:func:`_unreversed`), to the
+    bit. (A fixed shape against a moving one keeps its order: a group's shapes on one side are
+    all fixed or all moving.)"""
+    return _lookup(pair.shape1, pair.shape2)[1] and (pair.frame1 is None) == (pair.frame2 is None)
+
+
+def _unreversed(manifold: Contacts, reversed_: np.ndarray) -> Contacts:
+    """The manifolds of a group (leading pair axis) with those of the pairs marked in
+    ``reversed_`` (bool, per pair) swapped back to their pairs' own order."""
+    if not np.any(reversed_):
+        return manifold
+    flip = jnp.asarray(reversed_)[:, None, None]
+    return Contacts(
+        manifold.distance, jnp.where(flip, -manifold.normal, manifold.normal), jnp.where(flip, manifold.point2, manifold.point1),
+        jnp.where(flip, manifold.point1, manifold.point2), manifold.active,
+    )
+
+
 def _pair_groups(pairs: tuple[GeomPair, ...]) -> list[list[int]]:
     """The indices of the geometry pairs, grouped so that one ``vmap``-ed collision evaluates
     each group: the same shape classes with the same static fields and array shapes (convex
     meshes: vertex counts within the same power of 2, :func:`_group_key`), each shape in a
-    moving frame or fixed alike, and the same margin. Groups in order of their first pair."""
+    moving frame or fixed alike, and the same margin, in either order (:func:`_reversed`).
+    Groups in order of their first pair."""
     groups: dict = {}
     for index, pair in enumerate(pairs):
-        key = tuple(_group_key(shape) for shape in (pair.shape1, pair.shape2)) + (pair.frame1 is None, pair.frame2 is None, pair.margin)
-        groups.setdefault(key, []).append(index)
+        sides = [(_group_key(pair.shape1), pair.frame1 is None), (_group_key(pair.shape2), pair.frame2 is None)]
+        if _reversed(pair):
+            sides.reverse()
+        groups.setdefault((*sides, pair.margin), []).append(index)
     return list(groups.values())
 
 

@@ -132,13 +132,16 @@ def test_a_tower_written_in_mjcf_rests_without_solver_iterations():
 
 def test_pairs_of_one_type_are_evaluated_together_with_the_same_contacts(getkey):
     """Geometry pairs that differ only in their arrays go through one vmapped collision
-    (`_pair_groups`); the contacts equal each pair's own, in pair order, at random poses of
-    a scene of mixed shapes (boxes of two sizes, a sphere, a fixed slab)."""
-    shapes = [sim.Box([0.1, 0.1, 0.1]), sim.Box([0.05, 0.08, 0.1]), sim.Sphere(0.07)]
+    (`_pair_groups`), in either order of their shapes (a box against the sphere, the sphere
+    against the other box); the contacts equal each pair's own, in pair order, at random poses
+    of a scene of mixed shapes (boxes of two sizes, a sphere, a fixed slab)."""
+    shapes = [sim.Box([0.1, 0.1, 0.1]), sim.Sphere(0.07), sim.Box([0.05, 0.08, 0.1])]
     slab = (sim.Box([1.0, 1.0, 0.1]), (jnp.eye(3), jnp.array([0.0, 0.0, -0.1])))
     system = sim.bodies(shapes, [1.0] * 3, [[0.2 * i, 0.05 * i, 0.15] for i in range(3)], obstacles=(slab,))
-    groups = sim._simulator._pair_groups(system.geometry.geom_pairs)
-    assert len(groups) < len(system.geometry.geom_pairs) and sorted(sum(groups, [])) == list(range(len(system.geometry.geom_pairs)))
+    pairs = system.geometry.geom_pairs
+    groups = sim._simulator._pair_groups(pairs)
+    assert len(groups) < len(pairs) and sorted(sum(groups, [])) == list(range(len(pairs)))
+    assert any({sim._simulator._reversed(pairs[i]) for i in group} == {False, True} for group in groups)
     quaternions = jax.random.normal(getkey(), (3, 3, 4))
     positions = jax.random.uniform(getkey(), (3, 3, 3), minval=-0.1, maxval=0.1) + jnp.array([[[0.08 * b, 0.0, 0.1] for b in range(3)]])
     qs = jnp.concatenate([positions, quaternions / jnp.linalg.norm(quaternions, axis=-1, keepdims=True)], axis=-1).reshape(3, -1)
