@@ -89,7 +89,7 @@ from rsmooth.sim import _derivatives, _dynamics, _stages
 from rsmooth.sim import _spatial as spatial
 from rsmooth.sim import _wrapping
 from rsmooth.sim._contact import _safe_norm, contact_frame, corrected_free_velocity
-from rsmooth.sim._collision import Contacts, _lookup, collide, manifold_size
+from rsmooth.sim._collision import Contacts, _lookup, _swapped, collide, manifold_size
 from rsmooth.sim._geometry import Box, Capsule, ConvexMesh, Cylinder, Ellipsoid, HalfSpace, HeightField, Sphere, padded_meshes
 from rsmooth.sim._laws import LogBarrier, SpringDamper
 from rsmooth.sim._model import JOINT_NV, PRISMATIC, REVOLUTE, SPHERICAL, UNIVERSE, Model
@@ -2316,11 +2316,12 @@ class RigidBodySystem(eqx.Module):
         meshes padded to common shapes, :func:`~rsmooth.sim._geometry.padded_meshes`) and world
         poses stacked along a leading pair axis."""
         model = self.model
-        sides = [(p.shape2, p.shape1, p.placement2, p.placement1) if _reversed(p) else (p.shape1, p.shape2, p.placement1, p.placement2)
-                 for p in pairs]
+        sides = [(p.shape2, p.shape1, p.placement2, p.placement1, p.frame2, p.frame1) if _reversed(p)
+                 else (p.shape1, p.shape2, p.placement1, p.placement2, p.frame1, p.frame2) for p in pairs]
+        shapes1, shapes2, placements1, placements2, frames1, frames2 = zip(*sides)
         shape1, shape2, placement1, placement2 = (
             jax.tree.map(lambda *leaves: jnp.stack(leaves), *(padded_meshes(items) if isinstance(items[0], ConvexMesh) else items))
-            for items in zip(*sides)
+            for items in (shapes1, shapes2, placements1, placements2)
         )
 
         def poses(frames, placements):
@@ -2334,10 +2335,7 @@ class RigidBodySystem(eqx.Module):
             )
             return _compose_batch(*frame_pose, *placements)
 
-        frames = [(p.frame2, p.frame1) if _reversed(p) else (p.frame1, p.frame2) for p in pairs]
-        pose1 = poses([frame for frame, _ in frames], placement1)
-        pose2 = poses([frame for _, frame in frames], placement2)
-        return shape1, pose1, shape2, pose2
+        return shape1, poses(frames1, placement1), shape2, poses(frames2, placement2)
 
     def skipped_pairs(self, q: ArrayLike) -> Array:
         """How many geometry pairs :attr:`Options.max_pairs` leaves out although their bounding
@@ -2641,11 +2639,8 @@ def _unreversed(manifold: Contacts, reversed_: np.ndarray) -> Contacts:
     ``reversed_`` (bool, per pair) swapped back to their pairs' own order."""
     if not np.any(reversed_):
         return manifold
-    flip = jnp.asarray(reversed_)[:, None, None]
-    return Contacts(
-        manifold.distance, jnp.where(flip, -manifold.normal, manifold.normal), jnp.where(flip, manifold.point2, manifold.point1),
-        jnp.where(flip, manifold.point1, manifold.point2), manifold.active,
-    )
+    flip = lambda swapped, own: jnp.where(reversed_.reshape((-1,) + (1,) * (own.ndim - 1)), swapped, own)  # noqa: E731
+    return jax.tree.map(flip, _swapped(manifold), manifold)
 
 
 def _pair_groups(pairs: tuple[GeomPair, ...]) -> list[list[int]]:
