@@ -105,6 +105,11 @@ def _corrected_velocity(velocity: Array, mu: Array) -> Array:
     return jnp.concatenate([cones, velocity[3 * n :]]) if velocity.shape[0] > 3 * n else cones
 
 
+def _delassus_times(G: Array | None, factor: Array | None, z: Array) -> Array:
+    """``G z``, or ``Xᵀ (X z)`` where ``G`` is not formed (``G = Xᵀ X``, ``X = factor``)."""
+    return G @ z if G is not None else factor.T @ (factor @ z)
+
+
 def _largest(values: Array) -> Array:
     return jnp.max(values, initial=jnp.zeros((), values.dtype))
 
@@ -134,9 +139,13 @@ def ncp_residuals(G: Array, g: Array, mu: Array, impulse: Array, bounds: Array |
     Returns:
         ``(primal_feasibility, dual_feasibility, complementarity)``, scalars.
     """
+    return _residuals_at(G @ impulse + g, mu, impulse, bounds)
+
+
+def _residuals_at(full_velocity: Array, mu: Array, impulse: Array, bounds: Array | None) -> tuple[Array, Array, Array]:
+    """:func:`ncp_residuals` given the velocity ``G lambda + g`` at ``impulse``."""
     n = mu.shape[0]
     impulse_by_contact = impulse[: 3 * n].reshape(n, 3)
-    full_velocity = G @ impulse + g
     velocity = _de_saxce_velocity(full_velocity[: 3 * n].reshape(n, 3), mu)
     primal = _safe_norm(impulse_by_contact - project_to_friction_cone(impulse_by_contact, mu))
     dual = _safe_norm(project_to_friction_cone(-velocity, mu))
@@ -813,14 +822,16 @@ class NCPSolver(eqx.Module):
         warm start (with ``rank_deficient``, only where it solves the problem, else zero);
         with one, the guess where it solves the problem and the warm start does not, else the
         warm start. ``factor``: an ``X`` ``(d, 3 n + m)`` with ``G = Xᵀ X`` (see :func:`solve_ncp`);
-        ``bounds``: the box rows' (see :func:`solve_ncp`)."""
+        ``bounds``: the box rows' (see :func:`solve_ncp`). ``G`` may be ``None`` with a
+        ``factor``: its products are then taken as ``Xᵀ (X z)``, and ``G`` formed only where
+        the sticking guess needs it."""
 
         def candidate(z):
             z = jnp.where(jnp.all(jnp.isfinite(z)), z, 0.0)
-            primal, dual, complementarity = ncp_residuals(G, g, mu, z, bounds)
+            primal, dual, complementarity = _residuals_at(_delassus_times(G, factor, z) + g, mu, z, bounds)
             converged = self._within_tolerance(primal, dual, complementarity)
             result = _ncp_result(converged, z, primal, dual, complementarity)
-            return z, NCPInfo(jnp.zeros((), jnp.int32), primal, dual, complementarity, result, jnp.zeros((), G.dtype))
+            return z, NCPInfo(jnp.zeros((), jnp.int32), primal, dual, complementarity, result, jnp.zeros((), g.dtype))
 
         if warm_start is None:
             given = jnp.zeros_like(g)
@@ -858,7 +869,7 @@ class NCPSolver(eqx.Module):
         if bounds is not None:
             active = jnp.concatenate([active, bounds > 0])
         rhs = jnp.where(active, g, 0.0)
-        if self.rank_deficient and factor is not None and factor.shape[0] < G.shape[0]:
+        if self.rank_deficient and factor is not None and factor.shape[0] < g.shape[0]:
             # The same pseudo-inverse from the (m x m) X_A X_Aᵀ, X_A = X with A's columns only:
             # G_AA = X_Aᵀ X_A = V S² Vᵀ and X_A X_Aᵀ = U S² Uᵀ share their nonzero eigenvalues
             # S², and G_AA^+ = V S^-2 Vᵀ = X_Aᵀ U S^-4 Uᵀ X_A (V = X_Aᵀ U S^-1). For a scene of
@@ -869,7 +880,10 @@ class NCPSolver(eqx.Module):
             reduced = jnp.where(active[None, :], factor, 0.0)
             inner = _squared_pseudo_inverse_times(reduced @ reduced.T, reduced @ rhs)
             sticking = jnp.where(active, -(reduced.T @ inner), 0.0)
-        elif self.rank_deficient:
+            return _project(sticking, mu, bounds)
+        if G is None:
+            G = factor.T @ factor
+        if self.rank_deficient:
             # The minimum-norm sticking impulse, by the pseudo-inverse of G_AA (eigenvalues
             # below 1e-9 of the largest dropped); see the attribute's documentation.
             eigenvalues, eigenvectors = linalg.eigh(jnp.where(active[:, None] & active[None, :], G, 0.0))
@@ -1093,8 +1107,9 @@ def _squared_pseudo_inverse_by_eigh(gram: Array, b: Array) -> Array:
     return eigenvectors @ (inverse**2 * (eigenvectors.T @ b))
 
 
-def _checked_problem(G, g, mu, warm_start, bounds=None):
-    """Host-side shape checks, value checks (host or traced), common floating dtype."""
+def _checked_problem(G, g, mu, warm_start, bounds=None, factored=False):
+    """Host-side shape checks, value checks (host or traced), common floating dtype;
+    ``factored``: a traced ``G`` is not checked (its factor is: see :func:`_solve`)."""
     G, g, mu = jnp.asarray(G), jnp.asarray(g), jnp.asarray(mu)
     m = 0
     if bounds is not None:
@@ -1117,7 +1132,8 @@ def _checked_problem(G, g, mu, warm_start, bounds=None):
             raise ValueError(f"warm_start must have shape {(size,)}, got {warm_start.shape}.")
     dtype = jnp.result_type(G, g, mu, float)
     G, g, mu = G.astype(dtype), g.astype(dtype), mu.astype(dtype)
-    G = _check_finite("G", G)
+    if not (factored and not _is_concrete(G)):
+        G = _check_finite("G", G)
     g = _check_finite("g", g)
     mu = _check_finite("mu", mu)
     mu = _check_nonnegative("mu", mu)
@@ -1175,9 +1191,14 @@ def solve_ncp(
         warm_start: an impulse guess ``(3 n + m,)``, e.g. the previous time step's solution.
         delassus_factor: optionally ``X`` ``(d, 3 n + m)`` with ``G = Xᵀ X`` (a simulator's
             ``L^-1 Jᵀ``, ``L`` the Cholesky factor of the mass matrix, ``d`` its degrees of
-            freedom): with ``rank_deficient`` and ``d < 3 n + m`` the sticking guess takes its
-            pseudo-inverse from the ``(d x d)`` ``X Xᵀ`` (the same impulse, to rounding). No
-            derivative flows through it.
+            freedom). The solve then reads ``G`` only through ``X``: the start's products as
+            ``Xᵀ (X z)``, and ``Xᵀ X`` formed again where the start does not solve the
+            problem; with ``rank_deficient`` and ``d < 3 n + m`` the sticking guess takes its
+            pseudo-inverse from the ``(d x d)`` ``X Xᵀ`` (the same impulse, to rounding). In a
+            program where nothing else reads ``G`` (no derivative is taken) XLA then leaves
+            out forming it (``O((3 n + m)² d)``, the largest cost of a resting stack of boxes'
+            solve) wherever the start solves the problem. No derivative flows through ``X``;
+            a traced ``G`` is not checked for NaN (``X`` is).
         bounds: ``None``, or the bounds ``b_k >= 0`` of ``m`` box rows, ``(m,)`` (``inf``: a
             bilateral row).
 
@@ -1205,13 +1226,14 @@ def solve_ncp(
         Q. Le Lidec, L. Montaut, Y. de Mont-Marin, F. Schramm, J. Carpentier, "End-to-end
         and highly-efficient differentiable simulation for robotics", 2024.
     """
-    G, g, mu, warm_start, bounds = _checked_problem(G, g, mu, warm_start, bounds)
+    G, g, mu, warm_start, bounds = _checked_problem(G, g, mu, warm_start, bounds, factored=delassus_factor is not None)
     if delassus_factor is not None:
         delassus_factor = jnp.asarray(delassus_factor)
         if delassus_factor.ndim != 2 or delassus_factor.shape[1] != G.shape[0]:
             raise ValueError(
                 f"delassus_factor must have shape (d, {G.shape[0]}) (G = Xᵀ X), got {delassus_factor.shape}"
             )
+        delassus_factor = _check_finite("delassus_factor", delassus_factor.astype(G.dtype))
     arguments = (G, g, mu, warm_start, delassus_factor, bounds)
     # Called outside any trace (a script's loop over problems) the solve is one compiled
     # program per solver and shapes, reused by later calls: run eagerly, each of its loops
@@ -1232,14 +1254,19 @@ def _solve(G, g, mu, warm_start, delassus_factor, bounds, solver: NCPSolver) -> 
     # impulse does not already solve the problem. A while_loop rather than a cond: under vmap
     # a cond with a batched predicate computes both branches, while this loop's body runs
     # only if some member of the batch needs it.
-    if delassus_factor is not None:
+    # With a factor X, G = Xᵀ X is read through X only: the start's products, and the work
+    # after it forms G inside its branch (see solve_ncp's delassus_factor).
+    factored = delassus_factor is not None
+    if factored:
         delassus_factor = lax.stop_gradient(delassus_factor)
-    start, start_info = solver.start(G_solve, g_solve, mu_solve, warm_start, factor=delassus_factor, bounds=bounds_solve)
+    start, start_info = solver.start(
+        None if factored else G_solve, g_solve, mu_solve, warm_start, factor=delassus_factor, bounds=bounds_solve
+    )
 
     # Each loop's body first passes the problem through an optimization barrier with the
     # loop's carry: without it XLA hoists loop-invariant work (ADMM's eigendecomposition of G,
     # parts of the polish) out of the loop, where it runs whether the loop does or not.
-    problem = (G_solve, g_solve, mu_solve, bounds_solve)
+    problem = (delassus_factor if factored else G_solve, g_solve, mu_solve, bounds_solve)
 
     def polish(problem, carry, least_squares=False):
         # Rounds of the polish, in a loop that (under vmap) runs while some member of the
@@ -1272,6 +1299,9 @@ def _solve(G, g, mu, warm_start, delassus_factor, bounds, solver: NCPSolver) -> 
         return once_if(run, needed & ~start_info.converged, problem, (start, start_info))
 
     def finish(problem, carry):
+        if factored:  # G formed here, where the start did not solve the problem
+            X, g_, mu_, bounds_ = problem
+            problem = (X.T @ X, g_, mu_, bounds_)
         # the polish's rounds, then ADMM, for a problem the start did not solve; then the
         # polish again from ADMM's best iterate where ADMM stopped at its cap: its slow tail
         # (an impact that switches many contacts' modes at once) is usually close enough for
@@ -1328,7 +1358,7 @@ def _solve(G, g, mu, warm_start, delassus_factor, bounds, solver: NCPSolver) -> 
     impulse, info = carry[2]
     # Reported in the result too: a caller that leaves out the traced checks above
     # (rsmooth._checks.without_traced_checks, e.g. a rollout) still sees an invalid problem.
-    invalid = ~jnp.all(jnp.isfinite(G)) | ~jnp.all(jnp.isfinite(g)) | ~jnp.all(jnp.isfinite(mu)) | jnp.any(mu < 0)
+    invalid = ~jnp.all(jnp.isfinite(delassus_factor if factored else G)) | ~jnp.all(jnp.isfinite(g)) | ~jnp.all(jnp.isfinite(mu)) | jnp.any(mu < 0)
     if bounds is not None:
         invalid = invalid | ~jnp.all(bounds >= 0)
     info = eqx.tree_at(lambda i: i.result, info, RESULTS.where(invalid, RESULTS.invalid_input, info.result))

@@ -243,11 +243,13 @@ def solve_contacts(
         # and the contact problem is not finite. That is the step's divergence, which it
         # reports (a non-finite next state, info.diverged), not a bad input of the NCP
         # solver's (whose check would abort a whole batched rollout or solver iteration).
-        broken = ~(jnp.all(jnp.isfinite(delassus)) & jnp.all(jnp.isfinite(free_velocity)))
+        # (checked on L^-1 Jᵀ, not on G: the solve reads G through it, and a program that
+        # takes no derivative then forms G only where the start does not solve the problem)
+        broken = ~(jnp.all(jnp.isfinite(half)) & jnp.all(jnp.isfinite(free_velocity)))
         impulse, ncp = solve_ncp(
             jnp.where(broken, jnp.eye(delassus.shape[0], dtype=delassus.dtype), delassus),
             jnp.where(broken, 0.0, free_velocity), mu, solver=system.solver, warm_start=warm_start,
-            delassus_factor=jnp.where(broken, 0.0, half),  # G = halfᵀ half: a cheaper sticking guess
+            delassus_factor=jnp.where(broken, 0.0, half),  # G = halfᵀ half
             bounds=bounds.astype(delassus.dtype) if m else None,
         )
         impulse = jnp.where(broken, jnp.nan, impulse)

@@ -893,6 +893,38 @@ def test_the_factored_sticking_guess_equals_the_pseudo_inverse_of_g():
         solve_ncp(jnp.asarray(G), g, mu, solver=solver, delassus_factor=jnp.asarray(X[:, :6]))
 
 
+@pytest.mark.parametrize(
+    "solver",
+    [NCPSolver(sticking_guess=True, rank_deficient=True), NCPSolver(sticking_guess=True, polish=True), NCPSolver()],
+    ids=["rank_deficient", "polish", "plain"],
+)
+def test_with_a_factor_the_solve_reads_g_only_through_it(solver):
+    # A box on four corners pressed, pushed and tilted (as above): given X, the jitted solve
+    # reads G = Xᵀ X only through X (the start's products, and G formed from X where ADMM or
+    # the polish runs), so a G that is not Xᵀ X changes nothing; a NaN in X is caught.
+    corners = np.array([[x, y, -0.1] for x in (-0.1, 0.1) for y in (-0.1, 0.1)])
+    cross = lambda p: np.array([[0, -p[2], p[1]], [p[2], 0, -p[0]], [-p[1], p[0], 0]])  # noqa: E731
+    J = np.concatenate([np.hstack([np.eye(3), -cross(p)]) for p in corners])
+    X = jnp.asarray(np.diag(np.sqrt([1.0, 1.0, 1.0, 10.0, 10.0, 10.0])) @ J.T)
+    G = X.T @ X
+    mu = jnp.full(4, 0.8)
+    factored = jax.jit(lambda G_, g_, X_: solve_ncp(G_, g_, mu, solver=solver, delassus_factor=X_))
+    reference = jax.jit(lambda g_: solve_ncp(G, g_, mu, solver=solver))
+    rng = np.random.default_rng(1)
+    started = []
+    for k in range(6):
+        spin = 0.3 * rng.normal(size=3) if k % 2 else np.zeros(3)
+        g = jnp.asarray(J @ np.r_[0.02 * rng.normal(size=2), -0.1 + 0.02 * rng.normal(), spin])
+        impulse, info = factored(3.0 * G + jnp.eye(12), g, X)  # not Xᵀ X
+        expected, expected_info = reference(g)
+        np.testing.assert_allclose(np.asarray(impulse), np.asarray(expected), rtol=0, atol=1e-9)
+        assert int(info.result._value) == int(expected_info.result._value) == int(RESULTS.successful._value)
+        started.append(bool(solver.start(G, g, mu, None, factor=X)[1].converged))
+    assert not all(started)  # the polish or ADMM ran on some (G formed from X there)
+    with pytest.raises(Exception, match="delassus_factor contains NaN"):
+        jax.block_until_ready(factored(G, g, X.at[0, 0].set(jnp.nan)))
+
+
 def test_the_sticking_guess_solves_a_well_conditioned_gram_by_cholesky_and_a_singular_one_by_eigh(monkeypatch):
     # (A^+)² b against the eigendecomposition's pseudo-inverse (eigenvalues below 1e-9 of the
     # largest dropped): a well-conditioned A (its eigendecomposition never runs), a singular
