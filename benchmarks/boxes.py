@@ -12,8 +12,9 @@ bounding-sphere gap are collided: N - 1 box pairs and one floor pair touch), tim
 ``jit(vmap(step))`` over a batch of ``BATCH`` copies of the resting tower, per env; also the
 compile time of that program (lower and compile). Medians of ``repeats`` calls after warm-up.
 Where rsmooth's step goes: its stages (:mod:`rsmooth.sim`'s ``collision``, ``free_motion``,
-``solve_contacts``; the contact solve holds the Delassus matrix and the NCP) timed the same
-way, each a program of its own (their sum exceeds the step, whose program shares the
+``solve_contacts``: the NCP, its velocity, impulses and diagnostics, as the step reads them;
+the Delassus matrix is formed only where the solve's start does not solve the problem) timed
+the same way, each a program of its own (their sum exceeds the step, whose program shares the
 kinematics between them).
 
 Every timed step starts its contact solve cold, the same for all three: rsmooth from zero
@@ -72,12 +73,18 @@ def _heights_error(heights: np.ndarray) -> float:
     return float(np.max(np.abs(heights - HALF * (2 * np.arange(len(heights)) + 1))))
 
 
+def _solved(solution):
+    """What a step reads of :func:`rsmooth.sim.solve_contacts`: the velocity, impulses and diagnostics."""
+    return solution.velocity, solution.impulse, solution.joint_impulse, solution.ncp
+
+
 def _stage_times(system, xs, us, repeats: int) -> dict:
     """Seconds per env of each stage of the batched step (see the module docstring)."""
     qs, vs = system.split(xs)
     collision = jax.jit(jax.vmap(lambda q: sim.collision(system, q)))
     free_motion = jax.jit(jax.vmap(lambda q, v, u: sim.free_motion(system, q, v, u)))
-    solve = jax.jit(jax.vmap(lambda motion, contacts: sim.solve_contacts(system, motion, contacts)))
+    # the step's outputs of the solve (the Delassus matrix, which only derivatives read, left out)
+    solve = jax.jit(jax.vmap(lambda motion, contacts: _solved(sim.solve_contacts(system, motion, contacts))))
     contacts, motion = collision(qs), free_motion(qs, vs, us)
     return {
         "collision": median_time(collision, qs, repeats=repeats) / BATCH,

@@ -349,7 +349,8 @@ def boxes_section(record: dict) -> list[str]:
     if staged:
         lines += ["", "Where rsmooth's step goes, per env: its stages, each timed as a program of its own (`jit(vmap(...))` over "
                   "the same batch; their sum exceeds the step, which shares the kinematics between them). The contact solve "
-                  "builds the Delassus matrix of the solved rows and solves the NCP.", ""]
+                  "solves the NCP of the solved rows and returns what the step reads of it (the velocity, impulses and "
+                  "diagnostics): the Delassus matrix is formed only where the solve's start does not solve the problem.", ""]
         stage_rows = []
         for n in staged:
             stage = get(results, "cases", str(n), "ours_stages")
