@@ -227,7 +227,8 @@ def _cholesky_jvp(primals, tangents):
     da = 0.5 * (da + jnp.swapaxes(da, -1, -2))
     half = _triangular_solve_p.bind(factor, da, lower=True, transpose=False)  # L^-1 dA
     inner = _triangular_solve_p.bind(factor, jnp.swapaxes(half, -1, -2), lower=True, transpose=False)
-    phi = jnp.tril(inner) - 0.5 * jnp.eye(a.shape[-1], dtype=a.dtype) * inner
+    diagonal = jnp.eye(a.shape[-1], dtype=a.dtype).reshape((1,) * (a.ndim - 2) + (a.shape[-1],) * 2)  # (..., n, n): no rank promotion
+    phi = jnp.tril(inner) - 0.5 * diagonal * inner
     return factor, factor @ phi
 
 

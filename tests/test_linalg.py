@@ -46,6 +46,12 @@ def test_values_are_jax_s():
     _close(eigenvalues, jnp.linalg.eigh(a)[0])
     _close(eigenvectors @ jnp.diag(eigenvalues) @ eigenvectors.T, a)
     assert bool(jnp.all(jnp.isnan(linalg.cholesky(-a)[jnp.tril_indices(6)])))  # not positive definite: NaN, as JAX
+    # leading axes, values and forward derivative (no rank promotion in the JVP)
+    stack, direction = jnp.stack([a, 2.0 * a]), jnp.stack([b @ b.T, a])
+    values, tangents = jax.jvp(linalg.cholesky, (stack,), (direction,))
+    reference = jax.jvp(jnp.linalg.cholesky, (stack,), (direction,))
+    _close(values, reference[0])
+    _close(tangents, reference[1])
     u, s, vt = linalg.svd(b)
     _close(u @ jnp.diag(s) @ vt, b)
     _close(s, jnp.linalg.svd(b, compute_uv=False))

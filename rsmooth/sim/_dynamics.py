@@ -136,6 +136,74 @@ def _tree_structure(
     )
 
 
+@functools.lru_cache(maxsize=64)
+def _dof_blocks_of(parents: tuple[int, ...], joint_types: tuple[str, ...], idx_v: tuple[int, ...]) -> tuple | None:
+    njoints = len(parents)
+    root = list(range(njoints))  # the joint hanging from the world above each joint
+    for joint in range(1, njoints):
+        root[joint] = joint if parents[joint] == 0 else root[parents[joint]]
+    ranges: dict[int, list[int]] = {}
+    for joint in range(1, njoints):
+        size = JOINT_NV[joint_types[joint]]
+        ranges.setdefault(root[joint], []).extend(range(idx_v[joint], idx_v[joint] + size))
+    if len(ranges) < 2:
+        return None
+    by_size: dict[int, list[int]] = {}
+    for dofs in ranges.values():
+        start = min(dofs)
+        if sorted(dofs) != list(range(start, start + len(dofs))):
+            return None  # a tree's dofs not contiguous: no blocks (the dense factorization)
+        by_size.setdefault(len(dofs), []).append(start)
+    return tuple((size, np.asarray(sorted(starts), np.int64)) for size, starts in sorted(by_size.items()))
+
+
+def _dof_blocks(model: Model) -> tuple | None:
+    """The diagonal blocks of the mass matrix: ``((size, starts), ...)`` per block size, the
+    blocks being the dofs of each tree hanging from the world (a free object, a robot), or
+    ``None`` for a single tree. ``M`` couples no two trees (CRBA: ``M_ij`` is zero unless one
+    dof's body is an ancestor of the other's), and a tree's dofs are a contiguous range."""
+    return _dof_blocks_of(tuple(model.parents), tuple(model.joint_types), tuple(model.idx_v))
+
+
+def _block_indices(size: int, starts: np.ndarray) -> np.ndarray:
+    return starts[:, None] + np.arange(size)  # (blocks, size)
+
+
+def mass_cholesky(model: Model, mass: jax.Array) -> jax.Array:
+    """The lower Cholesky factor of ``mass`` (``M`` plus a diagonal), block by block where the
+    model has several trees (:func:`_dof_blocks`): a scene of many free objects factors their
+    ``6 x 6`` blocks, not one ``6 N x 6 N`` matrix (the same factor, to rounding)."""
+    blocks = _dof_blocks(model)
+    if blocks is None:
+        return linalg.cholesky(mass)
+    factor = jnp.zeros_like(mass)
+    for size, starts in blocks:
+        index = _block_indices(size, starts)
+        rows, cols = index[:, :, None], index[:, None, :]
+        factor = factor.at[rows, cols].set(linalg.cholesky(mass[rows, cols]))
+    return factor
+
+
+def mass_solve_triangular(model: Model, factor: jax.Array, b: jax.Array, *, trans: bool = False) -> jax.Array:
+    """``L^-1 b`` (``L^-T b`` with ``trans``) for the factor of :func:`mass_cholesky` and ``b``
+    ``(nv,)`` or ``(nv, k)``, block by block where it has blocks."""
+    blocks = _dof_blocks(model)
+    if blocks is None:
+        return linalg.solve_triangular(factor, b, trans=trans)
+    matrix = b if b.ndim == 2 else b[:, None]
+    solved = jnp.zeros_like(matrix)
+    for size, starts in blocks:
+        index = _block_indices(size, starts)
+        block = factor[index[:, :, None], index[:, None, :]]
+        solved = solved.at[index].set(linalg.solve_triangular(block, matrix[index], trans=trans))
+    return solved if b.ndim == 2 else solved[:, 0]
+
+
+def mass_cho_solve(model: Model, factor: jax.Array, b: jax.Array) -> jax.Array:
+    """``(L Lᵀ)^-1 b`` for the factor of :func:`mass_cholesky`."""
+    return mass_solve_triangular(model, factor, mass_solve_triangular(model, factor, b), trans=True)
+
+
 def _mask_sum(mask: np.ndarray, values: jax.Array) -> jax.Array:
     """``mask @ values`` for a static 0/1 ``mask`` and values ``(n, 6)``, computed as
     ``(values.T @ mask.T).T``: under ``vmap``/``jacfwd`` the batched operand is then the

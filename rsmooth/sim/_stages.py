@@ -189,8 +189,8 @@ def free_motion(system: RigidBodySystem, q: Array, v: Array, u: Array, kinematic
     v_start, removed = _dynamics._free_flyer_start(model, v, h)
     bias = _dynamics._rnea(model, kinematics, inertias, v, None, model.gravity) - removed + damping * v_start - system.passive_forces(q, v)
     tau, clipped = system.generalized_forces(q, u, kinematics, v)
-    cholesky = linalg.cholesky(mass)
-    velocity = v_start + h * linalg.cho_solve((cholesky, True), tau - bias)
+    cholesky = _dynamics.mass_cholesky(model, mass)
+    velocity = v_start + h * _dynamics.mass_cho_solve(model, cholesky, tau - bias)
     return FreeMotion(velocity, mass, cholesky, inertias, clipped)
 
 
@@ -226,7 +226,7 @@ def solve_contacts(
             warm_start = jnp.concatenate([jnp.asarray(warm_start), jnp.zeros(m, jacobian.dtype)])
     # X = L^-1 Jᵀ: G = Xᵀ X (symmetric by construction) and W^-1 Jᵀ lambda = L^-T (X lambda),
     # one triangular solve with 3 n columns where W^-1 Jᵀ takes two
-    half = linalg.solve_triangular(cholesky, jacobian.T)  # (nv, 3n)
+    half = _dynamics.mass_solve_triangular(system.model, cholesky, jacobian.T)  # (nv, 3n)
     delassus = half.T @ half
     zero = jnp.zeros((), v_free.dtype)
     nothing_solved = NCPInfo(jnp.zeros((), jnp.int32), zero, zero, zero, RESULTS.successful, zero)
@@ -257,7 +257,7 @@ def solve_contacts(
     else:
         free_velocity = jacobian @ v_free
         impulse, ncp = compliant_impulse(system.contact, distance, free_velocity, delassus, h), nothing_solved
-    velocity = v_free + linalg.solve_triangular(cholesky, half @ impulse, trans=True)
+    velocity = v_free + _dynamics.mass_solve_triangular(system.model, cholesky, half @ impulse, trans=True)
     impulse, joint_impulse = impulse[:contact_rows], impulse[contact_rows:]
     if selection is not None:  # every candidate's impulse, zero where left out
         impulse = jnp.zeros(contacts.jacobian.shape[0], impulse.dtype).at[rows].set(impulse)

@@ -476,3 +476,46 @@ def test_spatial_exp_log_match_pinocchio():
         assert_close(translations[k], expected.translation)
         assert_close(logs[k], pin.log6(expected).vector)
         assert_close(logs[k], twists[k])
+
+
+_FOREST = """<mujoco><worldbody>
+  <body name="pendulum" pos="0 0 1"><joint type="hinge" axis="0 1 0"/><geom type="capsule" size="0.02 0.2" fromto="0 0 0 0 0 -0.4"/></body>
+  <body name="box1" pos="1 0 0.5"><freejoint/><geom type="box" size="0.1 0.2 0.05" mass="2"/></body>
+  <body name="upper" pos="-1 0 1"><joint type="hinge" axis="1 0 0"/><geom type="capsule" size="0.02 0.15" fromto="0 0 0 0 0 -0.3"/>
+    <body name="lower" pos="0 0 -0.3"><joint type="hinge" axis="0 1 0"/><geom type="sphere" size="0.05"/></body></body>
+  <body name="box2" pos="0 1 0.5"><freejoint/><geom type="box" size="0.05 0.05 0.3" mass="0.5"/></body>
+</worldbody></mujoco>"""
+
+
+def test_the_mass_matrix_of_several_trees_is_factored_and_solved_block_by_block(tmp_path):
+    # A pendulum (1 dof), two free boxes (6 each) and a two-link arm (2): M couples no two
+    # trees; the factor and the solves block by block equal the dense ones. One tree: no blocks.
+    from rsmooth.sim import _dynamics
+
+    path = tmp_path / "forest.xml"
+    path.write_text(_FOREST)
+    model = sim.scene(path).model
+    blocks = _dynamics._dof_blocks(model)
+    assert [(size, starts.tolist()) for size, starts in blocks] == [(1, [0]), (2, [7]), (6, [1, 9])]
+    rng = np.random.default_rng(0)
+    q = np.asarray(sim.scene(path).initial_state())[: model.nq] + 0.3 * np.r_[rng.normal(size=model.nq)]
+    q = jnp.asarray(q)
+    kinematics = _dynamics._kinematics(model, q)
+    mass = _dynamics._crba(model, kinematics, _dynamics._world_inertias(model, kinematics)) + jnp.diag(jnp.linspace(0.01, 0.1, model.nv))
+    dense = np.asarray(mass)
+    assert np.all(dense[np.ix_([0], range(1, model.nv))] == 0) and np.all(dense[np.ix_(range(1, 7), range(7, 15))] == 0)
+    factor = jax.jit(lambda m: _dynamics.mass_cholesky(model, m))(mass)
+    np.testing.assert_allclose(np.asarray(factor), np.linalg.cholesky(dense), rtol=0, atol=1e-12)
+    b, B = rng.normal(size=model.nv), rng.normal(size=(model.nv, 5))
+    L = np.linalg.cholesky(dense)
+    np.testing.assert_allclose(_dynamics.mass_solve_triangular(model, factor, jnp.asarray(B)), np.linalg.solve(L, B), atol=1e-10)
+    np.testing.assert_allclose(_dynamics.mass_solve_triangular(model, factor, jnp.asarray(b), trans=True), np.linalg.solve(L.T, b), atol=1e-10)
+    np.testing.assert_allclose(_dynamics.mass_cho_solve(model, factor, jnp.asarray(b)), np.linalg.solve(dense, b), atol=1e-10)
+    # batched as the step is, and differentiated (the factor's JVP through the blocks)
+    batched = jax.vmap(lambda m: _dynamics.mass_cho_solve(model, _dynamics.mass_cholesky(model, m), jnp.asarray(b)))
+    np.testing.assert_allclose(batched(jnp.stack([mass, 2 * mass])), np.stack([np.linalg.solve(dense, b), np.linalg.solve(2 * dense, b)]), atol=1e-10)
+    tangent = jax.jvp(lambda m: _dynamics.mass_cho_solve(model, _dynamics.mass_cholesky(model, m), jnp.asarray(b)), (mass,), (mass,))[1]
+    np.testing.assert_allclose(tangent, -np.linalg.solve(dense, b), atol=1e-9)  # d(M^-1 b)/dM [M] = -M^-1 b
+    one = tmp_path / "one_tree.xml"
+    one.write_text(_FOREST.split('<body name="box1"')[0] + "</worldbody></mujoco>")
+    assert _dynamics._dof_blocks(sim.scene(one).model) is None
