@@ -136,33 +136,22 @@ def _tree_structure(
     )
 
 
-@functools.lru_cache(maxsize=64)
-def _dof_blocks_of(parents: tuple[int, ...], joint_types: tuple[str, ...], idx_v: tuple[int, ...]) -> tuple | None:
-    njoints = len(parents)
-    root = list(range(njoints))  # the joint hanging from the world above each joint
-    for joint in range(1, njoints):
-        root[joint] = joint if parents[joint] == 0 else root[parents[joint]]
-    ranges: dict[int, list[int]] = {}
-    for joint in range(1, njoints):
-        size = JOINT_NV[joint_types[joint]]
-        ranges.setdefault(root[joint], []).extend(range(idx_v[joint], idx_v[joint] + size))
-    if len(ranges) < 2:
-        return None
-    by_size: dict[int, list[int]] = {}
-    for dofs in ranges.values():
-        start = min(dofs)
-        if sorted(dofs) != list(range(start, start + len(dofs))):
-            return None  # a tree's dofs not contiguous: no blocks (the dense factorization)
-        by_size.setdefault(len(dofs), []).append(start)
-    return tuple((size, np.asarray(sorted(starts), np.int64)) for size, starts in sorted(by_size.items()))
-
-
 def _dof_blocks(model: Model) -> tuple | None:
     """The diagonal blocks of the mass matrix: ``((size, starts), ...)`` per block size, the
     blocks being the dofs of each tree hanging from the world (a free object, a robot), or
     ``None`` for a single tree. ``M`` couples no two trees (CRBA: ``M_ij`` is zero unless one
     dof's body is an ancestor of the other's), and a tree's dofs are a contiguous range."""
-    return _dof_blocks_of(tuple(model.parents), tuple(model.joint_types), tuple(model.idx_v))
+    tree = _tree(model)
+    roots = [joint for joint in range(1, len(model.parents)) if model.parents[joint] == 0]
+    if len(roots) < 2:
+        return None
+    by_size: dict[int, list[int]] = {}
+    for root in roots:
+        dofs = np.flatnonzero(tree.subtree[root, tree.dof_owner])  # the dofs of the root's subtree
+        if not np.array_equal(dofs, np.arange(dofs[0], dofs[0] + dofs.size)):
+            return None  # a tree's dofs not contiguous: no blocks (the dense factorization)
+        by_size.setdefault(int(dofs.size), []).append(int(dofs[0]))
+    return tuple((size, np.asarray(sorted(starts), np.int64)) for size, starts in sorted(by_size.items()))
 
 
 def _blocks_of(matrix: jax.Array, size: int, starts: np.ndarray) -> jax.Array:
