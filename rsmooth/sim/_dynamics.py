@@ -220,9 +220,12 @@ def _tree(model: Model) -> _Tree:
 
 
 def _support_columns(model: Model, kinematics, joints) -> jax.Array:
-    """World-frame motion subspace columns of the dofs that move body ``joints`` (an int, or a
-    static integer array of any shape ``B``), ``B + (nv, 6)``: zero for the other dofs."""
-    moves = _tree(model).support[joints][..., None]  # B + (nv, 1)
+    """World-frame motion subspace columns of the dofs that move body ``joints`` (an int, or an
+    integer array of any shape ``B``, static or traced), ``B + (nv, 6)``: zero for the other
+    dofs. ``kinematics``: anything with the ``motion_subspace`` ``(nv, 6)`` at the configuration."""
+    support = _tree(model).support
+    moves = support[joints] if isinstance(joints, (int, np.integer, np.ndarray)) else jnp.asarray(support)[joints]
+    moves = moves[..., None]  # B + (nv, 1)
     subspace = kinematics.motion_subspace
     return jnp.where(moves, subspace.reshape((1,) * (moves.ndim - 2) + subspace.shape), 0.0)
 
@@ -230,8 +233,8 @@ def _support_columns(model: Model, kinematics, joints) -> jax.Array:
 def _point_velocity_columns(model: Model, kinematics, joints, points: jax.Array) -> jax.Array:
     """``(..., nv, 3)``: row ``k`` is the world velocity of the material point of body
     ``joints`` at world position ``points`` ``(..., 3)`` per unit velocity of dof ``k``;
-    ``joints`` (static) broadcasts against the leading axes of ``points`` (all contacts of a
-    step in one batched expression: see ``RigidBodySystem.contacts``)."""
+    ``joints`` (as :func:`_support_columns`) broadcasts against the leading axes of ``points``
+    (all contacts of a step in one batched expression: see ``RigidBodySystem.contacts``)."""
     columns = _support_columns(model, kinematics, joints)
     return columns[..., :3] - jnp.cross(points[..., None, :], columns[..., 3:])
 

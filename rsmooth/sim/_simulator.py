@@ -185,6 +185,7 @@ class _VelocityUpdate(NamedTuple):
     joint_impulse: Array  # (m,): the joints' box rows (RigidBodySystem.joint_rows)
     joint_rows: Array  # (m, nv) at q
     joint_bounds: Array  # (m,)
+    contact_velocity: Array  # J v+ (3 n,): every candidate's end-of-step velocity in its frame
 
     def solved(self, rows: Array) -> Array:
         """``rows`` (flat ``[t1, t2, n]`` per candidate, leading axis) of the solved contacts."""
@@ -197,7 +198,7 @@ class _VelocityUpdate(NamedTuple):
     def public(self) -> tuple[Array, Array, Array, NCPInfo, Array, tuple[Array, Array, Array, Array]]:
         # the contact frames, end-of-step contact velocities J v+ and the joints' box rows'
         # impulses for the diagnostics
-        diagnostics = (self.frames, self.jacobian @ self.v_next, self.dropped, self.joint_impulse)
+        diagnostics = (self.frames, self.contact_velocity, self.dropped, self.joint_impulse)
         return self.v_next, self.impulse, self.distance, self.ncp, self.clipped, diagnostics
 
 
@@ -2023,6 +2024,12 @@ class RigidBodySystem(eqx.Module):
         limit_rows = jnp.arange(shapes, shapes + limits, dtype=jnp.int32) if limit_rows is None else limit_rows
         return jnp.concatenate([contacts, limit_rows])
 
+    def _selected_shape_count(self) -> int:
+        """How many of :meth:`_contact_selection`'s indices are contacts between shapes (the
+        rest are limits): static."""
+        shapes, budget = self.num_contacts - self.num_limits, self.options.max_contacts
+        return shapes if budget is None or budget >= shapes else budget
+
     def split(self, x: ArrayLike) -> tuple[Array, Array]:
         """``(q, v)`` from a state ``x`` of shape ``(..., nx)`` (:meth:`activations` gives the rest)."""
         x = jnp.asarray(x)
@@ -2155,27 +2162,36 @@ class RigidBodySystem(eqx.Module):
         contact-frame velocity ``[t1, t2, n]`` of the sphere point deepest towards the plane
         (for geometry pairs, of shape 2's witness point relative to shape 1's).
         """
-        distance, frames, jacobian = self._shape_contacts(q, kinematics)
-        if not self.num_limits:
-            return distance, frames, jacobian
-        parts = [(distance, jacobian.reshape(-1, 3, self.model.nv))]
-        if self.joints.limits:
-            parts.append(self._joint_limit_contacts(q, jacobian.dtype))
-        tendons = self.joints.tendons
-        if tendons is not None and tendons.limits:
-            # frictionless contacts along the tendons' moments: the length's rate
-            which, sides = (np.asarray([entry[k] for entry in tendons.limits], np.int64) for k in (0, 1))
-            length, moments = self._tendon_geometry(q, kinematics)
-            bounds = tendons.range.astype(q.dtype)
-            limit_distance = jnp.where(sides > 0, length[which] - bounds[which, 0], bounds[which, 1] - length[which])
-            rows = jnp.zeros((len(which), 3, self.model.nv), jacobian.dtype).at[:, 2].set(sides[:, None] * moments[which])
-            parts.append((limit_distance, rows))
-        count = self.num_limits
-        eye = jnp.broadcast_to(jnp.eye(3, dtype=frames.dtype), (count, 3, 3))
-        return (
-            jnp.concatenate([part[0].astype(distance.dtype) for part in parts]),
-            jnp.concatenate([frames, eye]),
-            jnp.concatenate([part[1] for part in parts]).reshape(-1, self.model.nv),
+        return self._candidates(q, kinematics)[:3]
+
+    def _candidates(self, q: Array, kinematics=None) -> tuple[Array, Array, Array, _stages.WitnessPoints]:
+        """:meth:`contacts`, and the :class:`~rsmooth.sim._stages.WitnessPoints` from which
+        any of its Jacobian's rows and ``J v`` are computed without ``J``."""
+        if kinematics is None:
+            kinematics = _dynamics._kinematics(self.model, q)
+        distance, frames, jacobian, points = self._shape_contacts(q, kinematics)
+        limit_rows = jnp.zeros((0, 3, self.model.nv), jacobian.dtype)
+        if self.num_limits:
+            parts = [(distance, jacobian.reshape(-1, 3, self.model.nv))]
+            if self.joints.limits:
+                parts.append(self._joint_limit_contacts(q, jacobian.dtype))
+            tendons = self.joints.tendons
+            if tendons is not None and tendons.limits:
+                # frictionless contacts along the tendons' moments: the length's rate
+                which, sides = (np.asarray([entry[k] for entry in tendons.limits], np.int64) for k in (0, 1))
+                length, moments = self._tendon_geometry(q, kinematics)
+                bounds = tendons.range.astype(q.dtype)
+                limit_distance = jnp.where(sides > 0, length[which] - bounds[which, 0], bounds[which, 1] - length[which])
+                rows = jnp.zeros((len(which), 3, self.model.nv), jacobian.dtype).at[:, 2].set(sides[:, None] * moments[which])
+                parts.append((limit_distance, rows))
+            count = self.num_limits
+            limit_rows = jnp.concatenate([part[1] for part in parts[1:]])
+            distance = jnp.concatenate([part[0].astype(distance.dtype) for part in parts])
+            frames = jnp.concatenate([frames, jnp.broadcast_to(jnp.eye(3, dtype=frames.dtype), (count, 3, 3))])
+            jacobian = jnp.concatenate([part[1] for part in parts]).reshape(-1, self.model.nv)
+        joint1, point1, joint2, point2, weight = points
+        return distance, frames, jacobian, _stages.WitnessPoints(
+            joint1, point1, joint2, point2, weight, kinematics.motion_subspace, limit_rows
         )
 
     def _joint_limit_contacts(self, q: Array, dtype) -> tuple[Array, Array]:
@@ -2197,17 +2213,20 @@ class RigidBodySystem(eqx.Module):
             rows = rows.at[cones[:, None], 2, dofs[cones][:, None] + np.arange(3)].set(-axis.astype(rows.dtype))
         return limit_distance, rows
 
-    def _shape_contacts(self, q: Array, kinematics=None) -> tuple[Array, Array, Array]:
-        """The contacts of :meth:`contacts` between shapes (all but the limits)."""
+    def _shape_contacts(self, q: Array, kinematics=None) -> tuple[Array, Array, Array, tuple]:
+        """The contacts of :meth:`contacts` between shapes (all but the limits), and where they
+        act: ``(joint1, point1, joint2, point2, weight)`` (:class:`~rsmooth.sim._stages.WitnessPoints`)."""
         model = self.model
         if kinematics is None:
             kinematics = _dynamics._kinematics(model, q)
         if not self.geometry.sphere_frames:
             if not self.geometry.geom_pairs:
                 dtype = kinematics.translation.dtype
-                return jnp.zeros(0, dtype), jnp.zeros((0, 3, 3), dtype), jnp.zeros((0, model.nv), dtype)
-            distance, frames, jacobians = self._geom_pairs_contacts(kinematics)
-            return distance, frames, jacobians.reshape(-1, model.nv)
+                nothing = jnp.zeros((0, 3), dtype)
+                return (jnp.zeros(0, dtype), jnp.zeros((0, 3, 3), dtype), jnp.zeros((0, model.nv), dtype),
+                        ((), nothing, (), nothing, jnp.zeros(0, dtype)))
+            distance, frames, jacobians, points = self._geom_pairs_contacts(kinematics)
+            return distance, frames, jacobians.reshape(-1, model.nv), points
         # All spheres at once (one batched expression per quantity, not one per sphere: the
         # traced graph, and the compile time of every solver built on the step, would grow
         # with the number of spheres). The contact -> joint map is static.
@@ -2219,14 +2238,17 @@ class RigidBodySystem(eqx.Module):
         point_jacobians = _dynamics._point_velocity_columns(model, kinematics, joints, points)  # (n, nv, 3)
         # R^T J_p, unrolled over the 3-axis (a batched 3x3 dot is slow on CPU: _spatial)
         jacobians = sum(rotations[:, j, :, None] * point_jacobians[:, None, :, j] for j in range(3))  # (n, 3, nv)
-        distances, frames, jacobians = [distance], [rotations], [jacobians]
+        # the half-spaces are the world's (joint 0)
+        acting = ((0,) * len(joints), points, tuple(int(j) for j in joints), points, jnp.ones(len(joints), points.dtype))
+        distances, frames, jacobians, where = [distance], [rotations], [jacobians], [acting]
         if self.geometry.geom_pairs:
-            distance, rotation, jacobian = self._geom_pairs_contacts(kinematics)
+            distance, rotation, jacobian, acting = self._geom_pairs_contacts(kinematics)
             distances.append(distance)
             frames.append(rotation)
             jacobians.append(jacobian)
+            where.append(acting)
         distance = jnp.concatenate(distances)
-        return distance, jnp.concatenate(frames), jnp.concatenate(jacobians).reshape(-1, model.nv)
+        return distance, jnp.concatenate(frames), jnp.concatenate(jacobians).reshape(-1, model.nv), _joined_points(where)
 
     def _sphere_centres(self, kinematics) -> tuple[Array, np.ndarray]:
         """World centres of the spheres ``(S, 3)`` and the (static) joint carrying each."""
@@ -2265,7 +2287,7 @@ class RigidBodySystem(eqx.Module):
         )
         return spatial.compose(rotation, translation, placement[0], placement[1])
 
-    def _geom_pairs_contacts(self, kinematics) -> tuple[Array, Array, Array]:
+    def _geom_pairs_contacts(self, kinematics) -> tuple[Array, Array, Array, tuple]:
         """:meth:`_geom_pair_contacts` of every geometry pair, concatenated in pair order.
 
         Pairs that differ only in their arrays (shape sizes, placements, frames; convex meshes
@@ -2307,8 +2329,8 @@ class RigidBodySystem(eqx.Module):
             manifold = _unreversed(manifold, np.array([_reversed(p) for p in pairs]))
             parts.append(self._manifold_contacts(kinematics, manifold, [p.frame1 for p in pairs], [p.frame2 for p in pairs], first.size))
         order = np.argsort(np.concatenate(positions))  # group-major -> pair order
-        distance, rotations, jacobians = (jnp.concatenate(part)[order] for part in zip(*parts))
-        return distance, rotations, jacobians
+        distance, rotations, jacobians = (jnp.concatenate(part)[order] for part in list(zip(*parts))[:3])
+        return distance, rotations, jacobians, _joined_points([part[3] for part in parts], order)
 
     def _group_shapes(self, kinematics, pairs: list[GeomPair]) -> tuple:
         """``(shape1, pose1, shape2, pose2)`` of a group of pairs (:func:`_pair_groups`), each
@@ -2354,10 +2376,10 @@ class RigidBodySystem(eqx.Module):
             count = count + jnp.maximum(near - self.options.max_pairs, 0)
         return count
 
-    def _geom_pair_contacts(self, kinematics, pair: GeomPair) -> tuple[Array, Array, Array]:
-        """Signed distances ``(k,)``, contact frames ``(k, 3, 3)`` and relative contact
-        Jacobians ``(k, 3, nv)`` of a geometry pair's manifold: ``R^T (J_2 - J_1)`` with
-        ``J_i`` the Jacobian of the world velocity of the material point of shape ``i``'s
+    def _geom_pair_contacts(self, kinematics, pair: GeomPair) -> tuple[Array, Array, Array, tuple]:
+        """Signed distances ``(k,)``, contact frames ``(k, 3, 3)``, relative contact
+        Jacobians ``(k, 3, nv)`` and where they act (:meth:`_shape_contacts`) of a geometry
+        pair's manifold: ``R^T (J_2 - J_1)`` with ``J_i`` the Jacobian of the world velocity of the material point of shape ``i``'s
         body at its witness point (none for a world-fixed shape), so the normal velocity
         (along the normal from shape 1 to shape 2) is positive where they separate. Entries
         that are not contacts of the manifold get a distance of 10 m (:data:`_INACTIVE_DISTANCE`)."""
@@ -2366,28 +2388,31 @@ class RigidBodySystem(eqx.Module):
         manifold = collide(pair.shape1, pose1, pair.shape2, pose2, margin=pair.margin)
         return self._manifold_contacts(kinematics, manifold, [pair.frame1], [pair.frame2], pair.size)
 
-    def _manifold_contacts(self, kinematics, manifold, frames1, frames2, size: int) -> tuple[Array, Array, Array]:
-        """Distances, contact frames and Jacobians (:meth:`_geom_pair_contacts`) of the
-        manifolds of one or several pairs (``manifold``'s arrays with a leading pair axis or
+    def _manifold_contacts(self, kinematics, manifold, frames1, frames2, size: int) -> tuple[Array, Array, Array, tuple]:
+        """Distances, contact frames, Jacobians and where they act (:meth:`_geom_pair_contacts`)
+        of the manifolds of one or several pairs (``manifold``'s arrays with a leading pair axis or
         none), flattened: ``frames1``/``frames2`` the frame of each pair's shapes (all
         ``None`` or none), ``size`` entries per pair."""
         model = self.model
         distance = jnp.where(manifold.active, manifold.distance, _INACTIVE_DISTANCE).reshape(-1)
         rotations = contact_frame(manifold.normal.reshape(-1, 3))  # (n k, 3, 3)
         velocity = 0.0  # (n k, nv, 3): world velocity of point 2 relative to point 1
+        point1, point2 = manifold.point1.reshape(-1, 3), manifold.point2.reshape(-1, 3)
+        joints1 = joints2 = np.zeros(len(frames1) * size, np.int64)  # a world-fixed shape: joint 0
         if frames2[0] is not None:
-            joints = np.repeat([model.frame_parents[model.frame_id(frame)] for frame in frames2], size)
-            velocity = velocity + _dynamics._point_velocity_columns(model, kinematics, joints, manifold.point2.reshape(-1, 3))
+            joints2 = np.repeat([model.frame_parents[model.frame_id(frame)] for frame in frames2], size)
+            velocity = velocity + _dynamics._point_velocity_columns(model, kinematics, joints2, point2)
         if frames1[0] is not None:
-            joints = np.repeat([model.frame_parents[model.frame_id(frame)] for frame in frames1], size)
-            velocity = velocity - _dynamics._point_velocity_columns(model, kinematics, joints, manifold.point1.reshape(-1, 3))
+            joints1 = np.repeat([model.frame_parents[model.frame_id(frame)] for frame in frames1], size)
+            velocity = velocity - _dynamics._point_velocity_columns(model, kinematics, joints1, point1)
         # R^T J, unrolled over the 3-axis as in contacts()
         jacobians = sum(rotations[:, j, :, None] * velocity[:, None, :, j] for j in range(3))  # (n k, 3, nv)
         # An inactive entry gets no impulse (its 10 m gap does not close in a step): zero rows
         # keep it out of the Delassus matrix, so that where its witness points lie (a far
         # pair's, or none for a pair the broad phase skipped) does not change the problem.
         jacobians = jnp.where(manifold.active.reshape(-1)[:, None, None], jacobians, 0.0)
-        return distance, rotations, jacobians
+        weight = manifold.active.reshape(-1).astype(distance.dtype)
+        return distance, rotations, jacobians, (tuple(map(int, joints1)), point1, tuple(map(int, joints2)), point2, weight)
 
     def step_with_info(self, x: ArrayLike, u: ArrayLike, *, warm_start: ArrayLike | None = None) -> tuple[Array, StepInfo]:
         """One time step and its diagnostics.
@@ -2461,6 +2486,11 @@ class RigidBodySystem(eqx.Module):
             (motion.mass_cholesky, True), contacts.jacobian, solution.delassus, solution.free_velocity,
             solution.friction, posed, motion.inertias, motion.mass, contacts.frames, solution.selection, solution.dropped,
             solution.joint_impulse, contacts.joint_rows[0], contacts.joint_rows[2],
+            # under a budget, from the bodies' twists: a program that takes no derivative then
+            # never forms the rows of the contacts it leaves out (_stages.contact_velocities);
+            # otherwise from the rows the solve formed (fewer operations for a few contacts)
+            contacts.jacobian @ solution.velocity if solution.selection is None
+            else _stages.contact_velocities(self, contacts, solution.velocity),
         )
 
     def step(self, x: ArrayLike, u: ArrayLike) -> Array:
@@ -2574,6 +2604,18 @@ def step(system: RigidBodySystem, state: _stages.State, u: ArrayLike) -> tuple[_
 
 
 _compose_batch = jax.vmap(spatial.compose)
+
+
+def _joined_points(parts: list[tuple], order: np.ndarray | None = None) -> tuple:
+    """The ``(joint1, point1, joint2, point2, weight)`` of several blocks of contacts
+    (:meth:`RigidBodySystem._shape_contacts`) concatenated, then taken in ``order``: the joints
+    are static tuples, the rest arrays."""
+    joint1, point1, joint2, point2, weight = zip(*parts)
+    joint1, joint2 = (np.concatenate([np.asarray(j, np.int64) for j in joints]) for joints in (joint1, joint2))
+    point1, point2, weight = (jnp.concatenate(values) for values in (point1, point2, weight))
+    if order is not None:
+        joint1, point1, joint2, point2, weight = (values[order] for values in (joint1, point1, joint2, point2, weight))
+    return tuple(map(int, joint1)), point1, tuple(map(int, joint2)), point2, weight
 
 
 def _bounding_gaps(shape1, pose1, shape2, pose2) -> Array:

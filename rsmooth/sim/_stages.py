@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 from jax.typing import ArrayLike
 
@@ -83,6 +84,32 @@ def make_state(system: RigidBodySystem, x: ArrayLike | None = None) -> State:
     return State(q, v, jnp.zeros(3 * system.num_contacts, jnp.result_type(x, float)), act)
 
 
+class WitnessPoints(eqx.Module):
+    """Where the candidate contacts act, from which any rows of their Jacobian, and their
+    velocities ``J v``, are computed without forming ``J`` for every candidate: a step under a
+    contact budget (:attr:`Options.max_contacts`) builds the rows of the contacts it solves
+    only, and counts the ones it leaves out from their velocities (:func:`solve_contacts`).
+
+    Attributes:
+        joint1, joint2: the joints (bodies) carrying shape 1's and shape 2's witness points, one
+            per contact between shapes (``n_s``, static; 0: the world).
+        point1, point2: the witness points ``(n_s, 3)`` in world axes.
+        weight: ``(n_s,)`` 1 for a contact of its pair's manifold, 0 for an inactive entry
+            (whose rows are zero).
+        motion_subspace: the dofs' world motion subspace ``(nv, 6)`` at the configuration (as
+            :class:`Kinematics`').
+        limit_rows: the limits' rows ``(l, 3, nv)`` (frames: the identity), after the shapes'.
+    """
+
+    joint1: tuple[int, ...] = eqx.field(static=True)
+    point1: Array
+    joint2: tuple[int, ...] = eqx.field(static=True)
+    point2: Array
+    weight: Array
+    motion_subspace: Array
+    limit_rows: Array
+
+
 class ContactGeometry(eqx.Module):
     """The candidate contacts of a configuration (:func:`collision`), in the order of
     :meth:`RigidBodySystem.contacts`.
@@ -95,6 +122,8 @@ class ContactGeometry(eqx.Module):
         joint_rows: the joints' box rows at the configuration
             (:meth:`RigidBodySystem.joint_rows`: dry friction, couplings), ``(rows (m, nv),
             correction (m,), bounds (m,))``.
+        points: where the contacts act (:class:`WitnessPoints`); ``None``: ``jacobian`` gives
+            the rows and velocities.
     """
 
     distance: Array
@@ -102,6 +131,7 @@ class ContactGeometry(eqx.Module):
     jacobian: Array
     friction: Array
     joint_rows: tuple[Array, Array, Array]
+    points: WitnessPoints | None = None
 
 
 class FreeMotion(eqx.Module):
@@ -168,8 +198,8 @@ def collision(system: RigidBodySystem, q: Array, kinematics: Kinematics | None =
     """Stage 2: the candidate contacts at ``q`` (:meth:`RigidBodySystem.contacts`) and their
     friction, and the joints' box rows (:meth:`RigidBodySystem.joint_rows`); ``kinematics``:
     stage 1's at ``q``, computed when not given."""
-    distance, frames, jacobian = system.contacts(q, kinematics)
-    return ContactGeometry(distance, frames, jacobian, system.contact_friction(), system.joint_rows(q))
+    distance, frames, jacobian, points = system._candidates(q, kinematics)
+    return ContactGeometry(distance, frames, jacobian, system.contact_friction(), system.joint_rows(q), points)
 
 
 def free_motion(system: RigidBodySystem, q: Array, v: Array, u: Array, kinematics: Kinematics | None = None) -> FreeMotion:
@@ -214,10 +244,12 @@ def solve_contacts(
     dropped = jnp.zeros((), jnp.int32)
     if selection is not None:
         rows = flat_rows(selection)
-        corrected = corrected_free_velocity(jacobian @ v_free, distance, h, **system.options.correction)
+        # every candidate's velocity, from where it acts: the rows of the left-out ones are never formed
+        candidates = contact_velocities(system, contacts, v_free)
+        corrected = corrected_free_velocity(candidates, distance, h, **system.options.correction)
         closes = lax.stop_gradient(corrected[2::3]) < 0  # the solve would have had to act on it
         dropped = jnp.sum(closes.at[selection].set(False), dtype=jnp.int32)
-        distance, jacobian, mu = distance[selection], jacobian[rows], mu[selection]
+        distance, jacobian, mu = distance[selection], jacobian_rows(system, contacts, selection), mu[selection]
         warm_start = None if warm_start is None else jnp.asarray(warm_start)[rows]
     contact_rows = jacobian.shape[0]
     if m:  # the joints' rows after the contacts' (box rows of the NCP)
@@ -308,6 +340,58 @@ def compliant_impulse(law, distance: Array, free_velocity: Array, delassus: Arra
     damping = jax.vmap(jax.jacfwd(lambda c, d: law(d, c)))(velocity, distance)  # (n, 3, 3)
     system = jnp.eye(3 * n, dtype=delassus.dtype) - h * block_diagonal(damping) @ delassus
     return linalg.solve(system, h * force.reshape(-1))
+
+
+def contact_velocities(system: RigidBodySystem, contacts: ContactGeometry, v: Array) -> Array:
+    """``J v`` ``(3 n,)``: every candidate's velocity in its frame, from the bodies' twists at
+    ``v`` and the witness points (:class:`WitnessPoints`) rather than from ``J``."""
+    points = contacts.points
+    if points is None:
+        return contacts.jacobian @ v
+    support = _dynamics._tree(system.model).support
+    twists = _dynamics._mask_sum(support, points.motion_subspace * v[:, None])  # (njoints, 6), world axes
+
+    def point_velocity(joints, point):  # world velocity of the material points of `joints` at `point`
+        twist = twists[np.asarray(joints, np.int64)]
+        return twist[:, :3] - jnp.cross(point, twist[:, 3:])
+
+    relative = point_velocity(points.joint2, points.point2)
+    if any(points.joint1):  # shape 1 is not the world's everywhere
+        relative = relative - point_velocity(points.joint1, points.point1)
+    shapes = len(points.joint1)
+    frames = contacts.frames[:shapes]
+    # R^T relative, unrolled over the 3-axis (as the rows: RigidBodySystem.contacts)
+    velocity = sum(frames[:, j, :] * relative[:, j, None] for j in range(3))  # (n_s, 3)
+    velocity = jnp.where(points.weight[:, None] > 0, velocity, 0.0)
+    limits = points.limit_rows @ v  # (l, 3)
+    return jnp.concatenate([velocity, limits.astype(velocity.dtype)]).reshape(-1)
+
+
+def jacobian_rows(system: RigidBodySystem, contacts: ContactGeometry, selection: Array) -> Array:
+    """The rows ``(3 k, nv)`` of ``contacts.jacobian`` of the candidates ``selection``
+    (``(k,)``: the shapes' first, then the limits', as :meth:`RigidBodySystem._contact_selection`
+    returns them), built for those contacts alone from :class:`WitnessPoints`."""
+    points = contacts.points
+    if points is None:
+        return contacts.jacobian[flat_rows(selection)]
+    model, shapes = system.model, len(points.joint1)
+    count = system._selected_shape_count()  # static: the selection's contacts between shapes
+    which = selection[:count]
+    parts = []
+    if count:
+        velocity = _dynamics._point_velocity_columns(  # (k, nv, 3); points carries the motion subspace
+            model, points, jnp.asarray(points.joint2, jnp.int32)[which], points.point2[which]
+        )
+        if any(points.joint1):
+            velocity = velocity - _dynamics._point_velocity_columns(
+                model, points, jnp.asarray(points.joint1, jnp.int32)[which], points.point1[which]
+            )
+        rotations = contacts.frames[which]
+        shape_rows = sum(rotations[:, j, :, None] * velocity[:, None, :, j] for j in range(3))  # (k, 3, nv)
+        parts.append(jnp.where(points.weight[which][:, None, None] > 0, shape_rows, 0.0))
+    if selection.shape[0] > count:
+        parts.append(points.limit_rows[selection[count:] - shapes])
+    return jnp.concatenate(parts).reshape(-1, model.nv)
 
 
 def flat_rows(contacts: Array) -> Array:

@@ -146,11 +146,19 @@ def test_pairs_of_one_type_are_evaluated_together_with_the_same_contacts(getkey)
     positions = jax.random.uniform(getkey(), (3, 3, 3), minval=-0.1, maxval=0.1) + jnp.array([[[0.08 * b, 0.0, 0.1] for b in range(3)]])
     qs = jnp.concatenate([positions, quaternions / jnp.linalg.norm(quaternions, axis=-1, keepdims=True)], axis=-1).reshape(3, -1)
 
-    def both(q):
+    def both(q, joints=None):
         kinematics = sim._dynamics._kinematics(system.model, q)
         separate = [system._geom_pair_contacts(kinematics, pair) for pair in system.geometry.geom_pairs]
-        return system._geom_pairs_contacts(kinematics), [jnp.concatenate(parts) for parts in zip(*separate)]
+        grouped = system._geom_pairs_contacts(kinematics)
+        alone = [jnp.concatenate(parts) for parts in list(zip(*separate))[:3]] + [sim._simulator._joined_points([part[3] for part in separate])]
+        if joints is not None:  # where they act: the joints (static) of the witness points
+            joints.extend([(grouped[3][0], grouped[3][2]), (alone[3][0], alone[3][2])])
+        # the contacts and the witness points and weights (the joints are static)
+        return [*grouped[:3], *(grouped[3][i] for i in (1, 3, 4))], [*alone[:3], *(alone[3][i] for i in (1, 3, 4))]
 
+    joints = []
+    jax.eval_shape(lambda q: both(q, joints), qs[0])
+    assert joints[0] == joints[1] and any(joints[0][0]) and any(joints[0][1])
     grouped, separate = jax.jit(jax.vmap(both))(qs)
     for together, alone in zip(grouped, separate):
         np.testing.assert_allclose(together, alone, rtol=1e-12, atol=1e-12)

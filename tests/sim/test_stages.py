@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from rsmooth import sim
+from rsmooth.sim import _stages
 
 
 def _solo_perturbed():
@@ -140,3 +141,50 @@ def test_composed_stages_differentiate_to_the_steps_jacobians():
         scale = float(jnp.max(jnp.abs(theirs)))
         assert scale > 0
         np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-8 * scale)
+
+
+# Free shapes beside each other on a floor (pairs where both shapes move), an arm with a limited
+# hinge and a ball joint's cone, and a spatial tendon limited on both sides.
+_LIMITED_SCENE = """<mujoco><option timestep="0.01"/><worldbody>
+  <geom name="floor" type="plane" size="2 2 0.1"/>
+  <body name="ball" pos="0 0 0.1"><freejoint/><geom type="sphere" size="0.1" mass="1"/></body>
+  <body name="box" pos="0.25 0 0.1"><freejoint/><geom type="box" size="0.1 0.1 0.1" mass="1"/></body>
+  <body name="arm" pos="0 0.3 0.3">
+    <joint name="hinge" type="hinge" axis="0 1 0" limited="true" range="-30 45"/>
+    <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="1"/><site name="tip" pos="0.3 0 0"/>
+    <body name="forearm" pos="0.3 0 0"><joint name="ball" type="ball" limited="true" range="0 40"/>
+      <geom type="capsule" fromto="0 0 0 0.2 0 0" size="0.03" mass="0.5"/></body>
+  </body>
+  <site name="anchor" pos="0 0.3 1"/>
+</worldbody>
+<tendon><spatial name="string" limited="true" range="0.5 0.9"><site site="anchor"/><site site="tip"/></spatial></tendon>
+</mujoco>"""
+
+
+@pytest.mark.parametrize("make", [lambda: sim.scene(_LIMITED_SCENE), sim.pusher], ids=["scene", "pusher"])
+def test_rows_and_velocities_built_from_where_the_contacts_act_are_the_jacobians(make, getkey):
+    """A budgeted step builds the rows of the contacts it solves, and counts those it leaves out
+    from their velocities, from the witness points (`WitnessPoints`) without the Jacobian of every
+    candidate: both equal the Jacobian's, for spheres on planes and the pusher's finger (the
+    pusher), pairs of moving shapes, inactive manifold entries, joint, cone and tendon limits."""
+    system = make()
+    shapes, limits = system.num_contacts - system.num_limits, system.num_limits
+    x = system.initial_state()
+    x = system.project_state(x + 0.05 * jax.random.normal(getkey(), x.shape))
+    q, v = system.split(x)
+    v = jax.random.normal(getkey(), v.shape)
+    contacts = eqx.filter_jit(sim.collision)(system, q)
+    weight = np.asarray(contacts.points.weight)
+    assert weight.shape == (shapes,) and (limits == 0 or contacts.points.limit_rows.shape[0] == limits)
+    np.testing.assert_allclose(_stages.contact_velocities(system, contacts, v), contacts.jacobian @ v, rtol=0, atol=1e-12)
+    # a budget's selection: some contacts between shapes, then some limits (ascending each)
+    budget, limit_budget = shapes - 3, max(limits - 2, 0) or None
+    budgeted = system.with_contact_budget(budget, max_limits=limit_budget)
+    chosen = np.sort(np.asarray(jax.random.choice(getkey(), shapes, (budget,), replace=False)))
+    if limits:
+        chosen = np.concatenate([chosen, shapes + np.sort(np.asarray(jax.random.choice(getkey(), limits, (limit_budget,), replace=False)))])
+    selection = jnp.asarray(chosen, jnp.int32)
+    rows = eqx.filter_jit(_stages.jacobian_rows)(budgeted, contacts, selection)
+    np.testing.assert_allclose(rows, contacts.jacobian[_stages.flat_rows(selection)], rtol=0, atol=1e-12)
+    # the rows are not trivial: moving bodies on both sides of a pair, entries of both kinds
+    assert np.any(weight == 1.0) and np.any(np.abs(np.asarray(rows)) > 0.1)
