@@ -197,7 +197,13 @@ def mass_solve_triangular(model: Model, factor: jax.Array, b: jax.Array, *, tran
     pieces = []
     for size, starts in blocks:
         rhs = jnp.stack([matrix[start : start + size] for start in starts.tolist()])
-        pieces.append(linalg.solve_triangular(_blocks_of(factor, size, starts), rhs, trans=trans))
+        # Each block's inverse (a solve with `size` columns), then a batched product: on a CPU
+        # rsmooth._linalg hands LAPACK a batch of solves with many columns (a contact
+        # Jacobian's) in small chunks, one after another (L^-1 Jᵀ of a tower of 16 boxes
+        # under vmap 64: 616 us per env against 142 by inverses, alone)
+        factors = _blocks_of(factor, size, starts)
+        inverse = linalg.solve_triangular(factors, jnp.broadcast_to(jnp.eye(size, dtype=factors.dtype), factors.shape))
+        pieces.append((jnp.swapaxes(inverse, -1, -2) if trans else inverse) @ rhs)
     solved = _in_dof_order(blocks, pieces)
     return solved if b.ndim == 2 else solved[:, 0]
 
