@@ -11,9 +11,11 @@ phase of ``max_pairs = N`` (the N box pairs and the N box-floor pairs of smalles
 bounding-sphere gap are collided: N - 1 box pairs and one floor pair touch), timed as
 ``jit(vmap(step))`` over a batch of ``BATCH`` copies of the resting tower, per env; also the
 compile time of that program (lower and compile). Medians of ``repeats`` calls after warm-up.
-Where rsmooth's step goes: its stages (:mod:`rsmooth.sim`'s ``collision``, ``free_motion``,
-``solve_contacts``: the NCP, its velocity, impulses and diagnostics, as the step reads them;
-the Delassus matrix is formed only where the solve's start does not solve the problem) timed
+Where rsmooth's step goes: its stages (:mod:`rsmooth.sim`'s ``collision``: the candidates'
+distances, frames and witness points, ``free_motion``, ``solve_contacts``: the contact
+Jacobian's rows of the selected contacts, the NCP, its velocity, impulses and diagnostics, as
+the step reads them; neither the candidates' full Jacobian nor the Delassus matrix, which only
+derivatives read, and the latter also where the solve's start does not solve the problem) timed
 the same way, each a program of its own (their sum exceeds the step, whose program shares the
 kinematics between them).
 
@@ -78,16 +80,23 @@ def _solved(solution):
     return solution.velocity, solution.impulse, solution.joint_impulse, solution.ncp
 
 
+def _collided(contacts):
+    """What a step without derivatives reads of :func:`rsmooth.sim.collision` (the candidates'
+    full Jacobian left out: the solve builds the selected contacts' rows)."""
+    return contacts.distance, contacts.frames, contacts.points, contacts.friction, contacts.joint_rows
+
+
 def _stage_times(system, xs, us, repeats: int) -> dict:
     """Seconds per env of each stage of the batched step (see the module docstring)."""
     qs, vs = system.split(xs)
     collision = jax.jit(jax.vmap(lambda q: sim.collision(system, q)))
+    collided = jax.jit(jax.vmap(lambda q: _collided(sim.collision(system, q))))
     free_motion = jax.jit(jax.vmap(lambda q, v, u: sim.free_motion(system, q, v, u)))
     # the step's outputs of the solve (the Delassus matrix, which only derivatives read, left out)
     solve = jax.jit(jax.vmap(lambda motion, contacts: _solved(sim.solve_contacts(system, motion, contacts))))
     contacts, motion = collision(qs), free_motion(qs, vs, us)
     return {
-        "collision": median_time(collision, qs, repeats=repeats) / BATCH,
+        "collision": median_time(collided, qs, repeats=repeats) / BATCH,
         "free_motion": median_time(free_motion, qs, vs, us, repeats=repeats) / BATCH,
         "solve_contacts": median_time(solve, motion, contacts, repeats=repeats) / BATCH,
         "jacobian_rows": int(contacts.jacobian.shape[1]),
@@ -214,7 +223,7 @@ def main(repeats: int = 30, quick: bool = False) -> dict:
             flush=True,
         )
     print(f"\nours by stage, per env (each stage its own program): {'collision':>10} {'free motion':>12} {'contact solve':>14}"
-          f"  (contact Jacobian rows / solved rows)")
+          f"  (candidate rows / solved rows)")
     for n in sizes:
         stage = cases[str(n)]["ours_stages"]
         print(f"{n:>3}{'':>49} {fmt(stage['collision']):>10} {fmt(stage['free_motion']):>12} {fmt(stage['solve_contacts']):>14}"

@@ -348,15 +348,17 @@ def boxes_section(record: dict) -> list[str]:
     staged = [n for n in results.get("sizes") or [] if get(results, "cases", str(n), "ours_stages")]
     if staged:
         lines += ["", "Where rsmooth's step goes, per env: its stages, each timed as a program of its own (`jit(vmap(...))` over "
-                  "the same batch; their sum exceeds the step, which shares the kinematics between them). The contact solve "
-                  "solves the NCP of the solved rows and returns what the step reads of it (the velocity, impulses and "
-                  "diagnostics): the Delassus matrix is formed only where the solve's start does not solve the problem.", ""]
+                  "the same batch; their sum exceeds the step, which shares the kinematics between them). Collision: the "
+                  "candidates' distances, frames and witness points; the contact solve builds the contact Jacobian's rows "
+                  "of the solved contacts, solves their NCP and returns what the step reads of it (the velocity, impulses "
+                  "and diagnostics): neither the candidates' full Jacobian nor the Delassus matrix is formed (only "
+                  "derivatives read them), the latter except where the solve's start does not solve the problem.", ""]
         stage_rows = []
         for n in staged:
             stage = get(results, "cases", str(n), "ours_stages")
             stage_rows.append([str(n), seconds(stage.get("collision")), seconds(stage.get("free_motion")),
                                seconds(stage.get("solve_contacts")), f"{stage.get('jacobian_rows', '?')} / {stage.get('solved_rows', '?')}"])
-        lines += table(["N", "collision", "free motion", "contact solve", "contact Jacobian rows / solved rows"], stage_rows)
+        lines += table(["N", "collision", "free motion", "contact solve", "candidate rows / solved rows"], stage_rows)
     notes = results.get("notes") or []
     if notes:
         lines += [""] + [f"- {note}" for note in notes]

@@ -197,11 +197,14 @@ def mass_solve_triangular(model: Model, factor: jax.Array, b: jax.Array, *, tran
     pieces = []
     for size, starts in blocks:
         rhs = jnp.stack([matrix[start : start + size] for start in starts.tolist()])
-        # Each block's inverse (a solve with `size` columns), then a batched product: on a CPU
-        # rsmooth._linalg hands LAPACK a batch of solves with many columns (a contact
-        # Jacobian's) in small chunks, one after another (L^-1 Jᵀ of a tower of 16 boxes
-        # under vmap 64: 616 us per env against 142 by inverses, alone)
         factors = _blocks_of(factor, size, starts)
+        if matrix.shape[1] <= size:
+            pieces.append(linalg.solve_triangular(factors, rhs, trans=trans))
+            continue
+        # More columns than the block's size (a contact Jacobian's): each block's inverse (a
+        # solve with `size` columns), then a batched product. On a CPU rsmooth._linalg hands
+        # LAPACK a batch of solves with many columns in small chunks, one after another (L^-1 Jᵀ
+        # of a tower of 16 boxes under vmap 64: 616 us per env against 142 by inverses, alone).
         inverse = linalg.solve_triangular(factors, jnp.broadcast_to(jnp.eye(size, dtype=factors.dtype), factors.shape))
         pieces.append((jnp.swapaxes(inverse, -1, -2) if trans else inverse) @ rhs)
     solved = _in_dof_order(blocks, pieces)

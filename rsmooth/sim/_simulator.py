@@ -351,7 +351,8 @@ class Options(eqx.Module):
             counted in :attr:`StepInfo.dropped_contacts` and reported by :func:`check_steps`.
             A scene of many shapes has far more candidates (every manifold entry of every
             pair) than touching points; the solve's cost grows with the cube of the contacts
-            it holds. The selection is piecewise constant in the state: derivatives are those
+            it holds, and a step that takes no derivative builds the contact Jacobian's rows
+            of the selected contacts only. The selection is piecewise constant in the state: derivatives are those
             of the selected problem. ``None`` (default): every candidate. See
             :meth:`RigidBodySystem.with_contact_budget`.
         max_limits: the same budget on the joint and tendon limits (:attr:`Joints.limits`,
