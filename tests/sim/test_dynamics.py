@@ -511,6 +511,20 @@ def test_the_mass_matrix_of_several_trees_is_factored_and_solved_block_by_block(
     np.testing.assert_allclose(_dynamics.mass_solve_triangular(model, factor, jnp.asarray(B)), np.linalg.solve(L, B), atol=1e-10)
     np.testing.assert_allclose(_dynamics.mass_solve_triangular(model, factor, jnp.asarray(b), trans=True), np.linalg.solve(L.T, b), atol=1e-10)
     np.testing.assert_allclose(_dynamics.mass_cho_solve(model, factor, jnp.asarray(b)), np.linalg.solve(dense, b), atol=1e-10)
+    # more columns than any block has rows (a contact Jacobian's, solved by the blocks' inverses),
+    # and their derivative, as the dense factor's
+    C = jnp.asarray(rng.normal(size=(model.nv, 8)))
+    same_tree = np.zeros(mass.shape)
+    for size, starts in blocks:
+        for start in starts.tolist():
+            same_tree[start : start + size, start : start + size] = 1.0
+    for trans in (False, True):
+        blocked = lambda m: _dynamics.mass_solve_triangular(model, _dynamics.mass_cholesky(model, m), C, trans=trans)  # noqa: B023, E731
+        reference = lambda m: jax.scipy.linalg.solve_triangular(jnp.linalg.cholesky(m), C, lower=True, trans=int(trans))  # noqa: B023, E731
+        np.testing.assert_allclose(blocked(mass), reference(mass), rtol=0, atol=1e-10)
+        direction = rng.normal(size=mass.shape) * same_tree  # M's changes keep its trees apart
+        direction = jnp.asarray(direction + direction.T)
+        np.testing.assert_allclose(jax.jvp(blocked, (mass,), (direction,))[1], jax.jvp(reference, (mass,), (direction,))[1], rtol=0, atol=1e-9)
     # batched as the step is, and differentiated (the factor's JVP through the blocks)
     batched = jax.vmap(lambda m: _dynamics.mass_cho_solve(model, _dynamics.mass_cholesky(model, m), jnp.asarray(b)))
     np.testing.assert_allclose(batched(jnp.stack([mass, 2 * mass])), np.stack([np.linalg.solve(dense, b), np.linalg.solve(2 * dense, b)]), atol=1e-10)
