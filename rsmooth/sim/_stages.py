@@ -122,8 +122,9 @@ class ContactGeometry(eqx.Module):
         joint_rows: the joints' box rows at the configuration
             (:meth:`RigidBodySystem.joint_rows`: dry friction, couplings), ``(rows (m, nv),
             correction (m,), bounds (m,))``.
-        points: where the contacts act (:class:`WitnessPoints`); ``None``: ``jacobian`` gives
-            the rows and velocities.
+        points: where the contacts act (:class:`WitnessPoints`), from which a budgeted solve
+            builds its rows; ``None``: ``jacobian`` gives the rows and velocities (set it to
+            ``None`` where ``jacobian`` was changed between stages).
     """
 
     distance: Array
