@@ -352,8 +352,8 @@ class Options(eqx.Module):
             A scene of many shapes has far more candidates (every manifold entry of every
             pair) than touching points; the solve's cost grows with the cube of the contacts
             it holds, and a step that takes no derivative builds the contact Jacobian's rows
-            of the selected contacts only. The selection is piecewise constant in the state: derivatives are those
-            of the selected problem. ``None`` (default): every candidate. See
+            of the selected contacts only. The selection is piecewise constant in the state:
+            derivatives are those of the selected problem. ``None`` (default): every candidate. See
             :meth:`RigidBodySystem.with_contact_budget`.
         max_limits: the same budget on the joint and tendon limits (:attr:`Joints.limits`,
             :attr:`Tendons.limits`; static): at
@@ -2236,9 +2236,7 @@ class RigidBodySystem(eqx.Module):
         normals = jnp.tile(self.geometry.plane_normals, (num_spheres, 1))
         offsets = jnp.tile(self.geometry.plane_offsets, num_spheres)
         distance = spatial.sum_last(centres * normals) - offsets - jnp.repeat(self.geometry.sphere_radii, num_planes)
-        point_jacobians = _dynamics._point_velocity_columns(model, kinematics, joints, points)  # (n, nv, 3)
-        # R^T J_p, unrolled over the 3-axis (a batched 3x3 dot is slow on CPU: _spatial)
-        jacobians = sum(rotations[:, j, :, None] * point_jacobians[:, None, :, j] for j in range(3))  # (n, 3, nv)
+        jacobians = _stages.point_rows(model, kinematics, rotations, [(1.0, joints, points)])  # (n, 3, nv)
         # the half-spaces are the world's (joint 0)
         acting = ((0,) * len(joints), points, tuple(int(j) for j in joints), points, jnp.ones(len(joints), points.dtype))
         distances, frames, jacobians, where = [distance], [rotations], [jacobians], [acting]
@@ -2380,10 +2378,11 @@ class RigidBodySystem(eqx.Module):
     def _geom_pair_contacts(self, kinematics, pair: GeomPair) -> tuple[Array, Array, Array, tuple]:
         """Signed distances ``(k,)``, contact frames ``(k, 3, 3)``, relative contact
         Jacobians ``(k, 3, nv)`` and where they act (:meth:`_shape_contacts`) of a geometry
-        pair's manifold: ``R^T (J_2 - J_1)`` with ``J_i`` the Jacobian of the world velocity of the material point of shape ``i``'s
-        body at its witness point (none for a world-fixed shape), so the normal velocity
-        (along the normal from shape 1 to shape 2) is positive where they separate. Entries
-        that are not contacts of the manifold get a distance of 10 m (:data:`_INACTIVE_DISTANCE`)."""
+        pair's manifold: ``R^T (J_2 - J_1)`` (:func:`~rsmooth.sim._stages.point_rows`) with
+        ``J_i`` the Jacobian of the world velocity of the material point of shape ``i``'s body at
+        its witness point (none for a world-fixed shape), so the normal velocity (along the
+        normal from shape 1 to shape 2) is positive where they separate. Entries that are not
+        contacts of the manifold get a distance of 10 m (:data:`_INACTIVE_DISTANCE`)."""
         pose1 = self._geom_pose(kinematics, pair.frame1, pair.placement1)
         pose2 = self._geom_pose(kinematics, pair.frame2, pair.placement2)
         manifold = collide(pair.shape1, pose1, pair.shape2, pose2, margin=pair.margin)
@@ -2397,22 +2396,18 @@ class RigidBodySystem(eqx.Module):
         model = self.model
         distance = jnp.where(manifold.active, manifold.distance, _INACTIVE_DISTANCE).reshape(-1)
         rotations = contact_frame(manifold.normal.reshape(-1, 3))  # (n k, 3, 3)
-        velocity = 0.0  # (n k, nv, 3): world velocity of point 2 relative to point 1
         point1, point2 = manifold.point1.reshape(-1, 3), manifold.point2.reshape(-1, 3)
-        joints1 = joints2 = np.zeros(len(frames1) * size, np.int64)  # a world-fixed shape: joint 0
-        if frames2[0] is not None:
-            joints2 = np.repeat([model.frame_parents[model.frame_id(frame)] for frame in frames2], size)
-            velocity = velocity + _dynamics._point_velocity_columns(model, kinematics, joints2, point2)
-        if frames1[0] is not None:
-            joints1 = np.repeat([model.frame_parents[model.frame_id(frame)] for frame in frames1], size)
-            velocity = velocity - _dynamics._point_velocity_columns(model, kinematics, joints1, point1)
-        # R^T J, unrolled over the 3-axis as in contacts()
-        jacobians = sum(rotations[:, j, :, None] * velocity[:, None, :, j] for j in range(3))  # (n k, 3, nv)
+        # each side's body (a world-fixed shape: joint 0, which no dof moves)
+        joints2, joints1 = (
+            np.repeat([0 if frame is None else model.frame_parents[model.frame_id(frame)] for frame in frames], size)
+            for frames in (frames2, frames1)
+        )
+        moving = [(sign, joints, point) for sign, joints, point in ((1.0, joints2, point2), (-1.0, joints1, point1)) if joints.any()]
         # An inactive entry gets no impulse (its 10 m gap does not close in a step): zero rows
         # keep it out of the Delassus matrix, so that where its witness points lie (a far
         # pair's, or none for a pair the broad phase skipped) does not change the problem.
-        jacobians = jnp.where(manifold.active.reshape(-1)[:, None, None], jacobians, 0.0)
         weight = manifold.active.reshape(-1).astype(distance.dtype)
+        jacobians = _stages.point_rows(model, kinematics, rotations, moving, weight)  # (n k, 3, nv)
         return distance, rotations, jacobians, (tuple(map(int, joints1)), point1, tuple(map(int, joints2)), point2, weight)
 
     def step_with_info(self, x: ArrayLike, u: ArrayLike, *, warm_start: ArrayLike | None = None) -> tuple[Array, StepInfo]:

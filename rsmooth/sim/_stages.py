@@ -343,6 +343,21 @@ def compliant_impulse(law, distance: Array, free_velocity: Array, delassus: Arra
     return linalg.solve(system, h * force.reshape(-1))
 
 
+def point_rows(model: Model, kinematics, frames: Array, moving, weight: Array | None = None) -> Array:
+    """Contact Jacobian rows ``R^T (J_2 - J_1)`` ``(k, 3, nv)`` of contacts in frames ``R``
+    ``(k, 3, 3)``: ``J_i`` the Jacobian of the world velocity of the material point of body
+    ``joints_i`` at ``points_i`` ``(k, 3)``. ``moving``: ``(sign, joints, points)`` of each side
+    that some dof moves (``+1`` shape 2, ``-1`` shape 1; a world-fixed side is left out), its
+    joints static or traced; ``kinematics``: anything with the ``motion_subspace``. Rows are zero
+    where ``weight`` is 0 (inactive manifold entries)."""
+    velocity = 0.0  # (k, nv, 3): world velocity of point 2 relative to point 1
+    for sign, joints, points in moving:
+        velocity = velocity + sign * _dynamics._point_velocity_columns(model, kinematics, joints, points)
+    # R^T velocity, unrolled over the 3-axis (a batched 3x3 dot is slow on CPU: _spatial)
+    rows = sum(frames[:, j, :, None] * velocity[:, None, :, j] for j in range(3))
+    return rows if weight is None else jnp.where(weight[:, None, None] > 0, rows, 0.0)
+
+
 def contact_velocities(system: RigidBodySystem, contacts: ContactGeometry, v: Array) -> Array:
     """``J v`` ``(3 n,)``: every candidate's velocity in its frame, from the bodies' twists at
     ``v`` and the witness points (:class:`WitnessPoints`) rather than from ``J``."""
@@ -380,16 +395,13 @@ def jacobian_rows(system: RigidBodySystem, contacts: ContactGeometry, selection:
     which = selection[:count]
     parts = []
     if count:
-        velocity = _dynamics._point_velocity_columns(  # (k, nv, 3); points carries the motion subspace
-            model, points, jnp.asarray(points.joint2, jnp.int32)[which], points.point2[which]
-        )
-        if any(points.joint1):
-            velocity = velocity - _dynamics._point_velocity_columns(
-                model, points, jnp.asarray(points.joint1, jnp.int32)[which], points.point1[which]
-            )
-        rotations = contacts.frames[which]
-        shape_rows = sum(rotations[:, j, :, None] * velocity[:, None, :, j] for j in range(3))  # (k, 3, nv)
-        parts.append(jnp.where(points.weight[which][:, None, None] > 0, shape_rows, 0.0))
+        moving = [
+            (sign, jnp.asarray(joints, jnp.int32)[which], point[which])
+            for sign, joints, point in ((1.0, points.joint2, points.point2), (-1.0, points.joint1, points.point1))
+            if any(joints)  # a side that is the world's everywhere moves with no dof
+        ]
+        # points carries the motion subspace
+        parts.append(point_rows(model, points, contacts.frames[which], moving, points.weight[which]))
     if selection.shape[0] > count:
         parts.append(points.limit_rows[selection[count:] - shapes])
     return jnp.concatenate(parts).reshape(-1, model.nv)
