@@ -2173,7 +2173,7 @@ class RigidBodySystem(eqx.Module):
         distance, frames, jacobian, points = self._shape_contacts(q, kinematics)
         limit_rows = jnp.zeros((0, 3, self.model.nv), jacobian.dtype)
         if self.num_limits:
-            parts = [(distance, jacobian.reshape(-1, 3, self.model.nv))]
+            parts = []  # (distances, rows) of the joint limits, then of the tendons' limits
             if self.joints.limits:
                 parts.append(self._joint_limit_contacts(q, jacobian.dtype))
             tendons = self.joints.tendons
@@ -2186,10 +2186,10 @@ class RigidBodySystem(eqx.Module):
                 rows = jnp.zeros((len(which), 3, self.model.nv), jacobian.dtype).at[:, 2].set(sides[:, None] * moments[which])
                 parts.append((limit_distance, rows))
             count = self.num_limits
-            limit_rows = jnp.concatenate([part[1] for part in parts[1:]])
-            distance = jnp.concatenate([part[0].astype(distance.dtype) for part in parts])
+            limit_rows = jnp.concatenate([part[1] for part in parts])
+            distance = jnp.concatenate([distance] + [part[0].astype(distance.dtype) for part in parts])
             frames = jnp.concatenate([frames, jnp.broadcast_to(jnp.eye(3, dtype=frames.dtype), (count, 3, 3))])
-            jacobian = jnp.concatenate([part[1] for part in parts]).reshape(-1, self.model.nv)
+            jacobian = jnp.concatenate([jacobian, limit_rows.reshape(-1, self.model.nv)])
         joint1, point1, joint2, point2, weight = points
         return distance, frames, jacobian, _stages.WitnessPoints(
             joint1, point1, joint2, point2, weight, kinematics.motion_subspace, limit_rows
@@ -2236,9 +2236,9 @@ class RigidBodySystem(eqx.Module):
         normals = jnp.tile(self.geometry.plane_normals, (num_spheres, 1))
         offsets = jnp.tile(self.geometry.plane_offsets, num_spheres)
         distance = spatial.sum_last(centres * normals) - offsets - jnp.repeat(self.geometry.sphere_radii, num_planes)
-        jacobians = _stages.point_rows(model, kinematics, rotations, [(1.0, joints, points)])  # (n, 3, nv)
         # the half-spaces are the world's (joint 0)
         acting = ((0,) * len(joints), points, tuple(int(j) for j in joints), points, jnp.ones(len(joints), points.dtype))
+        jacobians = _stages.point_rows(model, kinematics, rotations, *acting[:4])  # (n, 3, nv)
         distances, frames, jacobians, where = [distance], [rotations], [jacobians], [acting]
         if self.geometry.geom_pairs:
             distance, rotation, jacobian, acting = self._geom_pairs_contacts(kinematics)
@@ -2402,12 +2402,11 @@ class RigidBodySystem(eqx.Module):
             np.repeat([0 if frame is None else model.frame_parents[model.frame_id(frame)] for frame in frames], size)
             for frames in (frames2, frames1)
         )
-        moving = [(sign, joints, point) for sign, joints, point in ((1.0, joints2, point2), (-1.0, joints1, point1)) if joints.any()]
         # An inactive entry gets no impulse (its 10 m gap does not close in a step): zero rows
         # keep it out of the Delassus matrix, so that where its witness points lie (a far
         # pair's, or none for a pair the broad phase skipped) does not change the problem.
         weight = manifold.active.reshape(-1).astype(distance.dtype)
-        jacobians = _stages.point_rows(model, kinematics, rotations, moving, weight)  # (n k, 3, nv)
+        jacobians = _stages.point_rows(model, kinematics, rotations, joints1, point1, joints2, point2, weight)  # (n k, 3, nv)
         return distance, rotations, jacobians, (tuple(map(int, joints1)), point1, tuple(map(int, joints2)), point2, weight)
 
     def step_with_info(self, x: ArrayLike, u: ArrayLike, *, warm_start: ArrayLike | None = None) -> tuple[Array, StepInfo]:

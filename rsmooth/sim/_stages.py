@@ -343,19 +343,25 @@ def compliant_impulse(law, distance: Array, free_velocity: Array, delassus: Arra
     return linalg.solve(system, h * force.reshape(-1))
 
 
-def point_rows(model: Model, kinematics, frames: Array, moving, weight: Array | None = None) -> Array:
+def point_rows(model: Model, kinematics, frames: Array, joint1, point1: Array, joint2, point2: Array,
+               weight: Array | None = None, which: Array | None = None) -> Array:
     """Contact Jacobian rows ``R^T (J_2 - J_1)`` ``(k, 3, nv)`` of contacts in frames ``R``
     ``(k, 3, 3)``: ``J_i`` the Jacobian of the world velocity of the material point of body
-    ``joints_i`` at ``points_i`` ``(k, 3)``. ``moving``: ``(sign, joints, points)`` of each side
-    that some dof moves (``+1`` shape 2, ``-1`` shape 1; a world-fixed side is left out), its
-    joints static or traced; ``kinematics``: anything with the ``motion_subspace``. Rows are zero
-    where ``weight`` is 0 (inactive manifold entries)."""
+    ``joint_i`` (static, per contact; 0: the world, which no dof moves) at ``point_i`` ``(k, 3)``;
+    zero rows where ``weight`` is 0 (inactive manifold entries). ``which``: the rows of those
+    contacts only (traced indices, ``(k',)``). ``kinematics``: anything with the
+    ``motion_subspace``."""
+    take = (lambda values: values) if which is None else (lambda values: values[which])  # noqa: E731
     velocity = 0.0  # (k, nv, 3): world velocity of point 2 relative to point 1
-    for sign, joints, points in moving:
-        velocity = velocity + sign * _dynamics._point_velocity_columns(model, kinematics, joints, points)
+    for sign, joints, points in ((1.0, joint2, point2), (-1.0, joint1, point1)):
+        joints = np.asarray(joints, np.int32)
+        if joints.any():  # a side that is the world's everywhere moves with no dof
+            joints = joints if which is None else jnp.asarray(joints)[which]
+            velocity = velocity + sign * _dynamics._point_velocity_columns(model, kinematics, joints, take(points))
     # R^T velocity, unrolled over the 3-axis (a batched 3x3 dot is slow on CPU: _spatial)
+    frames = take(frames)
     rows = sum(frames[:, j, :, None] * velocity[:, None, :, j] for j in range(3))
-    return rows if weight is None else jnp.where(weight[:, None, None] > 0, rows, 0.0)
+    return rows if weight is None else jnp.where(take(weight)[:, None, None] > 0, rows, 0.0)
 
 
 def contact_velocities(system: RigidBodySystem, contacts: ContactGeometry, v: Array) -> Array:
@@ -392,16 +398,10 @@ def jacobian_rows(system: RigidBodySystem, contacts: ContactGeometry, selection:
         return contacts.jacobian[flat_rows(selection)]
     model, shapes = system.model, len(points.joint1)
     count = system._selected_shape_count()  # static: the selection's contacts between shapes
-    which = selection[:count]
     parts = []
-    if count:
-        moving = [
-            (sign, jnp.asarray(joints, jnp.int32)[which], point[which])
-            for sign, joints, point in ((1.0, points.joint2, points.point2), (-1.0, points.joint1, points.point1))
-            if any(joints)  # a side that is the world's everywhere moves with no dof
-        ]
-        # points carries the motion subspace
-        parts.append(point_rows(model, points, contacts.frames[which], moving, points.weight[which]))
+    if count:  # points carries the motion subspace
+        parts.append(point_rows(model, points, contacts.frames[:shapes], points.joint1, points.point1, points.joint2,
+                                points.point2, points.weight, which=selection[:count]))
     if selection.shape[0] > count:
         parts.append(points.limit_rows[selection[count:] - shapes])
     return jnp.concatenate(parts).reshape(-1, model.nv)
