@@ -14,8 +14,8 @@ compile time of that program (lower and compile). Medians of ``repeats`` calls a
 Where rsmooth's step goes: its stages (:mod:`rsmooth.sim`'s ``collision``: the candidates'
 distances, frames and witness points, ``free_motion``, ``solve_contacts``: the contact
 Jacobian's rows of the selected contacts, the NCP, its velocity, impulses and diagnostics, as
-the step reads them; neither the candidates' full Jacobian nor the Delassus matrix, which only
-derivatives read, and the latter also where the solve's start does not solve the problem) timed
+the step reads them; only derivatives read the candidates' full Jacobian and the Delassus
+matrix, which a step forms only where the solve's start does not solve the problem) timed
 the same way, each a program of its own (their sum exceeds the step, whose program shares the
 kinematics between them).
 
